@@ -1,0 +1,98 @@
+"""One loader for the typed configuration of every module.
+
+Each module defines a dataclass with defaults (and optional ``validate(self)`` raising ConfigError).
+``load_config`` builds it from a mapping (YAML section, ROS private params) and rejects unknown keys
+and values of the wrong type with a message naming the key, so a typo never passes silently.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import typing
+from typing import Any, Mapping, TypeVar
+
+import yaml
+
+from .errors import ConfigError
+
+C = TypeVar("C")
+
+
+def _coerce(name: str, value: Any, typ: Any) -> Any:
+    origin = typing.get_origin(typ)
+    if typ is Any:
+        return value
+    if origin is typing.Union:  # Optional[X]
+        args = [a for a in typing.get_args(typ) if a is not type(None)]
+        if value is None:
+            return None
+        return _coerce(name, value, args[0])
+    if origin in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"config key '{name}': expected a list, got {value!r}")
+        (item_type, *_) = typing.get_args(typ) or (Any,)
+        items = [_coerce(f"{name}[{i}]", v, item_type) for i, v in enumerate(value)]
+        return tuple(items) if origin is tuple else items
+    if dataclasses.is_dataclass(typ):
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"config key '{name}': expected a mapping, got {value!r}")
+        return load_config(typ, value, prefix=f"{name}.")
+    if typ is bool:
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(f"config key '{name}': expected true/false, got {value!r}")
+    if typ is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        raise ConfigError(f"config key '{name}': expected a number, got {value!r}")
+    if typ is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise ConfigError(f"config key '{name}': expected an integer, got {value!r}")
+    if typ is str:
+        if isinstance(value, str):
+            return value
+        raise ConfigError(f"config key '{name}': expected a string, got {value!r}")
+    return value
+
+
+def load_config(cls: type[C], values: Mapping[str, Any] | None = None, prefix: str = "") -> C:
+    """Build dataclass ``cls`` from ``values``; missing keys keep their defaults."""
+    values = dict(values or {})
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - set(fields))
+    if unknown:
+        raise ConfigError(
+            f"unknown config key(s) {', '.join(prefix + k for k in unknown)} for {cls.__name__}; "
+            f"known keys: {', '.join(sorted(fields))}"
+        )
+    kwargs = {k: _coerce(prefix + k, v, hints[k]) for k, v in values.items()}
+    obj = cls(**kwargs)
+    validate = getattr(obj, "validate", None)
+    if callable(validate):
+        validate()
+    return obj
+
+
+def load_yaml_config(cls: type[C], path: str | os.PathLike, section: str | None = None) -> C:
+    """Load ``cls`` from a YAML file (optionally one top-level section of it)."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = yaml.safe_load(fh) or {}
+    except FileNotFoundError:
+        raise ConfigError(f"config file not found: {path}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {path} is not valid YAML: {exc}") from None
+    if section is not None:
+        data = data.get(section, {}) or {}
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"config file {path}: expected a mapping at '{section or 'top level'}'")
+    return load_config(cls, data)
+
+
+def require(condition: bool, message: str) -> None:
+    """Raise ConfigError(message) unless condition holds (for ``validate`` methods)."""
+    if not condition:
+        raise ConfigError(message)

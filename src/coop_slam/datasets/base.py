@@ -1,0 +1,172 @@
+"""Common representation of an image sequence with ground truth, whatever it was read from.
+
+A :class:`Sequence` lists frames (paths, timestamps) and loads images lazily, so a reader never holds
+a whole dataset in memory. Ground truth is always ``T_world_cam`` (camera optical frame in the
+dataset's world frame), as an (N, 4, 4) array.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..errors import CoopSlamError
+
+SENSORS = ("rgbd", "stereo", "mono")
+
+
+class DatasetError(CoopSlamError):
+    """A dataset folder or file is missing or malformed."""
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Pinhole model of rectified images (REP-103 units: pixels and metres)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    sensor: str = "rgbd"  # one of SENSORS
+    depth_scale: float = 5000.0  # raw 16-bit depth units per metre (TUM: 5000)
+    baseline_m: float = 0.0  # stereo baseline [m]
+
+    def __post_init__(self):
+        if self.width <= 0 or self.height <= 0:
+            raise DatasetError(f"camera image size {self.width}x{self.height} must be positive")
+        vals = (self.fx, self.fy, self.cx, self.cy, self.depth_scale, self.baseline_m)
+        if not all(np.isfinite(vals)) or self.fx <= 0 or self.fy <= 0:
+            raise DatasetError(f"camera intrinsics must be finite with fx, fy > 0, got {self}")
+        if self.sensor not in SENSORS:
+            raise DatasetError(f"camera sensor '{self.sensor}' unknown; use one of {SENSORS}")
+        if self.sensor == "stereo" and self.baseline_m <= 0:
+            raise DatasetError("a stereo camera needs baseline_m > 0")
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One frame of a sequence: timestamp and image paths (depth for RGB-D, right for stereo)."""
+
+    index: int  # index in the original sequence (kept through splits)
+    stamp_s: float
+    color_path: str
+    depth_path: str | None = None
+    right_path: str | None = None
+
+
+@dataclass
+class Sequence:
+    """Frames, camera and ground truth of one camera's recording."""
+
+    name: str
+    camera: CameraModel
+    frames: list[Frame]
+    gt_stamps_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    gt_poses_se3: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # T_world_cam
+    gt_max_dt_s: float = 0.02  # largest stamp difference accepted when associating ground truth
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    @property
+    def stamps_s(self) -> np.ndarray:
+        return np.array([f.stamp_s for f in self.frames], dtype=float)
+
+    def frame_poses(self) -> np.ndarray:
+        """Ground-truth ``T_world_cam`` for every frame (nearest stamp; NaN where none is close)."""
+        out = np.full((len(self.frames), 4, 4), np.nan)
+        if len(self.gt_stamps_s) == 0 or not self.frames:
+            return out
+        stamps = self.stamps_s
+        idx = np.clip(np.searchsorted(self.gt_stamps_s, stamps), 1, len(self.gt_stamps_s) - 1)
+        if len(self.gt_stamps_s) == 1:
+            idx = np.zeros(len(stamps), dtype=int)
+        else:
+            left = idx - 1
+            closer_left = np.abs(self.gt_stamps_s[left] - stamps) <= np.abs(
+                self.gt_stamps_s[idx] - stamps
+            )
+            idx = np.where(closer_left, left, idx)
+        ok = np.abs(self.gt_stamps_s[idx] - stamps) <= self.gt_max_dt_s
+        out[ok] = self.gt_poses_se3[idx[ok]]
+        return out
+
+    def slice(self, start: int, stop: int, name: str | None = None) -> "Sequence":
+        """Frames ``start..stop-1`` (positions in this sequence) as a new sequence."""
+        if not 0 <= start < stop <= len(self.frames):
+            raise DatasetError(
+                f"frame range {start}-{stop - 1} is outside {self.name} (0-{len(self.frames) - 1})"
+            )
+        return dataclasses.replace(self, name=name or self.name, frames=self.frames[start:stop])
+
+    # --- image loading -------------------------------------------------------------------------
+    def load_color(self, frame: Frame) -> np.ndarray:
+        """Colour image as BGR uint8 (grey images are returned as single-channel uint8)."""
+        return _imread(frame.color_path, cv2.IMREAD_UNCHANGED)
+
+    def load_right(self, frame: Frame) -> np.ndarray:
+        if frame.right_path is None:
+            raise DatasetError(f"{self.name}: frame {frame.index} has no right image (not stereo)")
+        return _imread(frame.right_path, cv2.IMREAD_UNCHANGED)
+
+    def load_depth_m(self, frame: Frame) -> np.ndarray:
+        """Depth in metres as float32, 0 where there is no measurement."""
+        if frame.depth_path is None:
+            raise DatasetError(f"{self.name}: frame {frame.index} has no depth image")
+        raw = _imread(frame.depth_path, cv2.IMREAD_UNCHANGED)
+        if raw.ndim != 2:
+            raise DatasetError(f"depth image {frame.depth_path} has {raw.shape[2]} channels, expected 1")
+        if raw.dtype == np.uint16:
+            return raw.astype(np.float32) / np.float32(self.camera.depth_scale)
+        depth = raw.astype(np.float32)
+        depth[~np.isfinite(depth)] = 0.0
+        return depth
+
+
+def _imread(path: str, flags: int) -> np.ndarray:
+    if not os.path.isfile(path):
+        raise DatasetError(f"image file not found: {path}")
+    img = cv2.imread(path, flags)
+    if img is None or img.size == 0:
+        raise DatasetError(f"cannot decode image file {path} (corrupt or unsupported format)")
+    return img
+
+
+def read_camera_yaml(path: str, sensor: str = "rgbd") -> CameraModel:
+    """Camera model from a flat YAML file (width, height, fx, fy, cx, cy[, depth_scale, baseline_m])."""
+    import yaml
+
+    if not os.path.isfile(path):
+        raise DatasetError(f"camera file not found: {path}")
+    with open(path, encoding="utf-8") as fh:
+        try:
+            data = yaml.safe_load(fh) or {}
+        except yaml.YAMLError as exc:
+            raise DatasetError(f"camera file {path} is not valid YAML: {exc}") from None
+    missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in data]
+    if missing:
+        raise DatasetError(f"camera file {path} lacks {', '.join(missing)}")
+    known = {f.name for f in dataclasses.fields(CameraModel)}
+    kwargs = {k: v for k, v in data.items() if k in known}
+    kwargs.setdefault("sensor", sensor)
+    return CameraModel(**kwargs)
+
+
+def write_camera_yaml(path: str, camera: CameraModel) -> None:
+    import yaml
+
+    with open(path, "w", encoding="utf-8") as fh:
+        yaml.safe_dump(camera.to_dict(), fh, sort_keys=False)
