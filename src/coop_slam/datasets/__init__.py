@@ -1,6 +1,8 @@
 """Data sources: readers for TUM RGB-D, KITTI odometry, the synthetic world, and a splitter."""
 
 from .base import CameraModel, DatasetError, Frame, Sequence, read_camera_yaml, write_camera_yaml
+from .kitti import read_kitti, read_kitti_poses
+from .split import parse_ranges, split_equal, split_ranges
 from .tum import read_tum, read_tum_trajectory, write_tum_trajectory
 
 __all__ = [
@@ -10,6 +12,11 @@ __all__ = [
     "Sequence",
     "read_camera_yaml",
     "write_camera_yaml",
+    "read_kitti",
+    "read_kitti_poses",
+    "parse_ranges",
+    "split_equal",
+    "split_ranges",
     "read_tum",
     "read_tum_trajectory",
     "write_tum_trajectory",

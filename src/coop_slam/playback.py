@@ -1,0 +1,151 @@
+"""What to play for which robot, and when: sources resolved into robot streams, and the schedule.
+
+A *source* is a synthetic scenario, a dataset folder (TUM or KITTI, optionally split into robots by
+frame ranges) or a rosbag. :func:`load_streams` turns the first two into :class:`RobotStream` s with
+ground truth in one shared world frame; :func:`build_schedule` orders all robots' frames on one
+playback timeline (robots start together unless the original timing is kept).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .datasets import (
+    DatasetError,
+    Frame,
+    Sequence,
+    parse_ranges,
+    read_kitti,
+    read_tum,
+    split_equal,
+    split_ranges,
+)
+from .errors import CoopSlamError
+
+PLAYBACK_T0_S = 1.0  # first sim time when robots start together (ROS time 0 means "unset")
+
+
+class PlaybackError(CoopSlamError):
+    """A playback source cannot be resolved (unknown scenario, bad split, missing folder)."""
+
+
+@dataclass
+class RobotStream:
+    robot_id: int  # 1-based
+    sequence: Sequence
+    start_offset_s: float = 0.0
+
+    @property
+    def name(self) -> str:
+        return f"robot_{self.robot_id}"
+
+
+@dataclass
+class Source:
+    kind: str  # "scenario", "dataset" or "bag"
+    streams: list[RobotStream] = field(default_factory=list)
+    folder: str = ""  # data folder (generated world, dataset folder or bag file)
+    meta: dict = field(default_factory=dict)  # synthetic world metadata (overlap events, ...)
+
+
+def _read_dataset(folder: str, camera_file: str | None) -> Sequence:
+    if os.path.isfile(os.path.join(folder, "calib.txt")):
+        return read_kitti(folder)
+    return read_tum(folder, camera_file=camera_file)
+
+
+def load_streams(
+    scenario: str | None = None,
+    dataset: str | None = None,
+    split: str | None = None,
+    robots: int | None = None,
+    seed: int = 0,
+    camera_file: str | None = None,
+    start_offsets_s: list[float] | None = None,
+    progress=None,
+    world_params: dict | None = None,
+) -> Source:
+    """Resolve a scenario name or a dataset folder into robot streams (see module doc)."""
+    if (scenario is None) == (dataset is None):
+        raise PlaybackError("give exactly one of a synthetic scenario or a dataset folder")
+    if scenario is not None:
+        from .datasets.synthetic import read_synthetic
+        from .synthetic.generate import generate
+
+        params = dict(world_params or {})
+        if robots is not None:
+            params["robots"] = robots
+        folder = generate(scenario, seed=seed, progress=progress, **params)
+        world = read_synthetic(folder)
+        seqs = [world.sequences[k] for k in sorted(world.sequences)]
+        ids = sorted(world.sequences)
+        if split is not None:
+            raise PlaybackError("--split applies to a dataset folder, not to a synthetic scenario")
+        streams = [RobotStream(robot_id=i, sequence=s) for i, s in zip(ids, seqs)]
+        source = Source("scenario", streams, folder, dict(world.meta))
+    else:
+        try:
+            seq = _read_dataset(dataset, camera_file)
+        except DatasetError as exc:
+            raise PlaybackError(str(exc)) from None
+        if split is not None:
+            parts = split_ranges(seq, parse_ranges(split))
+            if robots is not None and robots != len(parts):
+                raise PlaybackError(f"--robots {robots} disagrees with --split, which gives {len(parts)}")
+        else:
+            parts = split_equal(seq, robots or 1)
+        streams = [RobotStream(robot_id=k + 1, sequence=s) for k, s in enumerate(parts)]
+        source = Source("dataset", streams, dataset)
+    if start_offsets_s:
+        if len(start_offsets_s) != len(source.streams):
+            raise PlaybackError(
+                f"{len(start_offsets_s)} start offsets given for {len(source.streams)} robots"
+            )
+        for stream, off in zip(source.streams, start_offsets_s):
+            if not np.isfinite(off) or off < 0:
+                raise PlaybackError(f"start offset {off} of {stream.name} must be >= 0 s")
+            stream.start_offset_s = float(off)
+    return source
+
+
+@dataclass(frozen=True)
+class ScheduledFrame:
+    play_s: float  # sim time at which the frame is published (also its header stamp)
+    robot_id: int
+    frame: Frame
+
+
+def build_schedule(streams: list[RobotStream], keep_timing: bool = False) -> list[ScheduledFrame]:
+    """All robots' frames on one timeline, sorted by play time (ties by robot id).
+
+    Robots start together at PLAYBACK_T0_S (plus their start offsets) unless ``keep_timing``, which
+    keeps each segment's original stamps so a split sequence plays as it was recorded.
+    """
+    out = []
+    for stream in streams:
+        stamps = stream.sequence.stamps_s
+        if len(stamps) == 0:
+            continue
+        if np.any(np.diff(stamps) <= 0):
+            raise PlaybackError(f"{stream.name}: frame timestamps are not strictly increasing")
+        shift = stream.start_offset_s + (0.0 if keep_timing else PLAYBACK_T0_S - stamps[0])
+        out.extend(
+            ScheduledFrame(float(t + shift), stream.robot_id, f)
+            for t, f in zip(stamps, stream.sequence.frames)
+        )
+    out.sort(key=lambda s: (s.play_s, s.robot_id))
+    return out
+
+
+def group_simultaneous(schedule: list[ScheduledFrame], tol_s: float = 1e-6) -> list[list[ScheduledFrame]]:
+    """Consecutive frames with the same play time, published together in lock-step mode."""
+    groups: list[list[ScheduledFrame]] = []
+    for item in schedule:
+        if groups and abs(groups[-1][0].play_s - item.play_s) <= tol_s:
+            groups[-1].append(item)
+        else:
+            groups.append([item])
+    return groups

@@ -1,0 +1,237 @@
+"""Conversion between ROS messages and the pure core's numpy types.
+
+Images are converted without cv_bridge (numpy views of the message buffer). Every ``*_from_msg``
+function validates what it reads and raises :class:`MessageError` with a message naming the field.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import rospy
+from geometry_msgs.msg import Pose, Transform
+from sensor_msgs.msg import CameraInfo, Image
+
+from ..datasets.base import CameraModel, DatasetError
+from ..errors import CoopSlamError
+from ..geometry import GeometryError, quat_from_se3, se3_from_quat
+from ..keyframe import KeyframeError, KeyframeRecord, camera_from_fields
+
+_SENSORS = ("rgbd", "stereo", "mono")
+
+
+class MessageError(CoopSlamError):
+    """An incoming ROS message is malformed (wrong sizes, NaN, unknown encoding, ...)."""
+
+
+# --- poses -------------------------------------------------------------------------------------------
+def pose_to_msg(T: np.ndarray) -> Pose:
+    t, q = quat_from_se3(T)
+    msg = Pose()
+    msg.position.x, msg.position.y, msg.position.z = map(float, t)
+    msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = map(float, q)
+    return msg
+
+
+def pose_from_msg(msg: Pose, name: str = "pose") -> np.ndarray:
+    p, o = msg.position, msg.orientation
+    try:
+        return se3_from_quat([p.x, p.y, p.z], [o.x, o.y, o.z, o.w])
+    except GeometryError as exc:
+        raise MessageError(f"{name}: {exc}") from None
+
+
+def _finite_pose(T: np.ndarray, name: str) -> np.ndarray:
+    if not np.all(np.isfinite(T)):
+        raise MessageError(f"{name} contains NaN or inf")
+    return T
+
+
+def transform_to_msg(T: np.ndarray) -> Transform:
+    t, q = quat_from_se3(T)
+    msg = Transform()
+    msg.translation.x, msg.translation.y, msg.translation.z = map(float, t)
+    msg.rotation.x, msg.rotation.y, msg.rotation.z, msg.rotation.w = map(float, q)
+    return msg
+
+
+def transform_from_msg(msg: Transform, name: str = "transform") -> np.ndarray:
+    t, r = msg.translation, msg.rotation
+    try:
+        return _finite_pose(se3_from_quat([t.x, t.y, t.z], [r.x, r.y, r.z, r.w]), name)
+    except GeometryError as exc:
+        raise MessageError(f"{name}: {exc}") from None
+
+
+# --- images ------------------------------------------------------------------------------------------
+_ENCODINGS = {
+    "bgr8": (np.uint8, 3),
+    "rgb8": (np.uint8, 3),
+    "mono8": (np.uint8, 1),
+    "8UC1": (np.uint8, 1),
+    "16UC1": (np.uint16, 1),
+    "mono16": (np.uint16, 1),
+    "32FC1": (np.float32, 1),
+}
+
+
+def image_to_msg(img: np.ndarray, encoding: str, stamp=None, frame_id: str = "") -> Image:
+    dtype, channels = _ENCODINGS[encoding]
+    img = np.ascontiguousarray(img, dtype=dtype)
+    msg = Image()
+    if stamp is not None:
+        msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = img.shape[:2]
+    msg.encoding = encoding
+    msg.is_bigendian = 0
+    msg.step = msg.width * channels * np.dtype(dtype).itemsize
+    msg.data = img.tobytes()
+    return msg
+
+
+def image_from_msg(msg: Image) -> np.ndarray:
+    """numpy view of an image message (BGR for colour); raises MessageError when malformed."""
+    if msg.encoding not in _ENCODINGS:
+        raise MessageError(f"image encoding '{msg.encoding}' unsupported; use one of {sorted(_ENCODINGS)}")
+    if msg.width == 0 or msg.height == 0:
+        raise MessageError(f"image is empty ({msg.width}x{msg.height})")
+    dtype, channels = _ENCODINGS[msg.encoding]
+    itemsize = np.dtype(dtype).itemsize
+    row = msg.width * channels * itemsize
+    if msg.step < row or len(msg.data) < msg.step * msg.height:
+        raise MessageError(
+            f"image data holds {len(msg.data)} bytes, expected {msg.step * msg.height} "
+            f"({msg.width}x{msg.height} {msg.encoding}, step {msg.step})"
+        )
+    buf = np.frombuffer(msg.data, dtype=np.uint8, count=msg.step * msg.height).reshape(msg.height, msg.step)
+    img = buf[:, :row].copy().view(dtype)
+    if msg.is_bigendian and itemsize > 1:
+        img = img.byteswap()
+    img = img.reshape(msg.height, msg.width, channels) if channels > 1 else img.reshape(msg.height, msg.width)
+    if msg.encoding == "rgb8":
+        img = img[:, :, ::-1].copy()
+    return img
+
+
+def depth_from_msg(msg: Image, depth_scale: float = 1000.0) -> np.ndarray:
+    """Depth in metres (float32, 0 = none) from a 16UC1 (``depth_scale`` units per metre, REP-118:
+    millimetres) or 32FC1 (metres) image."""
+    img = image_from_msg(msg)
+    if img.dtype == np.uint16:
+        return img.astype(np.float32) / np.float32(depth_scale)
+    if img.dtype != np.float32:
+        raise MessageError(f"depth image encoding '{msg.encoding}' is not 16UC1 or 32FC1")
+    depth = img.astype(np.float32, copy=True)
+    depth[~np.isfinite(depth) | (depth < 0)] = 0.0
+    return depth
+
+
+# --- camera ------------------------------------------------------------------------------------------
+def camera_info_to_msg(camera: CameraModel, stamp=None, frame_id: str = "") -> CameraInfo:
+    msg = CameraInfo()
+    if stamp is not None:
+        msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.width, msg.height = camera.width, camera.height
+    msg.distortion_model = "plumb_bob"
+    msg.D = [0.0] * 5
+    msg.K = [camera.fx, 0.0, camera.cx, 0.0, camera.fy, camera.cy, 0.0, 0.0, 1.0]
+    msg.R = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    # For the right camera of a stereo pair, P[3] = -fx * baseline (ROS convention).
+    msg.P = [camera.fx, 0.0, camera.cx, 0.0, 0.0, camera.fy, camera.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+    return msg
+
+
+def camera_from_info(msg: CameraInfo, sensor: str = "rgbd", depth_scale: float = 1000.0,
+                     baseline_m: float = 0.0) -> CameraModel:
+    K = list(msg.K)
+    if len(K) != 9 or not np.all(np.isfinite(K)):
+        raise MessageError("camera_info K must hold 9 finite numbers")
+    try:
+        return CameraModel(width=msg.width, height=msg.height, fx=K[0], fy=K[4], cx=K[2], cy=K[5],
+                           sensor=sensor, depth_scale=depth_scale, baseline_m=baseline_m)
+    except DatasetError as exc:
+        raise MessageError(f"camera_info: {exc}") from None
+
+
+# --- keyframes ---------------------------------------------------------------------------------------
+def keyframe_to_msg(kf: KeyframeRecord, frame_id: str):
+    from coop_slam.msg import CameraModel as CameraModelMsg
+    from coop_slam.msg import KeyFrame
+
+    msg = KeyFrame()
+    msg.header.stamp = rospy.Time.from_sec(kf.stamp_s)
+    msg.header.frame_id = frame_id
+    msg.robot_id = kf.robot_id
+    msg.keyframe_id = kf.keyframe_id
+    msg.map_segment = kf.map_segment
+    msg.action = kf.action
+    cam = kf.camera
+    msg.camera = CameraModelMsg(sensor_type=_SENSORS.index(cam.sensor), width=cam.width,
+                                height=cam.height, fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy,
+                                baseline_m=cam.baseline_m)
+    msg.pose = pose_to_msg(kf.T_map_cam)
+    msg.keypoints = np.asarray(kf.keypoints, np.float32).ravel().tolist()
+    msg.octaves = np.asarray(kf.octaves, np.uint8).tobytes()
+    msg.descriptors = np.asarray(kf.descriptors, np.uint8).tobytes()
+    msg.depths_m = np.asarray(kf.depths_m, np.float32).tolist()
+    msg.map_point_ids = np.asarray(kf.map_point_ids, np.uint32).tolist()
+    msg.map_points = np.asarray(kf.map_points, np.float32).ravel().tolist()
+    msg.covisible_ids = np.asarray(kf.covisible_ids, np.uint32).tolist()
+    msg.covisible_weights = np.asarray(kf.covisible_weights, np.uint16).tolist()
+    return msg
+
+
+def _bytes(field) -> np.ndarray:
+    # uint8[] arrives as bytes from the wire, but as a list when a message is built in-process.
+    if isinstance(field, (bytes, bytearray)):
+        return np.frombuffer(field, dtype=np.uint8)
+    return np.asarray(field, dtype=np.uint8)
+
+
+def keyframe_from_msg(msg, known_robots: set[int] | None = None) -> KeyframeRecord:
+    """Validated :class:`KeyframeRecord` from a KeyFrame message; raises MessageError."""
+    try:
+        if msg.camera.sensor_type >= len(_SENSORS):
+            raise KeyframeError(f"camera sensor_type {msg.camera.sensor_type} unknown")
+        cam = camera_from_fields(width=msg.camera.width, height=msg.camera.height, fx=msg.camera.fx,
+                                 fy=msg.camera.fy, cx=msg.camera.cx, cy=msg.camera.cy,
+                                 sensor=_SENSORS[msg.camera.sensor_type],
+                                 baseline_m=msg.camera.baseline_m)
+        keypoints = np.asarray(msg.keypoints, np.float32)
+        descriptors = _bytes(msg.descriptors)
+        map_points = np.asarray(msg.map_points, np.float32)
+        where = f"keyframe {msg.keyframe_id} of robot {msg.robot_id}"
+        if keypoints.size % 4:
+            raise KeyframeError(f"{where}: keypoints holds {keypoints.size} floats, not 4 per keypoint")
+        if descriptors.size % 32:
+            raise KeyframeError(f"{where}: descriptors hold {descriptors.size} bytes, not a multiple of 32")
+        if map_points.size % 3:
+            raise KeyframeError(f"{where}: map_points holds {map_points.size} floats, not 3 per point")
+        o = msg.pose.orientation
+        q = np.array([o.x, o.y, o.z, o.w])
+        if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
+            raise KeyframeError(f"{where}: pose orientation is not a unit quaternion")
+        p = msg.pose.position
+        if not np.all(np.isfinite([p.x, p.y, p.z])):
+            raise KeyframeError(f"{where}: pose position contains NaN or inf")
+        rec = KeyframeRecord(
+            robot_id=msg.robot_id,
+            keyframe_id=msg.keyframe_id,
+            stamp_s=msg.header.stamp.to_sec(),
+            camera=cam,
+            T_map_cam=se3_from_quat([p.x, p.y, p.z], q),
+            keypoints=keypoints.reshape(-1, 4),
+            octaves=_bytes(msg.octaves),
+            descriptors=descriptors.reshape(-1, 32),
+            depths_m=np.asarray(msg.depths_m, np.float32),
+            map_point_ids=np.asarray(msg.map_point_ids, np.uint32),
+            map_points=map_points.reshape(-1, 3),
+            covisible_ids=np.asarray(msg.covisible_ids, np.uint32),
+            covisible_weights=np.asarray(msg.covisible_weights, np.uint16),
+            map_segment=msg.map_segment,
+            action=msg.action,
+        )
+        return rec.validate(known_robots)
+    except (KeyframeError, GeometryError) as exc:
+        raise MessageError(str(exc)) from None

@@ -1,0 +1,36 @@
+"""Parameters of the dataset player (ROS private params map 1:1 onto these fields)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ..config import require
+
+
+@dataclass
+class PlayerConfig:
+    scenario: str = ""  # synthetic scenario name (rendezvous, revisit, disjoint, aliasing, multi, team)
+    dataset: str = ""  # TUM RGB-D or KITTI odometry folder (instead of a scenario)
+    bag: str = ""  # rosbag file to replay (instead of a scenario or dataset)
+    split: str = ""  # frame ranges, one robot each, inclusive: "0-299,300-599"
+    robots: int = 0  # number of robots (0 = the scenario's / one per split range)
+    seed: int = 0  # synthetic world seed
+    camera_file: str = ""  # camera.yaml for a TUM folder without one
+    keep_timing: bool = False  # play split segments at their original times instead of together
+    start_offsets_s: list[float] = field(default_factory=list)  # per-robot start delay [s]
+    lockstep: bool = True  # wait for each consumer's frame_stats before the next frame
+    rate: float = 1.0  # real-time factor when not in lock-step (or for robots without consumer)
+    ack_timeout_s: float = 60.0  # lock-step: how long to wait for a consumer [s]
+    wait_for_subscribers_s: float = 15.0  # wait this long for image subscribers before playing [s]
+    depth_encoding: str = "32FC1"  # 32FC1 (metres) or 16UC1 (millimetres), as in REP-118
+    progress_period_s: float = 5.0  # wall time between progress log lines [s]
+    exit_when_done: bool = False  # exit after the last frame instead of spinning (latched topics)
+
+    def validate(self) -> None:
+        require(sum(map(bool, (self.scenario, self.dataset, self.bag))) == 1,
+                "player: set exactly one of ~scenario, ~dataset or ~bag")
+        require(self.rate > 0, f"player: ~rate must be > 0, got {self.rate}")
+        require(self.ack_timeout_s > 0, "player: ~ack_timeout_s must be > 0")
+        require(self.robots >= 0, "player: ~robots must be >= 0")
+        require(self.depth_encoding in ("32FC1", "16UC1"),
+                f"player: ~depth_encoding must be 32FC1 or 16UC1, got '{self.depth_encoding}'")

@@ -1,0 +1,253 @@
+"""Dataset player node: publishes robots' camera streams, ground truth and /clock.
+
+Per robot k (``robot_k``): ``camera/color/image_raw`` (bgr8, or mono8), ``camera/color/camera_info``,
+``camera/depth/image_raw`` (32FC1 metres or 16UC1 millimetres, registered to colour), for stereo
+``camera/right/image_raw``, and ``ground_truth/pose`` (camera optical frame in ``gt_world``).
+
+Timing never uses rospy's clock (this node *drives* /clock). In lock-step mode the next frames are
+published only after every consuming client acknowledged the previous ones on
+``robot_k/frame_stats``, so results do not depend on machine speed; robots without a consumer play
+at ``rate`` × real time.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import rospy
+from geometry_msgs.msg import PoseStamped
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Bool
+
+from ..config import load_config
+from ..datasets import DatasetError
+from ..errors import CoopSlamError
+from ..playback import PlaybackError, RobotStream, build_schedule, group_simultaneous, load_streams
+from .convert import camera_info_to_msg, image_to_msg, pose_to_msg
+from .player_config import PlayerConfig
+
+
+class _RobotTopics:
+    def __init__(self, stream: RobotStream, depth_encoding: str):
+        from coop_slam.msg import FrameStats
+
+        self.stream = stream
+        ns = f"/{stream.name}"
+        self.optical_frame = f"{stream.name}/camera_optical"
+        self.depth_encoding = depth_encoding
+        seq = stream.sequence
+        self.camera = seq.camera
+        self.color = rospy.Publisher(f"{ns}/camera/color/image_raw", Image, queue_size=5)
+        self.info = rospy.Publisher(f"{ns}/camera/color/camera_info", CameraInfo, queue_size=5)
+        self.depth = (
+            rospy.Publisher(f"{ns}/camera/depth/image_raw", Image, queue_size=5)
+            if seq.camera.sensor == "rgbd" else None
+        )
+        self.right = (
+            rospy.Publisher(f"{ns}/camera/right/image_raw", Image, queue_size=5)
+            if seq.camera.sensor == "stereo" else None
+        )
+        self.gt = rospy.Publisher(f"{ns}/ground_truth/pose", PoseStamped, queue_size=20)
+        self.gt_poses = seq.frame_poses()
+        self.gt_index = {f.index: i for i, f in enumerate(seq.frames)}
+        self.acked_s = -1.0
+        self.cond = threading.Condition()
+        self.ack_sub = rospy.Subscriber(f"{ns}/frame_stats", FrameStats, self._on_ack, queue_size=50)
+
+    def _on_ack(self, msg) -> None:
+        with self.cond:
+            self.acked_s = max(self.acked_s, msg.header.stamp.to_sec())
+            self.cond.notify_all()
+
+    @property
+    def has_consumer(self) -> bool:
+        return self.ack_sub.get_num_connections() > 0
+
+    def publish(self, play_s: float, frame) -> None:
+        seq = self.stream.sequence
+        stamp = rospy.Time.from_sec(play_s)
+        color = seq.load_color(frame)
+        enc = "bgr8" if color.ndim == 3 else "mono8"
+        self.info.publish(camera_info_to_msg(self.camera, stamp, self.optical_frame))
+        if self.depth is not None:
+            depth_m = seq.load_depth_m(frame)
+            if self.depth_encoding == "16UC1":
+                depth_img = np.clip(np.rint(depth_m * 1000.0), 0, 65535).astype(np.uint16)
+            else:
+                depth_img = depth_m
+            self.depth.publish(image_to_msg(depth_img, self.depth_encoding, stamp, self.optical_frame))
+        if self.right is not None:
+            right = seq.load_right(frame)
+            self.right.publish(image_to_msg(right, enc, stamp, f"{self.stream.name}/camera_right_optical"))
+        # Colour last: clients synchronise on it, so depth/right are already there.
+        self.color.publish(image_to_msg(color, enc, stamp, self.optical_frame))
+        T = self.gt_poses[self.gt_index[frame.index]]
+        if np.all(np.isfinite(T)):
+            msg = PoseStamped(pose=pose_to_msg(T))
+            msg.header.stamp, msg.header.frame_id = stamp, "gt_world"
+            self.gt.publish(msg)
+
+    def wait_ack(self, play_s: float, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        with self.cond:
+            while self.acked_s < play_s - 1e-6:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or rospy.is_shutdown():
+                    return False
+                self.cond.wait(min(remaining, 0.1))
+        return True
+
+
+class PlayerNode:
+    def __init__(self, cfg: PlayerConfig):
+        self.cfg = cfg
+        offsets = list(cfg.start_offsets_s) or None
+        self.source = load_streams(
+            scenario=cfg.scenario or None,
+            dataset=cfg.dataset or None,
+            split=cfg.split or None,
+            robots=cfg.robots or None,
+            seed=cfg.seed,
+            camera_file=cfg.camera_file or None,
+            start_offsets_s=offsets,
+            progress=lambda done, total: rospy.loginfo_throttle(
+                5.0, "player: generating world %d/%d frames", done, total),
+        )
+        self.schedule = build_schedule(self.source.streams, keep_timing=cfg.keep_timing)
+        self.topics = {s.robot_id: _RobotTopics(s, cfg.depth_encoding) for s in self.source.streams}
+        self.clock = rospy.Publisher("/clock", Clock, queue_size=10)
+        self.done = rospy.Publisher("~done", Bool, queue_size=1, latch=True)
+        self.done.publish(Bool(False))
+
+    def _wait_for_subscribers(self) -> None:
+        deadline = time.monotonic() + self.cfg.wait_for_subscribers_s
+        while time.monotonic() < deadline and not rospy.is_shutdown():
+            if all(t.color.get_num_connections() > 0 for t in self.topics.values()):
+                break
+            time.sleep(0.1)
+        time.sleep(0.5)  # let the connections settle so the first frames are not lost
+        for rid, t in self.topics.items():
+            if t.color.get_num_connections() == 0:
+                rospy.logwarn("player: nobody subscribes to robot_%d's images; playing anyway", rid)
+
+    def run(self) -> None:
+        cfg = self.cfg
+        if not self.schedule:
+            rospy.logwarn("player: nothing to play")
+            return
+        self.clock.publish(Clock(clock=rospy.Time.from_sec(max(0.0, self.schedule[0].play_s - 0.1))))
+        self._wait_for_subscribers()
+        groups = group_simultaneous(self.schedule)
+        total = len(self.schedule)
+        rospy.loginfo("player: %d robots, %d frames, %s", len(self.topics), total,
+                      "lock-step" if cfg.lockstep else f"{cfg.rate:g} x real time")
+        warned_free = set()
+        wall0, sim0 = time.monotonic(), groups[0][0].play_s
+        published = 0
+        last_progress = time.monotonic()
+        for group in groups:
+            if rospy.is_shutdown():
+                return
+            play_s = group[0].play_s
+            lockstep_ids = [g.robot_id for g in group if cfg.lockstep and self.topics[g.robot_id].has_consumer]
+            if not lockstep_ids and cfg.rate > 0:
+                delay = wall0 + (play_s - sim0) / cfg.rate - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+            if cfg.lockstep:
+                for g in group:
+                    if g.robot_id not in lockstep_ids and g.robot_id not in warned_free:
+                        warned_free.add(g.robot_id)
+                        rospy.logwarn("player: no consumer acknowledges robot_%d's frames; it plays "
+                                      "at %g x real time", g.robot_id, cfg.rate)
+            self.clock.publish(Clock(clock=rospy.Time.from_sec(play_s)))
+            for g in group:
+                try:
+                    self.topics[g.robot_id].publish(play_s, g.frame)
+                except DatasetError as exc:
+                    rospy.logerr("player: skipping robot_%d frame %d: %s", g.robot_id, g.frame.index, exc)
+            for rid in lockstep_ids:
+                if not self.topics[rid].wait_ack(play_s, cfg.ack_timeout_s):
+                    rospy.logwarn("player: robot_%d did not acknowledge the frame at %.3f s within "
+                                  "%.0f s; going on", rid, play_s, cfg.ack_timeout_s)
+            published += len(group)
+            if time.monotonic() - last_progress > cfg.progress_period_s or published == total:
+                last_progress = time.monotonic()
+                rospy.loginfo("player: %d/%d frames (%.0f %%), sim time %.2f s", published, total,
+                              100.0 * published / total, play_s)
+        # A last clock tick lets consumers finish time-based work on the final frame.
+        self.clock.publish(Clock(clock=rospy.Time.from_sec(self.schedule[-1].play_s + 0.5)))
+        self.done.publish(Bool(True))
+        rospy.loginfo("player: done, %d frames played", published)
+
+
+def main() -> None:
+    rospy.init_node("dataset_player")
+    params = {k: v for k, v in rospy.get_param("~", {}).items()}
+    try:
+        cfg = load_config(PlayerConfig, params)
+        node = BagPlayer(cfg) if cfg.bag else PlayerNode(cfg)
+    except CoopSlamError as exc:
+        rospy.logfatal("player: %s", exc)
+        raise SystemExit(1)
+    node.run()
+    if cfg.exit_when_done:
+        return
+    rospy.spin()
+
+
+class BagPlayer:
+    """Replays a rosbag (the user's own recording) with /clock at ``rate`` x real time.
+
+    Topics keep their names; lock-step is not available for bags because a bag has no notion of
+    which consumer must acknowledge which message.
+    """
+
+    def __init__(self, cfg: PlayerConfig):
+        import rosbag
+
+        self.cfg = cfg
+        try:
+            self.bag = rosbag.Bag(cfg.bag)
+        except (OSError, rosbag.ROSBagException) as exc:
+            raise PlaybackError(f"cannot open bag {cfg.bag}: {exc}") from None
+        self.clock = rospy.Publisher("/clock", Clock, queue_size=10)
+        self.done = rospy.Publisher("~done", Bool, queue_size=1, latch=True)
+        self.done.publish(Bool(False))
+        self.pubs = {}
+        for topic, info in self.bag.get_type_and_topic_info().topics.items():
+            if topic in ("/clock", "/rosout", "/rosout_agg"):
+                continue
+            self.pubs[topic] = info.msg_type
+
+    def run(self) -> None:
+        import roslib.message
+
+        publishers = {}
+        for topic, type_name in self.pubs.items():
+            cls = roslib.message.get_message_class(type_name)
+            if cls is None:
+                rospy.logwarn("player: message type %s of %s unknown here; skipped", type_name, topic)
+                continue
+            publishers[topic] = rospy.Publisher(topic, cls, queue_size=20)
+        time.sleep(min(self.cfg.wait_for_subscribers_s, 2.0))  # let subscribers connect
+        total = self.bag.get_message_count()
+        start = self.bag.get_start_time()
+        wall0 = time.monotonic()
+        last_progress = wall0
+        for k, (topic, msg, t) in enumerate(self.bag.read_messages(topics=list(publishers))):
+            if rospy.is_shutdown():
+                return
+            delay = wall0 + (t.to_sec() - start) / self.cfg.rate - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            self.clock.publish(Clock(clock=t))
+            publishers[topic].publish(msg)
+            if time.monotonic() - last_progress > self.cfg.progress_period_s:
+                last_progress = time.monotonic()
+                rospy.loginfo("player: %d/%d bag messages (%.0f %%)", k + 1, total, 100.0 * (k + 1) / total)
+        self.done.publish(Bool(True))
+        rospy.loginfo("player: bag done")

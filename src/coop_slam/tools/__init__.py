@@ -1,0 +1,1 @@
+"""User-facing tools behind scripts/: demo orchestration, benchmarks, evaluation."""

@@ -1,0 +1,64 @@
+"""Shared fakes for the tests: small datasets written on the fly and well-formed keyframes."""
+from __future__ import annotations
+
+import os
+
+import cv2
+import numpy as np
+
+from coop_slam.datasets import CameraModel
+from coop_slam.keyframe import KeyframeRecord
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REDKITCHEN = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "redkitchen_0000_0599"))
+TINY_TUM = os.path.join(REPO, "test", "fixtures", "tiny_tum")
+
+
+def camera(width=640, height=480, f=525.0) -> CameraModel:
+    return CameraModel(width=width, height=height, fx=f, fy=f, cx=(width - 1) / 2, cy=(height - 1) / 2)
+
+
+def make_keyframe(n=50, robot_id=1, keyframe_id=1, seed=0, with_map_points=True) -> KeyframeRecord:
+    """A well-formed keyframe with ``n`` random keypoints, depths and (every other) map points."""
+    rng = np.random.default_rng(seed)
+    cam = camera()
+    uv = rng.uniform([0, 0], [cam.width - 1, cam.height - 1], (n, 2))
+    keypoints = np.column_stack([uv, rng.uniform(7, 30, n), rng.uniform(0, 360, n)]).astype(np.float32)
+    ids = np.where(np.arange(n) % 2 == 0, np.arange(1, n + 1), 0).astype(np.uint32)
+    if not with_map_points:
+        ids[:] = 0
+    m = int(np.count_nonzero(ids))
+    return KeyframeRecord(
+        robot_id=robot_id,
+        keyframe_id=keyframe_id,
+        stamp_s=12.5,
+        camera=cam,
+        T_map_cam=np.eye(4),
+        keypoints=keypoints,
+        octaves=rng.integers(0, 8, n).astype(np.uint8),
+        descriptors=rng.integers(0, 256, (n, 32)).astype(np.uint8),
+        depths_m=rng.uniform(0.5, 4.0, n).astype(np.float32),
+        map_point_ids=ids,
+        map_points=rng.uniform(-2, 2, (m, 3)).astype(np.float32),
+        covisible_ids=np.array([3, 4], np.uint32),
+        covisible_weights=np.array([20, 15], np.uint16),
+    )
+
+
+def write_kitti(folder: str, n=5, width=64, height=32) -> str:
+    """A minimal KITTI odometry layout: sequences/00 with stereo images, calib, times; poses/00.txt."""
+    seq = os.path.join(folder, "sequences", "00")
+    for sub in ("image_0", "image_1"):
+        os.makedirs(os.path.join(seq, sub), exist_ok=True)
+        for i in range(n):
+            cv2.imwrite(os.path.join(seq, sub, f"{i:06d}.png"), np.full((height, width), 10 * i, np.uint8))
+    P0 = "700 0 32 0 0 700 16 0 0 0 1 0"
+    P1 = "700 0 32 -378 0 700 16 0 0 0 1 0"  # baseline 0.54 m, as KITTI
+    with open(os.path.join(seq, "calib.txt"), "w") as fh:
+        fh.write(f"P0: {P0}\nP1: {P1}\nP2: {P0}\nP3: {P1}\n")
+    np.savetxt(os.path.join(seq, "times.txt"), np.arange(n) * 0.1)
+    os.makedirs(os.path.join(folder, "poses"), exist_ok=True)
+    poses = np.tile(np.eye(4)[:3].ravel(), (n, 1))
+    poses[:, 11] = np.arange(n) * 0.5  # driving forward along z
+    np.savetxt(os.path.join(folder, "poses", "00.txt"), poses)
+    return seq

@@ -1,0 +1,94 @@
+"""ROS message conversion and validation (no master needed)."""
+import numpy as np
+import pytest
+from helpers import make_keyframe
+
+msg_mod = pytest.importorskip("coop_slam.msg", reason="generated messages need the catkin workspace")
+from coop_slam.ros.convert import (  # noqa: E402
+    MessageError,
+    depth_from_msg,
+    image_from_msg,
+    image_to_msg,
+    keyframe_from_msg,
+    keyframe_to_msg,
+    pose_from_msg,
+    pose_to_msg,
+)
+from coop_slam.ros.validation import RejectCounter  # noqa: E402
+
+
+def _wire(msg):
+    """Serialize and deserialize, as a message crossing a topic."""
+    import io
+
+    buf = io.BytesIO()
+    msg.serialize(buf)
+    out = type(msg)()
+    out.deserialize(buf.getvalue())
+    return out
+
+
+def test_keyframe_round_trip_over_the_wire():
+    kf = make_keyframe(n=40, robot_id=2, keyframe_id=9)
+    kf.T_map_cam[:3, 3] = [1.0, -2.0, 0.5]
+    back = keyframe_from_msg(_wire(keyframe_to_msg(kf, "robot_2/map")), known_robots={1, 2})
+    assert back.robot_id == 2 and back.keyframe_id == 9
+    assert np.array_equal(back.descriptors, kf.descriptors)
+    assert np.allclose(back.keypoints, kf.keypoints)
+    assert np.array_equal(back.map_point_ids, kf.map_point_ids)
+    assert np.allclose(back.map_points, kf.map_points)
+    assert np.allclose(back.T_map_cam, kf.T_map_cam, atol=1e-9)
+    assert back.stamp_s == pytest.approx(kf.stamp_s)
+
+
+@pytest.mark.parametrize(
+    "mutate, match",
+    [
+        (lambda m: setattr(m, "descriptors", m.descriptors[:-5]), "multiple of 32"),
+        (lambda m: setattr(m, "robot_id", 9), "unknown"),
+        (lambda m: setattr(m.pose.orientation, "w", float("nan")), "unit quaternion"),
+        (lambda m: setattr(m.pose.position, "x", float("inf")), "NaN or inf"),
+        (lambda m: setattr(m, "keypoints", list(m.keypoints)[:-1]), "4 per keypoint"),
+        (lambda m: setattr(m, "depths_m", list(m.depths_m)[:-1]), "depths_m"),
+        (lambda m: setattr(m.camera, "fx", 0.0), "camera model"),
+    ],
+)
+def test_malformed_keyframes_are_rejected(mutate, match):
+    msg = _wire(keyframe_to_msg(make_keyframe(n=10, robot_id=1), "robot_1/map"))
+    mutate(msg)
+    with pytest.raises(MessageError, match=match):
+        keyframe_from_msg(msg, known_robots={1, 2})
+
+
+def test_images_and_depth():
+    img = np.random.default_rng(0).integers(0, 255, (4, 5, 3), dtype=np.uint8)
+    assert np.array_equal(image_from_msg(_wire(image_to_msg(img, "bgr8"))), img)
+    rgb = image_to_msg(img[:, :, ::-1], "rgb8")
+    assert np.array_equal(image_from_msg(rgb), img)
+    d16 = image_to_msg(np.full((3, 3), 1500, np.uint16), "16UC1")
+    assert np.allclose(depth_from_msg(d16), 1.5)
+    d32 = np.full((3, 3), 2.0, np.float32)
+    d32[0, 0] = np.nan
+    out = depth_from_msg(image_to_msg(d32, "32FC1"))
+    assert out[0, 0] == 0.0 and out[1, 1] == 2.0
+    bad = image_to_msg(img, "bgr8")
+    bad.data = bad.data[:-1]
+    with pytest.raises(MessageError, match="bytes"):
+        image_from_msg(bad)
+    empty = image_to_msg(np.zeros((0, 0, 3), np.uint8), "bgr8")
+    with pytest.raises(MessageError, match="empty"):
+        image_from_msg(empty)
+    bad.encoding = "yuv422"
+    with pytest.raises(MessageError, match="unsupported"):
+        image_from_msg(bad)
+
+
+def test_pose_conversion_and_reject_counter():
+    T = np.eye(4)
+    T[:3, 3] = [1, 2, 3]
+    assert np.allclose(pose_from_msg(pose_to_msg(T)), T)
+    counter = RejectCounter("test", log_period_s=100.0)
+    counter.reject("/a", "bad")
+    counter.reject("/a", "bad")
+    counter.reject("/b", "worse")
+    assert counter.counts["/a"] == 2 and counter.total == 3
