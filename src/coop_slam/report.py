@@ -1,0 +1,110 @@
+"""The run report (``report.json`` + ``report.md``): one schema, every key always present.
+
+The keys are a contract (see the README): later stages fill more of them, none is ever renamed, and a
+value that was not measured is ``null`` rather than absent.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from typing import Any
+
+ROBOT_KEYS = ("id", "frames", "keyframes", "path_length_m", "ate_rmse_m", "tracking_lost",
+              "track_ms_mean", "track_ms_p95")
+MERGE_KEYS = ("type", "robots", "stamp", "trans_err_m", "rot_err_deg", "latency_s")
+TOP_KEYS = ("robots", "merges", "groups", "team_ate_rmse_m", "bandwidth", "server_ms_per_keyframe",
+            "wrong_merges")
+BANDWIDTH_KEYS = ("per_robot_kBps", "peak_kBps", "total_MB")
+WRONG_MERGE_TRANS_M = 0.10  # a merge is wrong when its transform is off by more than this ...
+WRONG_MERGE_ROT_DEG = 5.0  # ... or this
+
+
+def _clean(value: Any) -> Any:
+    """JSON-safe: numpy scalars to Python, NaN/inf to None."""
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_clean(v) for v in value]
+    if hasattr(value, "item") and not isinstance(value, (str, bytes)):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def new_report(robot_ids: list[int]) -> dict:
+    return {
+        "robots": [dict({k: None for k in ROBOT_KEYS}, id=int(r)) for r in robot_ids],
+        "merges": [],
+        "groups": [],
+        "team_ate_rmse_m": None,
+        "bandwidth": {k: None for k in BANDWIDTH_KEYS},
+        "server_ms_per_keyframe": None,
+        "wrong_merges": None,
+    }
+
+
+def count_wrong_merges(merges: list[dict]) -> int | None:
+    """Merges whose transform error exceeds the thresholds (None when no error could be computed)."""
+    if not merges:
+        return 0
+    errs = [(m.get("trans_err_m"), m.get("rot_err_deg")) for m in merges]
+    if all(t is None for t, _ in errs):
+        return None
+    return sum(1 for t, r in errs if t is not None and
+               (t > WRONG_MERGE_TRANS_M or (r is not None and r > WRONG_MERGE_ROT_DEG)))
+
+
+def write_report(out_dir: str, report: dict, extra_md: str = "") -> tuple[str, str]:
+    """Write report.json and report.md into ``out_dir``; returns both paths."""
+    os.makedirs(out_dir, exist_ok=True)
+    report = _clean(report)
+    for key in TOP_KEYS:
+        report.setdefault(key, None)
+    json_path = os.path.join(out_dir, "report.json")
+    with open(json_path, "w", encoding="utf-8") as fh:
+        json.dump(report, fh, indent=2)
+        fh.write("\n")
+    md_path = os.path.join(out_dir, "report.md")
+    with open(md_path, "w", encoding="utf-8") as fh:
+        fh.write(render_markdown(report) + extra_md)
+    return json_path, md_path
+
+
+def _fmt(v: Any, digits: int = 3) -> str:
+    if v is None:
+        return "–"
+    if isinstance(v, float):
+        return f"{v:.{digits}f}"
+    return str(v)
+
+
+def render_markdown(report: dict) -> str:
+    lines = ["# coop_slam run report", ""]
+    lines += ["## Robots", "", "| " + " | ".join(ROBOT_KEYS) + " |",
+              "|" + "---|" * len(ROBOT_KEYS)]
+    for r in report["robots"]:
+        lines.append("| " + " | ".join(_fmt(r.get(k)) for k in ROBOT_KEYS) + " |")
+    lines += ["", "## Merges", ""]
+    if report["merges"]:
+        lines += ["| " + " | ".join(MERGE_KEYS) + " |", "|" + "---|" * len(MERGE_KEYS)]
+        for m in report["merges"]:
+            lines.append("| " + " | ".join(_fmt(m.get(k)) for k in MERGE_KEYS) + " |")
+    else:
+        lines.append("no merges")
+    bw = report.get("bandwidth") or {}
+    lines += [
+        "",
+        "## Team",
+        "",
+        f"- groups: {report.get('groups')}",
+        f"- team ATE RMSE: {_fmt(report.get('team_ate_rmse_m'), 4)} m",
+        f"- wrong merges: {_fmt(report.get('wrong_merges'))}",
+        f"- server time per keyframe: {_fmt(report.get('server_ms_per_keyframe'), 1)} ms",
+        f"- bandwidth: per robot {_fmt(bw.get('per_robot_kBps'), 1)} kB/s, peak "
+        f"{_fmt(bw.get('peak_kBps'), 1)} kB/s, total {_fmt(bw.get('total_MB'), 2)} MB",
+        "",
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,230 @@
+"""The main job behind ``scripts/demo``: prepare data, launch the system headless, follow it with a
+progress line, and write the report.
+
+The demo runs its own ROS master on a free port, so it never disturbs (or is disturbed by) a master
+the user already has running.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+
+from ..datasets import write_tum_trajectory
+from ..errors import CoopSlamError
+from ..geometry import path_length
+from ..playback import build_schedule, load_streams
+from ..report import new_report, write_report
+
+DEFAULT_SCENARIO = "team"
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="scripts/demo", description=__doc__.split("\n\n")[0])
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--scenario", help=f"synthetic scenario (default: {DEFAULT_SCENARIO})")
+    src.add_argument("--dataset", help="TUM RGB-D or KITTI odometry folder")
+    src.add_argument("--bag", help="rosbag file to replay")
+    p.add_argument("--robots", type=int, default=None, help="number of robots")
+    p.add_argument("--split", help="inclusive frame ranges, one robot each: 0-299,300-599")
+    p.add_argument("--keep-timing", action="store_true",
+                   help="play split segments at their original times (default: all start together)")
+    p.add_argument("--seed", type=int, default=0, help="synthetic world seed")
+    p.add_argument("--camera", help="camera.yaml for a dataset folder without one")
+    p.add_argument("--rate", type=float, default=None,
+                   help="play at RATE x real time instead of lock-step")
+    p.add_argument("--record", action="store_true", help="record RViz to MP4 + PNG")
+    p.add_argument("--out", help="results folder (default: results/<date>-<source>)")
+    p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
+    args = p.parse_args(argv)
+    if args.scenario is None and args.dataset is None and args.bag is None:
+        args.scenario = DEFAULT_SCENARIO
+    if args.robots is not None and not 1 <= args.robots <= 8:
+        p.error("--robots must be between 1 and 8")
+    if args.rate is not None and args.rate <= 0:
+        p.error("--rate must be > 0")
+    if args.split and not args.dataset:
+        p.error("--split needs --dataset")
+    return args
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def say(msg: str) -> None:
+    print(f"[demo] {msg}", flush=True)
+
+
+class _Monitor:
+    """Follows the run from inside this process: counts frames per robot, acknowledges frames for
+    robots that have no client (so lock-step playback still advances), waits for the player."""
+
+    def __init__(self, robot_ids: list[int]):
+        import rospy
+        from rosgraph_msgs.msg import Clock
+        from sensor_msgs.msg import Image
+        from std_msgs.msg import Bool
+
+        from coop_slam.msg import FrameStats
+
+        rospy.init_node("demo_monitor", anonymous=True, disable_signals=True)
+        self.frames = {r: 0 for r in robot_ids}
+        self.sim_s = 0.0
+        self.done = threading.Event()
+        self._subs = [rospy.Subscriber("/clock", Clock, self._on_clock, queue_size=1),
+                      rospy.Subscriber("/player/done", Bool, lambda m: m.data and self.done.set())]
+        self._acks = {}
+        for r in robot_ids:
+            self._subs.append(rospy.Subscriber(f"/robot_{r}/camera/color/image_raw", Image,
+                                               self._on_image, r, queue_size=5, buff_size=2**24))
+            self._acks[r] = rospy.Publisher(f"/robot_{r}/frame_stats", FrameStats, queue_size=10)
+        self._FrameStats = FrameStats
+
+    def _on_clock(self, msg) -> None:
+        self.sim_s = msg.clock.to_sec()
+
+    def _on_image(self, msg, robot_id: int) -> None:
+        self.frames[robot_id] += 1
+        ack = self._FrameStats(robot_id=robot_id, tracking_ok=True)
+        ack.header.stamp = msg.header.stamp
+        self._acks[robot_id].publish(ack)
+
+
+def _wait_for_master(uri: str, timeout_s: float) -> None:
+    import rosgraph
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if rosgraph.Master("/demo", master_uri=uri).is_online():
+            return
+        time.sleep(0.2)
+    raise CoopSlamError(f"ROS master at {uri} did not come up within {timeout_s:.0f} s")
+
+
+def run(args: argparse.Namespace) -> int:
+    name = args.scenario or os.path.basename(os.path.normpath(args.dataset or args.bag or "run"))
+    out = os.path.abspath(args.out or os.path.join(
+        "results", f"{datetime.datetime.now():%Y%m%d-%H%M%S}-{name}"))
+    os.makedirs(out, exist_ok=True)
+    t_start = time.monotonic()
+
+    if args.bag:
+        raise CoopSlamError("--bag: evaluation of bag runs needs ground truth; play bags with "
+                            "roslaunch coop_slam player.launch bag:=FILE for now")
+    say(f"[1/3] preparing data ({'scenario ' + args.scenario if args.scenario else args.dataset})")
+    last = [0.0]
+
+    def progress(done: int, total: int) -> None:
+        if time.monotonic() - last[0] > 2.0 or done == total:
+            last[0] = time.monotonic()
+            say(f"      rendering {done}/{total} frames ({100.0 * done / max(total, 1):.0f} %)")
+
+    source = load_streams(scenario=args.scenario, dataset=args.dataset, split=args.split,
+                          robots=args.robots, seed=args.seed, camera_file=args.camera,
+                          progress=progress)
+    schedule = build_schedule(source.streams, keep_timing=args.keep_timing)
+    robot_ids = [s.robot_id for s in source.streams]
+    total = len(schedule)
+    say(f"      {len(robot_ids)} robots, {total} frames, data in {source.folder}")
+
+    port = _free_port()
+    uri = f"http://127.0.0.1:{port}"
+    env = dict(os.environ, ROS_MASTER_URI=uri, ROS_HOSTNAME="127.0.0.1",
+               ROS_LOG_DIR=os.path.join(out, "ros_log"))
+    os.environ.update(ROS_MASTER_URI=uri, ROS_HOSTNAME="127.0.0.1")
+    launch_args = [f"robots:={len(robot_ids)}", f"seed:={args.seed}",
+                   f"keep_timing:={str(args.keep_timing).lower()}"]
+    if args.scenario:
+        launch_args.append(f"scenario:={args.scenario}")
+    else:
+        launch_args.append(f"dataset:={os.path.abspath(args.dataset)}")
+        if args.split:
+            launch_args.append(f"split:={args.split}")
+        if args.camera:
+            launch_args.append(f"camera_file:={os.path.abspath(args.camera)}")
+    if args.rate is not None:
+        launch_args += ["lockstep:=false", f"rate:={args.rate}"]
+    log_path = os.path.join(out, "roslaunch.log")
+    say(f"[2/3] running the system (ROS master {uri}; log {log_path})")
+    with open(log_path, "w") as log:
+        launch = subprocess.Popen(["roslaunch", "-p", str(port), "coop_slam", "demo.launch",
+                                   *launch_args], stdout=log, stderr=subprocess.STDOUT, env=env,
+                                  start_new_session=True)
+    try:
+        _wait_for_master(uri, 30.0)
+        monitor = _Monitor(robot_ids)
+        t0, t1 = schedule[0].play_s, schedule[-1].play_s
+        deadline = time.monotonic() + args.timeout
+        tty = sys.stdout.isatty()
+        last_line = 0.0
+        while not monitor.done.is_set():
+            if launch.poll() is not None:
+                raise CoopSlamError(f"roslaunch exited early (code {launch.returncode}); see {log_path}")
+            if time.monotonic() > deadline:
+                raise CoopSlamError(f"run did not finish within {args.timeout:.0f} s; see {log_path}")
+            got = sum(monitor.frames.values())
+            elapsed = min(max(monitor.sim_s - t0, 0.0), t1 - t0)
+            line = (f"[demo]       sim time {elapsed:6.1f}/{t1 - t0:.1f} s "
+                    f"({100 * elapsed / max(t1 - t0, 1e-9):3.0f} %), frames received {got}/{total}")
+            if tty:
+                print("\r" + line, end="", flush=True)
+            elif time.monotonic() - last_line > 10.0:
+                last_line = time.monotonic()
+                print(line, flush=True)
+            time.sleep(0.5)
+        time.sleep(1.0)
+        if tty:
+            print(flush=True)
+    finally:
+        if launch.poll() is None:
+            os.killpg(launch.pid, signal.SIGINT)
+            try:
+                launch.wait(20)
+            except subprocess.TimeoutExpired:
+                os.killpg(launch.pid, signal.SIGKILL)
+
+    say("[3/3] evaluating")
+    report = new_report(robot_ids)
+    traj_dir = os.path.join(out, "trajectories")
+    for entry, stream in zip(report["robots"], source.streams):
+        poses = stream.sequence.frame_poses()
+        ok = np.all(np.isfinite(poses), axis=(1, 2))
+        entry["frames"] = monitor.frames[stream.robot_id]
+        entry["path_length_m"] = path_length(poses[ok]) if ok.any() else None
+        plays = [s.play_s for s in schedule if s.robot_id == stream.robot_id]
+        write_tum_trajectory(os.path.join(traj_dir, f"{stream.name}_groundtruth.txt"),
+                             np.asarray(plays)[ok], poses[ok])
+    json_path, md_path = write_report(out, report)
+    say(f"done in {time.monotonic() - t_start:.0f} s")
+    say(f"report:       {json_path}")
+    say(f"              {md_path}")
+    say(f"trajectories: {traj_dir}")
+    return 0
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    try:
+        return run(args)
+    except CoopSlamError as exc:
+        say(f"ERROR: {exc}")
+        return 2
+    except KeyboardInterrupt:
+        say("interrupted")
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
