@@ -1,0 +1,1 @@
+"""Server-side team map: merged groups of robot maps and the transforms between them."""

@@ -1,0 +1,97 @@
+"""Merged groups of robot maps (union-find) and the chaining that turns one accepted keyframe-to-
+keyframe constraint into a map-to-map transform.
+
+Each group's frame is the map of its smallest robot id, so the group holding robot 1 (the master)
+is expressed in robot 1's map, which the server publishes as ``world``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import CoopSlamError
+from ..geometry import check_se3, invert
+
+
+class GroupError(CoopSlamError):
+    """Unknown robot or invalid transform handed to the merge groups."""
+
+
+def chain_map_transform(T_mapA_camA: np.ndarray, T_camA_camB: np.ndarray,
+                        T_mapB_camB: np.ndarray) -> np.ndarray:
+    """``T_mapA_mapB`` from keyframe poses in their own maps and the verified relative pose."""
+    return T_mapA_camA @ T_camA_camB @ invert(T_mapB_camB)
+
+
+class MergeGroups:
+    """Union-find over robot ids with, for each robot, ``T_root_map``: its map in its group's frame."""
+
+    def __init__(self, robot_ids=()):
+        self._parent: dict[int, int] = {}
+        self._T_root_map: dict[int, np.ndarray] = {}
+        for rid in robot_ids:
+            self.add_robot(rid)
+
+    def add_robot(self, robot_id: int) -> None:
+        if robot_id not in self._parent:
+            self._parent[robot_id] = robot_id
+            self._T_root_map[robot_id] = np.eye(4)
+
+    def _check(self, robot_id: int) -> None:
+        if robot_id not in self._parent:
+            raise GroupError(f"robot {robot_id} is unknown to the team map (known: {self.robots})")
+
+    @property
+    def robots(self) -> list[int]:
+        return sorted(self._parent)
+
+    def root(self, robot_id: int) -> int:
+        self._check(robot_id)
+        # Groups are re-rooted eagerly in merge(), so every robot points at its root directly.
+        return self._parent[robot_id]
+
+    def same_group(self, a: int, b: int) -> bool:
+        return self.root(a) == self.root(b)
+
+    def members(self, robot_id: int) -> list[int]:
+        r = self.root(robot_id)
+        return sorted(k for k, p in self._parent.items() if p == r)
+
+    def groups(self) -> list[list[int]]:
+        roots = sorted({p for p in self._parent.values()})
+        return [self.members(r) for r in roots]
+
+    def T_root_map(self, robot_id: int) -> np.ndarray:
+        """Robot's map expressed in its group's frame (identity for a group root)."""
+        self._check(robot_id)
+        return self._T_root_map[robot_id].copy()
+
+    def T_mapA_mapB(self, a: int, b: int) -> np.ndarray:
+        """Current transform between two robots' maps; they must be in one group."""
+        if not self.same_group(a, b):
+            raise GroupError(f"robots {a} and {b} are not merged")
+        return invert(self._T_root_map[a]) @ self._T_root_map[b]
+
+    def merge(self, a: int, b: int, T_mapA_mapB: np.ndarray) -> list[int]:
+        """Join b's group to a's with the given constraint; returns the merged group's members.
+
+        Merging robots already in one group is refused (that is a loop closure, not a merge).
+        """
+        T_mapA_mapB = check_se3(T_mapA_mapB, "T_mapA_mapB")
+        ra, rb = self.root(a), self.root(b)
+        if ra == rb:
+            raise GroupError(f"robots {a} and {b} are already in one group")
+        # T_ra_rb: b's group frame expressed in a's group frame.
+        T_ra_rb = self._T_root_map[a] @ T_mapA_mapB @ invert(self._T_root_map[b])
+        new_root, old_root = (ra, rb) if ra < rb else (rb, ra)
+        T_new_old = T_ra_rb if new_root == ra else invert(T_ra_rb)
+        for rid, parent in list(self._parent.items()):
+            if parent == old_root:
+                self._parent[rid] = new_root
+                self._T_root_map[rid] = T_new_old @ self._T_root_map[rid]
+        return self.members(new_root)
+
+    def set_T_root_map(self, robot_id: int, T_root_map: np.ndarray) -> None:
+        """Replace a robot's transform after global optimization (group membership unchanged)."""
+        self._check(robot_id)
+        self._T_root_map[robot_id] = check_se3(T_root_map, f"T_root_map of robot {robot_id}")
