@@ -1,0 +1,125 @@
+"""Accuracy metrics against ground truth, computed with evo (ATE/RPE) — never re-implemented here.
+
+Trajectories are (stamps_s (N,), poses_se3 (N, 4, 4)) pairs. Estimated and ground-truth poses are
+associated by timestamp; the alignment is SE(3) (no scale) unless asked otherwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import CoopSlamError
+from .geometry import invert, transform_error
+
+
+class EvaluationError(CoopSlamError):
+    """Trajectories that cannot be evaluated (too few associated poses, NaN, ...)."""
+
+
+@dataclass
+class AteResult:
+    rmse_m: float
+    mean_m: float
+    max_m: float
+    count: int  # associated poses
+    T_gt_est: np.ndarray  # alignment applied to the estimate
+
+
+def associate(stamps_est, stamps_gt, max_dt_s: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i_est, i_gt) of nearest stamps within ``max_dt_s``."""
+    stamps_est = np.asarray(stamps_est, float)
+    stamps_gt = np.asarray(stamps_gt, float)
+    if len(stamps_est) == 0 or len(stamps_gt) == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    order = np.argsort(stamps_gt)
+    sg = stamps_gt[order]
+    idx = np.clip(np.searchsorted(sg, stamps_est), 1, max(len(sg) - 1, 1))
+    if len(sg) == 1:
+        idx = np.zeros(len(stamps_est), int)
+    else:
+        left = idx - 1
+        idx = np.where(np.abs(sg[left] - stamps_est) <= np.abs(sg[idx] - stamps_est), left, idx)
+    ok = np.abs(sg[idx] - stamps_est) <= max_dt_s
+    return np.nonzero(ok)[0], order[idx[ok]]
+
+
+def _traj(poses, stamps):
+    from evo.core.trajectory import PoseTrajectory3D
+
+    return PoseTrajectory3D(poses_se3=[np.asarray(p, float) for p in poses],
+                            timestamps=np.asarray(stamps, float))
+
+
+def ate(stamps_est, poses_est, stamps_gt, poses_gt, max_dt_s: float = 0.02,
+        align: bool = True) -> AteResult:
+    """Absolute trajectory error (translation RMSE) after SE(3) alignment, with evo."""
+    from evo.core import metrics
+
+    poses_est = np.asarray(poses_est, float)
+    poses_gt = np.asarray(poses_gt, float)
+    i_est, i_gt = associate(stamps_est, stamps_gt, max_dt_s)
+    keep = np.all(np.isfinite(poses_est[i_est]), axis=(1, 2)) & np.all(
+        np.isfinite(poses_gt[i_gt]), axis=(1, 2))
+    i_est, i_gt = i_est[keep], i_gt[keep]
+    if len(i_est) < 3:
+        raise EvaluationError(f"only {len(i_est)} estimated poses match ground truth in time; "
+                              "need at least 3 for ATE")
+    stamps = np.asarray(stamps_est, float)[i_est]
+    ref = _traj(poses_gt[i_gt], stamps)
+    est = _traj(poses_est[i_est], stamps)
+    T = np.eye(4)
+    if align:
+        r, t, _ = est.align(ref, correct_scale=False)
+        T[:3, :3], T[:3, 3] = r, t
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est))
+    st = ape.get_all_statistics()
+    return AteResult(rmse_m=float(st["rmse"]), mean_m=float(st["mean"]), max_m=float(st["max"]),
+                     count=len(i_est), T_gt_est=T)
+
+
+def team_ate(est: dict[int, tuple], gt: dict[int, tuple], max_dt_s: float = 0.02) -> AteResult:
+    """ATE over all robots' poses together (all in one estimated frame, e.g. ``world``) with a
+    single SE(3) alignment for the whole team."""
+    stamps, poses_e, poses_g = [], [], []
+    offset = 0.0
+    for rid in sorted(est):
+        if rid not in gt:
+            continue
+        se, pe = est[rid]
+        sg, pg = gt[rid]
+        i_est, i_gt = associate(se, sg, max_dt_s)
+        # Robots may share stamps: shift each robot onto its own stretch of a synthetic timeline.
+        stamps.append(np.asarray(se, float)[i_est] - float(np.min(se)) + offset)
+        offset = float(stamps[-1].max()) + 1000.0 if len(stamps[-1]) else offset
+        poses_e.append(np.asarray(pe, float)[i_est])
+        poses_g.append(np.asarray(pg, float)[i_gt])
+    if not stamps:
+        raise EvaluationError("no robot has both an estimate and ground truth")
+    s = np.concatenate(stamps)
+    return ate(s, np.concatenate(poses_e), s, np.concatenate(poses_g), max_dt_s=1e-6)
+
+
+def rpe_rmse(stamps_est, poses_est, stamps_gt, poses_gt, delta: int = 1,
+             max_dt_s: float = 0.02) -> float:
+    """Relative pose error (translation RMSE over ``delta`` consecutive poses), with evo."""
+    from evo.core import metrics
+
+    i_est, i_gt = associate(stamps_est, stamps_gt, max_dt_s)
+    if len(i_est) <= delta:
+        raise EvaluationError(f"need more than {delta} associated poses for RPE")
+    stamps = np.asarray(stamps_est, float)[i_est]
+    ref = _traj(np.asarray(poses_gt)[i_gt], stamps)
+    est = _traj(np.asarray(poses_est)[i_est], stamps)
+    rpe = metrics.RPE(metrics.PoseRelation.translation_part, delta=delta,
+                      delta_unit=metrics.Unit.frames, all_pairs=False)
+    rpe.process_data((ref, est))
+    return float(rpe.get_statistic(metrics.StatisticsType.rmse))
+
+
+def merge_error(T_mapA_mapB_est: np.ndarray, T_world_mapA_gt: np.ndarray,
+                T_world_mapB_gt: np.ndarray) -> tuple[float, float]:
+    """(translation [m], rotation [deg]) error of an estimated map-to-map transform."""
+    return transform_error(T_mapA_mapB_est, invert(T_world_mapA_gt) @ T_world_mapB_gt)

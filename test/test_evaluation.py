@@ -1,0 +1,49 @@
+"""ATE/RPE wrappers around evo, team ATE with one alignment, merge error."""
+import numpy as np
+import pytest
+
+from coop_slam.evaluation import EvaluationError, associate, ate, merge_error, rpe_rmse, team_ate
+from coop_slam.geometry import invert, se3, se3_from_quat
+
+
+def _circle(n=50, r=2.0):
+    poses = []
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        poses.append(se3_from_quat([r * np.cos(a), r * np.sin(a), 0.5], [0, 0, np.sin(a / 2), np.cos(a / 2)]))
+    return np.arange(n) * 0.1 + 1.0, np.array(poses)
+
+
+def test_ate_is_zero_for_a_rigidly_moved_copy_and_sees_noise():
+    stamps, gt = _circle()
+    T = se3_from_quat([1, -2, 3], [0.2, 0.1, 0.4, 0.9])
+    moved = np.array([T @ p for p in gt])
+    res = ate(stamps + 0.005, moved, stamps, gt)
+    assert res.rmse_m < 1e-6 and res.count == 50
+    noisy = moved.copy()
+    noisy[:, :3, 3] += np.random.default_rng(0).normal(0, 0.01, (50, 3))
+    assert 0.005 < ate(stamps, noisy, stamps, gt).rmse_m < 0.02
+    assert rpe_rmse(stamps, moved, stamps, gt) < 1e-6
+    with pytest.raises(EvaluationError, match="match ground truth"):
+        ate(stamps + 5.0, moved, stamps, gt)
+
+
+def test_team_ate_uses_one_alignment():
+    stamps, gt = _circle()
+    est = {1: (stamps, gt.copy()), 2: (stamps, gt.copy())}
+    gts = {1: (stamps, gt), 2: (stamps, gt)}
+    assert team_ate(est, gts).rmse_m < 1e-6
+    # Robot 2 expressed in a wrongly placed frame: per-robot alignment would hide it, team ATE not.
+    off = se3(t=[0.5, 0, 0])
+    est[2] = (stamps, np.array([off @ p for p in gt]))
+    assert ate(*est[2], *gts[2]).rmse_m < 1e-6
+    assert team_ate(est, gts).rmse_m > 0.2
+
+
+def test_associate_and_merge_error():
+    i, j = associate([1.0, 2.0, 3.5], [0.99, 2.01, 3.0])
+    assert list(i) == [0, 1] and list(j) == [0, 1]
+    A = se3_from_quat([1, 0, 0], [0, 0, 0, 1])
+    B = se3_from_quat([0, 1, 0], [0, 0, 0.1, 1])
+    dt, dr = merge_error(invert(A) @ B, A, B)
+    assert dt < 1e-9 and dr < 1e-6
