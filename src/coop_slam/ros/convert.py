@@ -235,3 +235,58 @@ def keyframe_from_msg(msg, known_robots: set[int] | None = None) -> KeyframeReco
         return rec.validate(known_robots)
     except (KeyframeError, GeometryError) as exc:
         raise MessageError(str(exc)) from None
+
+
+# --- point clouds ------------------------------------------------------------------------------------
+def cloud_to_msg(points: np.ndarray, frame_id: str, stamp=None, rgb: np.ndarray | None = None):
+    """PointCloud2 (x, y, z float32 [+ rgb packed float32]) built with numpy, no per-point loop."""
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    points = np.asarray(points, np.float32).reshape(-1, 3)
+    fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+              for i, n in enumerate("xyz")]
+    if rgb is not None:
+        rgb = np.asarray(rgb, np.uint8).reshape(-1, 3)
+        packed = ((rgb[:, 0].astype(np.uint32) << 16) | (rgb[:, 1].astype(np.uint32) << 8)
+                  | rgb[:, 2].astype(np.uint32))
+        data = np.empty((len(points), 4), np.float32)
+        data[:, :3] = points
+        data[:, 3] = packed.view(np.float32)
+        fields.append(PointField(name="rgb", offset=12, datatype=PointField.FLOAT32, count=1))
+    else:
+        data = points
+    msg = PointCloud2()
+    if stamp is not None:
+        msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = 1, len(points)
+    msg.fields = fields
+    msg.is_bigendian = False
+    msg.point_step = 4 * data.shape[1] if len(points) else 4 * len(fields)
+    msg.row_step = msg.point_step * len(points)
+    msg.is_dense = True
+    msg.data = np.ascontiguousarray(data).tobytes()
+    return msg
+
+
+def cloud_from_msg(msg) -> np.ndarray:
+    """(N, 3) xyz of a PointCloud2 with float32 x, y, z fields."""
+    offsets = {f.name: f.offset for f in msg.fields}
+    if not all(k in offsets for k in "xyz") or msg.point_step == 0:
+        raise MessageError("point cloud lacks float32 x, y, z fields")
+    n = msg.width * msg.height
+    if len(msg.data) < n * msg.point_step:
+        raise MessageError(f"point cloud data holds {len(msg.data)} bytes for {n} points")
+    raw = np.frombuffer(msg.data, np.uint8, count=n * msg.point_step).reshape(n, msg.point_step)
+    return np.stack([raw[:, offsets[k]:offsets[k] + 4].copy().view(np.float32)[:, 0] for k in "xyz"],
+                    axis=1)
+
+
+def transform_stamped(T: np.ndarray, parent: str, child: str, stamp):
+    from geometry_msgs.msg import TransformStamped
+
+    msg = TransformStamped(transform=transform_to_msg(T))
+    msg.header.stamp = stamp
+    msg.header.frame_id = parent
+    msg.child_frame_id = child
+    return msg

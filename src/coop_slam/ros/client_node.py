@@ -1,0 +1,286 @@
+"""Client node: RGB-D visual odometry on one robot, publishing keyframes, pose, TF, path and cloud.
+
+Frames (REP-105): ``robot_k/map`` -> ``robot_k/odom`` -> ``robot_k/base_link`` ->
+``robot_k/camera_optical``. The odometry's own map frame is the first camera frame; this node
+re-expresses everything in ``robot_k/map``, defined as the robot body at start (z up), so maps are
+upright in RViz. ``map -> odom`` is identity until the server sends a correction.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+
+import numpy as np
+import rospy
+import yaml
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
+from sensor_msgs.msg import CameraInfo, Image
+
+from ..config import load_config
+from ..errors import CoopSlamError
+from ..geometry import invert, se3_from_quat, transform_points
+from ..keyframe import KeyframeRecord
+from .convert import (
+    MessageError,
+    camera_from_info,
+    cloud_to_msg,
+    depth_from_msg,
+    image_from_msg,
+    keyframe_to_msg,
+    pose_from_msg,
+    pose_to_msg,
+    transform_from_msg,
+    transform_stamped,
+)
+from .validation import RejectCounter
+
+# Optical frame (z forward, x right, y down) in a body frame (x forward, y left, z up).
+R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def default_T_base_cam() -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R_BODY_OPTICAL
+    return T
+
+
+def load_vo_config(config_file: str, overrides: dict):
+    """VoConfig from the YAML file (its ``vo`` section or the whole file) and ROS param overrides."""
+    from ..vo.config import VoConfig
+
+    values = {}
+    if config_file:
+        if not os.path.isfile(config_file):
+            raise CoopSlamError(f"client config file not found: {config_file}")
+        with open(config_file, encoding="utf-8") as fh:
+            data = yaml.safe_load(fh) or {}
+        values = dict(data.get("vo", data))
+    values.update(overrides)
+    return load_config(VoConfig, values)
+
+
+class ClientNode:
+    def __init__(self):
+        from coop_slam.msg import FrameStats, KeyFrame, MapCorrection  # noqa: F401
+
+        from ..vo.pipeline import RgbdOdometry
+
+        self.robot_id = int(rospy.get_param("~robot_id"))
+        if self.robot_id < 1:
+            raise CoopSlamError(f"~robot_id must be >= 1, got {self.robot_id}")
+        self.name = rospy.get_param("~robot_name", f"robot_{self.robot_id}")
+        self.map_frame = f"{self.name}/map"
+        self.odom_frame = f"{self.name}/odom"
+        self.base_frame = f"{self.name}/base_link"
+        self.cam_frame = f"{self.name}/camera_optical"
+        self.depth_scale = float(rospy.get_param("~depth_scale", 1000.0))  # 16UC1 units per metre
+        self.cloud_period_s = float(rospy.get_param("~cloud_period_s", 2.0))
+        base_cam = rospy.get_param("~T_base_cam", [])  # [x y z qx qy qz qw]
+        self.T_base_cam = (se3_from_quat(base_cam[:3], base_cam[3:]) if base_cam
+                           else default_T_base_cam())
+        self.vo_cfg = load_vo_config(rospy.get_param("~config", ""), rospy.get_param("~vo", {}))
+        self._RgbdOdometry = RgbdOdometry
+        self.vo = None
+        self.camera = None
+        self.lock = threading.Lock()
+        self.rejects = RejectCounter(f"client {self.name}")
+        self.T_map_odom = np.eye(4)  # server correction (REP-105 map -> odom)
+        self.T_world_map = None
+        self.segment = 0
+        self.kf_poses: dict[int, tuple[float, np.ndarray]] = {}  # id -> (stamp, T_map_cam)
+        self.last_cloud_s = -1e9
+        self.frames = 0
+
+        import message_filters
+        import tf2_ros
+
+        self.tf = tf2_ros.TransformBroadcaster()
+        self.static_tf = tf2_ros.StaticTransformBroadcaster()
+        self.static_tf.sendTransform(transform_stamped(self.T_base_cam, self.base_frame,
+                                                       self.cam_frame, rospy.Time(0)))
+        # Relative names: the launch file puts the node in the robot's namespace (/robot_k/...).
+        self.pub_kf = rospy.Publisher("keyframes", KeyFrame, queue_size=200)
+        self.pub_pose = rospy.Publisher("pose", PoseStamped, queue_size=10)
+        self.pub_path = rospy.Publisher("path", Path, queue_size=1, latch=True)
+        from sensor_msgs.msg import PointCloud2
+
+        self.pub_cloud = rospy.Publisher("local_map", PointCloud2, queue_size=1, latch=True)
+        self.pub_stats = rospy.Publisher("frame_stats", FrameStats, queue_size=50)
+        self.sub_info = rospy.Subscriber("camera/color/camera_info", CameraInfo,
+                                         self._on_info, queue_size=5)
+        color = message_filters.Subscriber("camera/color/image_raw", Image, queue_size=5,
+                                           buff_size=2**24)
+        depth = message_filters.Subscriber("camera/depth/image_raw", Image, queue_size=5,
+                                           buff_size=2**24)
+        self.sync = message_filters.TimeSynchronizer([color, depth], 10)
+        self.sync.registerCallback(self._on_frame)
+        self.sub_corr = rospy.Subscriber("correction", MapCorrection, self._on_correction,
+                                         queue_size=5)
+        rospy.loginfo("client %s: waiting for %s", self.name, rospy.resolve_name("camera/color/image_raw"))
+
+    # --- callbacks ----------------------------------------------------------------------------------
+    def _on_info(self, msg: CameraInfo) -> None:
+        try:
+            cam = camera_from_info(msg, sensor="rgbd", depth_scale=self.depth_scale)
+        except MessageError as exc:
+            self.rejects.reject("camera_info", str(exc))
+            return
+        with self.lock:
+            if self.camera is not None and cam != self.camera:
+                rospy.logwarn("client %s: camera model changed (%dx%d fx=%.1f -> %dx%d fx=%.1f); "
+                              "starting a new map", self.name, self.camera.width, self.camera.height,
+                              self.camera.fx, cam.width, cam.height, cam.fx)
+                self._close_vo()
+            self.camera = cam
+
+    def _close_vo(self) -> None:
+        if self.vo is not None:
+            self.vo.reset()
+            self._publish_events()
+            self.vo.close()
+            self.vo = None
+
+    def _on_frame(self, color_msg: Image, depth_msg: Image) -> None:
+        from coop_slam.msg import FrameStats
+
+        stamp = color_msg.header.stamp
+        stats = FrameStats(robot_id=self.robot_id, tracking_ok=False)
+        stats.header.stamp = stamp
+        try:
+            with self.lock:
+                if self.camera is None:
+                    raise MessageError("no camera_info received yet")
+                image = image_from_msg(color_msg)
+                depth = depth_from_msg(depth_msg, self.depth_scale)
+                if image.shape[:2] != (self.camera.height, self.camera.width) or depth.shape != image.shape[:2]:
+                    raise MessageError(f"image {image.shape[1]}x{image.shape[0]} / depth "
+                                       f"{depth.shape[1]}x{depth.shape[0]} do not match camera_info "
+                                       f"{self.camera.width}x{self.camera.height}")
+                if self.vo is None:
+                    self.vo = self._RgbdOdometry(self.vo_cfg, self.camera)
+                res = self.vo.track(stamp.to_sec(), image, depth)
+                self.frames += 1
+                stats.track_ms, stats.tracking_ok = res.track_ms, bool(res.ok)
+                stats.keyframes = len(self.kf_poses)
+                self._publish_events()
+                if res.ok:
+                    self._publish_pose(stamp, self.T_base_cam @ res.T_map_cam)
+                if stamp.to_sec() - self.last_cloud_s >= self.cloud_period_s:
+                    self.last_cloud_s = stamp.to_sec()
+                    self._publish_cloud(stamp)
+        except CoopSlamError as exc:
+            self.rejects.reject("camera/color/image_raw", str(exc))
+        finally:
+            self.pub_stats.publish(stats)
+
+    def _on_correction(self, msg) -> None:
+        if msg.robot_id != self.robot_id:
+            self.rejects.reject("correction", f"correction for robot {msg.robot_id} on "
+                                f"{self.name}'s topic")
+            return
+        try:
+            T_world_map = transform_from_msg(msg.T_world_map, "T_world_map")
+            poses = [pose_from_msg(p, "keyframe pose") for p in msg.keyframe_poses]
+        except MessageError as exc:
+            self.rejects.reject("correction", str(exc))
+            return
+        if len(poses) != len(msg.keyframe_ids):
+            self.rejects.reject("correction", "keyframe_ids and keyframe_poses differ in length")
+            return
+        with self.lock:
+            self.T_world_map = T_world_map if msg.merged else None
+            # The newest corrected keyframe we know: map->odom moves our odometry onto it.
+            known = [(kid, T) for kid, T in zip(msg.keyframe_ids, poses) if kid in self.kf_poses]
+            if known:
+                kid, T_map_cam_opt = max(known, key=lambda kv: kv[0])
+                T_odom_cam = self.kf_poses[kid][1]
+                self.T_map_odom = T_map_cam_opt @ invert(T_odom_cam)
+
+    # --- publishing ---------------------------------------------------------------------------------
+    def _record(self, kf, action: int) -> KeyframeRecord:
+        T_map_cam = self.T_base_cam @ kf.T_map_cam
+        pts = transform_points(self.T_base_cam, kf.map_points_xyz) if len(kf.map_points_xyz) else \
+            np.zeros((0, 3))
+        return KeyframeRecord(
+            robot_id=self.robot_id, keyframe_id=int(kf.keyframe_id), stamp_s=float(kf.stamp_s),
+            camera=self.camera, T_map_cam=T_map_cam,
+            keypoints=np.column_stack([kf.uv_px, kf.size_px, kf.angle_deg]).astype(np.float32),
+            octaves=kf.octaves, descriptors=kf.descriptors, depths_m=kf.depths_m,
+            map_point_ids=kf.map_point_ids, map_points=pts.astype(np.float32),
+            covisible_ids=kf.covisible_ids, covisible_weights=kf.covisible_weights,
+            map_segment=int(kf.map_segment), action=action)
+
+    def _publish_events(self) -> None:
+        from ..keyframe import ACTION_REMOVE
+        from ..vo.types import EVENT_NEW_SEGMENT, EVENT_WARNING, KEYFRAME_ACTIONS
+
+        changed = False
+        for ev in self.vo.drain_events():
+            if ev.kind == EVENT_WARNING:
+                rospy.logwarn("client %s: %s", self.name, ev.message)
+            elif ev.kind == EVENT_NEW_SEGMENT:
+                rospy.logwarn("client %s: tracking lost for good; new map segment %d (%s)",
+                              self.name, ev.map_segment, ev.message)
+                self.segment = ev.map_segment
+            elif ev.kind in KEYFRAME_ACTIONS:
+                action = KEYFRAME_ACTIONS[ev.kind]
+                if action == ACTION_REMOVE:
+                    self.kf_poses.pop(ev.keyframe_id, None)
+                    rec = KeyframeRecord(robot_id=self.robot_id, keyframe_id=ev.keyframe_id,
+                                         stamp_s=0.0, camera=self.camera, T_map_cam=np.eye(4),
+                                         map_segment=ev.map_segment, action=action)
+                else:
+                    rec = self._record(ev.keyframe, action)
+                    self.kf_poses[rec.keyframe_id] = (rec.stamp_s, rec.T_map_cam)
+                self.pub_kf.publish(keyframe_to_msg(rec, self.map_frame))
+                changed = True
+        if changed:
+            self._publish_path()
+
+    def _publish_pose(self, stamp, T_odom_cam: np.ndarray) -> None:
+        T_map_cam = self.T_map_odom @ T_odom_cam
+        msg = PoseStamped(pose=pose_to_msg(T_map_cam))
+        msg.header.stamp, msg.header.frame_id = stamp, self.map_frame
+        self.pub_pose.publish(msg)
+        T_odom_base = T_odom_cam @ invert(self.T_base_cam)
+        self.tf.sendTransform([
+            transform_stamped(self.T_map_odom, self.map_frame, self.odom_frame, stamp),
+            transform_stamped(T_odom_base, self.odom_frame, self.base_frame, stamp),
+        ])
+
+    def _publish_path(self) -> None:
+        path = Path()
+        path.header.frame_id = self.map_frame
+        for kid in sorted(self.kf_poses):
+            stamp_s, T_map_cam = self.kf_poses[kid]
+            ps = PoseStamped(pose=pose_to_msg(self.T_map_odom @ T_map_cam @ invert(self.T_base_cam)))
+            ps.header.stamp, ps.header.frame_id = rospy.Time.from_sec(stamp_s), self.map_frame
+            path.poses.append(ps)
+        if path.poses:
+            path.header.stamp = path.poses[-1].header.stamp
+        self.pub_path.publish(path)
+
+    def _publish_cloud(self, stamp) -> None:
+        _, xyz = self.vo.map_point_arrays()
+        pts = transform_points(self.T_map_odom @ self.T_base_cam, xyz) if len(xyz) else np.zeros((0, 3))
+        self.pub_cloud.publish(cloud_to_msg(pts, self.map_frame, stamp))
+
+    def shutdown(self) -> None:
+        with self.lock:
+            if self.vo is not None:
+                self.vo.close()
+        rospy.loginfo("client %s: %d frames, %d keyframes, %d rejected messages", self.name,
+                      self.frames, len(self.kf_poses), self.rejects.total)
+
+
+def main() -> None:
+    rospy.init_node("client")
+    try:
+        node = ClientNode()
+    except CoopSlamError as exc:
+        rospy.logfatal("client: %s", exc)
+        raise SystemExit(1)
+    rospy.on_shutdown(node.shutdown)
+    rospy.spin()
