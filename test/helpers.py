@@ -62,3 +62,54 @@ def write_kitti(folder: str, n=5, width=64, height=32) -> str:
     poses[:, 11] = np.arange(n) * 0.5  # driving forward along z
     np.savetxt(os.path.join(folder, "poses", "00.txt"), poses)
     return seq
+
+
+def cylinder_world(n_points=4000, radius=5.0, seed=0):
+    """Points on a cylinder wall around the origin (z up), each with its own ORB-like descriptor."""
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(0, 2 * np.pi, n_points)
+    points_world = np.column_stack([radius * np.cos(a), radius * np.sin(a), rng.uniform(0, 2.5, n_points)])
+    return points_world, rng.integers(0, 256, (n_points, 32), dtype=np.uint8)
+
+
+def looking_out_pose(yaw, center=(0.0, 0.0), height=1.2):
+    """T_world_cam of an optical camera at ``center`` looking horizontally along ``yaw``."""
+    from coop_slam.geometry import se3
+
+    fwd = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    left = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+    R = np.column_stack([-left, [0.0, 0.0, -1.0], fwd])  # x right, y down, z forward
+    return se3(R, [center[0], center[1], height])
+
+
+def observe(points_world, descriptors, T_world_cam, T_world_map, robot_id, keyframe_id, cam=None,
+            seed=0, px_noise=0.5, bit_flips=3, stamp_s=None):
+    """A KeyframeRecord of the points a camera sees (noisy pixels, depth and descriptors)."""
+    from coop_slam.geometry import invert, transform_points
+
+    cam = cam or camera()
+    rng = np.random.default_rng(seed)
+    p_cam = transform_points(invert(T_world_cam), points_world)
+    z = p_cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.column_stack([cam.fx * p_cam[:, 0] / z + cam.cx, cam.fy * p_cam[:, 1] / z + cam.cy])
+    vis = (z > 0.3) & (uv[:, 0] >= 2) & (uv[:, 0] < cam.width - 2) & (uv[:, 1] >= 2) & (uv[:, 1] < cam.height - 2)
+    idx = np.nonzero(vis)[0]
+    n = len(idx)
+    uv = uv[idx] + rng.normal(0, px_noise, (n, 2))
+    desc = descriptors[idx].copy()
+    bits = np.unpackbits(desc, axis=1)
+    for _ in range(bit_flips):
+        j = rng.integers(0, 256, n)
+        bits[np.arange(n), j] ^= 1
+    desc = np.packbits(bits, axis=1)
+    depth = z[idx] * (1 + rng.normal(0, 0.003, n))
+    T_map_cam = invert(T_world_map) @ T_world_cam
+    return KeyframeRecord(
+        robot_id=robot_id, keyframe_id=keyframe_id,
+        stamp_s=float(keyframe_id if stamp_s is None else stamp_s), camera=cam, T_map_cam=T_map_cam,
+        keypoints=np.column_stack([uv, np.full(n, 10.0), np.zeros(n)]).astype(np.float32),
+        octaves=np.zeros(n, np.uint8), descriptors=desc, depths_m=depth.astype(np.float32),
+        map_point_ids=(idx + 1).astype(np.uint32),
+        map_points=transform_points(invert(T_world_map), points_world[idx]).astype(np.float32),
+    )

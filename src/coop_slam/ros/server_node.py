@@ -1,0 +1,146 @@
+"""Server node: receives every robot's keyframes, stitches the maps, publishes merges and TF.
+
+Subscribes ``/robot_k/keyframes`` for each configured robot; publishes ``/merge_events``
+(``coop_slam/MergeEvent``), TF ``world -> robot_k/map`` for every robot in the master's group,
+``/robot_k/correction`` (``coop_slam/MapCorrection``) and ``/server/stats``. Keyframes are processed
+in one worker thread in arrival order, so callbacks never block and the graph has one writer.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import threading
+
+import rospy
+import yaml
+from std_msgs.msg import String
+
+from ..bow import Vocabulary
+from ..config import load_config
+from ..errors import CoopSlamError
+from ..team.server import ServerConfig, TeamServer
+from .convert import MessageError, keyframe_from_msg, transform_stamped, transform_to_msg
+from .validation import RejectCounter
+
+
+def load_server_config(config_file: str, overrides: dict) -> ServerConfig:
+    values = {}
+    if config_file:
+        if not os.path.isfile(config_file):
+            raise CoopSlamError(f"server config file not found: {config_file}")
+        with open(config_file, encoding="utf-8") as fh:
+            values = dict((yaml.safe_load(fh) or {}).get("server", {}))
+    values.update(overrides)
+    return load_config(ServerConfig, values)
+
+
+class ServerNode:
+    def __init__(self):
+        import tf2_ros
+
+        from coop_slam.msg import KeyFrame, MapCorrection, MergeEvent
+
+        overrides = {k: v for k, v in rospy.get_param("~", {}).items()
+                     if k not in ("config", "vocabulary")}
+        self.cfg = load_server_config(rospy.get_param("~config", ""), overrides)
+        vocab_path = rospy.get_param("~vocabulary", "")
+        if not vocab_path:
+            from ..bow.training import default_vocabulary_path
+
+            vocab_path = default_vocabulary_path()
+        if not os.path.isfile(vocab_path):
+            raise CoopSlamError(f"vocabulary file not found: {vocab_path} (run scripts/setup, which "
+                                "builds the default vocabulary, or set ~vocabulary)")
+        rospy.loginfo("server: loading vocabulary %s", vocab_path)
+        self.vocab_path = vocab_path
+        self.server = TeamServer(self.cfg, Vocabulary.load(vocab_path))
+        self.rejects = RejectCounter("server")
+        self.queue: queue.Queue = queue.Queue()
+        self.tf = tf2_ros.StaticTransformBroadcaster()
+        self.pub_merge = rospy.Publisher("/merge_events", MergeEvent, queue_size=20, latch=True)
+        self.pub_stats = rospy.Publisher("/server/stats", String, queue_size=5, latch=True)
+        self.pub_vocab = rospy.Publisher("/server/vocabulary", String, queue_size=1, latch=True)
+        self.pub_vocab.publish(String(data=vocab_path))
+        self.pub_corr = {r: rospy.Publisher(f"/robot_{r}/correction", MapCorrection, queue_size=5,
+                                            latch=True) for r in self.cfg.robots}
+        self._MergeEvent, self._MapCorrection = MergeEvent, MapCorrection
+        self.subs = [rospy.Subscriber(f"/robot_{r}/keyframes", KeyFrame, self._on_keyframe,
+                                      callback_args=r, queue_size=500, buff_size=2**24)
+                     for r in self.cfg.robots]
+        self.worker = threading.Thread(target=self._work, daemon=True)
+        self.worker.start()
+        self._publish_tf(rospy.Time.now())
+        rospy.loginfo("server: robots %s, waiting for keyframes", self.cfg.robots)
+
+    def _on_keyframe(self, msg, topic_robot: int) -> None:
+        topic = f"/robot_{topic_robot}/keyframes"
+        try:
+            rec = keyframe_from_msg(msg, known_robots=self.server.known_robots)
+        except MessageError as exc:
+            self.rejects.reject(topic, str(exc))
+            return
+        if rec.robot_id != topic_robot:
+            self.rejects.reject(topic, f"keyframe of robot {rec.robot_id} on robot {topic_robot}'s topic")
+            return
+        self.queue.put(rec)
+
+    def _work(self) -> None:
+        while not rospy.is_shutdown():
+            try:
+                rec = self.queue.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            try:
+                merges = self.server.add_keyframe(rec)
+            except CoopSlamError as exc:
+                self.rejects.reject(f"/robot_{rec.robot_id}/keyframes", str(exc))
+                continue
+            for m in merges:
+                self._publish_merge(m)
+            if merges:
+                self._publish_tf(rospy.Time.from_sec(rec.stamp_s))
+            if len(self.server.keyframe_ms) % 10 == 0 or merges:
+                self._publish_stats()
+
+    def _publish_merge(self, m) -> None:
+        msg = self._MergeEvent(type=m.type, robot_a=m.robot_a, robot_b=m.robot_b,
+                               keyframe_a=m.keyframe_a, keyframe_b=m.keyframe_b,
+                               T_mapA_mapB=transform_to_msg(m.T_mapA_mapB), inliers=m.inliers,
+                               residual_px=m.residual_px, group=m.group)
+        msg.header.stamp = rospy.Time.from_sec(m.stamp_s)
+        msg.header.frame_id = "world"
+        self.pub_merge.publish(msg)
+        rospy.loginfo("server: %s merge robot_%d -> robot_%d (%d inliers, %.2f px), group %s",
+                      m.type, m.robot_b, m.robot_a, m.inliers, m.residual_px, m.group)
+
+    def _publish_tf(self, stamp) -> None:
+        transforms = []
+        for r in self.cfg.robots:
+            T, merged = self.server.T_world_map(r)
+            if merged:
+                transforms.append(transform_stamped(T, "world", f"robot_{r}/map", stamp))
+            corr = self._MapCorrection(robot_id=r, merged=merged, T_world_map=transform_to_msg(T))
+            corr.header.stamp, corr.header.frame_id = stamp, "world"
+            self.pub_corr[r].publish(corr)
+        if transforms:
+            self.tf.sendTransform(transforms)
+
+    def _publish_stats(self) -> None:
+        ms = self.server.keyframe_ms
+        stats = {"keyframes": len(ms), "ms_per_keyframe_mean": sum(ms) / len(ms) if ms else None,
+                 "merges": len(self.server.merges), "groups": self.server.groups.groups(),
+                 "verifications": self.server.verifications, "rejected": self.rejects.total}
+        self.pub_stats.publish(String(data=json.dumps(stats)))
+
+
+def main() -> None:
+    rospy.init_node("server")
+    try:
+        node = ServerNode()
+    except CoopSlamError as exc:
+        rospy.logfatal("server: %s", exc)
+        raise SystemExit(1)
+    rospy.on_shutdown(node._publish_stats)
+    rospy.spin()

@@ -1,0 +1,72 @@
+"""Place-recognition stitching in the server core, on a synthetic feature world with known truth."""
+import numpy as np
+import pytest
+from helpers import cylinder_world, looking_out_pose, observe
+
+from coop_slam.bow import Vocabulary
+from coop_slam.geometry import invert, se3_from_quat, transform_error
+from coop_slam.keyframe import KeyframeError
+from coop_slam.team.server import ServerConfig, TeamServer
+
+T_WORLD_MAP = {1: se3_from_quat([0.3, -0.2, 0.0], [0, 0, 0.1, 1.0]),
+               2: se3_from_quat([-1.0, 0.5, 0.1], [0, 0, -0.4, 1.0])}
+
+
+def _keyframes(robot_id, yaws, points, desc, kid0=1, offset=(0.0, 0.0), seed=0):
+    out = []
+    for k, yaw in enumerate(yaws):
+        kf = observe(points, desc, looking_out_pose(yaw, center=offset), T_WORLD_MAP[robot_id],
+                     robot_id, kid0 + k, seed=seed + k)
+        kf.covisible_ids = np.array([i for i in (kid0 + k - 1, kid0 + k - 2) if i >= kid0], np.uint32)
+        kf.covisible_weights = np.full(len(kf.covisible_ids), 100, np.uint16)
+        out.append(kf)
+    return out
+
+
+@pytest.fixture(scope="module")
+def world():
+    points, desc = cylinder_world(seed=3)
+    a = _keyframes(1, np.linspace(0, 2 * np.pi, 36, endpoint=False), points, desc)
+    vocab = Vocabulary.train([kf.descriptors for kf in a], k=8, levels=3, seed=0)
+    return points, desc, a, vocab
+
+
+def test_revisit_merges_with_the_true_transform(world):
+    points, desc, kfs_a, vocab = world
+    server = TeamServer(ServerConfig(robots=[1, 2]), vocab)
+    for kf in kfs_a:
+        assert server.add_keyframe(kf) == []
+    yaws_b = np.linspace(2.0, 3.0, 8)  # robot B looks where A looked earlier, from 20 cm aside
+    merges = []
+    for kf in _keyframes(2, yaws_b, points, desc, offset=(0.2, 0.1), seed=100):
+        merges += server.add_keyframe(kf)
+    assert len(merges) == 1
+    m = merges[0]
+    assert (m.robot_a, m.robot_b, m.type) == (1, 2, "place_recognition")
+    dt, dr = transform_error(m.T_mapA_mapB, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
+    assert dt < 0.02 and dr < 0.5
+    assert server.groups.groups() == [[1, 2]]
+    T, merged = server.T_world_map(2)
+    assert merged and np.allclose(T, m.T_mapA_mapB)
+
+
+def test_unrelated_places_never_merge(world):
+    _, _, kfs_a, vocab = world
+    other_points, other_desc = cylinder_world(seed=99)  # a different building
+    server = TeamServer(ServerConfig(robots=[1, 2]), vocab)
+    for kf in kfs_a:
+        server.add_keyframe(kf)
+    for kf in _keyframes(2, np.linspace(0, 2 * np.pi, 20), other_points, other_desc, seed=7):
+        assert server.add_keyframe(kf) == []
+    assert server.merges == [] and server.groups.groups() == [[1], [2]]
+
+
+def test_unknown_robot_and_duplicates_are_rejected(world):
+    points, desc, kfs_a, vocab = world
+    server = TeamServer(ServerConfig(robots=[1, 2]), vocab)
+    bad = _keyframes(1, [0.0], points, desc)[0]
+    bad.robot_id = 5
+    with pytest.raises(KeyframeError, match="unknown"):
+        server.add_keyframe(bad)
+    server.add_keyframe(kfs_a[0])
+    assert len(server.keyframes) == 1
