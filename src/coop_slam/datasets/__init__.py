@@ -3,6 +3,7 @@
 from .base import CameraModel, DatasetError, Frame, Sequence, read_camera_yaml, write_camera_yaml
 from .kitti import read_kitti, read_kitti_poses
 from .split import parse_ranges, split_equal, split_ranges
+from .synthetic import SyntheticWorld, read_synthetic
 from .tum import read_tum, read_tum_trajectory, write_tum_trajectory
 
 __all__ = [
@@ -17,6 +18,8 @@ __all__ = [
     "parse_ranges",
     "split_equal",
     "split_ranges",
+    "SyntheticWorld",
+    "read_synthetic",
     "read_tum",
     "read_tum_trajectory",
     "write_tum_trajectory",

@@ -1,0 +1,417 @@
+"""Geometry of the synthetic indoor world: textured planar quads, buildings and robot bodies.
+
+Frames (REP-103): world z up; robot ``base_link`` x forward, y left, z up, on the floor (z = 0);
+camera optical frame z forward, x right, y down. ``T_a_b`` maps points of frame b into frame a.
+
+A building is a ring corridor (12 m x 8 m outside, 2 m wide) around two rooms (4 m x 3.8 m) joined
+by doors, with pillars, cabinets and crates for corners and depth structure. A world holds one or
+two buildings 30 m apart; walls are closed, so no camera ever sees from one building into another.
+Surfaces are split into tiles of at most 2 m so each tile picks its own mip level and its own
+screen bounding box stays small.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import CoopSlamError
+from ..geometry import se3
+from . import textures
+
+WALL_HEIGHT_M = 2.5
+BUILDING_SIZE_M = (12.0, 8.0)
+BUILDING_SPACING_M = 30.0
+TILE_MAX_M = 2.0
+PX_PER_M = {"wall": 200.0, "box": 200.0, "floor": 100.0, "ceiling": 60.0}
+
+# Robot body: a box on the floor centred on base_link; markers on its four sides.
+BODY_SIZE_M = (0.4, 0.4, 0.6)
+MARKER_CENTRE_HEIGHT_M = 0.38
+DEFAULT_MARKER_SIZE_M = 0.25
+# Camera on the robot: 0.1 m forward, 0.5 m up, looking forward (optical z = base x).
+R_BASE_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+DEFAULT_T_BASE_CAM = se3(R_BASE_CAM, [0.1, 0.0, 0.5])
+
+
+class WorldError(CoopSlamError):
+    """An invalid world description (unknown layout, bad marker size, robot id out of range)."""
+
+
+@dataclass(frozen=True)
+class Poster:
+    """A texture patch pasted on a surface; ``seed`` decides its pixels (same seed, same poster)."""
+
+    u_m: float  # left edge, metres from the surface's left edge
+    v_m: float  # top edge, metres from the surface's top edge
+    width_m: float
+    height_m: float
+    seed: tuple
+
+
+@dataclass
+class Surface:
+    """A textured planar rectangle ``origin + s * edge_u + t * edge_v`` for s, t in [0, 1].
+
+    Texture column x runs along ``edge_u`` and row y along ``edge_v``; the visible side is the one
+    ``normal = edge_v x edge_u`` points to (seen from there, the texture is not mirrored).
+    """
+
+    name: str
+    kind: str  # key of PX_PER_M: wall, box, floor, ceiling
+    origin_world: np.ndarray
+    edge_u_world: np.ndarray
+    edge_v_world: np.ndarray
+    seed: tuple
+    posters: list[Poster] = field(default_factory=list)
+
+    @property
+    def size_m(self) -> tuple[float, float]:
+        return float(np.linalg.norm(self.edge_u_world)), float(np.linalg.norm(self.edge_v_world))
+
+    @property
+    def tiles(self) -> tuple[int, int]:
+        w, h = self.size_m
+        return max(1, math.ceil(w / TILE_MAX_M - 1e-9)), max(1, math.ceil(h / 2.5 - 1e-9))
+
+    def texture_size(self) -> tuple[int, int]:
+        """(width, height) [px] of the whole-surface texture: whole tiles of SIZE_MULTIPLE px."""
+        w, h = self.size_m
+        nu, nv = self.tiles
+        ppm = PX_PER_M[self.kind]
+        return nu * textures.round_size(w / nu, ppm), nv * textures.round_size(h / nv, ppm)
+
+    def make_texture(self) -> np.ndarray:
+        w_px, h_px = self.texture_size()
+        w_m, h_m = self.size_m
+        ppm = PX_PER_M[self.kind]
+        tex = textures.surface_texture(w_px, h_px, ppm, self.seed, style=self.kind)
+        sx, sy = w_px / w_m, h_px / h_m  # exact texels per metre along each edge
+        for p in self.posters:
+            pw, ph = round(p.width_m * sx), round(p.height_m * sy)
+            poster = textures.poster_texture(pw, ph, ppm, p.seed)
+            textures.paste_poster(tex, poster, round(p.u_m * sx), round(p.v_m * sy))
+        return tex
+
+
+class QuadModel:
+    """Textured quads in a model frame (the world, or a robot's base_link), ready for rendering.
+
+    ``texture_levels(i)`` returns the mip pyramid of quad ``i``; it is built on first use, so a
+    renderer only pays for what it sees.
+    """
+
+    def __init__(self, origins, edges_u, edges_v, level_fn, names):
+        self.origins = np.asarray(origins, float).reshape(-1, 3)
+        self.edges_u = np.asarray(edges_u, float).reshape(-1, 3)
+        self.edges_v = np.asarray(edges_v, float).reshape(-1, 3)
+        n = np.cross(self.edges_v, self.edges_u)
+        self.normals = n / np.linalg.norm(n, axis=1, keepdims=True)
+        self.centres = self.origins + 0.5 * (self.edges_u + self.edges_v)
+        self.radii = 0.5 * np.maximum(
+            np.linalg.norm(self.edges_u + self.edges_v, axis=1),
+            np.linalg.norm(self.edges_u - self.edges_v, axis=1),
+        )
+        self.names = list(names)
+        self._level_fn = level_fn
+        self._levels: dict[int, list[np.ndarray]] = {}
+
+    def __len__(self) -> int:
+        return len(self.origins)
+
+    def texture_levels(self, i: int) -> list[np.ndarray]:
+        levels = self._levels.get(i)
+        if levels is None:
+            levels = self._levels[i] = self._level_fn(i)
+        return levels
+
+
+class World:
+    """Static textured quads of one or more buildings, and their 2D footprint (free-space tests)."""
+
+    def __init__(
+        self, surfaces: list[Surface], obstacles_xy: list[tuple], building_origins_xy, meta
+    ):
+        self.surfaces = surfaces
+        self.obstacles_xy = obstacles_xy  # (x0, y0, x1, y1) occupied rectangles
+        self.building_origins_xy = [tuple(map(float, o)) for o in building_origins_xy]
+        self.meta = meta
+        origins, eus, evs, names, self._tile_of = [], [], [], [], []
+        for si, s in enumerate(surfaces):
+            nu, nv = s.tiles
+            for j in range(nv):
+                for i in range(nu):
+                    origins.append(
+                        s.origin_world + i / nu * s.edge_u_world + j / nv * s.edge_v_world
+                    )
+                    eus.append(s.edge_u_world / nu)
+                    evs.append(s.edge_v_world / nv)
+                    names.append(f"{s.name}[{i},{j}]")
+                    self._tile_of.append((si, i, j))
+        self._surface_textures: dict[int, np.ndarray] = {}
+        self.quads = QuadModel(origins, eus, evs, self._tile_levels, names)
+
+    def surface_texture(self, si: int) -> np.ndarray:
+        tex = self._surface_textures.get(si)
+        if tex is None:
+            tex = self._surface_textures[si] = self.surfaces[si].make_texture()
+        return tex
+
+    def _tile_levels(self, q: int) -> list[np.ndarray]:
+        si, i, j = self._tile_of[q]
+        tex = self.surface_texture(si)
+        nu, nv = self.surfaces[si].tiles
+        th, tw = tex.shape[0] // nv, tex.shape[1] // nu
+        return textures.mip_pyramid(tex[j * th : (j + 1) * th, i * tw : (i + 1) * tw])
+
+    def is_free(self, xy, clearance_m: float = 0.0) -> np.ndarray:
+        """Whether a disc of radius ``clearance_m`` at each (x, y) is in a building's free space."""
+        xy = np.atleast_2d(np.asarray(xy, float))
+        inside_any = np.zeros(len(xy), bool)
+        bw, bh = BUILDING_SIZE_M
+        for ox, oy in self.building_origins_xy:
+            inside_any |= (
+                (xy[:, 0] >= ox + clearance_m)
+                & (xy[:, 0] <= ox + bw - clearance_m)
+                & (xy[:, 1] >= oy + clearance_m)
+                & (xy[:, 1] <= oy + bh - clearance_m)
+            )
+        for x0, y0, x1, y1 in self.obstacles_xy:
+            dx = np.maximum(np.maximum(x0 - xy[:, 0], xy[:, 0] - x1), 0.0)
+            dy = np.maximum(np.maximum(y0 - xy[:, 1], xy[:, 1] - y1), 0.0)
+            inside_any &= np.hypot(dx, dy) > clearance_m
+        return inside_any
+
+    def sample_points(self, spacing_m: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+        """(points_world (N, 3), normals_world (N, 3)): a regular grid over all static surfaces."""
+        pts, nrm = [], []
+        for s in self.surfaces:
+            w, h = s.size_m
+            step = spacing_m * (2.0 if s.kind in ("floor", "ceiling") else 1.0)
+            nu, nv = max(1, round(w / step)), max(1, round(h / step))
+            su, sv = np.meshgrid((np.arange(nu) + 0.5) / nu, (np.arange(nv) + 0.5) / nv)
+            p = (
+                s.origin_world
+                + su.reshape(-1, 1) * s.edge_u_world
+                + sv.reshape(-1, 1) * s.edge_v_world
+            )
+            n = np.cross(s.edge_v_world, s.edge_u_world)
+            pts.append(p)
+            nrm.append(np.repeat((n / np.linalg.norm(n))[None], len(p), axis=0))
+        return np.concatenate(pts), np.concatenate(nrm)
+
+
+# --- building layout ---------------------------------------------------------------------------
+def _wall(name, a_xy, b_xy, z0, z1, kind, seed, posters=()) -> Surface:
+    """Vertical rectangle from a to b, visible from the right-hand side of the direction a -> b."""
+    a = np.array([a_xy[0], a_xy[1], z1], float)
+    b = np.array([b_xy[0], b_xy[1], z1], float)
+    return Surface(name, kind, a, b - a, np.array([0.0, 0.0, z0 - z1]), seed, list(posters))
+
+
+def _box(name, x0, y0, x1, y1, z0, z1, kind, seed, top=True) -> list[Surface]:
+    """Outward-facing sides (counter-clockwise = outside on the right) and top of a cuboid."""
+    corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+    out = [
+        _wall(f"{name}.side{k}", corners[k], corners[(k + 1) % 4], z0, z1, kind, seed + (k,))
+        for k in range(4)
+    ]
+    if top:
+        out.append(
+            Surface(
+                f"{name}.top",
+                kind,
+                np.array([x0, y1, z1]),
+                np.array([x1 - x0, 0.0, 0.0]),
+                np.array([0.0, y0 - y1, 0.0]),
+                seed + (4,),
+            )
+        )
+    return out
+
+
+def _building(index: int, origin_xy, texture_key: tuple, poster_key: tuple) -> tuple[list, list]:
+    """Surfaces and obstacle footprints of one ring building, lower-left corner at origin_xy."""
+    ox, oy = origin_xy
+    H = WALL_HEIGHT_M
+    surfaces: list[Surface] = []
+    obstacles: list[tuple] = []
+    counter = iter(range(10_000))
+
+    def seed():
+        return texture_key + (next(counter),)
+
+    def P(x, y):
+        return (ox + x, oy + y)
+
+    b = f"b{index}"
+    # Outer walls, inward-facing (clockwise). Posters hang at camera height (z 0.3-1.2 m) on the
+    # end walls of the corridors, where robots driving down a corridor face them head-on.
+    vpos = H - 1.2
+
+    def poster(slot, u):
+        return Poster(u, vpos, 1.0, 0.9, poster_key + (slot,))
+
+    outer = [
+        ("west", (0, 0), (0, 8), [poster(0, 6.5)]),  # end of the north corridor
+        ("north", (0, 8), (12, 8), [poster(1, 10.5)]),  # end of the east corridor
+        ("east", (12, 8), (12, 0), [poster(2, 6.5)]),  # end of the south corridor
+        ("south", (12, 0), (0, 0), [poster(3, 10.5)]),  # end of the west corridor
+    ]
+    for name, a, c, posters in outer:
+        surfaces.append(_wall(f"{b}.{name}", P(*a), P(*c), 0.0, H, "wall", seed(), posters))
+    # Inner block: walls 0.1 m thick with doors (1 m) into room A (south), room B (north) and
+    # between the rooms (partition). Each wall piece is a box, so door jambs come for free.
+    walls = [
+        ("s1", 2.0, 2.0, 3.5, 2.1),
+        ("s2", 4.5, 2.0, 10.0, 2.1),
+        ("n1", 2.0, 5.9, 7.5, 6.0),
+        ("n2", 8.5, 5.9, 10.0, 6.0),
+        ("w", 2.0, 2.1, 2.1, 5.9),
+        ("e", 9.9, 2.1, 10.0, 5.9),
+        ("p1", 5.95, 2.1, 6.05, 3.5),
+        ("p2", 5.95, 4.5, 6.05, 5.9),
+    ]
+    for name, x0, y0, x1, y1 in walls:
+        (ax, ay), (cx, cy) = P(x0, y0), P(x1, y1)
+        surfaces += _box(f"{b}.wall_{name}", ax, ay, cx, cy, 0.0, H, "wall", seed(), top=False)
+        obstacles.append((ax, ay, cx, cy))
+    # The north corridor side of the inner block carries a poster too (wall n1, facing north).
+    for s in surfaces:
+        if s.name == f"{b}.wall_n1.side2":  # side2 runs (x1, y1) -> (x0, y1): faces +y
+            s.posters.append(poster(4, 2.0))
+    # Pillars in the outer corners (full height), a pillar in room A; cabinets against outer walls;
+    # crates in the rooms. Heights differ so silhouettes differ from place to place.
+    solids = [
+        ("pillar_sw", 0.1, 0.1, 0.45, 0.45, H, False),
+        ("pillar_se", 11.55, 0.1, 11.9, 0.45, H, False),
+        ("pillar_ne", 11.55, 7.55, 11.9, 7.9, H, False),
+        ("pillar_nw", 0.1, 7.55, 0.45, 7.9, H, False),
+        ("pillar_a", 4.7, 2.4, 5.0, 2.7, H, False),
+        ("cabinet_s", 5.0, 0.02, 6.2, 0.27, 0.8, True),
+        ("cabinet_n", 3.0, 7.73, 4.0, 7.98, 1.0, True),
+        ("cabinet_e", 11.73, 3.5, 11.98, 4.5, 0.6, True),
+        ("crate_a", 2.5, 4.6, 3.3, 5.4, 0.9, True),
+        ("crate_b", 8.8, 2.4, 9.6, 3.2, 0.7, True),
+        ("shelf_b", 6.4, 5.2, 7.2, 5.8, 1.2, True),
+    ]
+    for name, x0, y0, x1, y1, h, top in solids:
+        (ax, ay), (cx, cy) = P(x0, y0), P(x1, y1)
+        surfaces += _box(f"{b}.{name}", ax, ay, cx, cy, 0.0, h, "box", seed(), top=top)
+        obstacles.append((ax, ay, cx, cy))
+    bw, bh = BUILDING_SIZE_M
+    surfaces.append(
+        Surface(
+            f"{b}.floor",
+            "floor",
+            np.array([ox, oy + bh, 0.0]),
+            np.array([bw, 0.0, 0.0]),
+            np.array([0.0, -bh, 0.0]),
+            seed(),
+        )
+    )
+    surfaces.append(
+        Surface(
+            f"{b}.ceiling",
+            "ceiling",
+            np.array([ox, oy, H]),
+            np.array([bw, 0.0, 0.0]),
+            np.array([0.0, bh, 0.0]),
+            seed(),
+        )
+    )
+    return surfaces, obstacles
+
+
+LAYOUTS = ("ring", "two_buildings", "two_buildings_aliased")
+
+
+def build_world(layout: str = "ring", seed: int = 0) -> World:
+    """The static world: 'ring' (one building), 'two_buildings' (two buildings whose textures all
+    differ) or 'two_buildings_aliased' (two buildings that share identical posters)."""
+    if layout not in LAYOUTS:
+        raise WorldError(f"unknown world layout '{layout}'; use one of {LAYOUTS}")
+    n_buildings = 1 if layout == "ring" else 2
+    surfaces, obstacles, origins = [], [], []
+    for b in range(n_buildings):
+        origin = (b * BUILDING_SPACING_M, 0.0)
+        # Aliased worlds take the posters of building 0 for every building: identical patches at
+        # different places. Everything else always has building-specific seeds.
+        poster_key = (
+            (int(seed), 1000) if layout == "two_buildings_aliased" else (int(seed), 1000 + b)
+        )
+        s, o = _building(b, origin, (int(seed), b), poster_key)
+        surfaces += s
+        obstacles += o
+        origins.append(origin)
+    meta = {"layout": layout, "seed": int(seed), "buildings": [list(o) for o in origins]}
+    return World(surfaces, obstacles, origins, meta)
+
+
+# --- robot bodies ------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class BodyFace:
+    """One side of a robot body in base_link: the quad and its marker's corners."""
+
+    origin_base: np.ndarray
+    edge_u_base: np.ndarray
+    edge_v_base: np.ndarray
+    marker_corners_base: np.ndarray | None  # (4, 3) in ArUco order: TL, TR, BR, BL
+
+
+def body_faces(marker_size_m: float = DEFAULT_MARKER_SIZE_M) -> list[BodyFace]:
+    """Four marker sides (front, left, back, right) and the top of the robot body, in base_link."""
+    sx, sy, sz = BODY_SIZE_M
+    if not 0.05 <= marker_size_m <= 0.7 * min(sx, sy):
+        raise WorldError(
+            f"marker size {marker_size_m} m must be in [0.05, {0.7 * min(sx, sy):.2f}] m to fit "
+            f"on the {sx} x {sy} m robot body with its white border"
+        )
+    hx, hy = sx / 2, sy / 2
+    corners = [(hx, -hy), (hx, hy), (-hx, hy), (-hx, -hy)]  # counter-clockwise from front-right
+    # Marker corners from the texel layout the texture uses, so geometry and pixels agree exactly.
+    w_px, h_px, x0, y0, side = textures.marker_face_layout(
+        sx, sz, marker_size_m, sz - MARKER_CENTRE_HEIGHT_M
+    )
+    faces = []
+    for k in range(4):
+        a, c = corners[k], corners[(k + 1) % 4]
+        origin = np.array([a[0], a[1], sz])
+        eu = np.array([c[0] - a[0], c[1] - a[1], 0.0])
+        ev = np.array([0.0, 0.0, -sz])
+        s0, s1 = x0 / w_px, (x0 + side) / w_px
+        t0, t1 = y0 / h_px, (y0 + side) / h_px
+        marker = np.array(
+            [origin + s * eu + t * ev for s, t in ((s0, t0), (s1, t0), (s1, t1), (s0, t1))]
+        )
+        faces.append(BodyFace(origin, eu, ev, marker))
+    faces.append(
+        BodyFace(np.array([-hx, hy, sz]), np.array([sx, 0, 0.0]), np.array([0, -sy, 0.0]), None)
+    )
+    return faces
+
+
+def body_model(robot_id: int, marker_size_m: float = DEFAULT_MARKER_SIZE_M) -> QuadModel:
+    """Quads of robot ``robot_id``'s body in its base_link; the marker id is the robot id."""
+    faces = body_faces(marker_size_m)
+    sx, _sy, sz = BODY_SIZE_M
+    side_tex = textures.marker_face_texture(
+        robot_id, sx, sz, marker_size_m, sz - MARKER_CENTRE_HEIGHT_M
+    )
+    side_levels = textures.mip_pyramid(side_tex)
+    top = np.full((64, 64, 3), (60, 60, 66), np.uint8)
+    top[8:56, 8:56] = (170, 170, 170)  # a light panel so the top edge is visible
+    top_levels = textures.mip_pyramid(top)
+
+    def levels(i):
+        return side_levels if i < 4 else top_levels
+
+    return QuadModel(
+        [f.origin_base for f in faces],
+        [f.edge_u_base for f in faces],
+        [f.edge_v_base for f in faces],
+        levels,
+        [f"robot_{robot_id}.{n}" for n in ("front", "left", "back", "right", "top")],
+    )
