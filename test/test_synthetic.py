@@ -211,17 +211,17 @@ def test_scenario_arguments_are_checked():
 def test_rendezvous_overlap():
     scenario = make_scenario("rendezvous", seed=0)
     events = compute_overlap(scenario, build_world(scenario.layout, 0), cfg=FAST_OVERLAP)
-    meet = events.rendezvous_time(0, 1)
+    meet = events.rendezvous_time(1, 2)
     assert meet is not None and meet >= scenario.meta["meet_time_s"] - 1.0
-    assert events.sighting_time(0, 1) is not None and events.sighting_time(1, 0) is not None
-    assert events.first_overlap_time(0, 1) <= meet
+    assert events.sighting_time(1, 2) is not None and events.sighting_time(2, 1) is not None
+    assert events.first_overlap_time(1, 2) <= meet
 
 
 def test_revisit_overlap():
     scenario = make_scenario("revisit", seed=0)
     events = compute_overlap(scenario, build_world(scenario.layout, 0), cfg=FAST_OVERLAP)
     assert events.rendezvous == [] and events.marker_sightings == []
-    revisit = [e for e in events.revisit if e["robot"] == 1 and e["of_robot"] == 0]
+    revisit = [e for e in events.revisit if e["robot"] == 2 and e["of_robot"] == 1]
     assert revisit and revisit[0]["earlier_stamp_s"] < revisit[0]["stamp_s"] - 10.0
 
 
@@ -274,8 +274,8 @@ def test_generate_and_read_round_trip(tmp_path):
     assert folder == str(out) and calls[-1] == (10, 10)
     world = read_synthetic(folder)
     scenario = make_scenario("rendezvous", seed=0, duration_s=1.0, rate_hz=5.0)
-    assert world.robot_ids == [0, 1] and world.scenario == "rendezvous"
-    assert [r["name"] for r in world.meta["robots"]] == ["robot_0", "robot_1"]
+    assert world.robot_ids == [1, 2] and world.scenario == "rendezvous"
+    assert [r["name"] for r in world.meta["robots"]] == ["robot_1", "robot_2"]
     assert np.allclose(world.T_base_cam, DEFAULT_T_BASE_CAM)
     assert world.meta["markers"]["size_m"] == 0.25 and "overlap" in world.meta
     for traj in scenario.trajectories:
@@ -335,12 +335,12 @@ def test_reader_rejects_bad_folders(tmp_path):
         read_synthetic(str(tmp_path))
     T = DEFAULT_T_BASE_CAM.tolist()
     (tmp_path / "world.yaml").write_text(
-        yaml.safe_dump({"robots": [{"id": 0, "name": "robot_0"}], "T_base_cam": T})
+        yaml.safe_dump({"robots": [{"id": 1, "name": "robot_1"}], "T_base_cam": T})
     )
-    with pytest.raises(DatasetError, match="robot_0"):
+    with pytest.raises(DatasetError, match="robot_1"):
         read_synthetic(str(tmp_path))
     (tmp_path / "world.yaml").write_text(
-        yaml.safe_dump({"robots": [{"id": 0, "name": "robot_0"}], "T_base_cam": [1]})
+        yaml.safe_dump({"robots": [{"id": 1, "name": "robot_1"}], "T_base_cam": [1]})
     )
     with pytest.raises(DatasetError, match="T_base_cam"):
         read_synthetic(str(tmp_path))

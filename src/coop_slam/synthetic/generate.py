@@ -36,7 +36,7 @@ from .render import DEFAULT_CAMERA, DynamicObject, NoiseConfig, Renderer
 from .scenarios import Scenario, make_scenario
 from .world import BODY_SIZE_M, WALL_HEIGHT_M, body_model, build_world
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 COMPLETE_MARKER = ".complete"
 WORLD_FILE = "world.yaml"
 _CHUNK_FRAMES = 40

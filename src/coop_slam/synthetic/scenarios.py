@@ -5,7 +5,7 @@ rounded to arcs so the yaw rate stays under ~35 deg/s, and smooth in-place turns
 one clear purpose for evaluating map merging:
 
 - ``rendezvous``: two robots meet, see each other's marker and then look at the same scene together.
-- ``revisit``: robot 1 drives through places robot 0 saw earlier, never at the same time.
+- ``revisit``: robot 2 drives through places robot 1 saw earlier, never at the same time.
 - ``disjoint``: two robots in two different buildings: nothing to merge, ever.
 - ``aliasing``: two buildings with identical posters at the same spots; one robot in each.
 - ``team`` (the demo default, 2-4 robots): a revisit first, then rendezvous.
@@ -257,7 +257,9 @@ def _stamps(duration_s: float, rate_hz: float) -> np.ndarray:
 def _scenario(name, seed, layout, rate_hz, duration_s, routes, description, **meta) -> Scenario:
     stamps = _stamps(duration_s, rate_hz)
     trajs = [
-        Trajectory(k, stamps.copy(), r.sample(stamps - START_STAMP_S)) for k, r in enumerate(routes)
+        # Robot ids start at 1 (robot 1 is the master; 0 means "no robot" on the wire).
+        Trajectory(k + 1, stamps.copy(), r.sample(stamps - START_STAMP_S))
+        for k, r in enumerate(routes)
     ]
     return Scenario(
         name, int(seed), layout, float(rate_hz), float(duration_s), trajs, description, meta=meta
@@ -274,9 +276,9 @@ def _jitter(rng: np.random.Generator, amount: float = 0.08) -> float:
 
 def rendezvous(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenario:
     """Robots 0 and 1 approach head-on in the south corridor (seeing each other's marker), stop,
-    robot 1 turns around and both drive east together looking at the same scene."""
+    robot 2 turns around and both drive east together looking at the same scene."""
     rng = np.random.default_rng(seed)
-    v = _speeds(rng, 1)[0]  # same speed for both: robot 0 follows robot 1 at a constant gap
+    v = _speeds(rng, 1)[0]  # same speed for both: robot 1 follows robot 2 at a constant gap
     a = Route(2.0 + _jitter(rng), 1.0, 0.0, v).drive((5.2, 1.0))
     b = Route(10.0 + _jitter(rng), 1.0, 180.0, v).drive((7.0, 1.0)).wait(1.0).turn_to(0.0)
     start = max(a.time_s, b.time_s) + 0.5
@@ -295,8 +297,8 @@ def rendezvous(seed: int, robots: int, duration_s: float, rate_hz: float) -> Sce
 
 
 def revisit(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenario:
-    """Robot 0 drives the south and east corridors; robot 1 starts in the north corridor, goes
-    round through the west corridor and then drives the south corridor after robot 0 has left it."""
+    """Robot 1 drives the south and east corridors; robot 2 starts in the north corridor, goes
+    round through the west corridor and then drives the south corridor after robot 1 has left it."""
     rng = np.random.default_rng(seed)
     va, vb = _speeds(rng, 2)
     a = Route(2.5 + _jitter(rng), 1.0, 0.0, va).drive((11.0, 1.0), (11.0, 7.0), (8.5, 7.0))
@@ -305,7 +307,7 @@ def revisit(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenar
 
 
 def disjoint(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenario:
-    """Robot 0 in building 0, robot 1 in building 1 (different textures): no shared view, ever."""
+    """Robot 1 in building 0, robot 2 in building 1 (different textures): no shared view, ever."""
     rng = np.random.default_rng(seed)
     va, vb = _speeds(rng, 2)
     a = Route(2.5 + _jitter(rng), 1.0, 0.0, va).drive((11.0, 1.0), (11.0, 6.0))
@@ -330,10 +332,10 @@ def aliasing(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scena
 
 
 def team(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenario:
-    """Demo default. Robot 0 drives the south corridor and waits in the east corridor; robot 1
-    starts in the north corridor, revisits the south corridor later and joins robot 0 from behind
-    (rendezvous). Robot 2 crosses the rooms and revisits robot 1's start; robot 3 waits at the end
-    of the east corridor and meets robot 0 face to face."""
+    """Demo default. Robot 1 drives the south corridor and waits in the east corridor; robot 2
+    starts in the north corridor, revisits the south corridor later and joins robot 1 from behind
+    (rendezvous). Robot 3 crosses the rooms and revisits robot 2's start; robot 4 waits at the end
+    of the east corridor and meets robot 1 face to face."""
     rng = np.random.default_rng(seed)
     speeds = _speeds(rng, robots, base=0.42)
     routes = [
@@ -392,8 +394,8 @@ def _loop_route(
 
 def multi(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenario:
     """N robots drive the corridor ring, even ids counter-clockwise on the outer lane, odd ids
-    clockwise on the inner lane, evenly spaced; robot 1 instead starts 7 m ahead of robot 0 in the
-    same direction and waits, so robot 0 catches up with it (rendezvous)."""
+    clockwise on the inner lane, evenly spaced; robot 2 instead starts 7 m ahead of robot 1 in the
+    same direction and waits, so robot 1 catches up with it (rendezvous)."""
     rng = np.random.default_rng(seed)
     v = 0.4 + float(rng.uniform(-0.02, 0.02))  # one speed: same-direction robots keep their gaps
     ccw_ids = [k for k in range(robots) if k % 2 == 0 or k == 1]
@@ -407,7 +409,7 @@ def multi(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenario
         routes[1] = _loop_route(7.5, outer, v, 8.0, duration_s)
     others = [k for k in ccw_ids if k > 1]
     for j, k in enumerate(others):
-        # Spread over the part of the loop after robot 1, leaving room for robot 0 to catch up.
+        # Spread over the part of the loop after robot 2, leaving room for robot 1 to catch up.
         s = 7.5 + 5.0 + (perimeter_outer - 7.5 - 9.0) * j / max(1, len(others))
         routes[k] = _loop_route(s, outer, v, 0.0, duration_s)
     for j, k in enumerate(cw_ids):
