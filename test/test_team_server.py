@@ -12,11 +12,11 @@ T_WORLD_MAP = {1: se3_from_quat([0.3, -0.2, 0.0], [0, 0, 0.1, 1.0]),
                2: se3_from_quat([-1.0, 0.5, 0.1], [0, 0, -0.4, 1.0])}
 
 
-def _keyframes(robot_id, yaws, points, desc, kid0=1, offset=(0.0, 0.0), seed=0):
+def _keyframes(robot_id, yaws, points, desc, kid0=1, offset=(0.0, 0.0), seed=0, t0=0.0):
     out = []
     for k, yaw in enumerate(yaws):
         kf = observe(points, desc, looking_out_pose(yaw, center=offset), T_WORLD_MAP[robot_id],
-                     robot_id, kid0 + k, seed=seed + k)
+                     robot_id, kid0 + k, seed=seed + k, stamp_s=t0 + k)
         kf.covisible_ids = np.array([i for i in (kid0 + k - 1, kid0 + k - 2) if i >= kid0], np.uint32)
         kf.covisible_weights = np.full(len(kf.covisible_ids), 100, np.uint16)
         out.append(kf)
@@ -38,7 +38,7 @@ def test_revisit_merges_with_the_true_transform(world):
         assert server.add_keyframe(kf) == []
     yaws_b = np.linspace(2.0, 3.0, 8)  # robot B looks where A looked earlier, from 20 cm aside
     merges = []
-    for kf in _keyframes(2, yaws_b, points, desc, offset=(0.2, 0.1), seed=100):
+    for kf in _keyframes(2, yaws_b, points, desc, offset=(0.2, 0.1), seed=100, t0=100.0):
         merges += server.add_keyframe(kf)
     assert len(merges) == 1
     m = merges[0]
@@ -57,8 +57,26 @@ def test_unrelated_places_never_merge(world):
     for kf in kfs_a:
         server.add_keyframe(kf)
     for kf in _keyframes(2, np.linspace(0, 2 * np.pi, 20), other_points, other_desc, seed=7):
-        assert server.add_keyframe(kf) == []
+        assert server.add_keyframe(kf) == []  # same stamps: co-observation is tried too
     assert server.merges == [] and server.groups.groups() == [[1], [2]]
+    merge, message = server.request_rendezvous(1, 2)
+    assert merge is None and "not merged" in message
+
+
+def test_co_observation_merges_as_rendezvous(world):
+    points, desc, _, vocab = world
+    server = TeamServer(ServerConfig(robots=[1, 2]), vocab)
+    yaws = np.linspace(1.0, 1.6, 4)
+    merges = []
+    for kf_a, kf_b in zip(_keyframes(1, yaws, points, desc, seed=1),
+                          _keyframes(2, yaws + 0.05, points, desc, offset=(0.3, -0.2), seed=50)):
+        merges += server.add_keyframe(kf_a) + server.add_keyframe(kf_b)
+    assert len(merges) == 1 and merges[0].type == "rendezvous"
+    dt, dr = transform_error(merges[0].T_mapA_mapB, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
+    assert dt < 0.02 and dr < 0.5
+    merge, message = server.request_rendezvous(1, 2)
+    assert merge is None and "already merged" in message
+    assert server.request_rendezvous(1, 7)[1].startswith("robot 7 is unknown")
 
 
 def test_unknown_robot_and_duplicates_are_rejected(world):

@@ -19,7 +19,12 @@ from ..config import require
 from ..errors import CoopSlamError
 from ..keyframe import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE, KeyframeRecord
 from ..registration.keyframe import KeyframeView
-from ..registration.relative_pose import RegistrationConfig, RelativePoseResult, estimate_pnp
+from ..registration.relative_pose import (
+    RegistrationConfig,
+    RelativePoseResult,
+    estimate_3d3d,
+    estimate_pnp,
+)
 from .groups import MergeGroups, chain_map_transform
 
 log = logging.getLogger(__name__)
@@ -48,15 +53,34 @@ class PlaceRecognitionConfig:
 
 
 @dataclass
+class RendezvousConfig:
+    auto: bool = True  # test the time-aligned latest keyframes of unmerged robots continuously
+    window_s: float = 0.5  # keyframes closer in time than this count as simultaneous [s]
+    request_window_s: float = 2.0  # keyframes around a sighting / operator request [s]
+    min_bow_score: float = 0.03  # BoW L1 score a pair needs before 3D-3D verification
+    max_pairs: int = 4  # keyframe pairs verified per rendezvous request
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+
+    def validate(self) -> None:
+        require(self.window_s > 0, "rendezvous.window_s must be > 0")
+        require(self.request_window_s > 0, "rendezvous.request_window_s must be > 0")
+        require(0 <= self.min_bow_score <= 1, "rendezvous.min_bow_score must be in [0, 1]")
+        require(self.max_pairs >= 1, "rendezvous.max_pairs must be >= 1")
+        self.registration.validate()
+
+
+@dataclass
 class ServerConfig:
     robots: list[int] = field(default_factory=lambda: [1, 2])  # robot ids the server accepts
     place_recognition: PlaceRecognitionConfig = field(default_factory=PlaceRecognitionConfig)
+    rendezvous: RendezvousConfig = field(default_factory=RendezvousConfig)
 
     def validate(self) -> None:
         require(len(self.robots) >= 1, "server: robots must list at least one robot id")
         require(all(r >= 1 for r in self.robots), "server: robot ids must be >= 1")
         require(len(set(self.robots)) == len(self.robots), "server: robot ids must be unique")
         self.place_recognition.validate()
+        self.rendezvous.validate()
 
 
 @dataclass
@@ -119,7 +143,9 @@ class TeamServer:
             covisible = [(rec.robot_id, int(k)) for k in rec.covisible_ids]
             self.keyframes[key] = _Stored(rec)
             self.database.add(rec.robot_id, rec.keyframe_id, bow, covisible)
-            if self.config.place_recognition.enabled:
+            if self.config.rendezvous.auto:
+                merges = self._co_observation(rec)
+            if not merges and self.config.place_recognition.enabled:
                 merges = self._place_recognition(rec, bow, covisible)
         self.keyframe_ms.append(1e3 * (time.perf_counter() - t0))
         return merges
@@ -151,6 +177,80 @@ class TeamServer:
                                           res, rec.stamp_s))
                 break
         return merges
+
+    # --- rendezvous ---------------------------------------------------------------------------------
+    def _near_in_time(self, robot_id: int, stamp_s: float, window_s: float) -> list[tuple[int, int]]:
+        """Keys of robot_id's keyframes within window_s of stamp_s, nearest first."""
+        keys = [(k, abs(s.record.stamp_s - stamp_s)) for k, s in self.keyframes.items()
+                if k[0] == robot_id and abs(s.record.stamp_s - stamp_s) <= window_s]
+        return [k for k, _ in sorted(keys, key=lambda kd: kd[1])]
+
+    def _co_observation(self, rec: KeyframeRecord) -> list[MergeResult]:
+        """Automatic rendezvous: the new keyframe against other unmerged robots' keyframes taken
+        at (about) the same time, pre-filtered by BoW similarity, verified 3D-3D."""
+        key_b = (rec.robot_id, rec.keyframe_id)
+        cfg = self.config.rendezvous
+        for other in self.groups.robots:
+            if self.groups.same_group(other, rec.robot_id):
+                continue
+            for key_a in self._near_in_time(other, rec.stamp_s, cfg.window_s)[:2]:
+                merge = self._verify_rendezvous(key_a, key_b, rec.stamp_s)
+                if merge is not None:
+                    return [merge]
+        return []
+
+    def _verify_rendezvous(self, key_a, key_b, stamp_s: float, T_init=None,
+                           prior_sigma=None) -> MergeResult | None:
+        cfg = self.config.rendezvous
+        score = self.vocabulary.score(self.database.bow(*key_a), self.database.bow(*key_b))
+        if score < cfg.min_bow_score and T_init is None:
+            return None
+        self.verifications += 1
+        res = estimate_3d3d(self._view(key_a), self._view(key_b), cfg.registration, T_init=T_init,
+                            prior_sigma=prior_sigma)
+        log.debug("rendezvous %s vs %s (bow %.3f): %s", key_a, key_b, score, res.reason)
+        if not res.accepted:
+            return None
+        return self._merge(TYPE_RENDEZVOUS, key_a, key_b, res, stamp_s)
+
+    def request_rendezvous(self, robot_a: int, robot_b: int, stamp_s: float | None = None,
+                           T_camA_bodyB: np.ndarray | None = None,
+                           T_bodyB_camB: np.ndarray | None = None) -> tuple[MergeResult | None, str]:
+        """Operator trigger or marker sighting: robots a and b are together (at stamp_s, default
+        their latest keyframes). A marker pose, when given, is only an initial guess and a weak
+        prior; the merge still needs verified feature correspondences. Returns (merge, message)."""
+        for r in (robot_a, robot_b):
+            if r not in self.known_robots:
+                return None, f"robot {r} is unknown to the server (known: {sorted(self.known_robots)})"
+        if robot_a == robot_b:
+            return None, "a rendezvous needs two different robots"
+        if self.groups.same_group(robot_a, robot_b):
+            return None, f"robots {robot_a} and {robot_b} are already merged"
+        cfg = self.config.rendezvous
+        if stamp_s is None:
+            latest = [max((s.record.stamp_s for k, s in self.keyframes.items() if k[0] == r),
+                          default=None) for r in (robot_a, robot_b)]
+            if None in latest:
+                return None, "no keyframes yet from one of the robots"
+            stamp_s = min(latest)
+        keys_a = self._near_in_time(robot_a, stamp_s, cfg.request_window_s)
+        keys_b = self._near_in_time(robot_b, stamp_s, cfg.request_window_s)
+        if not keys_a or not keys_b:
+            return None, f"no keyframes of both robots within {cfg.request_window_s} s of {stamp_s:.2f} s"
+        pairs = sorted(((ka, kb) for ka in keys_a[:3] for kb in keys_b[:3]),
+                       key=lambda p: abs(self.keyframes[p[0]].record.stamp_s
+                                         - self.keyframes[p[1]].record.stamp_s))
+        for key_a, key_b in pairs[: cfg.max_pairs]:
+            T_init = prior = None
+            if T_camA_bodyB is not None and T_bodyB_camB is not None:
+                # The sighting is at the marker's image time; keyframes are close to it in time.
+                T_init = T_camA_bodyB @ T_bodyB_camB
+                prior = (np.radians(10.0), 0.2)
+            merge = self._verify_rendezvous(key_a, key_b, stamp_s, T_init, prior)
+            if merge is not None:
+                return merge, f"merged ({merge.inliers} inliers, {merge.residual_px:.2f} px)"
+        return None, (f"no verified overlap between robots {robot_a} and {robot_b} around "
+                      f"{stamp_s:.2f} s: not merged (a marker sighting alone is not enough)")
 
     def _merge(self, kind: str, key_a, key_b, res: RelativePoseResult, stamp_s: float) -> MergeResult:
         rec_a, rec_b = self.keyframes[key_a].record, self.keyframes[key_b].record
