@@ -1,0 +1,40 @@
+"""Marker sighting: a robot body rendered by the synthetic world is found at its true pose."""
+import numpy as np
+import pytest
+
+from coop_slam.geometry import invert, se3, transform_error
+from coop_slam.markers import MarkerConfig, MarkerDetector, MarkerError, body_hypotheses
+from coop_slam.synthetic.render import Renderer
+from coop_slam.synthetic.world import DEFAULT_T_BASE_CAM, body_model, build_world
+
+
+@pytest.mark.parametrize("yaw_deg", [180.0, 150.0, 90.0])
+def test_marker_pose_of_a_rendered_body(yaw_deg):
+    from coop_slam.datasets import CameraModel
+    from coop_slam.synthetic.render import DynamicObject, NoiseConfig
+
+    camera = CameraModel(width=640, height=480, fx=525.0, fy=525.0, cx=319.5, cy=239.5)
+    renderer = Renderer(build_world("ring", 0), camera, NoiseConfig(enabled=False))
+    T_world_base1 = se3(t=[0.0, 0.0, 0.0])
+    a = np.radians(yaw_deg)
+    R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    T_world_base2 = se3(R, [1.8, 0.1, 0.0])  # robot 2 ahead of robot 1's camera
+    T_world_cam = T_world_base1 @ DEFAULT_T_BASE_CAM
+    bgr, _ = renderer.render(T_world_cam, [DynamicObject(T_world_base2, body_model(2))])
+    sightings = MarkerDetector(MarkerConfig()).detect(bgr, camera.K)
+    assert sightings and {s.marker_id for s in sightings} == {2}  # two faces may be visible
+    truth = invert(T_world_cam) @ T_world_base2
+    for s in sightings:
+        assert s.reprojection_error_px < 1.0
+        errs = [transform_error(T, truth) for T in body_hypotheses(s.T_cam_body)]
+        best_t, best_r = min(errs, key=lambda e: e[1])
+        assert best_t < 0.05 and best_r < 3.0
+        # The body position does not depend on which face was seen.
+        assert np.linalg.norm(s.T_cam_body[:3, 3] - truth[:3, 3]) < 0.05
+
+
+def test_empty_image_and_bad_config():
+    with pytest.raises(MarkerError, match="empty"):
+        MarkerDetector().detect(np.zeros((0, 0), np.uint8), np.eye(3))
+    with pytest.raises(Exception, match="dictionary"):
+        MarkerDetector(MarkerConfig(dictionary="DICT_NOPE"))
