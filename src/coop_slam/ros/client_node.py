@@ -92,6 +92,11 @@ class ClientNode:
         self.kf_poses: dict[int, tuple[float, np.ndarray]] = {}  # id -> (stamp, T_map_cam)
         self.last_cloud_s = -1e9
         self.frames = 0
+        from ..markers import MarkerConfig, MarkerDetector
+
+        # Marker sightings of other robots (rendezvous cue); 0 disables detection.
+        self.marker_every = int(rospy.get_param("~marker_every_frames", 5))
+        self.markers = MarkerDetector(load_config(MarkerConfig, rospy.get_param("~markers", {})))
 
         import message_filters
         import tf2_ros
@@ -108,6 +113,9 @@ class ClientNode:
 
         self.pub_cloud = rospy.Publisher("local_map", PointCloud2, queue_size=1, latch=True)
         self.pub_stats = rospy.Publisher("frame_stats", FrameStats, queue_size=50)
+        from coop_slam.msg import RobotSighting
+
+        self.pub_sighting = rospy.Publisher("/robot_sightings", RobotSighting, queue_size=10)
         self.sub_info = rospy.Subscriber("camera/color/camera_info", CameraInfo,
                                          self._on_info, queue_size=5)
         color = message_filters.Subscriber("camera/color/image_raw", Image, queue_size=5,
@@ -167,6 +175,8 @@ class ClientNode:
                 self._publish_events()
                 if res.ok:
                     self._publish_pose(stamp, self.T_base_cam @ res.T_map_cam)
+                if self.marker_every and self.frames % self.marker_every == 0:
+                    self._detect_markers(stamp, image)
                 if stamp.to_sec() - self.last_cloud_s >= self.cloud_period_s:
                     self.last_cloud_s = stamp.to_sec()
                     self._publish_cloud(stamp)
@@ -174,6 +184,18 @@ class ClientNode:
             self.rejects.reject("camera/color/image_raw", str(exc))
         finally:
             self.pub_stats.publish(stats)
+
+    def _detect_markers(self, stamp, image) -> None:
+        from coop_slam.msg import RobotSighting
+
+        for s in self.markers.detect(image, self.camera.K):
+            if s.marker_id == self.robot_id or s.marker_id < 1:
+                continue  # our own body, or not a robot id
+            msg = RobotSighting(observer_id=self.robot_id, observed_id=s.marker_id,
+                                marker_id=s.marker_id, T_cam_body=pose_to_msg(s.T_cam_body),
+                                reprojection_error_px=s.reprojection_error_px)
+            msg.header.stamp, msg.header.frame_id = stamp, self.cam_frame
+            self.pub_sighting.publish(msg)
 
     def _on_correction(self, msg) -> None:
         if msg.robot_id != self.robot_id:

@@ -21,7 +21,14 @@ from ..bow import Vocabulary
 from ..config import load_config
 from ..errors import CoopSlamError
 from ..team.server import ServerConfig, TeamServer
-from .convert import MessageError, keyframe_from_msg, transform_stamped, transform_to_msg
+from ..geometry import invert, se3_from_quat
+from .convert import (
+    MessageError,
+    keyframe_from_msg,
+    pose_from_msg,
+    transform_stamped,
+    transform_to_msg,
+)
 from .validation import RejectCounter
 
 
@@ -42,8 +49,8 @@ class ServerNode:
 
         from coop_slam.msg import KeyFrame, MapCorrection, MergeEvent
 
-        overrides = {k: v for k, v in rospy.get_param("~", {}).items()
-                     if k not in ("config", "vocabulary")}
+        node_params = ("config", "vocabulary", "T_base_cam", "sighting_period_s")
+        overrides = {k: v for k, v in rospy.get_param("~", {}).items() if k not in node_params}
         self.cfg = load_server_config(rospy.get_param("~config", ""), overrides)
         vocab_path = rospy.get_param("~vocabulary", "")
         if not vocab_path:
@@ -69,6 +76,16 @@ class ServerNode:
         self.subs = [rospy.Subscriber(f"/robot_{r}/keyframes", KeyFrame, self._on_keyframe,
                                       callback_args=r, queue_size=500, buff_size=2**24)
                      for r in self.cfg.robots]
+        from coop_slam.msg import RobotSighting
+        from coop_slam.srv import Rendezvous
+
+        base_cam = rospy.get_param("~T_base_cam", [])  # the robots' camera mounting, 7 numbers
+        self.T_base_cam = se3_from_quat(base_cam[:3], base_cam[3:]) if base_cam else None
+        self.sighting_period_s = float(rospy.get_param("~sighting_period_s", 2.0))
+        self._last_sighting: dict[tuple[int, int], float] = {}
+        self.subs.append(rospy.Subscriber("/robot_sightings", RobotSighting, self._on_sighting,
+                                          queue_size=20))
+        self.srv = rospy.Service("~rendezvous", Rendezvous, self._on_rendezvous)
         self.worker = threading.Thread(target=self._work, daemon=True)
         self.worker.start()
         self._publish_tf(rospy.Time.now())
@@ -86,21 +103,64 @@ class ServerNode:
             return
         self.queue.put(rec)
 
+    def _on_sighting(self, msg) -> None:
+        """A marker sighting asks for a rendezvous check (at most once per pair and period)."""
+        if msg.observer_id not in self.server.known_robots or msg.observed_id not in self.server.known_robots:
+            self.rejects.reject("/robot_sightings", f"sighting between unknown robots "
+                                f"{msg.observer_id} and {msg.observed_id}")
+            return
+        try:
+            T_cam_body = pose_from_msg(msg.T_cam_body, "T_cam_body")
+        except MessageError as exc:
+            self.rejects.reject("/robot_sightings", str(exc))
+            return
+        pair, now = (msg.observer_id, msg.observed_id), msg.header.stamp.to_sec()
+        if now - self._last_sighting.get(pair, -1e9) < self.sighting_period_s:
+            return
+        self._last_sighting[pair] = now
+        self.queue.put(("rendezvous", msg.observer_id, msg.observed_id, now, T_cam_body, None))
+
+    def _on_rendezvous(self, req):
+        from coop_slam.srv import RendezvousResponse
+
+        done = threading.Event()
+        stamp = req.stamp.to_sec() or None
+        self.queue.put(("rendezvous", req.robot_a, req.robot_b, stamp, None, done))
+        if not done.wait(60.0):
+            return RendezvousResponse(accepted=False, message="server busy: request timed out")
+        return RendezvousResponse(accepted=done.merge is not None, message=done.message)
+
+    def _rendezvous(self, robot_a, robot_b, stamp, T_camA_bodyB, done) -> list:
+        T_body_cam = None if self.T_base_cam is None else invert(self.T_base_cam)
+        merge, message = self.server.request_rendezvous(
+            robot_a, robot_b, stamp, T_camA_bodyB if T_body_cam is not None else None, T_body_cam)
+        rospy.loginfo("server: rendezvous request robot_%d / robot_%d: %s", robot_a, robot_b, message)
+        if done is not None:
+            done.merge, done.message = merge, message
+            done.set()
+        return [merge] if merge is not None else []
+
     def _work(self) -> None:
         while not rospy.is_shutdown():
             try:
-                rec = self.queue.get(timeout=0.5)
+                item = self.queue.get(timeout=0.5)
             except queue.Empty:
                 continue
-            try:
-                merges = self.server.add_keyframe(rec)
-            except CoopSlamError as exc:
-                self.rejects.reject(f"/robot_{rec.robot_id}/keyframes", str(exc))
-                continue
+            if isinstance(item, tuple):
+                merges = self._rendezvous(*item[1:])
+                stamp = rospy.Time.from_sec(item[3] or 0.0)
+            else:
+                rec = item
+                try:
+                    merges = self.server.add_keyframe(rec)
+                except CoopSlamError as exc:
+                    self.rejects.reject(f"/robot_{rec.robot_id}/keyframes", str(exc))
+                    continue
+                stamp = rospy.Time.from_sec(rec.stamp_s)
             for m in merges:
                 self._publish_merge(m)
             if merges:
-                self._publish_tf(rospy.Time.from_sec(rec.stamp_s))
+                self._publish_tf(stamp)
             if len(self.server.keyframe_ms) % 10 == 0 or merges:
                 self._publish_stats()
 
