@@ -13,7 +13,8 @@ from typing import Any
 
 ROBOT_KEYS = ("id", "frames", "keyframes", "path_length_m", "ate_rmse_m", "tracking_lost",
               "track_ms_mean", "track_ms_p95")
-MERGE_KEYS = ("type", "robots", "stamp", "trans_err_m", "rot_err_deg", "latency_s")
+MERGE_KEYS = ("type", "robots", "stamp", "trans_err_m", "rot_err_deg", "latency_s",
+              "local_trans_err_m", "local_rot_err_deg")
 TOP_KEYS = ("robots", "merges", "groups", "team_ate_rmse_m", "bandwidth", "server_ms_per_keyframe",
             "wrong_merges")
 BANDWIDTH_KEYS = ("per_robot_kBps", "peak_kBps", "total_MB")

@@ -19,11 +19,11 @@ import time
 
 import numpy as np
 
-from ..datasets import write_tum_trajectory
 from ..errors import CoopSlamError
-from ..geometry import path_length
+from ..geometry import quat_from_se3
 from ..playback import build_schedule, load_streams
-from ..report import new_report, write_report
+from ..report import write_report
+from .evaluate import evaluate_run
 
 DEFAULT_SCENARIO = "team"
 
@@ -45,6 +45,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--record", action="store_true", help="record RViz to MP4 + PNG")
     p.add_argument("--out", help="results folder (default: results/<date>-<source>)")
     p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
+    p.add_argument("--no-clients", action="store_true",
+                   help="only play the data (no clients, no server)")
+    p.add_argument("--settle", type=float, default=5.0,
+                   help="seconds to wait after the last frame for the last keyframes and merges")
     args = p.parse_args(argv)
     if args.scenario is None and args.dataset is None and args.bag is None:
         args.scenario = DEFAULT_SCENARIO
@@ -68,38 +72,106 @@ def say(msg: str) -> None:
 
 
 class _Monitor:
-    """Follows the run from inside this process: counts frames per robot, acknowledges frames for
-    robots that have no client (so lock-step playback still advances), waits for the player."""
+    """Follows the run from inside this process and records what the system publishes (RunData).
 
-    def __init__(self, robot_ids: list[int]):
+    With ``ack`` it also acknowledges frames itself (no clients running), so lock-step playback
+    still advances.
+    """
+
+    def __init__(self, robot_ids: list[int], ack: bool):
         import rospy
         from rosgraph_msgs.msg import Clock
         from sensor_msgs.msg import Image
-        from std_msgs.msg import Bool
+        from std_msgs.msg import Bool, String
 
-        from coop_slam.msg import FrameStats
+        from coop_slam.msg import FrameStats, KeyFrame, MapCorrection, MergeEvent
+
+        from .evaluate import RobotRun, RunData
 
         rospy.init_node("demo_monitor", anonymous=True, disable_signals=True)
-        self.frames = {r: 0 for r in robot_ids}
+        self.run = RunData(robots={r: RobotRun() for r in robot_ids})
         self.sim_s = 0.0
         self.done = threading.Event()
+        self.lock = threading.Lock()
+        self.ack = ack
         self._subs = [rospy.Subscriber("/clock", Clock, self._on_clock, queue_size=1),
-                      rospy.Subscriber("/player/done", Bool, lambda m: m.data and self.done.set())]
+                      rospy.Subscriber("/player/done", Bool, lambda m: m.data and self.done.set()),
+                      rospy.Subscriber("/merge_events", MergeEvent, self._on_merge, queue_size=50),
+                      rospy.Subscriber("/server/stats", String, self._on_stats, queue_size=5)]
         self._acks = {}
         for r in robot_ids:
-            self._subs.append(rospy.Subscriber(f"/robot_{r}/camera/color/image_raw", Image,
-                                               self._on_image, r, queue_size=5, buff_size=2**24))
-            self._acks[r] = rospy.Publisher(f"/robot_{r}/frame_stats", FrameStats, queue_size=10)
+            if ack:
+                self._subs.append(rospy.Subscriber(f"/robot_{r}/camera/color/image_raw", Image,
+                                                   self._on_image, r, queue_size=5, buff_size=2**24))
+                self._acks[r] = rospy.Publisher(f"/robot_{r}/frame_stats", FrameStats, queue_size=10)
+            else:
+                self._subs.append(rospy.Subscriber(f"/robot_{r}/frame_stats", FrameStats,
+                                                   self._on_stats_frame, r, queue_size=100))
+            self._subs.append(rospy.Subscriber(f"/robot_{r}/keyframes", KeyFrame, self._on_keyframe,
+                                               r, queue_size=500, buff_size=2**24))
+            self._subs.append(rospy.Subscriber(f"/robot_{r}/correction", MapCorrection,
+                                               self._on_correction, r, queue_size=10))
         self._FrameStats = FrameStats
 
     def _on_clock(self, msg) -> None:
         self.sim_s = msg.clock.to_sec()
 
     def _on_image(self, msg, robot_id: int) -> None:
-        self.frames[robot_id] += 1
+        self.run.robots[robot_id].frames += 1
         ack = self._FrameStats(robot_id=robot_id, tracking_ok=True)
         ack.header.stamp = msg.header.stamp
         self._acks[robot_id].publish(ack)
+
+    def _on_stats_frame(self, msg, robot_id: int) -> None:
+        r = self.run.robots[robot_id]
+        r.frames += 1
+        if msg.track_ms > 0:
+            r.track_ms.append(float(msg.track_ms))
+        if not msg.tracking_ok and r.first_keyframe is not None:
+            r.lost_frames += 1
+
+    def _on_keyframe(self, msg, robot_id: int) -> None:
+        import io
+
+        from ..keyframe import ACTION_REMOVE
+        from ..ros.convert import MessageError, pose_from_msg
+
+        buf = io.BytesIO()
+        msg.serialize(buf)
+        r = self.run.robots[robot_id]
+        stamp = msg.header.stamp.to_sec()
+        with self.lock:
+            r.kf_bytes.append((self.sim_s, buf.tell()))
+            if msg.action == ACTION_REMOVE:
+                r.keyframes.pop(msg.keyframe_id, None)
+                return
+            try:
+                T = pose_from_msg(msg.pose)
+            except MessageError:
+                return
+            r.keyframes[msg.keyframe_id] = (stamp, T)
+            if r.first_keyframe is None:
+                r.first_keyframe = (stamp, T)
+
+    def _on_merge(self, msg) -> None:
+        from ..ros.convert import transform_from_msg
+
+        with self.lock:
+            self.run.merges.append({"type": msg.type, "robot_a": msg.robot_a, "robot_b": msg.robot_b,
+                                    "keyframe_a": msg.keyframe_a, "keyframe_b": msg.keyframe_b,
+                                    "stamp_s": msg.header.stamp.to_sec(),
+                                    "T_mapA_mapB": transform_from_msg(msg.T_mapA_mapB)})
+
+    def _on_stats(self, msg) -> None:
+        import json
+
+        self.run.server_stats = json.loads(msg.data)
+
+    def _on_correction(self, msg, robot_id: int) -> None:
+        from ..ros.convert import transform_from_msg
+
+        self.run.robots[robot_id].T_world_map = (transform_from_msg(msg.T_world_map) if msg.merged
+                                                 else None)
 
 
 def _wait_for_master(uri: str, timeout_s: float) -> None:
@@ -156,6 +228,11 @@ def run(args: argparse.Namespace) -> int:
             launch_args.append(f"camera_file:={os.path.abspath(args.camera)}")
     if args.rate is not None:
         launch_args += ["lockstep:=false", f"rate:={args.rate}"]
+    if "T_base_cam" in (source.meta or {}):
+        t, q = quat_from_se3(np.asarray(source.meta["T_base_cam"], float))
+        launch_args.append(f"T_base_cam:=[{', '.join(f'{v:.6f}' for v in (*t, *q))}]")
+    if args.no_clients:
+        launch_args += ["clients:=false", "server:=false"]
     log_path = os.path.join(out, "roslaunch.log")
     say(f"[2/3] running the system (ROS master {uri}; log {log_path})")
     with open(log_path, "w") as log:
@@ -164,7 +241,7 @@ def run(args: argparse.Namespace) -> int:
                                   start_new_session=True)
     try:
         _wait_for_master(uri, 30.0)
-        monitor = _Monitor(robot_ids)
+        monitor = _Monitor(robot_ids, ack=args.no_clients)
         t0, t1 = schedule[0].play_s, schedule[-1].play_s
         deadline = time.monotonic() + args.timeout
         tty = sys.stdout.isatty()
@@ -174,7 +251,7 @@ def run(args: argparse.Namespace) -> int:
                 raise CoopSlamError(f"roslaunch exited early (code {launch.returncode}); see {log_path}")
             if time.monotonic() > deadline:
                 raise CoopSlamError(f"run did not finish within {args.timeout:.0f} s; see {log_path}")
-            got = sum(monitor.frames.values())
+            got = sum(r.frames for r in monitor.run.robots.values())
             elapsed = min(max(monitor.sim_s - t0, 0.0), t1 - t0)
             line = (f"[demo]       sim time {elapsed:6.1f}/{t1 - t0:.1f} s "
                     f"({100 * elapsed / max(t1 - t0, 1e-9):3.0f} %), frames received {got}/{total}")
@@ -184,7 +261,8 @@ def run(args: argparse.Namespace) -> int:
                 last_line = time.monotonic()
                 print(line, flush=True)
             time.sleep(0.5)
-        time.sleep(1.0)
+        time.sleep(args.settle)  # let clients and server finish the last keyframes
+        monitor.run.duration_s = t1 - t0
         if tty:
             print(flush=True)
     finally:
@@ -196,21 +274,18 @@ def run(args: argparse.Namespace) -> int:
                 os.killpg(launch.pid, signal.SIGKILL)
 
     say("[3/3] evaluating")
-    report = new_report(robot_ids)
+    meta = source.meta or {}
+    import pickle
+
+    with open(os.path.join(out, "run_data.pkl"), "wb") as fh:  # for re-evaluation without a re-run
+        pickle.dump(monitor.run, fh)
+    report = evaluate_run(monitor.run, source.streams, args.keep_timing, meta.get("overlap"), out)
     traj_dir = os.path.join(out, "trajectories")
-    for entry, stream in zip(report["robots"], source.streams):
-        poses = stream.sequence.frame_poses()
-        ok = np.all(np.isfinite(poses), axis=(1, 2))
-        entry["frames"] = monitor.frames[stream.robot_id]
-        entry["path_length_m"] = path_length(poses[ok]) if ok.any() else None
-        plays = [s.play_s for s in schedule if s.robot_id == stream.robot_id]
-        write_tum_trajectory(os.path.join(traj_dir, f"{stream.name}_groundtruth.txt"),
-                             np.asarray(plays)[ok], poses[ok])
     json_path, md_path = write_report(out, report)
     say(f"done in {time.monotonic() - t_start:.0f} s")
     say(f"report:       {json_path}")
     say(f"              {md_path}")
-    say(f"trajectories: {traj_dir}")
+    say(f"trajectories: {traj_dir}  (plot: {os.path.join(out, 'trajectories.png')})")
     return 0
 
 
