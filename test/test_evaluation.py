@@ -47,3 +47,10 @@ def test_associate_and_merge_error():
     B = se3_from_quat([0, 1, 0], [0, 0, 0.1, 1])
     dt, dr = merge_error(invert(A) @ B, A, B)
     assert dt < 1e-9 and dr < 1e-6
+
+
+def test_straight_line_falls_back_to_origin_alignment():
+    stamps = np.arange(5) + 1.0
+    line = np.array([se3(t=[0.5 * k, 0, 0]) for k in range(5)])
+    moved = np.array([se3_from_quat([1, 2, 3], [0, 0, 0.3, 1]) @ p for p in line])
+    assert ate(stamps, moved, stamps, line).rmse_m < 1e-6

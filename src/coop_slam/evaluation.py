@@ -71,8 +71,17 @@ def ate(stamps_est, poses_est, stamps_gt, poses_gt, max_dt_s: float = 0.02,
     est = _traj(poses_est[i_est], stamps)
     T = np.eye(4)
     if align:
-        r, t, _ = est.align(ref, correct_scale=False)
-        T[:3, :3], T[:3, 3] = r, t
+        from evo.core.geometry import GeometryException
+
+        try:
+            r, t, _ = est.align(ref, correct_scale=False)
+            T[:3, :3], T[:3, 3] = r, t
+        except GeometryException:
+            # Positions on a line (or a point) leave Umeyama's rotation undetermined: align the
+            # first poses instead, which uses their orientations too.
+            T = est.align_origin(ref)
+            if T is None or not np.all(np.isfinite(T)):
+                raise EvaluationError("cannot align the trajectories") from None
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, est))
     st = ape.get_all_statistics()
