@@ -1,0 +1,44 @@
+"""Client visual odometry: ORB-SLAM-style RGB-D tracking and local mapping (pure core, no rospy).
+
+Entry point: :class:`RgbdOdometry` (``track`` per frame, keyframes / map points / events out).
+"""
+
+from .config import VoConfig
+from .map import Keyframe
+from .pipeline import RgbdOdometry
+from .types import (
+    EVENT_KEYFRAME_NEW,
+    EVENT_KEYFRAME_REMOVE,
+    EVENT_KEYFRAME_UPDATE,
+    EVENT_NEW_SEGMENT,
+    EVENT_WARNING,
+    KEYFRAME_ACTIONS,
+    STATE_INITIALIZING,
+    STATE_LOST,
+    STATE_NEW_SEGMENT,
+    STATE_OK,
+    STATE_RELOCALIZED,
+    TrackResult,
+    VoError,
+    VoEvent,
+)
+
+__all__ = [
+    "EVENT_KEYFRAME_NEW",
+    "EVENT_KEYFRAME_REMOVE",
+    "EVENT_KEYFRAME_UPDATE",
+    "EVENT_NEW_SEGMENT",
+    "EVENT_WARNING",
+    "KEYFRAME_ACTIONS",
+    "STATE_INITIALIZING",
+    "STATE_LOST",
+    "STATE_NEW_SEGMENT",
+    "STATE_OK",
+    "STATE_RELOCALIZED",
+    "Keyframe",
+    "RgbdOdometry",
+    "TrackResult",
+    "VoConfig",
+    "VoError",
+    "VoEvent",
+]

@@ -1,0 +1,152 @@
+"""Parameters of the client's RGB-D visual odometry (features, tracking, keyframes, local mapping).
+
+Loaded with :func:`coop_slam.config.load_config` / ``load_yaml_config`` (section ``vo`` of
+``config/client.yaml``). Units are in the field names or comments; pixel thresholds refer to pyramid
+level 0 and are scaled by ``scale_factor ** octave`` where the comment says so.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ..config import require
+
+
+@dataclass
+class VoConfig:
+    # --- ORB features -----------------------------------------------------------------------------
+    n_features: int = 1000  # keypoints kept per frame after grid bucketing
+    n_detect: int = 2500  # FAST candidates detected before bucketing (>= n_features)
+    scale_factor: float = 1.2  # pyramid scale between levels
+    n_levels: int = 8  # pyramid levels
+    fast_threshold: int = 7  # FAST threshold [grey levels]; low, the grid keeps the best per cell
+    grid_cell_px: int = 40  # bucketing cell size at level 0 [px]; scaled by scale_factor**octave
+    edge_threshold_px: int = 19  # border without features [px] (ORB patch radius)
+    min_depth_m: float = 0.3  # keypoint depths outside [min, max] are treated as missing [m]
+    max_depth_m: float = 6.0
+    depth_edge_px: int = 0  # depth within this radius must agree, else the keypoint gets none [px]
+    depth_edge_ratio: float = 0.05  # ... agree = within this fraction of the depth
+    close_depth_m: float = 6.0  # depth used in the stereo-like residual up to here [m]; its pixel
+    # sigma already makes the depth uncertainty grow with z^2, so no hard cut is needed for RGB-D
+    virtual_baseline_m: float = 0.08  # baseline of the virtual stereo pair built from depth [m]
+
+    # --- colour / depth calibration -----------------------------------------------------------------
+    # Colour intrinsics overriding the camera model given to RgbdOdometry (0 = use the model) [px].
+    color_fx: float = 0.0
+    color_fy: float = 0.0
+    color_cx: float = 0.0
+    color_cy: float = 0.0
+    # Depth camera intrinsics when the depth image is NOT registered to the colour image (0 = it is,
+    # pixel (u, v) of both images sees the same point) [px].
+    depth_fx: float = 0.0
+    depth_fy: float = 0.0
+    depth_cx: float = 0.0
+    depth_cy: float = 0.0
+    # Position of the depth camera's optical centre in the colour camera frame (rotation assumed
+    # identity), i.e. the translation of T_color_depth [m]. Used only with depth_fx > 0.
+    depth_in_color_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+    # --- tracking ---------------------------------------------------------------------------------
+    search_radius_px: float = 12.0  # first projection search around the motion prediction [px]
+    search_radius_refine_px: float = 4.0  # second search after the first pose update [px]
+    max_descriptor_distance: int = 80  # Hamming gate for projection matches [bits]
+    ratio_test: float = 0.9  # best/second best distance ratio within a search window
+    check_orientation: bool = True  # rotation-histogram consistency of frame-to-map matches
+    min_tracked: int = 30  # fewer pose inliers than this = tracking failure
+    local_keyframes: int = 20  # keyframes whose points form the local map
+    pose_iterations: int = 10  # Gauss-Newton iterations per robust round of pose optimization
+    pose_rounds: int = 4  # rounds of (optimize, reclassify outliers)
+    chi2_mono: float = 5.991  # 95 % outlier gate, 2 dof (u, v) [whitened px^2]
+    chi2_stereo: float = 7.815  # 95 % outlier gate, 3 dof (u, v, u_right) [whitened px^2]
+    max_frame_motion_m: float = 0.3  # larger jump between consecutive frames = failure [m]
+    max_frame_rotation_deg: float = (
+        30.0  # larger rotation between consecutive frames = failure [deg]
+    )
+
+    # --- PnP / relocalization ---------------------------------------------------------------------
+    pnp_ratio: float = 0.8  # Lowe ratio for brute-force descriptor matching
+    pnp_reprojection_px: float = 4.0  # RANSAC inlier threshold [px]
+    pnp_iterations: int = 200  # RANSAC iterations
+    pnp_min_inliers: int = 20  # fewer RANSAC inliers = failure
+    reloc_keyframes: int = 15  # recent keyframes tried for relocalization
+    reloc_keyframes_per_frame: int = 5  # keyframes tried per lost frame (bounds the time per frame)
+    reloc_min_inliers: int = 50  # pose inliers needed to accept a relocalization
+    max_lost_frames: int = 10  # lost frames before a new map segment is started
+
+    # --- keyframes --------------------------------------------------------------------------------
+    min_init_points: int = 100  # keypoints with depth needed to start a map
+    keyframe_max_frames: int = 30  # insert a keyframe at least this often (if tracking is weak)
+    keyframe_min_frames: int = 0  # never insert two keyframes closer than this in frames
+    keyframe_ref_ratio: float = 0.6  # tracked / reference keyframe points below this -> keyframe
+    keyframe_close_tracked: int = 100  # "too few close points": tracked close < this ...
+    keyframe_close_untracked: int = 70  # ... and untracked close > this
+    keyframe_min_tracked: int = 250  # fewer tracked points than this -> keyframe (0 = off)
+    keyframe_min_inliers: int = 15  # a keyframe needs at least this many tracked points
+
+    # --- local mapping ----------------------------------------------------------------------------
+    threaded: bool = True  # local mapping in a background thread, BA in a worker process
+    new_points_max: int = 600  # new map points created per keyframe from depth (closest first)
+    fuse_neighbors: int = 10  # covisible keyframes searched to fuse duplicate points
+    fuse_radius_px: float = 3.0  # projection search radius for fusion [px], scaled by octave
+    cull_found_ratio: float = 0.25  # recent points found / visible below this are removed
+    cull_min_observations: int = 2  # recent points seen by fewer keyframes after 2 KFs are removed
+    ba_enabled: bool = True
+    ba_window: int = 8  # keyframes optimized by local BA (newest + best covisible)
+    ba_max_fixed: int = 8  # keyframes held fixed around the window (most covisible first)
+    ba_iterations: int = 5  # Levenberg-Marquardt iterations per local BA
+    ba_huber_mono: float = 2.447  # Huber threshold of (u, v) factors [whitened px], sqrt(5.991)
+    ba_huber_stereo: float = 2.796  # Huber threshold of (u, v, u_right) factors, sqrt(7.815)
+    kf_culling: bool = True
+    kf_cull_redundancy: float = 0.9  # fraction of points seen by >= kf_cull_observers other KFs
+    kf_cull_observers: int = 3
+
+    @property
+    def depth_registered(self) -> bool:
+        return self.depth_fx <= 0
+
+    def color_camera(self, camera):
+        """``camera`` with the colour intrinsics overridden where this config sets them."""
+        import dataclasses
+
+        return dataclasses.replace(
+            camera,
+            fx=self.color_fx or camera.fx,
+            fy=self.color_fy or camera.fy,
+            cx=self.color_cx or camera.cx,
+            cy=self.color_cy or camera.cy,
+        )
+
+    def validate(self) -> None:
+        require(self.n_features > 0, "vo.n_features must be positive")
+        require(self.n_detect >= self.n_features, "vo.n_detect must be >= vo.n_features")
+        require(self.scale_factor > 1.0, "vo.scale_factor must be > 1")
+        require(1 <= self.n_levels <= 16, "vo.n_levels must be in 1..16")
+        require(0 < self.fast_threshold < 256, "vo.fast_threshold must be in 1..255")
+        require(self.grid_cell_px >= 8, "vo.grid_cell_px must be >= 8")
+        require(0 < self.min_depth_m < self.max_depth_m, "need 0 < vo.min_depth_m < vo.max_depth_m")
+        require(self.virtual_baseline_m > 0, "vo.virtual_baseline_m must be positive")
+        require(len(self.depth_in_color_m) == 3, "vo.depth_in_color_m must be [x, y, z] in metres")
+        depth_intr = (self.depth_fx, self.depth_fy, self.depth_cx, self.depth_cy)
+        require(
+            all(v == 0 for v in depth_intr) or (self.depth_fx > 0 and self.depth_fy > 0),
+            "vo.depth_fx and vo.depth_fy must both be > 0 when the depth camera is given",
+        )
+        require(
+            self.search_radius_px > 0 and self.search_radius_refine_px > 0,
+            "search radii must be > 0",
+        )
+        require(
+            0 < self.max_descriptor_distance <= 256, "vo.max_descriptor_distance must be in 1..256"
+        )
+        require(0 < self.ratio_test <= 1.0, "vo.ratio_test must be in (0, 1]")
+        require(self.min_tracked >= 6, "vo.min_tracked must be >= 6")
+        require(
+            self.pose_iterations > 0 and self.pose_rounds > 0, "pose optimization needs iterations"
+        )
+        require(0 < self.keyframe_ref_ratio <= 1.0, "vo.keyframe_ref_ratio must be in (0, 1]")
+        require(self.max_lost_frames >= 0, "vo.max_lost_frames must be >= 0")
+        require(
+            self.ba_window >= 1 and self.ba_iterations >= 1,
+            "local BA needs a window and iterations",
+        )
+        require(0 < self.kf_cull_redundancy <= 1.0, "vo.kf_cull_redundancy must be in (0, 1]")

@@ -1,0 +1,236 @@
+"""Local bundle adjustment with GTSAM, as a pure function of arrays.
+
+The problem is plain numpy data (picklable) so it can run in a worker process (:class:`BaWorker`):
+GTSAM's Python bindings hold the GIL while optimizing (measured: a 370 ms optimize() stalled another
+Python thread for 330 ms), so a background *thread* would stall tracking for the whole optimization.
+The worker is a plain ``python -m coop_slam.vo.local_ba`` child fed pickles over a pipe rather than a
+multiprocessing pool: "spawn" re-imports the caller's ``__main__`` (breaks scripts and ROS nodes
+without a main guard) and "fork" of a multi-threaded process can deadlock.
+
+Factors, as ORB-SLAM2's RGB-D local BA: keypoints with a usable depth get a ``GenericStereoFactor3D``
+on (u, v, u_right) of a virtual stereo pair (u_right = u - fx * baseline / depth), the others a
+``GenericProjectionFactorCal3_S2``; both with a Huber kernel and sigma = scale**octave px. Keyframes
+outside the window that see window points are held fixed (stiff ``PriorFactorPose3``).
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class BaProblem:
+    segment: int
+    kf_ids: np.ndarray  # (K,)
+    T_map_cam: np.ndarray  # (K, 4, 4)
+    fixed: np.ndarray  # (K,) bool
+    point_ids: np.ndarray  # (P,)
+    points_map: np.ndarray  # (P, 3)
+    obs_kf: np.ndarray  # (O,) index into kf_ids
+    obs_pt: np.ndarray  # (O,) index into point_ids
+    obs_kp: np.ndarray  # (O,) keypoint index in its keyframe
+    obs_uv: np.ndarray  # (O, 2)
+    obs_u_right: np.ndarray  # (O,) NaN = no usable depth (projection factor)
+    obs_octave: np.ndarray  # (O,)
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    baseline_m: float
+    scale_factor: float
+    n_levels: int
+    iterations: int = 5
+    huber_mono: float = 2.447
+    huber_stereo: float = 2.796
+    chi2_mono: float = 5.991
+    chi2_stereo: float = 7.815
+
+
+@dataclass
+class BaResult:
+    segment: int
+    ok: bool
+    kf_ids: np.ndarray
+    T_map_cam: np.ndarray
+    point_ids: np.ndarray
+    points_map: np.ndarray
+    outlier_obs: np.ndarray  # (O,) bool, observations to erase from the map
+    obs_kf_ids: np.ndarray  # (O,) keyframe id of each observation
+    obs_point_ids: np.ndarray  # (O,) point id of each observation
+    error_before: float = 0.0
+    error_after: float = 0.0
+    time_ms: float = 0.0
+    message: str = ""
+
+
+def reprojection_chi2(
+    problem: BaProblem, T_map_cam: np.ndarray, points_map: np.ndarray
+) -> np.ndarray:
+    """Whitened squared error of every observation (stereo or mono) for given poses and points."""
+    p = problem
+    T_cam_map = np.linalg.inv(T_map_cam)
+    R = T_cam_map[p.obs_kf, :3, :3]
+    t = T_cam_map[p.obs_kf, :3, 3]
+    pc = np.einsum("nij,nj->ni", R, points_map[p.obs_pt]) + t
+    z = np.maximum(pc[:, 2], 1e-6)
+    u = p.fx * pc[:, 0] / z + p.cx
+    v = p.fy * pc[:, 1] / z + p.cy
+    ur = u - p.fx * p.baseline_m / z
+    stereo = np.isfinite(p.obs_u_right)
+    e2 = (u - p.obs_uv[:, 0]) ** 2 + (v - p.obs_uv[:, 1]) ** 2
+    e2 = e2 + np.where(stereo, (ur - np.nan_to_num(p.obs_u_right)) ** 2, 0.0)
+    inv_s2 = p.scale_factor ** (-2.0 * p.obs_octave)
+    e2 = e2 * inv_s2
+    return np.where(pc[:, 2] > 1e-6, e2, np.inf)
+
+
+def run_local_ba(problem: BaProblem) -> BaResult:
+    """Optimize the non-fixed poses and all points of ``problem``; never raises."""
+    t0 = time.perf_counter()
+    p = problem
+    fail = BaResult(
+        segment=p.segment,
+        ok=False,
+        kf_ids=p.kf_ids,
+        T_map_cam=p.T_map_cam,
+        point_ids=p.point_ids,
+        points_map=p.points_map,
+        outlier_obs=np.zeros(len(p.obs_kf), bool),
+        obs_kf_ids=p.kf_ids[p.obs_kf],
+        obs_point_ids=p.point_ids[p.obs_pt],
+    )
+    try:
+        import gtsam
+        from gtsam.symbol_shorthand import L, X
+
+        chi2_before = reprojection_chi2(p, p.T_map_cam, p.points_map)
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        K_mono = gtsam.Cal3_S2(p.fx, p.fy, 0.0, p.cx, p.cy)
+        K_stereo = gtsam.Cal3_S2Stereo(p.fx, p.fy, 0.0, p.cx, p.cy, p.baseline_m)
+        sigmas = p.scale_factor ** np.arange(p.n_levels)
+        huber_m = gtsam.noiseModel.mEstimator.Huber.Create(p.huber_mono)
+        huber_s = gtsam.noiseModel.mEstimator.Huber.Create(p.huber_stereo)
+        noise_mono = [
+            gtsam.noiseModel.Robust.Create(huber_m, gtsam.noiseModel.Isotropic.Sigma(2, s))
+            for s in sigmas
+        ]
+        noise_stereo = [
+            gtsam.noiseModel.Robust.Create(huber_s, gtsam.noiseModel.Isotropic.Sigma(3, s))
+            for s in sigmas
+        ]
+        # Fixed keyframes: a very stiff prior. A NonlinearEquality linearizes to a constrained noise
+        # model that Cholesky reports as indeterminant; LM then recovers only by raising lambda
+        # again and again (measured 5x slower on a 4000-factor window).
+        fixed_noise = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
+        for k, T in enumerate(p.T_map_cam):
+            pose = gtsam.Pose3(T)
+            values.insert(X(k), pose)
+            if p.fixed[k]:
+                graph.add(gtsam.PriorFactorPose3(X(k), pose, fixed_noise))
+        for j, xyz in enumerate(p.points_map):
+            values.insert(L(j), np.asarray(xyz, dtype=float))
+        # Observations in front of their camera only: GTSAM's stereo camera throws on cheirality.
+        usable = np.isfinite(chi2_before)
+        stereo = np.isfinite(p.obs_u_right)
+        octave = np.clip(p.obs_octave.astype(int), 0, p.n_levels - 1)
+        for o in np.flatnonzero(usable):
+            k, j = int(p.obs_kf[o]), int(p.obs_pt[o])
+            u, v = float(p.obs_uv[o, 0]), float(p.obs_uv[o, 1])
+            if stereo[o]:
+                meas = gtsam.StereoPoint2(u, float(p.obs_u_right[o]), v)
+                graph.add(
+                    gtsam.GenericStereoFactor3D(meas, noise_stereo[octave[o]], X(k), L(j), K_stereo)
+                )
+            else:
+                graph.add(
+                    gtsam.GenericProjectionFactorCal3_S2(
+                        np.array([u, v]), noise_mono[octave[o]], X(k), L(j), K_mono
+                    )
+                )
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(p.iterations)
+        # Points first: eliminating them leaves the small reduced camera system (Schur complement).
+        ordering = gtsam.Ordering()
+        for j in range(len(p.point_ids)):
+            ordering.push_back(L(j))
+        for k in range(len(p.kf_ids)):
+            ordering.push_back(X(k))
+        params.setOrdering(ordering)
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        T_new = np.array([result.atPose3(X(k)).matrix() for k in range(len(p.kf_ids))])
+        pts_new = np.array([result.atPoint3(L(j)) for j in range(len(p.point_ids))]).reshape(-1, 3)
+        chi2_after = reprojection_chi2(p, T_new, pts_new)
+        gate = np.where(stereo, p.chi2_stereo, p.chi2_mono)
+        outlier = ~(chi2_after <= gate)
+        return BaResult(
+            segment=p.segment,
+            ok=True,
+            kf_ids=p.kf_ids,
+            T_map_cam=T_new,
+            point_ids=p.point_ids,
+            points_map=pts_new,
+            outlier_obs=outlier,
+            obs_kf_ids=fail.obs_kf_ids,
+            obs_point_ids=fail.obs_point_ids,
+            error_before=float(np.sqrt(np.mean(np.minimum(chi2_before[usable], 100.0)))),
+            error_after=float(np.sqrt(np.mean(np.minimum(chi2_after[usable], 100.0)))),
+            time_ms=(time.perf_counter() - t0) * 1e3,
+        )
+    except (RuntimeError, ValueError, IndexError) as exc:  # GTSAM errors arrive as RuntimeError
+        fail.message = f"local BA failed: {type(exc).__name__}: {exc}"
+        fail.time_ms = (time.perf_counter() - t0) * 1e3
+        return fail
+
+
+class BaWorker:
+    """A child process running :func:`run_local_ba` on problems sent over its stdin."""
+
+    def __init__(self):
+        env = dict(os.environ)
+        # The child must import this package the way the parent did (catkin devel space, PYTHONPATH=src).
+        env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
+        self._proc = subprocess.Popen(
+            [sys.executable, "-c", "from coop_slam.vo.local_ba import serve; serve()"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            env=env,
+        )
+
+    def run(self, problem: BaProblem) -> BaResult:
+        """Solve one problem in the child; raises OSError / EOFError if the child died."""
+        pickle.dump(problem, self._proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+        self._proc.stdin.flush()
+        return pickle.load(self._proc.stdout)
+
+    def close(self) -> None:
+        try:
+            self._proc.stdin.close()
+            self._proc.wait(timeout=10.0)
+        except (OSError, subprocess.TimeoutExpired):
+            self._proc.kill()
+            self._proc.wait()
+
+
+def serve() -> None:
+    """Worker main loop: unpickle BaProblem from stdin, pickle BaResult to stdout, until EOF."""
+    # Results go to a private copy of stdout; anything a library prints goes to stderr instead.
+    out = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+    inp = sys.stdin.buffer
+    import gtsam  # noqa: F401  (import before the first problem arrives)
+
+    while True:
+        try:
+            problem = pickle.load(inp)
+        except EOFError:
+            return
+        pickle.dump(run_local_ba(problem), out, protocol=pickle.HIGHEST_PROTOCOL)
+        out.flush()

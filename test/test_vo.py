@@ -1,0 +1,299 @@
+"""Tests of the client's RGB-D visual odometry (coop_slam.vo): pose optimization, local BA, map
+consistency under keyframe culling, tracking on a synthetic room, bad input, and RedKitchen accuracy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import helpers_vo
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from coop_slam.config import load_config, load_yaml_config
+from coop_slam.errors import ConfigError
+from coop_slam.geometry import invert, se3, transform_error, transform_points
+from coop_slam.vo import (
+    EVENT_KEYFRAME_NEW,
+    EVENT_KEYFRAME_REMOVE,
+    EVENT_NEW_SEGMENT,
+    EVENT_WARNING,
+    STATE_INITIALIZING,
+    STATE_LOST,
+    STATE_NEW_SEGMENT,
+    STATE_OK,
+    STATE_RELOCALIZED,
+    RgbdOdometry,
+    VoConfig,
+    VoError,
+)
+from coop_slam.vo.evaluate import ate_rmse, keyframe_ate, run_sequence
+from coop_slam.vo.local_ba import BaProblem, run_local_ba
+from coop_slam.vo.pose_opt import optimize_pose
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REDKITCHEN = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "redkitchen_0000_0599"))
+K = helpers_vo.CAMERA.K
+
+
+def sync_config(**kw) -> VoConfig:
+    """Deterministic configuration: local mapping runs synchronously inside track()."""
+    return VoConfig(**{"threaded": False, **kw})
+
+
+@pytest.fixture(scope="module")
+def room_sequence():
+    return helpers_vo.sequence(n_frames=45, seed=3, step_m=0.012)
+
+
+def _project(T_cam_map, points_map):
+    pc = transform_points(T_cam_map, points_map)
+    return (
+        np.stack(
+            [K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 2], K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]], 1
+        ),
+        pc[:, 2],
+    )
+
+
+def _random_pose(rng, rot_deg, trans_m):
+    return se3(
+        Rotation.from_rotvec(rng.normal(size=3) * np.radians(rot_deg) / np.sqrt(3)).as_matrix(),
+        rng.normal(size=3) * trans_m / np.sqrt(3),
+    )
+
+
+# --- pose optimization and local BA ------------------------------------------------------------------
+def test_pose_optimization_recovers_pose_and_rejects_outliers():
+    rng = np.random.default_rng(0)
+    points_map = rng.uniform([-2, -1.5, 1.5], [2, 1.5, 5], (400, 3))
+    T_cam_map = _random_pose(rng, 5.0, 0.2)
+    uv, z = _project(T_cam_map, points_map)
+    bf = K[0, 0] * 0.08
+    u_right = uv[:, 0] - bf / z
+    uv = uv + rng.normal(0, 0.5, uv.shape)
+    uv[:40] += rng.uniform(20, 60, (40, 2))  # gross outliers
+    u_right[200:] = np.nan  # half of the keypoints without depth
+    T_est, inlier = optimize_pose(np.eye(4), points_map, uv, u_right, np.ones(400), K, bf)
+    t_err, r_err = transform_error(T_est, T_cam_map)
+    assert t_err < 0.01 and r_err < 0.2
+    assert not inlier[:40].any() and inlier[40:].mean() > 0.9
+
+
+def _ba_scene(rng, n_kf=5, n_pts=300):
+    points = rng.uniform([-2, -1.5, 3], [2, 1.5, 5], (n_pts, 3))
+    poses = [
+        se3(Rotation.from_euler("y", 2 * k, degrees=True).as_matrix(), [0.1 * k, 0, 0])
+        for k in range(n_kf)
+    ]
+    obs_kf, obs_pt, uv, ur = [], [], [], []
+    bf = K[0, 0] * 0.08
+    for k, T in enumerate(poses):
+        proj, z = _project(invert(T), points)
+        for j in range(n_pts):
+            obs_kf.append(k)
+            obs_pt.append(j)
+            uv.append(proj[j] + rng.normal(0, 0.3, 2))
+            ur.append(proj[j, 0] - bf / z[j] + rng.normal(0, 0.3) if j % 2 == 0 else np.nan)
+    return np.array(poses), points, np.array(obs_kf), np.array(obs_pt), np.array(uv), np.array(ur)
+
+
+def test_local_ba_reduces_error_of_perturbed_map():
+    rng = np.random.default_rng(1)
+    poses, points, obs_kf, obs_pt, uv, ur = _ba_scene(rng)
+    noisy_poses = np.array(
+        [T if k == 0 else T @ _random_pose(rng, 1.0, 0.03) for k, T in enumerate(poses)]
+    )
+    noisy_points = points + rng.normal(0, 0.04, points.shape)
+    problem = BaProblem(
+        segment=0,
+        kf_ids=np.arange(1, len(poses) + 1),
+        T_map_cam=noisy_poses,
+        fixed=np.array([True] + [False] * (len(poses) - 1)),
+        point_ids=np.arange(1, len(points) + 1),
+        points_map=noisy_points,
+        obs_kf=obs_kf,
+        obs_pt=obs_pt,
+        obs_kp=obs_pt,
+        obs_uv=uv,
+        obs_u_right=ur,
+        obs_octave=np.zeros(len(obs_kf), int),
+        fx=K[0, 0],
+        fy=K[1, 1],
+        cx=K[0, 2],
+        cy=K[1, 2],
+        baseline_m=0.08,
+        scale_factor=1.2,
+        n_levels=8,
+        iterations=20,
+    )
+    result = run_local_ba(problem)
+    assert result.ok, result.message
+    assert result.error_after < 0.5 * result.error_before
+
+    def errors(Ts, pts):
+        pose_err = max(transform_error(T, T_true)[0] for T, T_true in zip(Ts, poses))
+        return pose_err, np.sqrt(np.mean(np.sum((pts - points) ** 2, axis=1)))
+
+    pose_before, pts_before = errors(noisy_poses, noisy_points)
+    pose_after, pts_after = errors(result.T_map_cam, result.points_map)
+    assert np.allclose(result.T_map_cam[0], noisy_poses[0])  # the fixed keyframe did not move
+    assert pose_after < 0.3 * pose_before and pose_after < 0.01
+    assert pts_after < 0.5 * pts_before  # mono points 4 m away stay ~2 cm uncertain
+    assert result.outlier_obs.mean() < 0.05
+
+
+# --- synthetic tracking ------------------------------------------------------------------------------
+def _track_all(vo, stamps, frames):
+    return [vo.track(s, img, d) for s, (img, d) in zip(stamps, frames)]
+
+
+def test_tracks_synthetic_room(room_sequence):
+    stamps, frames, gt = room_sequence
+    with RgbdOdometry(sync_config(), helpers_vo.CAMERA) as vo:
+        results = _track_all(vo, stamps, frames)
+        events = vo.drain_events()
+        kfs = vo.keyframes()
+        problems = vo.vo_map.check_consistency()
+    assert all(r.ok for r in results), [r.message for r in results if not r.ok]
+    assert {r.state for r in results} == {STATE_OK}
+    poses = np.array([r.T_map_cam for r in results])
+    # The map frame is the first camera: compare against ground truth expressed the same way.
+    gt_map = np.array([invert(gt[0]) @ T for T in gt])
+    err_t = [transform_error(P, G)[0] for P, G in zip(poses, gt_map)]
+    assert max(err_t) < 0.02, max(err_t)
+    assert ate_rmse(stamps, poses, gt) < 0.01
+    assert len(kfs) >= 2 and problems == []
+    assert {e.kind for e in events} >= {EVENT_KEYFRAME_NEW}
+    kf = kfs[-1]
+    n = len(kf)
+    assert kf.descriptors.shape == (n, 32) and kf.descriptors.dtype == np.uint8
+    assert kf.keypoints_flat().shape == (4 * n,) and kf.octaves.dtype == np.uint8
+    assert len(kf.map_points_xyz) == int((kf.map_point_ids > 0).sum())
+    assert len(kf.covisible_ids) == len(kf.covisible_weights) >= 1
+
+
+def test_keyframe_culling_keeps_map_consistent(room_sequence):
+    stamps, frames, _ = room_sequence
+    # A keyframe at (almost) every frame makes most keyframes redundant, so culling has work to do.
+    cfg = sync_config(keyframe_ref_ratio=1.0, keyframe_min_inliers=5)
+    with RgbdOdometry(cfg, helpers_vo.CAMERA) as vo:
+        results = _track_all(vo, stamps[:30], frames[:30])
+        events = vo.drain_events()
+        vmap = vo.vo_map
+        assert vmap.check_consistency() == []
+        removed = {e.keyframe_id for e in events if e.kind == EVENT_KEYFRAME_REMOVE}
+        assert removed, "expected redundant keyframes to be culled"
+        assert removed.isdisjoint(vmap.keyframes)
+        ids, _ = vo.map_point_arrays()
+        referenced = np.unique(np.concatenate([kf.map_point_ids for kf in vmap.keyframes.values()]))
+        assert np.isin(referenced[referenced > 0], ids).all()
+        for kf in vo.keyframes():
+            assert set(kf.covisible_ids.tolist()).isdisjoint(removed)
+    assert all(r.ok for r in results)
+
+
+def test_threaded_mapping_tracks_and_stops(room_sequence):
+    stamps, frames, gt = room_sequence
+    with RgbdOdometry(VoConfig(threaded=True), helpers_vo.CAMERA) as vo:
+        results = _track_all(vo, stamps[:25], frames[:25])
+        vo.flush()
+        assert vo.vo_map.check_consistency() == []
+        assert vo.mapping_stats["ba_runs"] >= 1
+    assert all(r.ok for r in results)
+    assert ate_rmse(stamps[:25], np.array([r.T_map_cam for r in results]), gt[:25]) < 0.01
+
+
+def test_relocalizes_after_blackout_and_starts_segment_when_lost_long(room_sequence):
+    stamps, frames, _ = room_sequence
+    black = np.zeros_like(frames[0][0])
+    no_depth = np.zeros_like(frames[0][1])
+    with RgbdOdometry(sync_config(max_lost_frames=4), helpers_vo.CAMERA) as vo:
+        for s, (img, d) in zip(stamps[:10], frames[:10]):
+            assert vo.track(s, img, d).ok
+        last = vo.track(stamps[10], black, no_depth)
+        assert not last.ok and last.state == STATE_LOST
+        back = vo.track(stamps[11], *frames[11])
+        assert back.ok and back.state == STATE_RELOCALIZED
+        assert vo.track(stamps[12], *frames[12]).state == STATE_OK
+        # A long blackout: a new map segment, announced by an event, starts at the next usable frame.
+        states = [vo.track(stamps[13] + 0.01 * i, black, no_depth).state for i in range(1, 7)]
+        assert STATE_LOST in states and vo.map_segment == 1
+        assert any(e.kind == EVENT_NEW_SEGMENT for e in vo.drain_events())
+        restart = vo.track(stamps[20], *frames[20])
+        assert restart.ok and restart.state == STATE_NEW_SEGMENT and restart.map_segment == 1
+        assert np.allclose(restart.T_map_cam, np.eye(4))
+        assert all(kf.map_segment == 1 for kf in vo.keyframes())
+
+
+# --- bad input -----------------------------------------------------------------------------------------
+def test_bad_input_raises_vo_error_or_returns_not_ok(room_sequence):
+    _stamps, frames, _ = room_sequence
+    img, depth = frames[0]
+    with RgbdOdometry(sync_config(), helpers_vo.CAMERA) as vo:
+        with pytest.raises(VoError, match="empty image"):
+            vo.track(1.0, np.zeros((0, 0, 3), np.uint8), depth)
+        with pytest.raises(VoError, match="camera model"):
+            vo.track(1.0, img[:240, :320], depth[:240, :320])
+        with pytest.raises(VoError, match="no depth"):
+            vo.track(1.0, img, None)
+        with pytest.raises(VoError, match="shape"):
+            vo.track(1.0, img, depth[:100])
+        with pytest.raises(VoError, match="timestamp"):
+            vo.track(float("nan"), img, depth)
+        # A depth image without any valid pixel cannot start a map: not ok, no exception.
+        res = vo.track(1.0, img, np.zeros_like(depth))
+        assert not res.ok and res.state == STATE_INITIALIZING and "depth" in res.message
+        nan_depth = np.full_like(depth, np.nan)
+        assert not vo.track(1.01, img, nan_depth).ok
+        with pytest.raises(VoError, match="duplicate"):
+            vo.track(1.01, img, depth)
+        assert vo.track(1.02, img, depth).ok
+        # uint16 depth in sensor units is accepted.
+        raw = (depth * helpers_vo.CAMERA.depth_scale).astype(np.uint16)
+        assert vo.track(1.03, img, raw).ok
+
+
+def test_backwards_timestamp_resets_with_warning(room_sequence):
+    stamps, frames, _ = room_sequence
+    with RgbdOdometry(sync_config(), helpers_vo.CAMERA) as vo:
+        for s, (img, d) in zip(stamps[:3], frames[:3]):
+            assert vo.track(s, img, d).ok
+        vo.drain_events()
+        res = vo.track(stamps[0], *frames[5])
+        events = vo.drain_events()
+        kinds = [e.kind for e in events]
+        assert EVENT_WARNING in kinds and EVENT_NEW_SEGMENT in kinds
+        assert res.ok and res.state == STATE_NEW_SEGMENT and res.map_segment == 1
+        assert "timestamp" in next(e.message for e in events if e.kind == EVENT_WARNING)
+        # Keyframe ids keep increasing across segments (unique per robot).
+        new_ids = [e.keyframe_id for e in events if e.kind == EVENT_KEYFRAME_NEW]
+        assert new_ids and min(new_ids) > 1
+
+
+# --- configuration -------------------------------------------------------------------------------------
+def test_client_yaml_loads_and_typos_are_rejected(tmp_path):
+    cfg = load_yaml_config(VoConfig, os.path.join(REPO, "config", "client.yaml"), section="vo")
+    assert cfg == dataclasses.replace(cfg)  # a plain VoConfig
+    assert cfg.n_features > 0 and isinstance(cfg.threaded, bool)
+    with pytest.raises(ConfigError, match="n_feature"):
+        load_config(VoConfig, {"n_feature": 10})
+    with pytest.raises(ConfigError):
+        load_config(VoConfig, {"min_depth_m": 5.0, "max_depth_m": 1.0})
+
+
+# --- real data -----------------------------------------------------------------------------------------
+@pytest.mark.skipif(
+    not os.path.isdir(REDKITCHEN), reason=f"RedKitchen data not found at {REDKITCHEN}"
+)
+def test_redkitchen_first_150_frames_accuracy():
+    from coop_slam.datasets import read_tum
+
+    seq = read_tum(REDKITCHEN).slice(0, 150)
+    run = run_sequence(seq, sync_config())
+    assert run.n_lost == 0 and run.n_segments == 1
+    ate = keyframe_ate(run, seq)
+    assert ate < 0.03, f"keyframe ATE {ate * 100:.2f} cm"
+    assert len(run.keyframes) >= 3
