@@ -15,6 +15,7 @@ class PlayerConfig:
     split: str = ""  # frame ranges, one robot each, inclusive: "0-299,300-599"
     robots: int = 0  # number of robots (0 = the scenario's / one per split range)
     seed: int = 0  # synthetic world seed
+    duration_s: float = 0.0  # synthetic world length [s]; 0 = the scenario's own
     camera_file: str = ""  # camera.yaml for a TUM folder without one
     keep_timing: bool = False  # play split segments at their original times instead of together
     start_offsets_s: list[float] = field(default_factory=list)  # per-robot start delay [s]
@@ -32,5 +33,6 @@ class PlayerConfig:
         require(self.rate > 0, f"player: ~rate must be > 0, got {self.rate}")
         require(self.ack_timeout_s > 0, "player: ~ack_timeout_s must be > 0")
         require(self.robots >= 0, "player: ~robots must be >= 0")
+        require(self.duration_s >= 0, "player: ~duration_s must be >= 0")
         require(self.depth_encoding in ("32FC1", "16UC1"),
                 f"player: ~depth_encoding must be 32FC1 or 16UC1, got '{self.depth_encoding}'")

@@ -113,6 +113,7 @@ class PlayerNode:
             seed=cfg.seed,
             camera_file=cfg.camera_file or None,
             start_offsets_s=offsets,
+            world_params={"duration_s": cfg.duration_s} if cfg.duration_s > 0 else None,
             progress=lambda done, total: rospy.loginfo_throttle(
                 5.0, "player: generating world %d/%d frames", done, total),
         )

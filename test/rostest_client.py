@@ -1,0 +1,69 @@
+#!/usr/bin/env python3
+"""rostest node: the client publishes keyframes, pose, TF (map -> odom -> base_link -> camera),
+path and local cloud with the right frames while the player plays a short synthetic sequence."""
+import threading
+import time
+import unittest
+
+import numpy as np
+import rospy
+import rostest
+import tf2_ros
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Bool
+
+from coop_slam.msg import FrameStats, KeyFrame
+from coop_slam.ros.convert import cloud_from_msg, keyframe_from_msg
+
+
+class ClientOutputsTest(unittest.TestCase):
+    def test_outputs(self):
+        rospy.init_node("client_test")
+        got = {"kf": [], "pose": [], "path": None, "cloud": None, "stats": []}
+        done = threading.Event()
+        subs = [
+            rospy.Subscriber("/robot_1/keyframes", KeyFrame, lambda m: got["kf"].append(m), queue_size=100),
+            rospy.Subscriber("/robot_1/pose", PoseStamped, lambda m: got["pose"].append(m), queue_size=100),
+            rospy.Subscriber("/robot_1/path", Path, lambda m: got.__setitem__("path", m)),
+            rospy.Subscriber("/robot_1/local_map", PointCloud2, lambda m: got.__setitem__("cloud", m)),
+            rospy.Subscriber("/robot_1/frame_stats", FrameStats, lambda m: got["stats"].append(m), queue_size=100),
+            rospy.Subscriber("/player/done", Bool, lambda m: m.data and done.set()),
+        ]
+        buf = tf2_ros.Buffer()
+        tf2_ros.TransformListener(buf)
+        self.assertTrue(done.wait(500.0), "player did not finish")
+        time.sleep(2.0)  # wall time: sim time stands still once the player is done
+        self.assertGreaterEqual(len(got["stats"]), 100, "the client acknowledged too few frames")
+        self.assertTrue(all(s.robot_id == 1 for s in got["stats"]))
+        self.assertGreaterEqual(sum(s.tracking_ok for s in got["stats"]), 0.9 * len(got["stats"]))
+        self.assertGreaterEqual(len(got["kf"]), 2)
+        for m in got["kf"]:
+            self.assertEqual(m.header.frame_id, "robot_1/map")
+            kf = keyframe_from_msg(m, known_robots={1})
+            if m.action != 2:
+                self.assertGreater(kf.num_keypoints, 100)
+                self.assertGreater(np.count_nonzero(kf.map_point_ids), 50)
+        self.assertGreater(len(got["pose"]), 100)
+        self.assertEqual(got["pose"][-1].header.frame_id, "robot_1/map")
+        self.assertIsNotNone(got["path"])
+        self.assertEqual(got["path"].header.frame_id, "robot_1/map")
+        self.assertGreaterEqual(len(got["path"].poses), 2)
+        self.assertIsNotNone(got["cloud"])
+        self.assertEqual(got["cloud"].header.frame_id, "robot_1/map")
+        self.assertGreater(len(cloud_from_msg(got["cloud"])), 100)
+        for parent, child in (("robot_1/map", "robot_1/odom"), ("robot_1/odom", "robot_1/base_link"),
+                              ("robot_1/base_link", "robot_1/camera_optical"),
+                              ("robot_1/map", "robot_1/camera_optical")):
+            self.assertTrue(buf.can_transform(parent, child, rospy.Time(0)),
+                            f"no TF {parent} -> {child}")
+        # The pose stream and TF agree on where the camera is.
+        T = buf.lookup_transform("robot_1/map", "robot_1/camera_optical", rospy.Time(0))
+        p = got["pose"][-1].pose.position
+        t = T.transform.translation
+        self.assertLess(np.linalg.norm([p.x - t.x, p.y - t.y, p.z - t.z]), 0.2)
+
+
+if __name__ == "__main__":
+    rostest.rosrun("coop_slam", "client_outputs", ClientOutputsTest)

@@ -1,0 +1,54 @@
+"""End to end through the README's main command: scripts/demo runs player, server and clients on a
+scenario (lock-step, so results do not depend on machine speed) and its report is checked."""
+import json
+import os
+import subprocess
+
+import pytest
+from helpers import REDKITCHEN, REPO
+
+
+def _demo(tmp_path, *args, timeout=1500):
+    out = tmp_path / "out"
+    proc = subprocess.run([os.path.join(REPO, "scripts", "demo"), *args, "--out", str(out)],
+                          capture_output=True, text=True, timeout=timeout)
+    log = out / "roslaunch.log"
+    tail = log.read_text(errors="replace")[-4000:] if log.exists() else ""
+    assert proc.returncode == 0, f"demo failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}\n{tail}"
+    with open(out / "report.json") as fh:
+        return json.load(fh), tail
+
+
+def test_revisit_merges_by_place_recognition(tmp_path):
+    report, log = _demo(tmp_path, "--scenario", "revisit")
+    assert report["groups"] == [[1, 2]], log
+    assert report["wrong_merges"] == 0
+    merge = report["merges"][0]
+    assert merge["type"] == "place_recognition"
+    assert merge["local_trans_err_m"] < 0.05 and merge["local_rot_err_deg"] < 1.0
+    assert merge["latency_s"] < 5.0
+    for robot in report["robots"]:
+        assert robot["keyframes"] >= 10
+        assert robot["ate_rmse_m"] < 0.005 * robot["path_length_m"]
+
+
+def test_rendezvous_merges_by_rendezvous(tmp_path):
+    report, log = _demo(tmp_path, "--scenario", "rendezvous")
+    assert report["groups"] == [[1, 2]], log
+    assert report["wrong_merges"] == 0
+    assert report["merges"][0]["type"] == "rendezvous"
+
+
+@pytest.mark.parametrize("scenario", ["disjoint", "aliasing"])
+def test_no_merge_without_overlap(tmp_path, scenario):
+    report, _ = _demo(tmp_path, "--scenario", scenario)
+    assert report["merges"] == [] and report["groups"] == [[1], [2]]
+    assert all(robot["keyframes"] >= 5 for robot in report["robots"])  # both maps still built
+
+
+@pytest.mark.skipif(not os.path.isdir(REDKITCHEN), reason=f"shared data absent: {REDKITCHEN}")
+def test_redkitchen_two_robots_merge(tmp_path):
+    report, log = _demo(tmp_path, "--dataset", REDKITCHEN, "--split", "0-299,300-599")
+    assert report["groups"] == [[1, 2]], log
+    assert report["wrong_merges"] == 0
+    assert report["team_ate_rmse_m"] < 0.05
