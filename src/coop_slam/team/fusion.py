@@ -1,0 +1,217 @@
+"""Fused, voxel-downsampled team point cloud for display and export.
+
+Once maps are merged, the robots' map points are expressed in ``world`` and overlapping areas hold
+each surface several times (once per robot). :func:`fuse_points` turns points known to be the same
+physical point (matches) into one and merges near-duplicates from different robots, so overlapping
+maps show no doubled surfaces; :func:`voxel_downsample` bounds the cloud's size. Everything is
+vectorised numpy / scipy (no per-point Python loops).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from ..errors import CoopSlamError
+from ..geometry import transform_points
+
+# RGB, one colour per robot (robot_id % len): distinct on white and black backgrounds.
+ROBOT_PALETTE = np.array(
+    [
+        [31, 119, 180],
+        [255, 127, 14],
+        [44, 160, 44],
+        [214, 39, 40],
+        [148, 103, 189],
+        [140, 86, 75],
+        [227, 119, 194],
+        [127, 127, 127],
+        [188, 189, 34],
+        [23, 190, 207],
+    ],
+    dtype=np.uint8,
+)
+_MAX_FUSION_ROUNDS = 100  # each round merges at least one pair; real clouds need a handful
+
+
+class FusionError(CoopSlamError):
+    """Point arrays of inconsistent shapes, non-finite points or invalid match indices."""
+
+
+def robot_colours(robot_ids) -> np.ndarray:
+    """(N, 3) uint8 RGB colours from a fixed palette (robot 1 gets the first colour)."""
+    ids = np.asarray(robot_ids, dtype=np.int64).reshape(-1)
+    return ROBOT_PALETTE[(ids - 1) % len(ROBOT_PALETTE)]
+
+
+def gather_map_points(records, T_world_map) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points_world (N, 3), robot_ids (N,), point_ids (N,)) from keyframe records, each robot's
+    map points moved to world by ``T_world_map(robot_id)`` (a callable or a dict). A map point seen
+    by several keyframes of a robot appears once, at its position in the latest of them."""
+    lookup = T_world_map if callable(T_world_map) else T_world_map.__getitem__
+    chunks, robots, ids, order = [], [], [], []
+    for rec in records:
+        pid = rec.map_point_ids[rec.map_point_ids != 0].astype(np.int64)
+        chunks.append(transform_points(lookup(rec.robot_id), rec.map_points))
+        robots.append(np.full(len(pid), rec.robot_id, np.int64))
+        ids.append(pid)
+        order.append(np.full(len(pid), rec.keyframe_id, np.int64))
+    if not chunks:
+        return np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64)
+    points, robots, ids, order = (np.concatenate(a) for a in (chunks, robots, ids, order))
+    # Latest keyframe first within each (robot, point id), then keep the first of each.
+    sort = np.lexsort((-order, ids, robots))
+    keep = np.ones(len(sort), bool)
+    keep[1:] = (np.diff(robots[sort]) != 0) | (np.diff(ids[sort]) != 0)
+    sel = sort[keep]
+    return points[sel], robots[sel], ids[sel]
+
+
+def _group_mean(
+    labels: np.ndarray, n_groups: int, points: np.ndarray, weights: np.ndarray
+) -> np.ndarray:
+    total = np.bincount(labels, weights=weights, minlength=n_groups)
+    return (
+        np.stack(
+            [
+                np.bincount(labels, weights=points[:, c] * weights, minlength=n_groups)
+                for c in range(3)
+            ],
+            axis=1,
+        )
+        / total[:, None]
+    )
+
+
+def _merge_groups(labels, n_groups, points, weights, robots, ids):
+    """Collapse points sharing a label: weighted mean position; robot and id of the member with the
+    smallest robot id (the point then belongs to the reference robot's map)."""
+    means = _group_mean(labels, n_groups, points, weights)
+    first = np.lexsort((robots, labels))  # by label, then robot id
+    take = first[np.unique(labels[first], return_index=True)[1]]
+    return means, np.bincount(labels, weights=weights, minlength=n_groups), robots[take], ids[take]
+
+
+def _mutual_cross_robot_pairs(points: np.ndarray, robots: np.ndarray, radius_m: float):
+    """Pairs (i, j), i < j, of points of different robots closer than radius_m that are each
+    other's nearest point among the other's robot (no chaining: every point is in one pair)."""
+    n = len(points)
+    best_d = np.full(n, np.inf)
+    best_j = np.full(n, -1)
+    for r in np.unique(robots):
+        own = robots == r
+        if own.all():
+            continue
+        idx_r = np.nonzero(own)[0]
+        others = np.nonzero(~own)[0]
+        d, k = cKDTree(points[own]).query(points[others], distance_upper_bound=radius_m)
+        better = (d < radius_m) & (d < best_d[others])
+        best_d[others[better]] = d[better]
+        best_j[others[better]] = idx_r[k[better]]
+    i = np.nonzero(best_j >= 0)[0]
+    j = best_j[i]
+    mutual = (best_j[j] == i) & (i < j)
+    return i[mutual], j[mutual]
+
+
+def fuse_points(
+    points_world, robot_ids, point_ids, matches=None, radius_m: float = 0.02
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fuse a team cloud -> (points (M, 3), point_ids (M,), robot_ids (M,)).
+
+    ``matches`` (K, 2) are index pairs known to be one physical point: each connected set of them
+    becomes one point at the mean. Then points of different robots closer than ``radius_m`` are
+    merged (count-weighted mean) in rounds of mutual-nearest pairs until no such pair is left; mutual
+    pairs avoid chaining a dense surface into one blob. A fused point keeps the robot id and point
+    id of its member with the smallest robot id. Points of one robot are never merged with each
+    other (its SLAM already keeps them distinct).
+    """
+    points = np.asarray(points_world, dtype=float).reshape(-1, 3)
+    robots = np.asarray(robot_ids).reshape(-1)
+    ids = np.asarray(point_ids).reshape(-1)
+    n = len(points)
+    if len(robots) != n or len(ids) != n:
+        raise FusionError(
+            f"points ({n}), robot_ids ({len(robots)}) and point_ids ({len(ids)}) "
+            "must have one entry per point"
+        )
+    if not np.all(np.isfinite(points)):
+        raise FusionError("points contain NaN or inf")
+    if not radius_m >= 0:
+        raise FusionError(f"fusion radius must be >= 0, got {radius_m}")
+    weights = np.ones(n)
+    if matches is not None and len(matches):
+        m = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
+        if m.min() < 0 or m.max() >= n:
+            raise FusionError(f"match indices must be in [0, {n}), got [{m.min()}, {m.max()}]")
+        adj = coo_matrix((np.ones(len(m)), (m[:, 0], m[:, 1])), shape=(n, n))
+        n_groups, labels = connected_components(adj, directed=False)
+        points, weights, robots, ids = _merge_groups(labels, n_groups, points, weights, robots, ids)
+    if radius_m > 0:
+        for _ in range(_MAX_FUSION_ROUNDS):
+            i, j = _mutual_cross_robot_pairs(points, robots, radius_m)
+            if len(i) == 0:
+                break
+            labels = np.arange(len(points))
+            labels[j] = i
+            # Relabel to 0..G-1 keeping order, then collapse each pair.
+            _, labels = np.unique(labels, return_inverse=True)
+            points, weights, robots, ids = _merge_groups(
+                labels, labels.max() + 1, points, weights, robots, ids
+            )
+    return points, ids, robots
+
+
+def voxel_downsample(points, labels=None, voxel_m: float = 0.05):
+    """One point per occupied voxel -> (points (V, 3), labels).
+
+    Points are averaged per voxel. ``labels`` may be (N, C) values such as RGB colours (averaged,
+    rounded back to their integer dtype) or (N,) integer labels such as robot ids (most frequent
+    label of the voxel, ties to the smallest); None gives None.
+    """
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    if not voxel_m > 0:
+        raise FusionError(f"voxel size must be > 0, got {voxel_m}")
+    if not np.all(np.isfinite(points)):
+        raise FusionError("points contain NaN or inf")
+    if labels is not None:
+        labels = np.asarray(labels)
+        if len(labels) != len(points):
+            raise FusionError(f"{len(labels)} labels for {len(points)} points")
+    if len(points) == 0:
+        return points, (None if labels is None else labels[:0])
+    cells = np.floor(points / voxel_m).astype(np.int64)
+    cells -= cells.min(axis=0)
+    dims = cells.max(axis=0) + 1
+    if np.prod(dims.astype(float)) < 2**62:
+        flat = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]  # one sortable key
+        _, voxel = np.unique(flat, return_inverse=True)
+    else:
+        _, voxel = np.unique(cells, axis=0, return_inverse=True)
+    voxel = voxel.reshape(-1)
+    n_vox = int(voxel.max()) + 1
+    out = _group_mean(voxel, n_vox, points, np.ones(len(points)))
+    if labels is None:
+        return out, None
+    if labels.ndim == 1:
+        # Mode per voxel: count (voxel, label) pairs, keep the largest count of each voxel.
+        pairs, counts = np.unique(
+            np.stack([voxel, labels.astype(np.int64)], axis=1), axis=0, return_counts=True
+        )
+        order = np.lexsort((pairs[:, 1], -counts, pairs[:, 0]))
+        first = order[np.unique(pairs[order, 0], return_index=True)[1]]
+        return out, pairs[first, 1].astype(labels.dtype)
+    cols = labels.reshape(len(labels), -1).astype(float)
+    counts = np.bincount(voxel, minlength=n_vox)
+    mean = (
+        np.stack(
+            [np.bincount(voxel, weights=cols[:, c], minlength=n_vox) for c in range(cols.shape[1])],
+            axis=1,
+        )
+        / counts[:, None]
+    )
+    if np.issubdtype(labels.dtype, np.integer):
+        mean = np.rint(mean)
+    return out, mean.astype(labels.dtype).reshape((n_vox,) + labels.shape[1:])

@@ -1,0 +1,772 @@
+"""Team pose graph: one GTSAM factor graph over the keyframes of every robot.
+
+Parameterisation
+----------------
+One variable per keyframe, ``X = T_world_cam``: the camera pose in its *group frame*. A group is a
+connected component of the graph (robots joined by merge factors); its frame is the map frame of
+its smallest robot id, matching :mod:`coop_slam.team.groups`, so the component holding robot 1 is
+``world``. Variable keys are ``gtsam.Symbol(chr(ord('a') + robot_id), keyframe_id)``, so all robots
+live in one graph.
+
+Factors (all ``BetweenFactorPose3`` measuring ``T_cami_camj = X_i^-1 X_j``, sigmas rotation first
+as in GTSAM's Pose3 tangent space):
+
+- odometry: between a robot's keyframes that are neighbours in keyframe-id order, measured from
+  the client's poses ``T_map_cam_i^-1 T_map_cam_j``; sigmas grow with the distance between them.
+  ``covisible`` factors are the same measurement to a few covisible keyframes, to stiffen the
+  client's local structure. Both are rebuilt whenever the client moves a keyframe (local BA).
+- loop (intra-robot) and merge (inter-robot) constraints from place recognition / rendezvous, with
+  a robust kernel (Cauchy by default) so one wrong constraint cannot wreck the map.
+- gauge priors: one stiff prior per connected component, on the first keyframe of its smallest
+  robot, at that keyframe's estimate when the prior was created (for a component's first keyframe
+  that is ``T_world_map_hint @ T_map_cam``, i.e. the client's own pose for a group root).
+
+Optimisation: :meth:`TeamPoseGraph.optimize_incremental` feeds new factors to iSAM2 as keyframes
+arrive; :meth:`TeamPoseGraph.optimize_full` runs batch Levenberg-Marquardt (after a merge or loop
+closure) and resets iSAM2 from its result. Changes iSAM2 cannot absorb (a merge re-expresses one
+group in another's frame, a culled keyframe removes a variable, a gauge prior moves) make the next
+incremental call fall back to a full optimisation.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import time
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from ..config import require
+from ..errors import CoopSlamError, GeometryError
+from ..geometry import check_se3, invert
+from ..registration.keyframe import RegistrationError
+from ..registration.umeyama import umeyama
+
+log = logging.getLogger(__name__)
+
+KIND_ODOMETRY = "odometry"
+KIND_COVISIBLE = "covisible"
+KIND_LOOP = "loop"
+KIND_MERGE = "merge"
+KIND_PRIOR = "prior"
+_CLIENT_KINDS = (KIND_ODOMETRY, KIND_COVISIBLE)  # measured from the client's poses
+_ROBUST_KERNELS = ("huber", "cauchy", "none")
+_MAP_ANCHORS = ("latest", "umeyama")
+_MAX_ROBOT_ID = 255 - ord("a")  # gtsam.Symbol holds one byte for the character
+_MAX_KEYFRAME_ID = (1 << 56) - 1  # and 56 bits for the index
+
+Key = tuple[int, int]  # (robot_id, keyframe_id)
+
+
+class PoseGraphError(CoopSlamError):
+    """Unknown keyframe or robot, duplicate keyframe, or invalid constraint for the pose graph."""
+
+
+@dataclass
+class PoseGraphConfig:
+    odom_rot_sigma_rad: float = 0.005  # odometry between neighbouring keyframes ...
+    odom_trans_sigma_m: float = 0.01
+    odom_rot_sigma_per_m: float = 0.005  # ... plus this much per metre between them
+    odom_trans_sigma_per_m: float = 0.02
+    max_covisible_factors: int = 3  # extra client-pose factors per keyframe to covisible ones
+    loop_rot_sigma_rad: float = 0.02
+    loop_trans_sigma_m: float = 0.05
+    merge_rot_sigma_rad: float = 0.02
+    merge_trans_sigma_m: float = 0.05
+    robust_kernel: str = "cauchy"  # huber | cauchy | none, for loop and merge factors
+    # On the whitened 6-D residual norm: an inlier's norm is about sqrt(6) = 2.4.
+    robust_k: float = 3.0
+    prior_sigma: float = 1e-4  # gauge prior [rad and m]
+    map_anchor: str = "latest"  # how T_world_map is read off the optimised poses: latest | umeyama
+    lm_max_iterations: int = 100
+    lm_relative_error_tol: float = 1e-5
+    isam_relinearize_threshold: float = 0.01
+    isam_relinearize_skip: int = 1
+    isam_extra_updates: int = 1  # extra iSAM2 iterations per incremental call
+
+    def validate(self) -> None:
+        for name in (
+            "odom_rot_sigma_rad",
+            "odom_trans_sigma_m",
+            "loop_rot_sigma_rad",
+            "loop_trans_sigma_m",
+            "merge_rot_sigma_rad",
+            "merge_trans_sigma_m",
+            "prior_sigma",
+            "robust_k",
+        ):
+            require(getattr(self, name) > 0, f"pose_graph.{name} must be > 0")
+        for name in ("odom_rot_sigma_per_m", "odom_trans_sigma_per_m"):
+            require(getattr(self, name) >= 0, f"pose_graph.{name} must be >= 0")
+        require(self.max_covisible_factors >= 0, "pose_graph.max_covisible_factors must be >= 0")
+        require(
+            self.robust_kernel in _ROBUST_KERNELS,
+            f"pose_graph.robust_kernel must be one of {', '.join(_ROBUST_KERNELS)}",
+        )
+        require(
+            self.map_anchor in _MAP_ANCHORS,
+            f"pose_graph.map_anchor must be one of {', '.join(_MAP_ANCHORS)}",
+        )
+        require(self.lm_max_iterations >= 1, "pose_graph.lm_max_iterations must be >= 1")
+        require(self.lm_relative_error_tol > 0, "pose_graph.lm_relative_error_tol must be > 0")
+        require(
+            self.isam_relinearize_threshold > 0, "pose_graph.isam_relinearize_threshold must be > 0"
+        )
+        require(self.isam_relinearize_skip >= 1, "pose_graph.isam_relinearize_skip must be >= 1")
+        require(self.isam_extra_updates >= 0, "pose_graph.isam_extra_updates must be >= 0")
+
+
+@dataclass
+class OptimizationStats:
+    mode: str = "none"  # none | incremental | full
+    time_ms: float = 0.0  # wall time of the whole call (graph building included)
+    iterations: int = 0
+    error_before: float = 0.0  # factor-graph error (robust loss for robust factors)
+    error_after: float = 0.0
+    variables: int = 0
+    factors: int = 0
+
+
+@dataclass
+class ConstraintStatus:
+    """How well the current estimate agrees with one loop / merge constraint."""
+
+    factor_id: int
+    kind: str  # loop | merge
+    label: str  # caller's label (e.g. place_recognition, rendezvous)
+    key_i: Key
+    key_j: Key
+    whitened_error: float  # Mahalanobis norm of the 6-D residual
+    weight: float  # robust-kernel weight at that residual (1 = fully trusted)
+
+
+@dataclass
+class _Factor:
+    kind: str
+    key_i: Key
+    key_j: Key | None  # None for a prior
+    T_meas: np.ndarray  # T_cami_camj (between) or T_world_cam (prior)
+    sigmas: tuple[float, float]  # (rotation rad, translation m)
+    label: str = ""
+
+
+def gtsam_key(robot_id: int, keyframe_id: int) -> int:
+    """Graph key of a keyframe: one symbol character per robot, so all robots share one graph."""
+    return gtsam.Symbol(chr(ord("a") + robot_id), keyframe_id).key()
+
+
+def _key_of(gkey: int) -> Key:
+    s = gtsam.Symbol(gkey)
+    return s.chr() - ord("a"), s.index()
+
+
+def _poses_from_values(values: gtsam.Values) -> dict[Key, np.ndarray]:
+    """All Pose3 values as 4x4 arrays, converted in one call (rows follow the key order)."""
+    keys = [_key_of(k) for k in values.keys()]  # noqa: SIM118 (gtsam.Values is not iterable)
+    rows = gtsam.utilities.extractPose3(values)
+    T = np.tile(np.eye(4), (len(keys), 1, 1))
+    T[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
+    T[:, :3, 3] = rows[:, 9:]
+    return dict(zip(keys, T))
+
+
+class TeamPoseGraph:
+    """Keyframe pose graph of the whole team; see the module docstring for the model."""
+
+    def __init__(self, config: PoseGraphConfig | None = None):
+        self.config = config or PoseGraphConfig()
+        self.config.validate()
+        cfg = self.config
+        if cfg.robust_kernel == "huber":
+            self._kernel = gtsam.noiseModel.mEstimator.Huber.Create(cfg.robust_k)
+        elif cfg.robust_kernel == "cauchy":
+            self._kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_k)
+        else:
+            self._kernel = None
+        self._client: dict[Key, np.ndarray] = {}  # T_map_cam as the client last sent it
+        self._values: dict[Key, np.ndarray] = {}  # current estimate T_world_cam
+        self._chain: dict[int, list[int]] = {}  # robot -> sorted keyframe ids
+        self._map_hint: dict[int, np.ndarray] = {}  # T_world_map for a robot's first keyframe
+        self._factors: dict[int, _Factor] = {}
+        self._by_key: dict[Key, set[int]] = {}
+        self._priors: dict[Key, int] = {}  # anchor keyframe -> prior factor id
+        self._next_fid = 0
+        # iSAM2 state: factor id -> iSAM2 slot, keys it holds, slots to remove at the next update.
+        self._isam: gtsam.ISAM2 | None = None
+        self._isam_index: dict[int, int] = {}
+        self._isam_keys: set[Key] = set()
+        self._isam_remove: list[int] = []
+        self._rebuild = False  # iSAM2 cannot absorb the last changes: next call is a full one
+        self.stats = OptimizationStats()
+
+    # --- checks -------------------------------------------------------------------------------------
+    @staticmethod
+    def _pose(T, name: str) -> np.ndarray:
+        try:
+            return check_se3(T, name)
+        except GeometryError as exc:
+            raise PoseGraphError(str(exc)) from None
+
+    def _check_key(self, robot_id: int, keyframe_id: int) -> Key:
+        key = (int(robot_id), int(keyframe_id))
+        if key not in self._values:
+            raise PoseGraphError(
+                f"keyframe {keyframe_id} of robot {robot_id} is not in the pose "
+                "graph (add it with add_keyframe first)"
+            )
+        return key
+
+    def _check_robot(self, robot_id: int) -> None:
+        if robot_id not in self._chain and robot_id not in self._map_hint:
+            raise PoseGraphError(
+                f"robot {robot_id} is unknown to the pose graph " f"(known: {self.robots})"
+            )
+
+    # --- factor bookkeeping -------------------------------------------------------------------------
+    def _add_factor(self, f: _Factor) -> int:
+        fid = self._next_fid
+        self._next_fid += 1
+        self._factors[fid] = f
+        for k in (f.key_i, f.key_j):
+            if k is not None:
+                self._by_key.setdefault(k, set()).add(fid)
+        return fid
+
+    def _drop_factor(self, fid: int) -> _Factor:
+        f = self._factors.pop(fid)
+        for k in (f.key_i, f.key_j):
+            if k is not None and k in self._by_key:
+                self._by_key[k].discard(fid)
+        slot = self._isam_index.pop(fid, None)
+        if slot is not None:
+            self._isam_remove.append(slot)
+        return f
+
+    def _client_factor(self, kind: str, key_i: Key, key_j: Key) -> int:
+        """Odometry-type factor from the client's current poses of two keyframes of one robot."""
+        cfg = self.config
+        T_i_j = invert(self._client[key_i]) @ self._client[key_j]
+        dist_m = float(np.linalg.norm(T_i_j[:3, 3]))
+        sigmas = (
+            cfg.odom_rot_sigma_rad + cfg.odom_rot_sigma_per_m * dist_m,
+            cfg.odom_trans_sigma_m + cfg.odom_trans_sigma_per_m * dist_m,
+        )
+        return self._add_factor(_Factor(kind, key_i, key_j, T_i_j, sigmas))
+
+    def _noise(self, f: _Factor):
+        r, t = f.sigmas
+        base = gtsam.noiseModel.Diagonal.Sigmas(np.array([r, r, r, t, t, t]))
+        if f.kind in (KIND_LOOP, KIND_MERGE) and self._kernel is not None:
+            return gtsam.noiseModel.Robust.Create(self._kernel, base)
+        return base
+
+    def _gtsam_factor(self, f: _Factor):
+        noise = self._noise(f)
+        if f.key_j is None:
+            return gtsam.PriorFactorPose3(gtsam_key(*f.key_i), gtsam.Pose3(f.T_meas), noise)
+        return gtsam.BetweenFactorPose3(
+            gtsam_key(*f.key_i), gtsam_key(*f.key_j), gtsam.Pose3(f.T_meas), noise
+        )
+
+    def _odometry_between(self, key_i: Key, key_j: Key) -> list[int]:
+        return [
+            fid
+            for fid in self._by_key.get(key_i, ())
+            if self._factors[fid].kind == KIND_ODOMETRY
+            and {self._factors[fid].key_i, self._factors[fid].key_j} == {key_i, key_j}
+        ]
+
+    # --- keyframes ----------------------------------------------------------------------------------
+    def set_map_transform(self, robot_id: int, T_world_map: np.ndarray) -> None:
+        """Where a robot's map sits in its group frame, used for the initial estimate of the robot's
+        first keyframe. Later keyframes chain from the robot's existing estimates, which already
+        live in the graph's frame; merges align groups themselves (see :meth:`add_merge`)."""
+        self._map_hint[int(robot_id)] = self._pose(T_world_map, f"T_world_map of robot {robot_id}")
+
+    def add_keyframe(
+        self,
+        robot_id: int,
+        keyframe_id: int,
+        T_map_cam: np.ndarray,
+        T_world_map: np.ndarray | None = None,
+        covisible_ids=(),
+    ) -> None:
+        """Add a keyframe with its client pose; links it by odometry to its neighbours in id order
+        (normally the robot's previous keyframe) and to up to ``max_covisible_factors`` of the
+        given covisible keyframes of the same robot."""
+        robot_id, keyframe_id = int(robot_id), int(keyframe_id)
+        if not 0 <= robot_id <= _MAX_ROBOT_ID:
+            raise PoseGraphError(f"robot id {robot_id} must be in [0, {_MAX_ROBOT_ID}]")
+        if not 0 <= keyframe_id <= _MAX_KEYFRAME_ID:
+            raise PoseGraphError(f"keyframe id {keyframe_id} must be in [0, 2^56)")
+        key = (robot_id, keyframe_id)
+        if key in self._values:
+            raise PoseGraphError(
+                f"keyframe {keyframe_id} of robot {robot_id} is already in the "
+                "pose graph (use update_keyframe)"
+            )
+        T_map_cam = self._pose(T_map_cam, f"pose of keyframe {keyframe_id} of robot {robot_id}")
+        if T_world_map is not None:
+            self.set_map_transform(robot_id, T_world_map)
+        chain = self._chain.setdefault(robot_id, [])
+        pos = bisect.bisect_left(chain, keyframe_id)
+        prev = (robot_id, chain[pos - 1]) if pos > 0 else None
+        nxt = (robot_id, chain[pos]) if pos < len(chain) else None
+        chain.insert(pos, keyframe_id)
+        self._client[key] = T_map_cam
+        # Initial estimate: chained from a neighbour's estimate (already in the graph's frame).
+        ref = prev or nxt
+        if ref is not None:
+            self._values[key] = self._values[ref] @ invert(self._client[ref]) @ T_map_cam
+        else:
+            self._values[key] = self._map_hint.get(robot_id, np.eye(4)) @ T_map_cam
+        if prev is not None and nxt is not None:
+            # Out-of-order arrival: the new keyframe splits an existing odometry edge.
+            for fid in self._odometry_between(prev, nxt):
+                self._drop_factor(fid)
+        for nb in (prev, nxt):
+            if nb is not None:
+                a, b = (nb, key) if nb[1] < keyframe_id else (key, nb)
+                self._client_factor(KIND_ODOMETRY, a, b)
+        added = 0
+        for cid in covisible_ids:
+            ckey = (robot_id, int(cid))
+            if added >= self.config.max_covisible_factors:
+                break
+            if ckey in self._values and ckey not in (prev, nxt, key):
+                self._client_factor(KIND_COVISIBLE, ckey, key)
+                added += 1
+
+    def update_keyframe(self, robot_id: int, keyframe_id: int, T_map_cam: np.ndarray) -> None:
+        """The client's local BA moved a keyframe: every odometry / covisible factor touching it is
+        rebuilt from the new client pose (loop and merge constraints are camera-to-camera and stay).
+        The estimate itself is left alone; the new measurements act at the next optimisation."""
+        key = self._check_key(robot_id, keyframe_id)
+        self._client[key] = self._pose(
+            T_map_cam, f"pose of keyframe {keyframe_id} of robot " f"{robot_id}"
+        )
+        for fid in list(self._by_key.get(key, ())):
+            f = self._factors[fid]
+            if f.kind in _CLIENT_KINDS:
+                self._drop_factor(fid)
+                self._client_factor(f.kind, f.key_i, f.key_j)
+
+    def remove_keyframe(self, robot_id: int, keyframe_id: int) -> None:
+        """The client culled a keyframe: its neighbours are linked by odometry, loop / merge
+        constraints on it move to the previous (else next) keyframe with their measurement composed
+        with the client's relative pose, and its own odometry / covisible factors go."""
+        key = self._check_key(robot_id, keyframe_id)
+        chain = self._chain[key[0]]
+        pos = chain.index(key[1])
+        prev = (key[0], chain[pos - 1]) if pos > 0 else None
+        nxt = (key[0], chain[pos + 1]) if pos + 1 < len(chain) else None
+        anchor = prev or nxt
+        for fid in list(self._by_key.get(key, ())):
+            f = self._drop_factor(fid)
+            if f.kind not in (KIND_LOOP, KIND_MERGE) or anchor is None:
+                continue  # priors are re-created on the new first keyframe by _sync_priors
+            T_anchor_k = invert(self._client[anchor]) @ self._client[key]
+            if f.key_i == key:  # X_j = X_k T = X_anchor T_anchor_k T
+                key_i, key_j, T = anchor, f.key_j, T_anchor_k @ f.T_meas
+            else:  # T = X_i^-1 X_k = X_i^-1 X_anchor T_anchor_k
+                key_i, key_j, T = f.key_i, anchor, f.T_meas @ invert(T_anchor_k)
+            if key_i != key_j:
+                self._add_factor(_Factor(f.kind, key_i, key_j, T, f.sigmas, f.label))
+        if prev is not None and nxt is not None:
+            self._client_factor(KIND_ODOMETRY, prev, nxt)
+        chain.pop(pos)
+        del self._values[key], self._client[key]
+        self._by_key.pop(key, None)
+        self._priors.pop(key, None)
+        # iSAM2 cannot drop a variable: rebuild it at the next optimisation.
+        self._rebuild = True
+
+    # --- constraints --------------------------------------------------------------------------------
+    def _sigmas(self, rot, trans, default_rot, default_trans) -> tuple[float, float]:
+        sig = (
+            default_rot if rot is None else float(rot),
+            default_trans if trans is None else float(trans),
+        )
+        if not (sig[0] > 0 and sig[1] > 0):
+            raise PoseGraphError(f"constraint sigmas must be > 0, got {sig}")
+        return sig
+
+    def add_loop(
+        self,
+        robot_id: int,
+        kf_i: int,
+        kf_j: int,
+        T_cami_camj: np.ndarray,
+        kind: str = KIND_LOOP,
+        rot_sigma_rad: float | None = None,
+        trans_sigma_m: float | None = None,
+    ) -> int:
+        """Intra-robot loop closure ``T_cami_camj`` (robust); ``kind`` is a label kept for reports.
+        Returns the constraint's factor id (for :meth:`remove_constraint`)."""
+        key_i, key_j = self._check_key(robot_id, kf_i), self._check_key(robot_id, kf_j)
+        if key_i == key_j:
+            raise PoseGraphError(f"a loop needs two different keyframes (got {kf_i} twice)")
+        T = self._pose(T_cami_camj, "T_cami_camj")
+        sig = self._sigmas(
+            rot_sigma_rad,
+            trans_sigma_m,
+            self.config.loop_rot_sigma_rad,
+            self.config.loop_trans_sigma_m,
+        )
+        return self._add_factor(_Factor(KIND_LOOP, key_i, key_j, T, sig, kind))
+
+    def add_merge(
+        self,
+        robot_a: int,
+        kf_a: int,
+        robot_b: int,
+        kf_b: int,
+        T_camA_camB: np.ndarray,
+        kind: str = KIND_MERGE,
+        rot_sigma_rad: float | None = None,
+        trans_sigma_m: float | None = None,
+    ) -> int:
+        """Inter-robot constraint ``T_camA_camB`` (robust). When it joins two groups, the group
+        whose smallest robot id is larger is moved rigidly into the other's frame so that this
+        constraint holds exactly at the current estimate (the first merge of two groups is the
+        verified one); the next optimisation is then a full one. Returns the factor id."""
+        key_a, key_b = self._check_key(robot_a, kf_a), self._check_key(robot_b, kf_b)
+        if key_a[0] == key_b[0]:
+            raise PoseGraphError("a merge constraint joins two different robots; use add_loop")
+        T_ab = self._pose(T_camA_camB, "T_camA_camB")
+        sig = self._sigmas(
+            rot_sigma_rad,
+            trans_sigma_m,
+            self.config.merge_rot_sigma_rad,
+            self.config.merge_trans_sigma_m,
+        )
+        comp = self._component_labels()
+        ca, cb = comp[key_a], comp[key_b]
+        if ca != cb:
+            robots_a = {k[0] for k, c in comp.items() if c == ca}
+            robots_b = {k[0] for k, c in comp.items() if c == cb}
+            Xa, Xb = self._values[key_a], self._values[key_b]
+            if min(robots_b) > min(robots_a):
+                moving, T_new_old = cb, Xa @ T_ab @ invert(Xb)
+            else:
+                moving, T_new_old = ca, Xb @ invert(T_ab) @ invert(Xa)
+            for k, c in comp.items():
+                if c == moving:
+                    self._values[k] = T_new_old @ self._values[k]
+            self._rebuild = True
+        return self._add_factor(_Factor(KIND_MERGE, key_a, key_b, T_ab, sig, kind))
+
+    def remove_constraint(self, factor_id: int) -> None:
+        """Withdraw a loop / merge constraint (e.g. rejected later by the caller)."""
+        f = self._factors.get(factor_id)
+        if f is None or f.kind not in (KIND_LOOP, KIND_MERGE):
+            raise PoseGraphError(f"{factor_id} is not a loop or merge constraint of the graph")
+        self._drop_factor(factor_id)
+
+    # --- gauge --------------------------------------------------------------------------------------
+    def _component_labels(self) -> dict[Key, int]:
+        """Connected component of every keyframe over the between factors."""
+        keys = list(self._values)
+        if not keys:
+            return {}
+        index = {k: i for i, k in enumerate(keys)}
+        edges = np.array(
+            [
+                (index[f.key_i], index[f.key_j])
+                for f in self._factors.values()
+                if f.key_j is not None
+            ],
+            dtype=int,
+        ).reshape(-1, 2)
+        adj = coo_matrix(
+            (np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(len(keys), len(keys))
+        )
+        _, labels = connected_components(adj, directed=False)
+        return dict(zip(keys, labels.tolist()))
+
+    def _sync_priors(self) -> bool:
+        """One gauge prior per component (first keyframe of its smallest robot); returns True if a
+        prior had to be removed or moved (iSAM2 cannot follow: rebuild)."""
+        comp = self._component_labels()
+        anchors: dict[int, Key] = {}
+        for k, c in comp.items():
+            a = anchors.get(c)
+            if a is None or k < a:  # (robot, keyframe) order: smallest robot, then first keyframe
+                anchors[c] = k
+        wanted = set(anchors.values())
+        removed = False
+        for k in [k for k in self._priors if k not in wanted]:
+            self._drop_factor(self._priors.pop(k))
+            removed = True
+        s = self.config.prior_sigma
+        for k in wanted - set(self._priors):
+            self._priors[k] = self._add_factor(
+                _Factor(KIND_PRIOR, k, None, self._values[k].copy(), (s, s))
+            )
+        return removed
+
+    # --- optimisation -------------------------------------------------------------------------------
+    def _graph(self, fids) -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph()
+        for fid in fids:
+            graph.add(self._gtsam_factor(self._factors[fid]))
+        return graph
+
+    def _gtsam_values(self, keys) -> gtsam.Values:
+        values = gtsam.Values()
+        for k in keys:
+            values.insert(gtsam_key(*k), gtsam.Pose3(self._values[k]))
+        return values
+
+    def optimize_full(self) -> OptimizationStats:
+        """Batch Levenberg-Marquardt over the whole graph from the current estimate (after a merge
+        or loop closure). iSAM2 is re-initialised from the result at the next incremental call."""
+        t0 = time.perf_counter()
+        self._sync_priors()
+        fids = list(self._factors)
+        graph = self._graph(fids)
+        initial = self._gtsam_values(self._values)
+        stats = OptimizationStats("full", variables=len(self._values), factors=len(fids))
+        if fids:
+            params = gtsam.LevenbergMarquardtParams()
+            params.setMaxIterations(self.config.lm_max_iterations)
+            params.setRelativeErrorTol(self.config.lm_relative_error_tol)
+            optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+            result = optimizer.optimize()
+            stats.iterations = int(optimizer.iterations())
+            stats.error_before = float(graph.error(initial))
+            stats.error_after = float(graph.error(result))
+            self._values.update(_poses_from_values(result))
+        self._isam = None
+        self._isam_index.clear()
+        self._isam_keys.clear()
+        self._isam_remove.clear()
+        self._rebuild = False
+        stats.time_ms = 1e3 * (time.perf_counter() - t0)
+        self.stats = stats
+        log.debug("pose graph full optimisation: %s", stats)
+        return stats
+
+    def optimize_incremental(self) -> OptimizationStats:
+        """iSAM2 update with the factors and keyframes added since the last call. Falls back to
+        :meth:`optimize_full` when the graph changed in a way iSAM2 cannot absorb."""
+        t0 = time.perf_counter()
+        if self._sync_priors() or self._rebuild:
+            return self.optimize_full()
+        if self._isam is None:
+            params = gtsam.ISAM2Params()
+            params.setRelinearizeThreshold(self.config.isam_relinearize_threshold)
+            params.relinearizeSkip = self.config.isam_relinearize_skip
+            params.evaluateNonlinearError = True
+            self._isam = gtsam.ISAM2(params)
+        new_fids = [fid for fid in self._factors if fid not in self._isam_index]
+        new_keys = [k for k in self._values if k not in self._isam_keys]
+        stats = OptimizationStats(
+            "incremental", variables=len(self._values), factors=len(self._factors)
+        )
+        if new_fids or new_keys or self._isam_remove:
+            result = self._isam.update(
+                self._graph(new_fids), self._gtsam_values(new_keys), list(self._isam_remove)
+            )
+            for fid, slot in zip(new_fids, result.getNewFactorsIndices()):
+                self._isam_index[fid] = int(slot)
+            self._isam_keys.update(new_keys)
+            self._isam_remove.clear()
+            stats.error_before = float(result.getErrorBefore() or 0.0)
+            stats.error_after = float(result.getErrorAfter() or 0.0)
+            for _ in range(self.config.isam_extra_updates):
+                stats.error_after = float(self._isam.update().getErrorAfter() or 0.0)
+            stats.iterations = 1 + self.config.isam_extra_updates
+            self._values.update(_poses_from_values(self._isam.calculateEstimate()))
+        stats.time_ms = 1e3 * (time.perf_counter() - t0)
+        self.stats = stats
+        return stats
+
+    # --- results ------------------------------------------------------------------------------------
+    @property
+    def robots(self) -> list[int]:
+        return sorted(set(self._chain) | set(self._map_hint))
+
+    def keyframe_ids(self, robot_id: int) -> list[int]:
+        self._check_robot(robot_id)
+        return list(self._chain.get(robot_id, []))
+
+    def T_world_cam(self, robot_id: int, keyframe_id: int) -> np.ndarray:
+        """Current estimate of a keyframe's pose in its group frame."""
+        return self._values[self._check_key(robot_id, keyframe_id)].copy()
+
+    def keyframe_poses(self, robot_id: int) -> dict[int, np.ndarray]:
+        """keyframe id -> T_world_cam for one robot."""
+        self._check_robot(robot_id)
+        return {k: self._values[(robot_id, k)].copy() for k in self._chain.get(robot_id, [])}
+
+    def T_world_map(self, robot_id: int) -> np.ndarray:
+        """A robot's map frame in its group frame, i.e. the map->odom style correction its client
+        applies. ``map_anchor='latest'`` (default) anchors it at the robot's latest keyframe, where
+        the robot is now, so its corrected current pose is the optimised one; ``'umeyama'`` is the
+        least-squares rigid fit of client to optimised keyframe positions (falls back to 'latest'
+        for fewer than 3 or collinear keyframes). Without keyframes: the hint (or identity)."""
+        self._check_robot(robot_id)
+        chain = self._chain.get(robot_id, [])
+        if not chain:
+            return self._map_hint.get(robot_id, np.eye(4)).copy()
+        if self.config.map_anchor == "umeyama" and len(chain) >= 3:
+            keys = [(robot_id, k) for k in chain]
+            points_map = np.array([self._client[k][:3, 3] for k in keys])
+            points_world = np.array([self._values[k][:3, 3] for k in keys])
+            try:
+                return umeyama(points_map, points_world)[0]
+            except RegistrationError:
+                pass
+        last = (robot_id, chain[-1])
+        return self._values[last] @ invert(self._client[last])
+
+    def components(self) -> list[list[int]]:
+        """Robots grouped by connected component of the graph (robots without keyframes alone)."""
+        comp = self._component_labels()
+        groups: dict[int, set[int]] = {}
+        for (rid, _), c in comp.items():
+            groups.setdefault(c, set()).add(rid)
+        out = [sorted(g) for g in groups.values()]
+        out += [[r] for r in self.robots if r not in self._chain or not self._chain[r]]
+        return sorted(out)
+
+    def edges(self, kind: str | None = None) -> list[tuple[str, Key, Key | None]]:
+        """(kind, key_i, key_j) of every factor, optionally of one kind (for inspection / tests)."""
+        return [
+            (f.kind, f.key_i, f.key_j)
+            for f in self._factors.values()
+            if kind is None or f.kind == kind
+        ]
+
+    def constraint_report(self) -> list[ConstraintStatus]:
+        """Residual and robust weight of every loop / merge constraint at the current estimate:
+        a wrong constraint shows a large whitened error and a weight near 0."""
+        out = []
+        for fid, f in self._factors.items():
+            if f.kind not in (KIND_LOOP, KIND_MERGE):
+                continue
+            values = self._gtsam_values((f.key_i, f.key_j))
+            e = np.asarray(self._gtsam_factor(f).unwhitenedError(values), float)
+            r, t = f.sigmas
+            d = float(np.linalg.norm(e / np.array([r, r, r, t, t, t])))
+            w = float(self._kernel.weight(d)) if self._kernel is not None else 1.0
+            out.append(ConstraintStatus(fid, f.kind, f.label, f.key_i, f.key_j, d, w))
+        return out
+
+
+# --- synthetic team and benchmark ---------------------------------------------------------------------
+@dataclass
+class SyntheticTeam:
+    """Ground truth, drifting client poses and constraints for pose-graph tests and benchmarks."""
+
+    T_world_cam_gt: dict[int, np.ndarray]  # robot -> (N, 4, 4), keyframe ids 1..N
+    T_map_cam: dict[int, np.ndarray]  # robot -> (N, 4, 4), client poses (map = first camera)
+    loops: list[tuple[int, int, int, np.ndarray]] = field(default_factory=list)  # r, i, j, T
+    merges: list[tuple[int, int, int, int, np.ndarray]] = field(default_factory=list)  # ra,i,rb,j,T
+
+
+def _exp_so3(w: np.ndarray) -> np.ndarray:
+    return gtsam.Rot3.Expmap(np.asarray(w, float)).matrix()
+
+
+def synthetic_team(
+    keyframes_per_robot: int = 60,
+    robots: int = 3,
+    seed: int = 0,
+    odom_rot_noise_rad: float = 0.002,
+    odom_trans_noise_m: float = 0.005,
+    yaw_drift_rad: float = 0.003,
+    meas_rot_noise_rad: float = 0.002,
+    meas_trans_noise_m: float = 0.005,
+    max_merges_per_pair: int = 6,
+    loop_every: int = 4,
+) -> SyntheticTeam:
+    """Robots circling overlapping 4 m rings (one lap per 60 keyframes, camera looking ahead,
+    gently bobbing in z); clients integrate noisy, yaw-drifting odometry from their first pose;
+    loop / merge constraints come from the truth with small noise where keyframes are close in
+    position (< 0.8 m) and heading (< 30 deg)."""
+    rng = np.random.default_rng(seed)
+    radius, per_lap = 4.0, 60
+    gt, client = {}, {}
+    for r in range(1, robots + 1):
+        theta = 2 * np.pi * (np.arange(keyframes_per_robot) / per_lap + (r - 1) / robots)
+        centre = np.array([0.8 * (r - 1), 0.4 * (r - 1), 0.0])
+        pos = centre + np.column_stack(
+            [radius * np.cos(theta), radius * np.sin(theta), 0.3 * np.sin(3 * theta)]
+        )
+        fwd = np.column_stack([-np.sin(theta), np.cos(theta), np.zeros_like(theta)])
+        down = np.tile([0.0, 0.0, -1.0], (len(theta), 1))
+        right = np.cross(down, fwd)
+        T = np.tile(np.eye(4), (len(theta), 1, 1))
+        T[:, :3, :3] = np.stack([right, down, fwd], axis=2)
+        T[:, :3, 3] = pos
+        gt[r] = T
+        C = np.tile(np.eye(4), (len(theta), 1, 1))
+        for k in range(1, len(theta)):
+            D = invert(T[k - 1]) @ T[k]
+            noise = np.eye(4)
+            # Drift about the camera's y axis (down): yaw in the world.
+            noise[:3, :3] = _exp_so3(rng.normal(0, odom_rot_noise_rad, 3) + [0, yaw_drift_rad, 0])
+            noise[:3, 3] = rng.normal(0, odom_trans_noise_m, 3)
+            C[k] = C[k - 1] @ D @ noise
+        client[r] = C
+
+    def measure(Ta, Tb):
+        noise = np.eye(4)
+        noise[:3, :3] = _exp_so3(rng.normal(0, meas_rot_noise_rad, 3))
+        noise[:3, 3] = rng.normal(0, meas_trans_noise_m, 3)
+        return invert(Ta) @ Tb @ noise
+
+    def close_pairs(Ta, Tb):
+        d = np.linalg.norm(Ta[:, None, :3, 3] - Tb[None, :, :3, 3], axis=2)
+        cos = np.einsum("ik,jk->ij", Ta[:, :3, 2], Tb[:, :3, 2])
+        return np.argwhere((d < 0.8) & (cos > np.cos(np.radians(30))))
+
+    team = SyntheticTeam(gt, client)
+    for r, T_r in gt.items():
+        pairs = close_pairs(T_r, T_r)
+        pairs = pairs[pairs[:, 1] - pairs[:, 0] > 20]
+        for i, j in pairs[::loop_every]:
+            team.loops.append((r, int(i) + 1, int(j) + 1, measure(T_r[i], T_r[j])))
+    for ra, T_a in gt.items():
+        for rb, T_b in gt.items():
+            if rb <= ra:
+                continue
+            pairs = close_pairs(T_a, T_b)
+            if len(pairs) == 0:
+                continue
+            pick = np.linspace(0, len(pairs) - 1, min(max_merges_per_pair, len(pairs))).astype(int)
+            for i, j in pairs[pick]:
+                team.merges.append((ra, int(i) + 1, rb, int(j) + 1, measure(T_a[i], T_b[j])))
+    return team
+
+
+def build_graph(team: SyntheticTeam, config: PoseGraphConfig | None = None) -> TeamPoseGraph:
+    """A pose graph holding all keyframes, loops and merges of a synthetic team (not optimised)."""
+    graph = TeamPoseGraph(config)
+    for r, poses in team.T_map_cam.items():
+        for k, T in enumerate(poses):
+            graph.add_keyframe(r, k + 1, T)
+    for r, i, j, T in team.loops:
+        graph.add_loop(r, i, j, T)
+    for ra, i, rb, j, T in team.merges:
+        graph.add_merge(ra, i, rb, j, T)
+    return graph
+
+
+def bench_full_optimization(
+    n_keyframes: int = 1000, robots: int = 4, seed: int = 0, repeats: int = 3
+) -> float:
+    """Median wall time [ms] of :meth:`TeamPoseGraph.optimize_full` right after the merges of a
+    synthetic team of ``robots`` robots with ``n_keyframes`` keyframes in total."""
+    team = synthetic_team(n_keyframes // robots, robots, seed)
+    times = []
+    for _ in range(repeats):
+        graph = build_graph(team)
+        times.append(graph.optimize_full().time_ms)
+    return float(np.median(times))

@@ -1,0 +1,239 @@
+"""Team pose graph: accuracy with drift and a wrong merge, incremental vs batch, culling, errors."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from coop_slam.config import load_config
+from coop_slam.errors import ConfigError
+from coop_slam.evaluation import team_ate
+from coop_slam.geometry import invert, se3, transform_error
+from coop_slam.team.pose_graph import (
+    KIND_MERGE,
+    KIND_ODOMETRY,
+    PoseGraphConfig,
+    PoseGraphError,
+    TeamPoseGraph,
+    bench_full_optimization,
+    build_graph,
+    synthetic_team,
+)
+
+N_KF = 60
+
+
+@pytest.fixture(scope="module")
+def team():
+    return synthetic_team(keyframes_per_robot=N_KF, robots=3, seed=0)
+
+
+def wrong_measurement(team):
+    """An inter-robot constraint off by 1 m and 30 deg (keyframes that really are close)."""
+    ra, i, rb, j, T = team.merges[len(team.merges) // 2]
+    return ra, i, rb, j, T @ se3(Rotation.from_euler("z", 30, degrees=True).as_matrix(), [1, 0, 0])
+
+
+def ate_m(graph, team):
+    stamps = np.arange(N_KF, dtype=float)
+    est = {
+        r: (stamps, np.array([graph.T_world_cam(r, k + 1) for k in range(N_KF)]))
+        for r in team.T_map_cam
+    }
+    gt = {r: (stamps, team.T_world_cam_gt[r]) for r in team.T_map_cam}
+    return team_ate(est, gt).rmse_m
+
+
+def graph_with_wrong_merge(team, config=None):
+    graph = build_graph(team, config)
+    fid = graph.add_merge(*wrong_measurement(team))
+    return graph, fid
+
+
+def test_full_optimization_recovers_team_and_downweights_wrong_merge(team):
+    graph, bad = graph_with_wrong_merge(team)
+    assert graph.components() == [[1, 2, 3]]
+    assert ate_m(graph, team) > 0.1  # the clients really drift
+    stats = graph.optimize_full()
+    assert stats.mode == "full" and stats.iterations >= 1
+    assert stats.error_after < stats.error_before
+    assert ate_m(graph, team) < 0.05
+    report = {c.factor_id: c for c in graph.constraint_report()}
+    assert report[bad].weight < 0.05 and report[bad].whitened_error > 20
+    assert min(c.weight for fid, c in report.items() if fid != bad) > 0.5
+
+
+def test_without_robust_kernel_the_wrong_merge_distorts_the_map(team):
+    robust, _ = graph_with_wrong_merge(team)
+    robust.optimize_full()
+    plain, _ = graph_with_wrong_merge(team, PoseGraphConfig(robust_kernel="none"))
+    plain.optimize_full()
+    assert ate_m(plain, team) > 2 * ate_m(robust, team)
+
+
+def test_world_is_the_smallest_robot_map(team):
+    graph = build_graph(team)
+    graph.optimize_full()
+    # Robot 1's first keyframe is the gauge: it stays at the client's pose (its map origin).
+    np.testing.assert_allclose(graph.T_world_cam(1, 1), team.T_map_cam[1][0], atol=1e-3)
+    for r in (1, 2, 3):
+        last = graph.keyframe_ids(r)[-1]
+        np.testing.assert_allclose(
+            graph.T_world_map(r) @ team.T_map_cam[r][last - 1],
+            graph.T_world_cam(r, last),
+            atol=1e-9,
+        )
+
+
+def test_incremental_matches_full(team):
+    inc = TeamPoseGraph()
+    loops, merges = list(team.loops), list(team.merges)
+    wrong = wrong_measurement(team)
+    for k in range(1, N_KF + 1):
+        for r in team.T_map_cam:
+            inc.add_keyframe(r, k, team.T_map_cam[r][k - 1])
+        for item in [m for m in loops if max(m[1], m[2]) <= k]:
+            inc.add_loop(*item)
+            loops.remove(item)
+        for item in [m for m in merges if m[1] <= k and m[3] <= k]:
+            inc.add_merge(*item)
+            merges.remove(item)
+        if wrong is not None and len(inc.components()) == 1 and max(wrong[1], wrong[3]) <= k:
+            inc.add_merge(*wrong)
+            wrong = None
+        inc.optimize_incremental()
+    assert not loops and not merges and wrong is None
+    assert inc.stats.mode == "incremental"
+    full, _ = graph_with_wrong_merge(team)
+    full.optimize_full()
+    for r in team.T_map_cam:
+        for k in range(1, N_KF + 1):
+            dt, dr = transform_error(inc.T_world_cam(r, k), full.T_world_cam(r, k))
+            assert dt < 0.02 and dr < 0.5, (r, k, dt, dr)
+    assert ate_m(inc, team) < 0.05
+
+
+def test_remove_keyframe_relinks_chain_and_moves_constraints(team):
+    graph = build_graph(team)
+    graph.optimize_full()
+    ra, i, rb, j, _ = next(m for m in team.merges if 1 < m[1] and 1 < m[3] < N_KF and m[2] != 3)
+    graph.remove_keyframe(rb, j)  # carries a merge constraint
+    graph.remove_keyframe(1, 1)  # the gauge keyframe of the world
+    graph.remove_keyframe(3, 30)
+    odo = {(a, b) for _, a, b in graph.edges(KIND_ODOMETRY)}
+    assert ((rb, j - 1), (rb, j + 1)) in odo and ((3, 29), (3, 31)) in odo
+    assert all((rb, j) not in (a, b) for _, a, b in graph.edges())
+    assert ((ra, i), (rb, j - 1)) in {(a, b) for _, a, b in graph.edges(KIND_MERGE)}
+    assert graph.components() == [[1, 2, 3]]
+    before = graph.T_world_cam(1, 2)
+    graph.optimize_full()
+    dt, dr = transform_error(graph.T_world_cam(1, 2), before)
+    assert dt < 0.01 and dr < 0.2  # the gauge moved to keyframe 2 without moving the world
+    with pytest.raises(PoseGraphError):
+        graph.T_world_cam(3, 30)
+
+
+def test_update_keyframe_rebuilds_odometry():
+    graph = TeamPoseGraph()
+    poses = [se3(t=[x, 0, 0]) for x in range(5)]
+    for k, T in enumerate(poses, start=1):
+        graph.add_keyframe(2, k, T)
+    graph.optimize_incremental()
+    graph.update_keyframe(2, 5, se3(t=[4.5, 0, 0]))  # client's local BA moved the last keyframe
+    n_edges = len(graph.edges())
+    stats = graph.optimize_incremental()
+    assert stats.mode == "incremental" and len(graph.edges()) == n_edges
+    np.testing.assert_allclose(graph.T_world_cam(2, 5)[:3, 3], [4.5, 0, 0], atol=1e-6)
+
+
+def test_out_of_order_keyframe_splits_odometry_edge():
+    graph = TeamPoseGraph()
+    for k in (1, 3, 2):
+        graph.add_keyframe(1, k, se3(t=[k, 0, 0]))
+    assert sorted((a, b) for _, a, b in graph.edges(KIND_ODOMETRY)) == [
+        ((1, 1), (1, 2)),
+        ((1, 2), (1, 3)),
+    ]
+
+
+def test_unmerged_groups_keep_their_own_frames():
+    graph = TeamPoseGraph()
+    T_world_map2 = se3(Rotation.from_euler("z", 40, degrees=True).as_matrix(), [3, 1, 0])
+    graph.set_map_transform(2, T_world_map2)
+    for k in range(1, 4):
+        graph.add_keyframe(1, k, se3(t=[k, 0, 0]))
+        graph.add_keyframe(2, k, se3(t=[0, k, 0]))
+    graph.optimize_full()
+    assert graph.components() == [[1], [2]]
+    np.testing.assert_allclose(graph.T_world_map(2), T_world_map2, atol=1e-6)
+    np.testing.assert_allclose(graph.T_world_map(1), np.eye(4), atol=1e-6)
+    # A merge moves robot 2's group into robot 1's frame so the constraint holds.
+    T_cam1_cam2 = se3(t=[0, 0, 1])
+    graph.add_merge(1, 3, 2, 1, T_cam1_cam2)
+    stats = graph.optimize_incremental()  # falls back to a full optimisation
+    assert stats.mode == "full" and graph.components() == [[1, 2]]
+    np.testing.assert_allclose(
+        invert(graph.T_world_cam(1, 3)) @ graph.T_world_cam(2, 1), T_cam1_cam2, atol=1e-6
+    )
+
+
+def test_umeyama_map_anchor_fits_all_keyframes_best(team):
+    def mean_residual_m(graph, r):
+        T_world_map = graph.T_world_map(r)
+        return np.mean(
+            [
+                np.linalg.norm(
+                    (T_world_map @ team.T_map_cam[r][k - 1])[:3, 3] - graph.T_world_cam(r, k)[:3, 3]
+                )
+                for k in range(1, N_KF + 1)
+            ]
+        )
+
+    latest, fitted = build_graph(team), build_graph(team, PoseGraphConfig(map_anchor="umeyama"))
+    latest.optimize_full()
+    fitted.optimize_full()
+    for r in (1, 2, 3):
+        assert mean_residual_m(fitted, r) <= mean_residual_m(latest, r) + 1e-9
+
+
+def test_unknown_keys_and_bad_input_raise(team):
+    graph = TeamPoseGraph()
+    graph.add_keyframe(1, 1, np.eye(4))
+    graph.add_keyframe(1, 2, se3(t=[1, 0, 0]))
+    graph.add_keyframe(2, 1, np.eye(4))
+    with pytest.raises(PoseGraphError):
+        graph.T_world_cam(1, 9)
+    with pytest.raises(PoseGraphError):
+        graph.keyframe_poses(7)
+    with pytest.raises(PoseGraphError):
+        graph.T_world_map(7)
+    with pytest.raises(PoseGraphError):
+        graph.add_keyframe(1, 1, np.eye(4))
+    with pytest.raises(PoseGraphError):
+        graph.update_keyframe(3, 1, np.eye(4))
+    with pytest.raises(PoseGraphError):
+        graph.remove_keyframe(1, 5)
+    with pytest.raises(PoseGraphError):
+        graph.add_loop(1, 1, 5, np.eye(4))
+    with pytest.raises(PoseGraphError):
+        graph.add_loop(1, 1, 1, np.eye(4))
+    with pytest.raises(PoseGraphError):
+        graph.add_merge(1, 1, 2, 4, np.eye(4))
+    with pytest.raises(PoseGraphError):
+        graph.add_merge(1, 1, 1, 2, np.eye(4))
+    with pytest.raises(PoseGraphError):
+        graph.add_keyframe(1, 3, np.full((4, 4), np.nan))
+    with pytest.raises(PoseGraphError):
+        graph.remove_constraint(0)  # an odometry factor, not a constraint
+    with pytest.raises(ConfigError):
+        load_config(PoseGraphConfig, {"robust_kernel": "tukey"})
+
+
+def test_empty_graph_optimizes():
+    graph = TeamPoseGraph()
+    assert graph.optimize_full().factors == 0
+    assert graph.optimize_incremental().variables == 0
+
+
+def test_bench_full_optimization_1000_keyframes():
+    ms = bench_full_optimization(n_keyframes=1000, robots=4, repeats=1)
+    assert ms < 500.0, f"full optimization of 1000 keyframes took {ms:.0f} ms"
