@@ -55,7 +55,7 @@ class PlaceRecognitionConfig:
 @dataclass
 class RendezvousConfig:
     auto: bool = True  # test the time-aligned latest keyframes of unmerged robots continuously
-    window_s: float = 0.5  # keyframes closer in time than this count as simultaneous [s]
+    window_s: float = 2.0  # keyframes closer in time than this count as simultaneous [s]
     request_window_s: float = 2.0  # keyframes around a sighting / operator request [s]
     min_bow_score: float = 0.03  # BoW L1 score a pair needs before 3D-3D verification
     max_pairs: int = 4  # keyframe pairs verified per rendezvous request
@@ -173,8 +173,10 @@ class TeamServer:
                                self.config.place_recognition.registration)
             log.debug("place recognition %s vs %s: %s", cand_key, (rb, rec.keyframe_id), res.reason)
             if res.accepted:
-                merges.append(self._merge(TYPE_PLACE_RECOGNITION, cand_key, (rb, rec.keyframe_id),
-                                          res, rec.stamp_s))
+                # Seen at (about) the same time, it is a rendezvous, whichever path verified it.
+                dt = abs(self.keyframes[cand_key].record.stamp_s - rec.stamp_s)
+                kind = TYPE_RENDEZVOUS if dt <= self.config.rendezvous.window_s else TYPE_PLACE_RECOGNITION
+                merges.append(self._merge(kind, cand_key, (rb, rec.keyframe_id), res, rec.stamp_s))
                 break
         return merges
 

@@ -157,8 +157,13 @@ class _Monitor:
         from ..ros.convert import transform_from_msg
 
         with self.lock:
+            # The keyframe poses as the server used them (local BA may move them afterwards).
+            at_merge = {robot: self.run.robots[robot].keyframes.get(kf)
+                        for robot, kf in ((msg.robot_a, msg.keyframe_a), (msg.robot_b, msg.keyframe_b))
+                        if robot in self.run.robots}
             self.run.merges.append({"type": msg.type, "robot_a": msg.robot_a, "robot_b": msg.robot_b,
                                     "keyframe_a": msg.keyframe_a, "keyframe_b": msg.keyframe_b,
+                                    "keyframes_at_merge": at_merge,
                                     "stamp_s": msg.header.stamp.to_sec(),
                                     "T_mapA_mapB": transform_from_msg(msg.T_mapA_mapB)})
 

@@ -130,9 +130,12 @@ def _local_merge_error(m: dict, run: RunData, gts: dict) -> tuple[float, float] 
     poses = []
     for robot, kf in ((m["robot_a"], m.get("keyframe_a")), (m["robot_b"], m.get("keyframe_b"))):
         r = run.robots.get(robot)
-        if r is None or kf not in r.keyframes or robot not in gts:
+        snapshot = (m.get("keyframes_at_merge") or {}).get(robot)
+        if snapshot is None and r is not None:
+            snapshot = r.keyframes.get(kf)
+        if snapshot is None or robot not in gts:
             return None
-        stamp, T_map_cam = r.keyframes[kf]
+        stamp, T_map_cam = snapshot
         stamps_gt, poses_gt = gts[robot]
         if len(stamps_gt) == 0:
             return None
