@@ -8,6 +8,7 @@ in one worker thread in arrival order, so callbacks never block and the graph ha
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import queue
@@ -68,8 +69,16 @@ class ServerNode:
         self.tf = tf2_ros.StaticTransformBroadcaster()
         self.pub_merge = rospy.Publisher("/merge_events", MergeEvent, queue_size=20, latch=True)
         self.pub_stats = rospy.Publisher("/server/stats", String, queue_size=5, latch=True)
-        self.pub_vocab = rospy.Publisher("/server/vocabulary", String, queue_size=1, latch=True)
-        self.pub_vocab.publish(String(data=vocab_path))
+        from coop_slam.msg import Vocabulary as VocabularyMsg
+
+        self.pub_vocab = rospy.Publisher("/server/vocabulary", VocabularyMsg, queue_size=1,
+                                         latch=True)
+        with open(vocab_path, "rb") as fh:
+            data = fh.read()
+        self.pub_vocab.publish(VocabularyMsg(
+            format="coop_slam-npz" if data[:2] == b"PK" else "dbow2-text",
+            sha256=hashlib.sha256(data).hexdigest(), k=self.server.vocabulary.k,
+            levels=self.server.vocabulary.levels, data=data))
         self.pub_corr = {r: rospy.Publisher(f"/robot_{r}/correction", MapCorrection, queue_size=5,
                                             latch=True) for r in self.cfg.robots}
         self._MergeEvent, self._MapCorrection = MergeEvent, MapCorrection

@@ -13,8 +13,9 @@ import time
 from typing import Callable, Iterator
 
 Figure = tuple[str, float, str]
-REDKITCHEN = os.path.normpath(os.path.join(os.path.dirname(__file__), "..", "..", "..", "..",
-                                           "shared", "data", "redkitchen_0000_0599"))
+_REPO = os.path.normpath(os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", ".."))
+REDKITCHEN = os.path.normpath(os.path.join(_REPO, "..", "shared", "data", "redkitchen_0000_0599"))
+CONFIG_DIR = os.path.join(_REPO, "config")
 
 
 def bench_render() -> Iterator[Figure]:
@@ -26,8 +27,133 @@ def bench_render() -> Iterator[Figure]:
     yield ("render_fps_640x480_one_core", run(), "frames/s")
 
 
+def bench_bow() -> Iterator[Figure]:
+    from ..bow import Vocabulary, bench_transform
+    from ..bow.training import ensure_default_vocabulary
+
+    vocab = Vocabulary.load(ensure_default_vocabulary())
+    yield ("bow_transform_1000_descriptors", bench_transform(vocab), "ms")
+
+
+def _vo_runs():
+    """(name, sequence) pairs the odometry benchmarks run on: a synthetic robot, and RedKitchen
+    (whole, and as two robots) when the shared data is present."""
+    from ..datasets import read_tum, split_ranges
+    from ..datasets.synthetic import read_synthetic
+    from ..synthetic.generate import generate
+
+    world = read_synthetic(generate("revisit"))
+    yield "revisit_robot_1", world.sequences[1]
+    if os.path.isdir(REDKITCHEN):
+        seq = read_tum(REDKITCHEN)
+        yield "redkitchen", seq
+        for part in split_ranges(seq, "0-299,300-599"):
+            yield f"redkitchen_{part.name.rsplit('_', 1)[1]}", part
+
+
+def bench_vo() -> Iterator[Figure]:
+    """Tracking time with local mapping running alongside, keyframes/s, ATE and KeyFrame size."""
+    import io
+
+    import numpy as np
+
+    from ..config import load_yaml_config
+    from ..geometry import path_length
+    from ..vo.config import VoConfig
+    from ..vo.evaluate import keyframe_ate, run_sequence
+
+    cfg = load_yaml_config(VoConfig, os.path.join(CONFIG_DIR, "client.yaml"), section="vo")
+    for name, seq in _vo_runs():
+        run = run_sequence(seq, cfg)
+        _VO_RUNS[name] = (run, seq)
+        duration = seq.stamps_s[-1] - seq.stamps_s[0]
+        yield (f"vo_{name}_track_ms_mean", float(np.mean(run.track_ms)), "ms")
+        yield (f"vo_{name}_track_ms_p95", float(np.percentile(run.track_ms, 95)), "ms")
+        yield (f"vo_{name}_keyframes_per_s", run.keyframes_created / duration, "1/s")
+        ate = keyframe_ate(run, seq)
+        yield (f"vo_{name}_keyframe_ate", ate, "m")
+        yield (f"vo_{name}_keyframe_ate_percent_of_path",
+               100 * ate / max(path_length(seq.frame_poses()), 1e-9), "%")
+        yield (f"vo_{name}_lost_frames", float(np.count_nonzero(~run.ok)), "frames")
+        size = _keyframe_msg_bytes(run.keyframes, seq.camera)
+        if size is not None:
+            yield (f"vo_{name}_keyframe_msg_bytes_mean", size, "bytes")
+
+
+def _keyframe_msg_bytes(keyframes, camera):
+    import io
+
+    try:
+        from ..keyframe import KeyframeRecord
+        from ..ros.convert import keyframe_to_msg
+    except ImportError:  # no catkin workspace sourced: no generated messages
+        return None
+    sizes = []
+    for kf in keyframes:
+        rec = KeyframeRecord(robot_id=1, keyframe_id=int(kf.keyframe_id), stamp_s=float(kf.stamp_s),
+                             camera=camera, T_map_cam=kf.T_map_cam,
+                             keypoints=kf.keypoints_flat().reshape(-1, 4), octaves=kf.octaves,
+                             descriptors=kf.descriptors, depths_m=kf.depths_m,
+                             map_point_ids=kf.map_point_ids, map_points=kf.map_points_xyz,
+                             covisible_ids=kf.covisible_ids, covisible_weights=kf.covisible_weights)
+        buf = io.BytesIO()
+        keyframe_to_msg(rec, "robot_1/map").serialize(buf)
+        sizes.append(buf.tell())
+    return sum(sizes) / len(sizes) if sizes else None
+
+
+_VO_RUNS: dict = {}  # name -> (VoRun, Sequence), filled by bench_vo for bench_server
+
+
+def bench_server() -> Iterator[Figure]:
+    """Server cost per incoming keyframe (insert + query + verification) on two robots' keyframes
+    (RedKitchen halves when present, else the synthetic revisit robots)."""
+    import time
+
+    import numpy as np
+
+    from ..bow import Vocabulary
+    from ..bow.training import ensure_default_vocabulary
+    from ..keyframe import KeyframeRecord
+    from ..team.server import ServerConfig, TeamServer
+
+    if not _VO_RUNS:
+        list(bench_vo())
+    halves = [k for k in _VO_RUNS if k.startswith("redkitchen_")] or ["revisit_robot_1"]
+    server = TeamServer(ServerConfig(robots=[1, 2]), Vocabulary.load(ensure_default_vocabulary()))
+    records = []
+    for robot_id, name in enumerate(halves, 1):
+        run, seq = _VO_RUNS[name]
+        for kf in run.keyframes:
+            records.append(KeyframeRecord(
+                robot_id=robot_id, keyframe_id=int(kf.keyframe_id), stamp_s=float(kf.stamp_s),
+                camera=seq.camera, T_map_cam=kf.T_map_cam, keypoints=kf.keypoints_flat().reshape(-1, 4),
+                octaves=kf.octaves, descriptors=kf.descriptors, depths_m=kf.depths_m,
+                map_point_ids=kf.map_point_ids, map_points=kf.map_points_xyz,
+                covisible_ids=kf.covisible_ids, covisible_weights=kf.covisible_weights))
+    records.sort(key=lambda r: r.stamp_s)
+    t0 = time.perf_counter()
+    for rec in records:
+        server.add_keyframe(rec)
+    wall = time.perf_counter() - t0
+    yield ("server_ms_per_keyframe_mean", float(np.mean(server.keyframe_ms)), "ms")
+    yield ("server_ms_per_keyframe_max", float(np.max(server.keyframe_ms)), "ms")
+    yield ("server_keyframes_per_s_capacity", len(records) / wall, "1/s")
+    yield ("server_merges", float(len(server.merges)), "merges")
+
+
+def bench_pose_graph() -> Iterator[Figure]:
+    from ..team.pose_graph import bench_full_optimization
+
+    yield ("pose_graph_full_optimization_1000_keyframes", bench_full_optimization(1000, 4), "ms")
+
+
 REGISTRY: dict[str, Callable[[], Iterator[Figure]]] = {
     "render": bench_render,
+    "bow": bench_bow,
+    "vo": bench_vo,
+    "server": bench_server,
+    "pose_graph": bench_pose_graph,
 }
 
 

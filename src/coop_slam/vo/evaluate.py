@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..datasets.base import Sequence
+from ..evaluation import ate
 from .config import VoConfig
 from .map import Keyframe
 from .pipeline import RgbdOdometry
@@ -130,8 +131,6 @@ def run_sequence(
 def ate_rmse(stamps_s, poses_est, poses_gt) -> float:
     """ATE RMSE [m] of estimated against ground-truth poses (same length and order), after an SE(3)
     Umeyama alignment without scale. Pairs where either pose is NaN are left out."""
-    from evo.core import metrics, trajectory
-
     stamps_s = np.asarray(stamps_s, dtype=float)
     poses_est = np.asarray(poses_est, dtype=float).reshape(-1, 4, 4)
     poses_gt = np.asarray(poses_gt, dtype=float).reshape(-1, 4, 4)
@@ -143,12 +142,8 @@ def ate_rmse(stamps_s, poses_est, poses_gt) -> float:
     valid = np.isfinite(poses_est).all(axis=(1, 2)) & np.isfinite(poses_gt).all(axis=(1, 2))
     if valid.sum() < 3:
         return float("nan")
-    est = trajectory.PoseTrajectory3D(poses_se3=list(poses_est[valid]), timestamps=stamps_s[valid])
-    ref = trajectory.PoseTrajectory3D(poses_se3=list(poses_gt[valid]), timestamps=stamps_s[valid])
-    est.align(ref, correct_scale=False)
-    ape = metrics.APE(metrics.PoseRelation.translation_part)
-    ape.process_data((ref, est))
-    return float(ape.get_statistic(metrics.StatisticsType.rmse))
+    stamps = stamps_s[valid]
+    return ate(stamps, poses_est[valid], stamps, poses_gt[valid], max_dt_s=1e-9).rmse_m
 
 
 def ground_truth_at(seq: Sequence, stamps_s) -> np.ndarray:
