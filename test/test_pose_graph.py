@@ -234,6 +234,8 @@ def test_empty_graph_optimizes():
     assert graph.optimize_incremental().variables == 0
 
 
-def test_bench_full_optimization_1000_keyframes():
-    ms = bench_full_optimization(n_keyframes=1000, robots=4, repeats=1)
-    assert ms < 500.0, f"full optimization of 1000 keyframes took {ms:.0f} ms"
+def test_bench_full_optimization_runs():
+    # Speed is measured by scripts/bench (pose_graph), not asserted: tests must not depend on the
+    # machine's speed. Here only that the benchmark graph builds and optimizes.
+    ms = bench_full_optimization(n_keyframes=100, robots=2, repeats=1)
+    assert ms > 0.0
