@@ -88,3 +88,37 @@ def test_unknown_robot_and_duplicates_are_rejected(world):
         server.add_keyframe(bad)
     server.add_keyframe(kfs_a[0])
     assert len(server.keyframes) == 1
+
+
+def test_merge_optimizes_the_team_and_stitches_one_cloud(world):
+    points, desc, kfs_a, vocab = world
+    server = TeamServer(ServerConfig(robots=[1, 2]), vocab)
+    for kf in kfs_a:
+        server.add_keyframe(kf)
+    for kf in _keyframes(2, np.linspace(2.0, 3.0, 8), points, desc, offset=(0.2, 0.1), seed=100, t0=100.0):
+        server.add_keyframe(kf)
+    assert server.groups.groups() == [[1, 2]] and server.optimize_ms
+    T, merged = server.T_world_map(2)
+    dt, dr = transform_error(T, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
+    assert merged and dt < 0.02 and dr < 0.5
+    corrected = server.corrected_keyframes(2)
+    assert len(corrected) == 8
+    cloud, rgb, robots = server.team_cloud()
+    assert len(cloud) == len(rgb) == len(robots) > 100 and set(robots.tolist()) <= {1, 2}
+    # Both robots' points of the same wall land on the same cylinder in robot 1's map frame.
+    from coop_slam.geometry import transform_points
+
+    radius = np.linalg.norm(transform_points(T_WORLD_MAP[1], cloud)[:, :2], axis=1)
+    assert np.median(np.abs(radius - 5.0)) < 0.05
+
+
+def test_unmerged_maps_are_shown_apart(world):
+    points, desc, kfs_a, vocab = world
+    other_points, other_desc = cylinder_world(seed=99)
+    server = TeamServer(ServerConfig(robots=[1, 2]), vocab)
+    for kf in kfs_a[:5]:
+        server.add_keyframe(kf)
+    for kf in _keyframes(2, np.linspace(0, 1, 5), other_points, other_desc, seed=7, t0=50.0):
+        server.add_keyframe(kf)
+    cloud, _, robots = server.team_cloud()
+    assert cloud[robots == 2, 0].min() > cloud[robots == 1, 0].max() + 10.0

@@ -25,8 +25,10 @@ from ..team.server import ServerConfig, TeamServer
 from ..geometry import invert, se3_from_quat
 from .convert import (
     MessageError,
+    cloud_to_msg,
     keyframe_from_msg,
     pose_from_msg,
+    pose_to_msg,
     transform_stamped,
     transform_to_msg,
 )
@@ -50,7 +52,7 @@ class ServerNode:
 
         from coop_slam.msg import KeyFrame, MapCorrection, MergeEvent
 
-        node_params = ("config", "vocabulary", "T_base_cam", "sighting_period_s")
+        node_params = ("config", "vocabulary", "T_base_cam", "sighting_period_s", "cloud_period_s")
         overrides = {k: v for k, v in rospy.get_param("~", {}).items() if k not in node_params}
         self.cfg = load_server_config(rospy.get_param("~config", ""), overrides)
         vocab_path = rospy.get_param("~vocabulary", "")
@@ -79,6 +81,13 @@ class ServerNode:
             format="coop_slam-npz" if data[:2] == b"PK" else "dbow2-text",
             sha256=hashlib.sha256(data).hexdigest(), k=self.server.vocabulary.k,
             levels=self.server.vocabulary.levels, data=data))
+        from sensor_msgs.msg import PointCloud2
+        from visualization_msgs.msg import MarkerArray
+
+        self.cloud_period_s = float(rospy.get_param("~cloud_period_s", 2.0))
+        self._last_cloud_s = -1e9
+        self.pub_cloud = rospy.Publisher("/team_map/cloud", PointCloud2, queue_size=1, latch=True)
+        self.pub_markers = rospy.Publisher("/team_map/markers", MarkerArray, queue_size=1, latch=True)
         self.pub_corr = {r: rospy.Publisher(f"/robot_{r}/correction", MapCorrection, queue_size=5,
                                             latch=True) for r in self.cfg.robots}
         self._MergeEvent, self._MapCorrection = MergeEvent, MapCorrection
@@ -168,8 +177,11 @@ class ServerNode:
                 stamp = rospy.Time.from_sec(rec.stamp_s)
             for m in merges:
                 self._publish_merge(m)
-            if merges:
+            if merges or self.server._since_optimize == 0:  # the team map just moved
                 self._publish_tf(stamp)
+            if merges or stamp.to_sec() - self._last_cloud_s >= self.cloud_period_s:
+                self._last_cloud_s = stamp.to_sec()
+                self._publish_map(stamp)
             if len(self.server.keyframe_ms) % 10 == 0 or merges:
                 self._publish_stats()
 
@@ -190,15 +202,61 @@ class ServerNode:
             T, merged = self.server.T_world_map(r)
             if merged:
                 transforms.append(transform_stamped(T, "world", f"robot_{r}/map", stamp))
-            corr = self._MapCorrection(robot_id=r, merged=merged, T_world_map=transform_to_msg(T))
+            corrected = self.server.corrected_keyframes(r)
+            corr = self._MapCorrection(robot_id=r, merged=merged, T_world_map=transform_to_msg(T),
+                                       keyframe_ids=list(corrected),
+                                       keyframe_poses=[pose_to_msg(P) for P in corrected.values()])
             corr.header.stamp, corr.header.frame_id = stamp, "world"
             self.pub_corr[r].publish(corr)
         if transforms:
             self.tf.sendTransform(transforms)
 
+    def _publish_map(self, stamp) -> None:
+        """Stitched team cloud and the markers (paths, merge edges, labels), in ``world``."""
+        from geometry_msgs.msg import Point
+        from std_msgs.msg import ColorRGBA
+        from visualization_msgs.msg import Marker, MarkerArray
+
+        from ..team.fusion import robot_colours
+
+        points, rgb, _ = self.server.team_cloud()
+        self.pub_cloud.publish(cloud_to_msg(points, "world", stamp, rgb))
+        paths, edges = self.server.team_view()
+        markers = MarkerArray()
+        clear = Marker(action=Marker.DELETEALL)
+        clear.header.frame_id = "world"
+        markers.markers.append(clear)
+
+        def marker(ns, mid, kind, rgba, scale):
+            m = Marker(ns=ns, id=mid, type=kind, action=Marker.ADD)
+            m.header.frame_id, m.header.stamp = "world", stamp
+            m.pose.orientation.w = 1.0
+            m.scale.x = m.scale.y = m.scale.z = scale
+            m.color = ColorRGBA(*rgba)
+            return m
+
+        for robot, pos in paths.items():
+            c = robot_colours([robot])[0] / 255.0
+            line = marker("paths", robot, Marker.LINE_STRIP, (*c, 1.0), 0.04)
+            line.points = [Point(*p) for p in pos]
+            markers.markers.append(line)
+            merged = self.server.T_world_map(robot)[1]
+            label = marker("labels", robot, Marker.TEXT_VIEW_FACING, (1.0, 1.0, 1.0, 1.0), 0.4)
+            label.text = f"robot_{robot}" + ("" if merged else " (unmerged)")
+            label.pose.position = Point(pos[-1][0], pos[-1][1], pos[-1][2] + 0.6)
+            markers.markers.append(label)
+        colours = {"place_recognition": (1.0, 0.9, 0.1, 1.0), "rendezvous": (1.0, 0.2, 1.0, 1.0)}
+        for k, (kind, pa, pb) in enumerate(edges):
+            edge = marker("merges", k, Marker.LINE_LIST, colours.get(kind, (1, 1, 1, 1)), 0.06)
+            edge.points = [Point(*pa), Point(*pb)]
+            markers.markers.append(edge)
+        self.pub_markers.publish(markers)
+
     def _publish_stats(self) -> None:
         ms = self.server.keyframe_ms
+        opt = self.server.optimize_ms
         stats = {"keyframes": len(ms), "ms_per_keyframe_mean": sum(ms) / len(ms) if ms else None,
+                 "optimize_ms_mean": sum(opt) / len(opt) if opt else None,
                  "merges": len(self.server.merges), "groups": self.server.groups.groups(),
                  "verifications": self.server.verifications, "rejected": self.rejects.total}
         self.pub_stats.publish(String(data=json.dumps(stats)))

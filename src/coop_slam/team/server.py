@@ -25,7 +25,9 @@ from ..registration.relative_pose import (
     estimate_3d3d,
     estimate_pnp,
 )
+from .fusion import fuse_points, gather_map_points, robot_colours, voxel_downsample
 from .groups import MergeGroups, chain_map_transform
+from .pose_graph import PoseGraphConfig, PoseGraphError, TeamPoseGraph
 
 log = logging.getLogger(__name__)
 
@@ -74,8 +76,17 @@ class ServerConfig:
     robots: list[int] = field(default_factory=lambda: [1, 2])  # robot ids the server accepts
     place_recognition: PlaceRecognitionConfig = field(default_factory=PlaceRecognitionConfig)
     rendezvous: RendezvousConfig = field(default_factory=RendezvousConfig)
+    pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
+    optimize_every: int = 5  # incremental (iSAM2) update every N keyframes; full after each merge
+    cloud_voxel_m: float = 0.05  # voxel size of the stitched team cloud [m]
+    fuse_radius_m: float = 0.03  # points of different robots closer than this become one [m]
+    unmerged_offset_m: float = 30.0  # unmerged groups are shown this far apart along x [m]
 
     def validate(self) -> None:
+        require(self.optimize_every >= 1, "server: optimize_every must be >= 1")
+        require(self.cloud_voxel_m > 0, "server: cloud_voxel_m must be > 0")
+        require(self.fuse_radius_m >= 0, "server: fuse_radius_m must be >= 0")
+        self.pose_graph.validate()
         require(len(self.robots) >= 1, "server: robots must list at least one robot id")
         require(all(r >= 1 for r in self.robots), "server: robot ids must be >= 1")
         require(len(set(self.robots)) == len(self.robots), "server: robot ids must be unique")
@@ -120,6 +131,9 @@ class TeamServer:
         self.merges: list[MergeResult] = []
         self.keyframe_ms: list[float] = []  # server time per incoming keyframe
         self.verifications = 0
+        self.graph = TeamPoseGraph(config.pose_graph)
+        self.optimize_ms: list[float] = []
+        self._since_optimize = 0
 
     # --- keyframes ----------------------------------------------------------------------------------
     def add_keyframe(self, rec: KeyframeRecord) -> list[MergeResult]:
@@ -132,9 +146,11 @@ class TeamServer:
             if key in self.keyframes:
                 del self.keyframes[key]
                 self.database.remove(*key)
+                self._graph_call(self.graph.remove_keyframe, *key)
         elif rec.action == ACTION_UPDATE and key in self.keyframes:
             # Local BA moved the pose / points; descriptors (and so the BoW vector) are unchanged.
             self.keyframes[key] = _Stored(rec)
+            self._graph_call(self.graph.update_keyframe, *key, rec.T_map_cam)
         elif rec.action in (ACTION_NEW, ACTION_UPDATE):
             if key in self.keyframes:
                 raise ServerError(f"keyframe {rec.keyframe_id} of robot {rec.robot_id} was "
@@ -143,12 +159,87 @@ class TeamServer:
             covisible = [(rec.robot_id, int(k)) for k in rec.covisible_ids]
             self.keyframes[key] = _Stored(rec)
             self.database.add(rec.robot_id, rec.keyframe_id, bow, covisible)
+            self._graph_call(self.graph.add_keyframe, rec.robot_id, rec.keyframe_id, rec.T_map_cam,
+                             self.groups.T_root_map(rec.robot_id),
+                             [int(k) for k in rec.covisible_ids])
             if self.config.rendezvous.auto:
                 merges = self._co_observation(rec)
             if not merges and self.config.place_recognition.enabled:
                 merges = self._place_recognition(rec, bow, covisible)
+        self._since_optimize += 1
+        if merges:
+            self.optimize(full=True)
+        elif self._since_optimize >= self.config.optimize_every:
+            self.optimize(full=False)
         self.keyframe_ms.append(1e3 * (time.perf_counter() - t0))
         return merges
+
+    # --- team optimization --------------------------------------------------------------------------
+    def _graph_call(self, fn, *args) -> None:
+        try:
+            fn(*args)
+        except PoseGraphError as exc:  # the graph must never take the server down
+            log.warning("pose graph: %s", exc)
+
+    def optimize(self, full: bool = True) -> None:
+        """Optimize the team pose graph and move every robot's map to its optimized place."""
+        self._since_optimize = 0
+        try:
+            stats = self.graph.optimize_full() if full else self.graph.optimize_incremental()
+        except (PoseGraphError, RuntimeError) as exc:
+            log.warning("pose graph optimization failed: %s", exc)
+            return
+        self.optimize_ms.append(stats.time_ms)
+        for robot in self.groups.robots:
+            if robot in self.graph.robots and self.graph.keyframe_ids(robot):
+                self.groups.set_T_root_map(robot, self.graph.T_world_map(robot))
+
+    def corrected_keyframes(self, robot_id: int, last: int = 20) -> dict[int, np.ndarray]:
+        """Optimized poses (in the robot's own map frame) of its ``last`` newest keyframes."""
+        if robot_id not in self.graph.robots:
+            return {}
+        T_map_world = np.linalg.inv(self.groups.T_root_map(robot_id))
+        poses = self.graph.keyframe_poses(robot_id)
+        return {k: T_map_world @ poses[k] for k in sorted(poses)[-last:]}
+
+    def T_view_map(self, robot_id: int) -> np.ndarray:
+        """Where a robot's map is drawn: its group frame, unmerged groups shifted along x."""
+        world_root = min(self.known_robots)
+        roots = sorted({self.groups.root(r) for r in self.groups.robots} - {world_root})
+        order = [world_root] + roots
+        T = self.groups.T_root_map(robot_id)
+        T[0, 3] += order.index(self.groups.root(robot_id)) * self.config.unmerged_offset_m
+        return T
+
+    def team_view(self) -> tuple[dict[int, np.ndarray], list[tuple[str, np.ndarray, np.ndarray]]]:
+        """Keyframe positions per robot and merge edges (type, position a, position b), in the
+        frame the team cloud is drawn in."""
+        positions: dict[int, list] = {}
+        for (robot, kf) in sorted(self.keyframes):
+            T = self.T_view_map(robot) @ self.keyframes[(robot, kf)].record.T_map_cam
+            positions.setdefault(robot, []).append(T[:3, 3])
+        paths = {r: np.asarray(p) for r, p in positions.items()}
+        edges = []
+        for m in self.merges:
+            ka, kb = (m.robot_a, m.keyframe_a), (m.robot_b, m.keyframe_b)
+            if ka in self.keyframes and kb in self.keyframes:
+                pa = (self.T_view_map(m.robot_a) @ self.keyframes[ka].record.T_map_cam)[:3, 3]
+                pb = (self.T_view_map(m.robot_b) @ self.keyframes[kb].record.T_map_cam)[:3, 3]
+                edges.append((m.type, pa, pb))
+        return paths, edges
+
+    def team_cloud(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Stitched cloud (points (N, 3) in each group's frame, rgb (N, 3) uint8 per robot,
+        robot ids (N,)): duplicates of overlapping maps fused, voxel-downsampled. Groups other than
+        the world group are shifted along x so unmerged maps do not overlap on screen."""
+        cfg = self.config
+        records = [s.record for s in self.keyframes.values()]
+        if not records:
+            return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int64)
+        points, robots, ids = gather_map_points(records, self.T_view_map)
+        points, ids, robots = fuse_points(points, robots, ids, radius_m=cfg.fuse_radius_m)
+        points, robots = voxel_downsample(points, robots, cfg.cloud_voxel_m)
+        return points, robot_colours(robots), robots
 
     def _view(self, key) -> KeyframeView:
         stored = self.keyframes[key]
@@ -258,6 +349,7 @@ class TeamServer:
         rec_a, rec_b = self.keyframes[key_a].record, self.keyframes[key_b].record
         T_mapA_mapB = chain_map_transform(rec_a.T_map_cam, res.T_a_b, rec_b.T_map_cam)
         group = self.groups.merge(key_a[0], key_b[0], T_mapA_mapB)
+        self._graph_call(self.graph.add_merge, key_a[0], key_a[1], key_b[0], key_b[1], res.T_a_b)
         merge = MergeResult(kind, key_a[0], key_b[0], key_a[1], key_b[1], stamp_s, T_mapA_mapB,
                             res.T_a_b, int(res.n_inliers), float(res.residual_px), group)
         self.merges.append(merge)
