@@ -61,6 +61,27 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
+REPO = os.path.normpath(os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", ".."))
+
+
+def _write_ply(path: str, cloud_msg) -> None:
+    """ASCII PLY (x, y, z, red, green, blue) of a PointCloud2 with an rgb field."""
+    from ..ros.convert import cloud_from_msg
+
+    xyz = cloud_from_msg(cloud_msg)
+    offsets = {f.name: f.offset for f in cloud_msg.fields}
+    rgb = np.zeros((len(xyz), 3), np.uint8)
+    if "rgb" in offsets and len(xyz):
+        raw = np.frombuffer(cloud_msg.data, np.uint8).reshape(len(xyz), cloud_msg.point_step)
+        packed = raw[:, offsets["rgb"]:offsets["rgb"] + 4].copy().view(np.uint32)[:, 0]
+        rgb = np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], 1).astype(np.uint8)
+    with open(path, "w", encoding="ascii") as fh:
+        fh.write(f"ply\nformat ascii 1.0\nelement vertex {len(xyz)}\nproperty float x\n"
+                 "property float y\nproperty float z\nproperty uchar red\nproperty uchar green\n"
+                 "property uchar blue\nend_header\n")
+        np.savetxt(fh, np.column_stack([xyz, rgb]), fmt="%.4f %.4f %.4f %d %d %d")
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -94,7 +115,13 @@ class _Monitor:
         self.done = threading.Event()
         self.lock = threading.Lock()
         self.ack = ack
+        from sensor_msgs.msg import PointCloud2
+
+        self.team_cloud = None
         self._subs = [rospy.Subscriber("/clock", Clock, self._on_clock, queue_size=1),
+                      rospy.Subscriber("/team_map/cloud", PointCloud2,
+                                       lambda m: setattr(self, "team_cloud", m), queue_size=1,
+                                       buff_size=2**25),
                       rospy.Subscriber("/player/done", Bool, lambda m: m.data and self.done.set()),
                       rospy.Subscriber("/merge_events", MergeEvent, self._on_merge, queue_size=50),
                       rospy.Subscriber("/server/stats", String, self._on_stats, queue_size=5)]
@@ -240,6 +267,7 @@ def run(args: argparse.Namespace) -> int:
         launch_args += ["clients:=false", "server:=false"]
     log_path = os.path.join(out, "roslaunch.log")
     say(f"[2/3] running the system (ROS master {uri}; log {log_path})")
+    recorder = None
     with open(log_path, "w") as log:
         launch = subprocess.Popen(["roslaunch", "-p", str(port), "coop_slam", "demo.launch",
                                    *launch_args], stdout=log, stderr=subprocess.STDOUT, env=env,
@@ -247,6 +275,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         _wait_for_master(uri, 30.0)
         monitor = _Monitor(robot_ids, ack=args.no_clients)
+        if args.record:
+            recorder = subprocess.Popen(
+                [os.path.join(REPO, "scripts", "record_rviz"), "--headless", "--out",
+                 os.path.join(out, "video")], stdout=open(os.path.join(out, "record.log"), "w"),
+                stderr=subprocess.STDOUT, env=env, start_new_session=True)
         t0, t1 = schedule[0].play_s, schedule[-1].play_s
         deadline = time.monotonic() + args.timeout
         tty = sys.stdout.isatty()
@@ -267,10 +300,19 @@ def run(args: argparse.Namespace) -> int:
                 print(line, flush=True)
             time.sleep(0.5)
         time.sleep(args.settle)  # let clients and server finish the last keyframes
+        if recorder is not None:
+            say("      stopping the recording (final picture of the map)")
+            os.killpg(recorder.pid, signal.SIGINT)
+            try:
+                recorder.wait(120)
+            except subprocess.TimeoutExpired:
+                os.killpg(recorder.pid, signal.SIGKILL)
         monitor.run.duration_s = t1 - t0
         if tty:
             print(flush=True)
     finally:
+        if recorder is not None and recorder.poll() is None:
+            os.killpg(recorder.pid, signal.SIGINT)
         if launch.poll() is None:
             os.killpg(launch.pid, signal.SIGINT)
             try:
@@ -286,11 +328,20 @@ def run(args: argparse.Namespace) -> int:
         pickle.dump(monitor.run, fh)
     report = evaluate_run(monitor.run, source.streams, args.keep_timing, meta.get("overlap"), out)
     traj_dir = os.path.join(out, "trajectories")
+    ply = None
+    if monitor.team_cloud is not None:
+        ply = os.path.join(out, "team_map.ply")
+        _write_ply(ply, monitor.team_cloud)
     json_path, md_path = write_report(out, report)
     say(f"done in {time.monotonic() - t_start:.0f} s")
     say(f"report:       {json_path}")
     say(f"              {md_path}")
     say(f"trajectories: {traj_dir}  (plot: {os.path.join(out, 'trajectories.png')})")
+    if ply:
+        say(f"team map:     {ply}")
+    if args.record:
+        say(f"video:        {os.path.join(out, 'video', 'rviz.mp4')}  (final view: "
+            f"{os.path.join(out, 'video', 'map.png')})")
     return 0
 
 
