@@ -2,7 +2,9 @@
 
 Subscribes ``/robot_k/keyframes`` for each configured robot; publishes ``/merge_events``
 (``coop_slam/MergeEvent``), TF ``world -> robot_k/map`` for every robot in the master's group,
-``/robot_k/correction`` (``coop_slam/MapCorrection``) and ``/server/stats``. Keyframes are processed
+``/robot_k/correction`` (``coop_slam/MapCorrection``), the team map (``/team_map/cloud``,
+``/team_map/markers``, ``/team_map/robot_k/path``: optimized keyframe poses, in ``world`` once
+merged, else in the robot's group root map) and ``/server/stats``. Keyframes are processed
 in one worker thread in arrival order, so callbacks never block and the graph has one writer.
 """
 
@@ -15,6 +17,7 @@ import queue
 import threading
 
 import rospy
+from geometry_msgs.msg import PoseStamped
 import yaml
 from std_msgs.msg import String
 
@@ -88,6 +91,11 @@ class ServerNode:
         self._last_cloud_s = -1e9
         self.pub_cloud = rospy.Publisher("/team_map/cloud", PointCloud2, queue_size=1, latch=True)
         self.pub_markers = rospy.Publisher("/team_map/markers", MarkerArray, queue_size=1, latch=True)
+        from nav_msgs.msg import Path
+
+        self._Path = Path
+        self.pub_path = {r: rospy.Publisher(f"/team_map/robot_{r}/path", Path, queue_size=1,
+                                            latch=True) for r in self.cfg.robots}
         self.pub_corr = {r: rospy.Publisher(f"/robot_{r}/correction", MapCorrection, queue_size=5,
                                             latch=True) for r in self.cfg.robots}
         self._MergeEvent, self._MapCorrection = MergeEvent, MapCorrection
@@ -221,6 +229,21 @@ class ServerNode:
 
         points, rgb, _ = self.server.team_cloud()
         self.pub_cloud.publish(cloud_to_msg(points, "world", stamp, rgb))
+        for r in self.cfg.robots:
+            poses = self.server.optimized_keyframes(r)
+            if not poses:
+                continue
+            merged = self.server.T_world_map(r)[1]
+            path = self._Path()
+            path.header.stamp = stamp
+            path.header.frame_id = "world" if merged else f"robot_{self.server.groups.root(r)}/map"
+            for kf, T in poses.items():
+                ps = PoseStamped(pose=pose_to_msg(T))
+                ps.header.stamp = rospy.Time.from_sec(self.server.keyframes[(r, kf)].record.stamp_s)
+                ps.header.frame_id = path.header.frame_id
+                ps.header.seq = kf  # the keyframe id
+                path.poses.append(ps)
+            self.pub_path[r].publish(path)
         paths, edges = self.server.team_view()
         markers = MarkerArray()
         clear = Marker(action=Marker.DELETEALL)
@@ -245,7 +268,8 @@ class ServerNode:
             label.text = f"robot_{robot}" + ("" if merged else " (unmerged)")
             label.pose.position = Point(pos[-1][0], pos[-1][1], pos[-1][2] + 0.6)
             markers.markers.append(label)
-        colours = {"place_recognition": (1.0, 0.9, 0.1, 1.0), "rendezvous": (1.0, 0.2, 1.0, 1.0)}
+        colours = {"place_recognition": (1.0, 0.9, 0.1, 1.0), "rendezvous": (1.0, 0.2, 1.0, 1.0),
+                   "loop": (0.2, 1.0, 1.0, 1.0)}
         for k, (kind, pa, pb) in enumerate(edges):
             edge = marker("merges", k, Marker.LINE_LIST, colours.get(kind, (1, 1, 1, 1)), 0.06)
             edge.points = [Point(*pa), Point(*pb)]
@@ -258,6 +282,9 @@ class ServerNode:
         stats = {"keyframes": len(ms), "ms_per_keyframe_mean": sum(ms) / len(ms) if ms else None,
                  "optimize_ms_mean": sum(opt) / len(opt) if opt else None,
                  "merges": len(self.server.merges), "groups": self.server.groups.groups(),
+                 "loops": sum(c.type == "loop" for c in self.server.constraints),
+                 "links": sum(c.type != "loop" for c in self.server.constraints),
+                 "refused_constraints": self.server.rejected_constraints,
                  "verifications": self.server.verifications, "rejected": self.rejects.total}
         self.pub_stats.publish(String(data=json.dumps(stats)))
 

@@ -46,15 +46,20 @@ def robot_colours(robot_ids) -> np.ndarray:
     return ROBOT_PALETTE[(ids - 1) % len(ROBOT_PALETTE)]
 
 
-def gather_map_points(records, T_world_map) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def gather_map_points(
+    records, T_world_map, per_keyframe: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(points_world (N, 3), robot_ids (N,), point_ids (N,)) from keyframe records, each robot's
-    map points moved to world by ``T_world_map(robot_id)`` (a callable or a dict). A map point seen
-    by several keyframes of a robot appears once, at its position in the latest of them."""
+    map points moved to world by ``T_world_map(robot_id)`` (a callable or a dict); with
+    ``per_keyframe`` the callable takes the record instead, so a pose graph that bent a robot's
+    trajectory moves each keyframe's points with its own keyframe. A map point seen by several
+    keyframes of a robot appears once, at its position in the latest of them."""
     lookup = T_world_map if callable(T_world_map) else T_world_map.__getitem__
     chunks, robots, ids, order = [], [], [], []
     for rec in records:
         pid = rec.map_point_ids[rec.map_point_ids != 0].astype(np.int64)
-        chunks.append(transform_points(lookup(rec.robot_id), rec.map_points))
+        T = lookup(rec) if per_keyframe else lookup(rec.robot_id)
+        chunks.append(transform_points(T, rec.map_points))
         robots.append(np.full(len(pid), rec.robot_id, np.int64))
         ids.append(pid)
         order.append(np.full(len(pid), rec.keyframe_id, np.int64))

@@ -152,6 +152,7 @@ class _Factor:
     T_meas: np.ndarray  # T_cami_camj (between) or T_world_cam (prior)
     sigmas: tuple[float, float]  # (rotation rad, translation m)
     label: str = ""
+    robust_k: float | None = None  # per-factor kernel width (whitened); None: the config's
 
 
 def gtsam_key(robot_id: int, keyframe_id: int) -> int:
@@ -181,12 +182,7 @@ class TeamPoseGraph:
         self.config = config or PoseGraphConfig()
         self.config.validate()
         cfg = self.config
-        if cfg.robust_kernel == "huber":
-            self._kernel = gtsam.noiseModel.mEstimator.Huber.Create(cfg.robust_k)
-        elif cfg.robust_kernel == "cauchy":
-            self._kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_k)
-        else:
-            self._kernel = None
+        self._kernel = self._make_kernel(cfg.robust_k)
         self._client: dict[Key, np.ndarray] = {}  # T_map_cam as the client last sent it
         self._values: dict[Key, np.ndarray] = {}  # current estimate T_world_cam
         self._chain: dict[int, list[int]] = {}  # robot -> sorted keyframe ids
@@ -257,11 +253,19 @@ class TeamPoseGraph:
         )
         return self._add_factor(_Factor(kind, key_i, key_j, T_i_j, sigmas))
 
+    def _make_kernel(self, k: float):
+        if self.config.robust_kernel == "huber":
+            return gtsam.noiseModel.mEstimator.Huber.Create(k)
+        if self.config.robust_kernel == "cauchy":
+            return gtsam.noiseModel.mEstimator.Cauchy.Create(k)
+        return None
+
     def _noise(self, f: _Factor):
         r, t = f.sigmas
         base = gtsam.noiseModel.Diagonal.Sigmas(np.array([r, r, r, t, t, t]))
         if f.kind in (KIND_LOOP, KIND_MERGE) and self._kernel is not None:
-            return gtsam.noiseModel.Robust.Create(self._kernel, base)
+            kernel = self._kernel if f.robust_k is None else self._make_kernel(f.robust_k)
+            return gtsam.noiseModel.Robust.Create(kernel, base)
         return base
 
     def _gtsam_factor(self, f: _Factor):
@@ -375,7 +379,7 @@ class TeamPoseGraph:
             else:  # T = X_i^-1 X_k = X_i^-1 X_anchor T_anchor_k
                 key_i, key_j, T = f.key_i, anchor, f.T_meas @ invert(T_anchor_k)
             if key_i != key_j:
-                self._add_factor(_Factor(f.kind, key_i, key_j, T, f.sigmas, f.label))
+                self._add_factor(_Factor(f.kind, key_i, key_j, T, f.sigmas, f.label, f.robust_k))
         if prev is not None and nxt is not None:
             self._client_factor(KIND_ODOMETRY, prev, nxt)
         chain.pop(pos)
@@ -404,9 +408,11 @@ class TeamPoseGraph:
         kind: str = KIND_LOOP,
         rot_sigma_rad: float | None = None,
         trans_sigma_m: float | None = None,
+        robust_k: float | None = None,
     ) -> int:
-        """Intra-robot loop closure ``T_cami_camj`` (robust); ``kind`` is a label kept for reports.
-        Returns the constraint's factor id (for :meth:`remove_constraint`)."""
+        """Intra-robot loop closure ``T_cami_camj`` (robust); ``kind`` is a label kept for reports,
+        ``robust_k`` overrides the config's kernel width for this factor. Returns the constraint's
+        factor id (for :meth:`remove_constraint`)."""
         key_i, key_j = self._check_key(robot_id, kf_i), self._check_key(robot_id, kf_j)
         if key_i == key_j:
             raise PoseGraphError(f"a loop needs two different keyframes (got {kf_i} twice)")
@@ -417,7 +423,7 @@ class TeamPoseGraph:
             self.config.loop_rot_sigma_rad,
             self.config.loop_trans_sigma_m,
         )
-        return self._add_factor(_Factor(KIND_LOOP, key_i, key_j, T, sig, kind))
+        return self._add_factor(_Factor(KIND_LOOP, key_i, key_j, T, sig, kind, robust_k))
 
     def add_merge(
         self,
@@ -429,6 +435,7 @@ class TeamPoseGraph:
         kind: str = KIND_MERGE,
         rot_sigma_rad: float | None = None,
         trans_sigma_m: float | None = None,
+        robust_k: float | None = None,
     ) -> int:
         """Inter-robot constraint ``T_camA_camB`` (robust). When it joins two groups, the group
         whose smallest robot id is larger is moved rigidly into the other's frame so that this
@@ -458,7 +465,7 @@ class TeamPoseGraph:
                 if c == moving:
                     self._values[k] = T_new_old @ self._values[k]
             self._rebuild = True
-        return self._add_factor(_Factor(KIND_MERGE, key_a, key_b, T_ab, sig, kind))
+        return self._add_factor(_Factor(KIND_MERGE, key_a, key_b, T_ab, sig, kind, robust_k))
 
     def remove_constraint(self, factor_id: int) -> None:
         """Withdraw a loop / merge constraint (e.g. rejected later by the caller)."""

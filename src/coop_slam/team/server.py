@@ -17,6 +17,7 @@ from ..bow import Vocabulary
 from ..bow.database import ConsistencyChecker, ConsistencyConfig, DatabaseConfig, KeyframeDatabase
 from ..config import require
 from ..errors import CoopSlamError
+from ..geometry import invert, transform_error
 from ..keyframe import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE, KeyframeRecord
 from ..registration.keyframe import KeyframeView
 from ..registration.relative_pose import (
@@ -27,6 +28,7 @@ from ..registration.relative_pose import (
 )
 from .fusion import fuse_points, gather_map_points, robot_colours, voxel_downsample
 from .groups import MergeGroups, chain_map_transform
+from .merge_order import plan_merge_steps
 from .pose_graph import PoseGraphConfig, PoseGraphError, TeamPoseGraph
 
 log = logging.getLogger(__name__)
@@ -72,10 +74,39 @@ class RendezvousConfig:
 
 
 @dataclass
+class LoopClosureConfig:
+    """Constraints between keyframes already in one group: a robot's own loop closures and further
+    links between robots merged earlier (the place-recognition path, within the team map)."""
+
+    enabled: bool = True
+    min_separation_s: float = 15.0  # a robot's own candidate must be at least this much older [s]
+    min_interval_kf: int = 5  # keyframes of a robot between two constraints it adds
+    # A verified constraint further than this from the current estimate is refused (the robust
+    # kernel is the second line of defence): indoor drift between revisits is well below it.
+    gate_trans_m: float = 1.0
+    gate_rot_deg: float = 15.0
+    # Loop and merge factors take the registration's BA marginal std, inflated (pixel noise is not
+    # independent in practice) and floored: a well-measured constraint outweighs odometry drift.
+    sigma_scale: float = 3.0
+    min_sigma_trans_m: float = 0.01
+    min_sigma_rot_deg: float = 0.3
+
+    def validate(self) -> None:
+        require(self.min_separation_s >= 0, "loops.min_separation_s must be >= 0")
+        require(self.min_interval_kf >= 0, "loops.min_interval_kf must be >= 0")
+        require(self.gate_trans_m > 0, "loops.gate_trans_m must be > 0")
+        require(self.gate_rot_deg > 0, "loops.gate_rot_deg must be > 0")
+        require(self.sigma_scale > 0, "loops.sigma_scale must be > 0")
+        require(self.min_sigma_trans_m > 0, "loops.min_sigma_trans_m must be > 0")
+        require(self.min_sigma_rot_deg > 0, "loops.min_sigma_rot_deg must be > 0")
+
+
+@dataclass
 class ServerConfig:
     robots: list[int] = field(default_factory=lambda: [1, 2])  # robot ids the server accepts
     place_recognition: PlaceRecognitionConfig = field(default_factory=PlaceRecognitionConfig)
     rendezvous: RendezvousConfig = field(default_factory=RendezvousConfig)
+    loops: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     optimize_every: int = 5  # incremental (iSAM2) update every N keyframes; full after each merge
     cloud_voxel_m: float = 0.05  # voxel size of the stitched team cloud [m]
@@ -92,6 +123,7 @@ class ServerConfig:
         require(len(set(self.robots)) == len(self.robots), "server: robot ids must be unique")
         self.place_recognition.validate()
         self.rendezvous.validate()
+        self.loops.validate()
 
 
 @dataclass
@@ -107,6 +139,31 @@ class MergeResult:
     inliers: int
     residual_px: float
     group: list[int]
+
+
+@dataclass
+class ConstraintResult:
+    """A verified constraint inside one group: a loop closure (same robot) or a further link
+    between two merged robots."""
+
+    type: str
+    key_a: tuple[int, int]
+    key_b: tuple[int, int]
+    stamp_s: float
+    T_camA_camB: np.ndarray
+    inliers: int
+    residual_px: float
+
+
+@dataclass
+class _Verified:
+    """A verified cross-group match waiting for the merge plan."""
+
+    kind: str
+    key_a: tuple[int, int]
+    key_b: tuple[int, int]
+    result: RelativePoseResult
+    stamp_s: float
 
 
 @dataclass
@@ -129,6 +186,13 @@ class TeamServer:
         self.consistency = ConsistencyChecker(ConsistencyConfig(min_consecutive=pr.min_consecutive))
         self.keyframes: dict[tuple[int, int], _Stored] = {}
         self.merges: list[MergeResult] = []
+        self.constraints: list[ConstraintResult] = []  # loop closures and in-group links
+        self.rejected_constraints = 0  # verified, but too far from the current estimate
+        self.match_counts: dict[tuple[int, int], int] = {}  # robot pair -> keyframe matches
+        self._pending: dict[tuple[int, int], _Verified] = {}
+        self._kf_count: dict[int, int] = {}  # keyframes received per robot
+        self._last_constraint: dict[int, int] = {}  # robot -> its keyframe count at the last one
+        self._need_full = False
         self.keyframe_ms: list[float] = []  # server time per incoming keyframe
         self.verifications = 0
         self.graph = TeamPoseGraph(config.pose_graph)
@@ -162,12 +226,13 @@ class TeamServer:
             self._graph_call(self.graph.add_keyframe, rec.robot_id, rec.keyframe_id, rec.T_map_cam,
                              self.groups.T_root_map(rec.robot_id),
                              [int(k) for k in rec.covisible_ids])
+            self._kf_count[rec.robot_id] = self._kf_count.get(rec.robot_id, 0) + 1
             if self.config.rendezvous.auto:
                 merges = self._co_observation(rec)
             if not merges and self.config.place_recognition.enabled:
                 merges = self._place_recognition(rec, bow, covisible)
         self._since_optimize += 1
-        if merges:
+        if merges or self._need_full:
             self.optimize(full=True)
         elif self._since_optimize >= self.config.optimize_every:
             self.optimize(full=False)
@@ -184,6 +249,7 @@ class TeamServer:
     def optimize(self, full: bool = True) -> None:
         """Optimize the team pose graph and move every robot's map to its optimized place."""
         self._since_optimize = 0
+        self._need_full = False
         try:
             stats = self.graph.optimize_full() if full else self.graph.optimize_incremental()
         except (PoseGraphError, RuntimeError) as exc:
@@ -202,41 +268,65 @@ class TeamServer:
         poses = self.graph.keyframe_poses(robot_id)
         return {k: T_map_world @ poses[k] for k in sorted(poses)[-last:]}
 
-    def T_view_map(self, robot_id: int) -> np.ndarray:
-        """Where a robot's map is drawn: its group frame, unmerged groups shifted along x."""
+    def _view_offset(self, robot_id: int) -> np.ndarray:
+        """Unmerged groups are drawn shifted along x so their maps do not overlap on screen."""
         world_root = min(self.known_robots)
         roots = sorted({self.groups.root(r) for r in self.groups.robots} - {world_root})
-        order = [world_root] + roots
-        T = self.groups.T_root_map(robot_id)
-        T[0, 3] += order.index(self.groups.root(robot_id)) * self.config.unmerged_offset_m
+        T = np.eye(4)
+        T[0, 3] = ([world_root] + roots).index(self.groups.root(robot_id)) * self.config.unmerged_offset_m
         return T
 
+    def T_view_map(self, robot_id: int) -> np.ndarray:
+        """Where a robot's map is drawn: its group frame, unmerged groups shifted along x."""
+        return self._view_offset(robot_id) @ self.groups.T_root_map(robot_id)
+
+    def T_group_cam(self, robot_id: int, keyframe_id: int) -> np.ndarray:
+        """A keyframe's pose in its group frame: the optimized one when the pose graph has it,
+        else the client's pose moved by the robot's map transform."""
+        try:
+            return self.graph.T_world_cam(robot_id, keyframe_id)
+        except PoseGraphError:
+            rec = self.keyframes[(robot_id, keyframe_id)].record
+            return self.groups.T_root_map(robot_id) @ rec.T_map_cam
+
+    def optimized_keyframes(self, robot_id: int) -> dict[int, np.ndarray]:
+        """keyframe id -> T_group_cam of every stored keyframe of a robot (``world`` when
+        :meth:`T_world_map` says the robot is merged with the world group)."""
+        ids = sorted(k for (r, k) in self.keyframes if r == robot_id)
+        return {k: self.T_group_cam(robot_id, k) for k in ids}
+
     def team_view(self) -> tuple[dict[int, np.ndarray], list[tuple[str, np.ndarray, np.ndarray]]]:
-        """Keyframe positions per robot and merge edges (type, position a, position b), in the
-        frame the team cloud is drawn in."""
-        positions: dict[int, list] = {}
-        for (robot, kf) in sorted(self.keyframes):
-            T = self.T_view_map(robot) @ self.keyframes[(robot, kf)].record.T_map_cam
-            positions.setdefault(robot, []).append(T[:3, 3])
-        paths = {r: np.asarray(p) for r, p in positions.items()}
-        edges = []
-        for m in self.merges:
-            ka, kb = (m.robot_a, m.keyframe_a), (m.robot_b, m.keyframe_b)
-            if ka in self.keyframes and kb in self.keyframes:
-                pa = (self.T_view_map(m.robot_a) @ self.keyframes[ka].record.T_map_cam)[:3, 3]
-                pb = (self.T_view_map(m.robot_b) @ self.keyframes[kb].record.T_map_cam)[:3, 3]
-                edges.append((m.type, pa, pb))
+        """Optimized keyframe positions per robot and merge / constraint edges (type, position a,
+        position b), in the frame the team cloud is drawn in."""
+        def position(key):
+            return (self._view_offset(key[0]) @ self.T_group_cam(*key))[:3, 3]
+
+        paths = {}
+        for robot in sorted({r for r, _ in self.keyframes}):
+            poses = self.optimized_keyframes(robot)
+            offset = self._view_offset(robot)
+            paths[robot] = np.array([(offset @ T)[:3, 3] for T in poses.values()])
+        links = [(m.type, (m.robot_a, m.keyframe_a), (m.robot_b, m.keyframe_b)) for m in self.merges]
+        links += [(c.type, c.key_a, c.key_b) for c in self.constraints]
+        edges = [(kind, position(ka), position(kb)) for kind, ka, kb in links
+                 if ka in self.keyframes and kb in self.keyframes]
         return paths, edges
 
     def team_cloud(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Stitched cloud (points (N, 3) in each group's frame, rgb (N, 3) uint8 per robot,
-        robot ids (N,)): duplicates of overlapping maps fused, voxel-downsampled. Groups other than
-        the world group are shifted along x so unmerged maps do not overlap on screen."""
+        robot ids (N,)): each keyframe's points moved with its optimized pose, duplicates of
+        overlapping maps fused, voxel-downsampled. Groups other than the world group are shifted
+        along x so unmerged maps do not overlap on screen."""
         cfg = self.config
         records = [s.record for s in self.keyframes.values()]
         if not records:
             return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int64)
-        points, robots, ids = gather_map_points(records, self.T_view_map)
+
+        def T_view_map_of(rec):
+            T_group_cam = self.T_group_cam(rec.robot_id, rec.keyframe_id)
+            return self._view_offset(rec.robot_id) @ T_group_cam @ invert(rec.T_map_cam)
+
+        points, robots, ids = gather_map_points(records, T_view_map_of, per_keyframe=True)
         points, ids, robots = fuse_points(points, robots, ids, radius_m=cfg.fuse_radius_m)
         points, robots = voxel_downsample(points, robots, cfg.cloud_voxel_m)
         return points, robot_colours(robots), robots
@@ -249,27 +339,120 @@ class TeamServer:
         return stored.view
 
     def _place_recognition(self, rec: KeyframeRecord, bow, covisible) -> list[MergeResult]:
-        rb = rec.robot_id
-        members = set(self.groups.members(rb))
-        candidates = [c for c in self.database.query(bow, rb, rec.keyframe_id, covisible=covisible,
-                                                     other_robots_only=True)
-                      if c.key[0] not in members]
+        """BoW query over every robot's keyframes: matches in other groups become merges (in the
+        order the merge plan gives), matches inside the own group loop closures / extra links."""
+        rb, key_b = rec.robot_id, (rec.robot_id, rec.keyframe_id)
+        loops = self.config.loops
+        candidates = [
+            c for c in self.database.query(bow, rb, rec.keyframe_id, covisible=covisible,
+                                           other_robots_only=not loops.enabled)
+            if c.key in self.keyframes and not (
+                c.key[0] == rb
+                and rec.stamp_s - self.keyframes[c.key].record.stamp_s < loops.min_separation_s)
+        ]
         consistent = self.consistency.check(rb, candidates, self.database)
-        merges = []
-        for cand_key in consistent[: self.config.place_recognition.max_verifications]:
-            if cand_key not in self.keyframes or self.groups.same_group(cand_key[0], rb):
+        cross = [k for k in consistent if not self.groups.same_group(k[0], rb)]
+        inner = [k for k in consistent if self.groups.same_group(k[0], rb)]
+        for k in cross:
+            pair = (min(k[0], rb), max(k[0], rb))
+            self.match_counts[pair] = self.match_counts.get(pair, 0) + 1
+        budget = self.config.place_recognition.max_verifications
+        verified_roots = set()
+        for cand_key in cross:
+            root = self.groups.root(cand_key[0])
+            if budget == 0 or root in verified_roots:
                 continue
-            self.verifications += 1
-            res = estimate_pnp(self._view(cand_key), self._view((rb, rec.keyframe_id)),
-                               self.config.place_recognition.registration)
-            log.debug("place recognition %s vs %s: %s", cand_key, (rb, rec.keyframe_id), res.reason)
+            budget -= 1
+            res = self._verify_pnp(cand_key, key_b)
             if res.accepted:
+                verified_roots.add(root)
                 # Seen at (about) the same time, it is a rendezvous, whichever path verified it.
                 dt = abs(self.keyframes[cand_key].record.stamp_s - rec.stamp_s)
                 kind = TYPE_RENDEZVOUS if dt <= self.config.rendezvous.window_s else TYPE_PLACE_RECOGNITION
-                merges.append(self._merge(kind, cand_key, (rb, rec.keyframe_id), res, rec.stamp_s))
+                self._pending[(min(cand_key[0], rb), max(cand_key[0], rb))] = _Verified(
+                    kind, cand_key, key_b, res, rec.stamp_s)
+        merges = self._apply_merge_plan()
+        due = self._kf_count.get(rb, 0) - self._last_constraint.get(rb, -10**9)
+        if merges or not inner or budget == 0 or due < loops.min_interval_kf:
+            return merges
+        for cand_key in inner[:budget]:
+            res = self._verify_pnp(cand_key, key_b)
+            if res.accepted and self._add_constraint(TYPE_PLACE_RECOGNITION, cand_key, key_b, res,
+                                                     rec.stamp_s):
                 break
         return merges
+
+    def _verify_pnp(self, key_a, key_b) -> RelativePoseResult:
+        self.verifications += 1
+        res = estimate_pnp(self._view(key_a), self._view(key_b),
+                           self.config.place_recognition.registration)
+        log.debug("place recognition %s vs %s: %s", key_a, key_b, res.reason)
+        return res
+
+    def _sigmas(self, res: RelativePoseResult) -> tuple[float, float]:
+        """(rotation [rad], translation [m]) std of a loop / merge factor from the registration."""
+        cfg = self.config.loops
+        rot_deg = max(cfg.min_sigma_rot_deg, cfg.sigma_scale * res.sigma_rot_deg)
+        trans_m = max(cfg.min_sigma_trans_m, cfg.sigma_scale * res.sigma_trans_m)
+        if not np.isfinite(rot_deg * trans_m):  # no marginals: the pose graph's defaults
+            return None, None
+        return float(np.radians(rot_deg)), float(trans_m)
+
+    def _apply_merge_plan(self) -> list[MergeResult]:
+        """Execute the verified cross-group matches in merge order (DSM-SLAM): the pair of groups
+        sharing the most keyframe matches first; matches left linking robots of one group after
+        that become extra constraints."""
+        if not self._pending:
+            return []
+        counts = {pair: max(1, self.match_counts.get(pair, 0)) for pair in self._pending}
+        merges = []
+        for step in plan_merge_steps(counts, self.groups.groups()):
+            v = self._pending.pop((min(step.robot_a, step.robot_b), max(step.robot_a, step.robot_b)))
+            merges.append(self._merge(v.kind, v.key_a, v.key_b, v.result, v.stamp_s))
+        for v in self._pending.values():
+            self._add_constraint(v.kind, v.key_a, v.key_b, v.result, v.stamp_s)
+        self._pending.clear()
+        return merges
+
+    def _add_constraint(self, kind: str, key_a, key_b, res: RelativePoseResult,
+                        stamp_s: float) -> bool:
+        """A verified relative pose between keyframes of one group goes into the pose graph as a
+        robust loop (same robot) or merge (two robots) factor, unless it contradicts the current
+        estimate by more than the gate. A full optimization follows."""
+        loops = self.config.loops
+        try:
+            T_est = invert(self.graph.T_world_cam(*key_a)) @ self.graph.T_world_cam(*key_b)
+        except PoseGraphError as exc:
+            log.warning("constraint %s - %s skipped: %s", key_a, key_b, exc)
+            return False
+        dt, dr = transform_error(res.T_a_b, T_est)
+        if dt > loops.gate_trans_m or dr > loops.gate_rot_deg:
+            self.rejected_constraints += 1
+            log.info("constraint %s - %s refused: %.2f m / %.1f deg from the current estimate",
+                     key_a, key_b, dt, dr)
+            return False
+        sig_rot, sig_trans = self._sigmas(res)
+        # The disagreement the gate let through is drift of the odometry chain, not an error of
+        # this (precise) constraint: the kernel is widened by it, else the robust loss would
+        # down-weight exactly the loops that correct the most drift. A constraint that later
+        # disagrees with the rest of the graph by more is still down-weighted.
+        k = self.graph.config.robust_k
+        if sig_rot is not None:
+            k *= float(np.sqrt(1.0 + (dt / sig_trans) ** 2 + (np.radians(dr) / sig_rot) ** 2))
+        if key_a[0] == key_b[0]:
+            self._graph_call(self.graph.add_loop, key_a[0], key_a[1], key_b[1], res.T_a_b,
+                             "loop", sig_rot, sig_trans, k)
+        else:
+            self._graph_call(self.graph.add_merge, key_a[0], key_a[1], key_b[0], key_b[1],
+                             res.T_a_b, kind, sig_rot, sig_trans, k)
+        self.constraints.append(ConstraintResult(
+            "loop" if key_a[0] == key_b[0] else kind, key_a, key_b, stamp_s, res.T_a_b,
+            int(res.n_inliers), float(res.residual_px)))
+        self._last_constraint[key_b[0]] = self._kf_count.get(key_b[0], 0)
+        self._need_full = True
+        log.info("%s constraint %s - %s (%d inliers, %.2f px; %.3f m / %.2f deg from estimate)",
+                 self.constraints[-1].type, key_a, key_b, res.n_inliers, res.residual_px, dt, dr)
+        return True
 
     # --- rendezvous ---------------------------------------------------------------------------------
     def _near_in_time(self, robot_id: int, stamp_s: float, window_s: float) -> list[tuple[int, int]]:
@@ -304,7 +487,10 @@ class TeamServer:
         log.debug("rendezvous %s vs %s (bow %.3f): %s", key_a, key_b, score, res.reason)
         if not res.accepted:
             return None
-        return self._merge(TYPE_RENDEZVOUS, key_a, key_b, res, stamp_s)
+        self._pending[(min(key_a[0], key_b[0]), max(key_a[0], key_b[0]))] = _Verified(
+            TYPE_RENDEZVOUS, key_a, key_b, res, stamp_s)
+        merges = self._apply_merge_plan()
+        return merges[0] if merges else None
 
     def request_rendezvous(self, robot_a: int, robot_b: int, stamp_s: float | None = None,
                            T_camA_bodyB: np.ndarray | None = None,
@@ -349,7 +535,8 @@ class TeamServer:
         rec_a, rec_b = self.keyframes[key_a].record, self.keyframes[key_b].record
         T_mapA_mapB = chain_map_transform(rec_a.T_map_cam, res.T_a_b, rec_b.T_map_cam)
         group = self.groups.merge(key_a[0], key_b[0], T_mapA_mapB)
-        self._graph_call(self.graph.add_merge, key_a[0], key_a[1], key_b[0], key_b[1], res.T_a_b)
+        self._graph_call(self.graph.add_merge, key_a[0], key_a[1], key_b[0], key_b[1], res.T_a_b,
+                         kind, *self._sigmas(res))
         merge = MergeResult(kind, key_a[0], key_b[0], key_a[1], key_b[1], stamp_s, T_mapA_mapB,
                             res.T_a_b, int(res.n_inliers), float(res.residual_px), group)
         self.merges.append(merge)
