@@ -10,17 +10,19 @@ from helpers import REDKITCHEN, REPO
 
 def _demo(tmp_path, *args, timeout=1500):
     out = tmp_path / "out"
-    proc = subprocess.run([os.path.join(REPO, "scripts", "demo"), *args, "--out", str(out)],
+    # RViz recording is covered by test_record_rviz; here it would only slow the run down.
+    proc = subprocess.run([os.path.join(REPO, "scripts", "demo"), *args, "--no-record", "--out",
+                           str(out)],
                           capture_output=True, text=True, timeout=timeout)
     log = out / "roslaunch.log"
     tail = log.read_text(errors="replace")[-4000:] if log.exists() else ""
     assert proc.returncode == 0, f"demo failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}\n{tail}"
     with open(out / "report.json") as fh:
-        return json.load(fh), tail
+        return json.load(fh), tail, out
 
 
 def test_revisit_merges_by_place_recognition(tmp_path):
-    report, log = _demo(tmp_path, "--scenario", "revisit")
+    report, log, _ = _demo(tmp_path, "--scenario", "revisit")
     assert report["groups"] == [[1, 2]], log
     assert report["wrong_merges"] == 0
     merge = report["merges"][0]
@@ -29,13 +31,14 @@ def test_revisit_merges_by_place_recognition(tmp_path):
     # the demo and reported, not asserted here.
     assert merge["local_trans_err_m"] < 0.10 and merge["local_rot_err_deg"] < 2.0
     assert merge["latency_s"] < 5.0
+    assert report["team_ate_rmse_m"] < 0.03  # the place-recognition issue's merge bound
     for robot in report["robots"]:
         assert robot["keyframes"] >= 10
         assert robot["ate_rmse_m"] < 0.005 * robot["path_length_m"]
 
 
 def test_rendezvous_merges_by_rendezvous(tmp_path):
-    report, log = _demo(tmp_path, "--scenario", "rendezvous")
+    report, log, _ = _demo(tmp_path, "--scenario", "rendezvous")
     assert report["groups"] == [[1, 2]], log
     assert report["wrong_merges"] == 0
     assert report["merges"][0]["type"] == "rendezvous"
@@ -43,14 +46,27 @@ def test_rendezvous_merges_by_rendezvous(tmp_path):
 
 @pytest.mark.parametrize("scenario", ["disjoint", "aliasing"])
 def test_no_merge_without_overlap(tmp_path, scenario):
-    report, _ = _demo(tmp_path, "--scenario", scenario)
+    report, _, out = _demo(tmp_path, "--scenario", scenario)
     assert report["merges"] == [] and report["groups"] == [[1], [2]]
     assert all(robot["keyframes"] >= 5 for robot in report["robots"])  # both maps still built
+    topics = report["topics"]
+    for r in (1, 2):  # both maps published, to the server and on the team map
+        assert topics[f"/robot_{r}/keyframes"]["messages"] >= 5
+        assert topics[f"/robot_{r}/local_map"]["messages"] >= 1
+        assert topics[f"/team_map/robot_{r}/path"]["messages"] >= 1
+    if scenario == "disjoint":  # scripts/evaluate re-derives the report from the recorded bag
+        (out / "report.json").unlink()
+        proc = subprocess.run([os.path.join(REPO, "scripts", "evaluate"), str(out)],
+                              capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        with open(out / "report.json") as fh:
+            again = json.load(fh)
+        assert again["groups"] == report["groups"] and again["robots"] == report["robots"]
 
 
 @pytest.mark.skipif(not os.path.isdir(REDKITCHEN), reason=f"shared data absent: {REDKITCHEN}")
 def test_redkitchen_two_robots_merge(tmp_path):
-    report, log = _demo(tmp_path, "--dataset", REDKITCHEN, "--split", "0-299,300-599")
+    report, log, _ = _demo(tmp_path, "--dataset", REDKITCHEN, "--split", "0-299,300-599")
     assert report["groups"] == [[1, 2]], log
     assert report["wrong_merges"] == 0
-    assert report["team_ate_rmse_m"] < 0.05
+    assert report["team_ate_rmse_m"] < 0.04

@@ -54,3 +54,45 @@ def test_straight_line_falls_back_to_origin_alignment():
     line = np.array([se3(t=[0.5 * k, 0, 0]) for k in range(5)])
     moved = np.array([se3_from_quat([1, 2, 3], [0, 0, 0.3, 1]) @ p for p in line])
     assert ate(stamps, moved, stamps, line).rmse_m < 1e-6
+
+
+def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path):
+    """RunRecorder fed from a bag (what scripts/evaluate reads): a malformed pose is skipped."""
+    import rosbag
+    import rospy
+    from geometry_msgs.msg import PoseStamped
+    from helpers import make_keyframe
+    from nav_msgs.msg import Path
+
+    from coop_slam.msg import MergeEvent
+    from coop_slam.ros.convert import keyframe_to_msg, pose_to_msg, transform_to_msg
+    from coop_slam.tools.evaluate import run_data_from_bag
+
+    bag_path = str(tmp_path / "run.bag")
+    stamps, gt = _circle(5)
+    with rosbag.Bag(bag_path, "w") as bag:
+        for k in range(5):
+            kf = make_keyframe(robot_id=2, keyframe_id=k + 1, seed=k)
+            kf.T_map_cam, kf.stamp_s = gt[k], stamps[k]
+            bag.write("/robot_2/keyframes", keyframe_to_msg(kf, "robot_2/map"),
+                      rospy.Time.from_sec(stamps[k]))
+        path = Path()
+        path.header.frame_id = "world"
+        for k in range(5):
+            ps = PoseStamped(pose=pose_to_msg(gt[k]))
+            ps.header.stamp, ps.header.seq = rospy.Time.from_sec(stamps[k]), k + 1
+            path.poses.append(ps)
+        path.poses[2].pose.orientation.w = float("nan")
+        bag.write("/team_map/robot_2/path", path, rospy.Time.from_sec(2.0))
+        merge = MergeEvent(type="rendezvous", robot_a=1, robot_b=2, keyframe_a=3, keyframe_b=4,
+                           T_mapA_mapB=transform_to_msg(np.eye(4)), inliers=50, group=[1, 2])
+        merge.header.stamp = rospy.Time.from_sec(1.5)
+        bag.write("/merge_events", merge, rospy.Time.from_sec(1.5))
+    run = run_data_from_bag(bag_path, [1, 2])
+    r = run.robots[2]
+    assert sorted(r.keyframes) == [1, 2, 3, 4, 5] and len(r.kf_bytes) == 5
+    assert sorted(r.team_keyframes) == [1, 2, 4, 5]  # the NaN pose is dropped, not stored
+    assert run.merges[0]["type"] == "rendezvous" and run.merges[0]["stamp_s"] == 1.5
+    assert len(run.topic_bytes["/robot_2/keyframes"]) == 5
+    with pytest.raises(EvaluationError, match="bag not found"):
+        run_data_from_bag(str(tmp_path / "missing.bag"), [1])

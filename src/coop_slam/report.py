@@ -11,13 +11,13 @@ import math
 import os
 from typing import Any
 
-ROBOT_KEYS = ("id", "frames", "keyframes", "path_length_m", "ate_rmse_m", "tracking_lost",
-              "track_ms_mean", "track_ms_p95")
+ROBOT_KEYS = ("id", "frames", "keyframes", "path_length_m", "ate_rmse_m", "rpe_rmse_m",
+              "tracking_lost", "track_ms_mean", "track_ms_p95")
 MERGE_KEYS = ("type", "robots", "stamp", "trans_err_m", "rot_err_deg", "latency_s",
               "local_trans_err_m", "local_rot_err_deg")
 TOP_KEYS = ("robots", "merges", "groups", "team_ate_rmse_m", "bandwidth", "server_ms_per_keyframe",
-            "wrong_merges")
-BANDWIDTH_KEYS = ("per_robot_kBps", "peak_kBps", "total_MB")
+            "wrong_merges", "loop_closures", "topics")
+BANDWIDTH_KEYS = ("per_robot_kBps", "peak_kBps", "total_MB", "keyframe_bytes_mean")
 WRONG_MERGE_TRANS_M = 0.10  # a merge is wrong when its transform is off by more than this ...
 WRONG_MERGE_ROT_DEG = 5.0  # ... or this
 
@@ -44,6 +44,8 @@ def new_report(robot_ids: list[int]) -> dict:
         "bandwidth": {k: None for k in BANDWIDTH_KEYS},
         "server_ms_per_keyframe": None,
         "wrong_merges": None,
+        "loop_closures": None,
+        "topics": {},
     }
 
 
@@ -105,7 +107,17 @@ def render_markdown(report: dict) -> str:
         f"- wrong merges: {_fmt(report.get('wrong_merges'))}",
         f"- server time per keyframe: {_fmt(report.get('server_ms_per_keyframe'), 1)} ms",
         f"- bandwidth: per robot {_fmt(bw.get('per_robot_kBps'), 1)} kB/s, peak "
-        f"{_fmt(bw.get('peak_kBps'), 1)} kB/s, total {_fmt(bw.get('total_MB'), 2)} MB",
+        f"{_fmt(bw.get('peak_kBps'), 1)} kB/s, total {_fmt(bw.get('total_MB'), 2)} MB, "
+        f"mean keyframe message {_fmt(bw.get('keyframe_bytes_mean'), 0)} B",
+        f"- loop closures: {_fmt(report.get('loop_closures'))}",
         "",
     ]
+    topics = report.get("topics") or {}
+    if topics:
+        lines += ["## Bandwidth per topic", "", "| topic | messages | mean kB/s | peak kB/s | total MB |",
+                  "|---|---|---|---|---|"]
+        for name, t in topics.items():
+            lines.append(f"| {name} | {t['messages']} | {_fmt(t['mean_kBps'], 2)} | "
+                         f"{_fmt(t['peak_kBps'], 1)} | {_fmt(t['total_MB'], 3)} |")
+        lines.append("")
     return "\n".join(lines)

@@ -46,12 +46,16 @@ class PlaceRecognitionConfig:
     enabled: bool = True
     min_consecutive: int = 2  # consecutive consistent queries before a candidate is verified
     max_verifications: int = 2  # candidates geometrically verified per keyframe (bounds the cost)
+    # A merge joins two maps on one constraint, so it needs more support than a loop / in-group
+    # link (which the pose graph weighs against the rest); the next keyframes usually bring it.
+    merge_min_inliers: int = 60
     database: DatabaseConfig = field(default_factory=DatabaseConfig)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
 
     def validate(self) -> None:
         require(self.min_consecutive >= 1, "place_recognition.min_consecutive must be >= 1")
         require(self.max_verifications >= 1, "place_recognition.max_verifications must be >= 1")
+        require(self.merge_min_inliers >= 1, "place_recognition.merge_min_inliers must be >= 1")
         self.database.validate()
         self.registration.validate()
 
@@ -364,7 +368,11 @@ class TeamServer:
                 continue
             budget -= 1
             res = self._verify_pnp(cand_key, key_b)
-            if res.accepted:
+            if res.accepted and res.n_inliers < self.config.place_recognition.merge_min_inliers:
+                log.info("place recognition %s - %s: %d inliers, fewer than a merge needs (%d)",
+                         cand_key, key_b, res.n_inliers,
+                         self.config.place_recognition.merge_min_inliers)
+            elif res.accepted:
                 verified_roots.add(root)
                 # Seen at (about) the same time, it is a rendezvous, whichever path verified it.
                 dt = abs(self.keyframes[cand_key].record.stamp_s - rec.stamp_s)

@@ -22,8 +22,7 @@ import numpy as np
 from ..errors import CoopSlamError
 from ..geometry import quat_from_se3
 from ..playback import build_schedule, load_streams
-from ..report import write_report
-from .evaluate import evaluate_run
+from .evaluate import evaluate_results, run_data_from_bag
 
 DEFAULT_SCENARIO = "team"
 
@@ -42,7 +41,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--camera", help="camera.yaml for a dataset folder without one")
     p.add_argument("--rate", type=float, default=None,
                    help="play at RATE x real time instead of lock-step")
-    p.add_argument("--record", action="store_true", help="record RViz to MP4 + PNG")
+    rec = p.add_mutually_exclusive_group()
+    rec.add_argument("--record", dest="record", action="store_true", default=True,
+                     help="record RViz headless to MP4 + PNG (the default)")
+    rec.add_argument("--no-record", dest="record", action="store_false",
+                     help="do not record RViz")
     p.add_argument("--out", help="results folder (default: results/<date>-<source>)")
     p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
     p.add_argument("--no-clients", action="store_true",
@@ -64,22 +67,16 @@ def parse_args(argv=None) -> argparse.Namespace:
 REPO = os.path.normpath(os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", ".."))
 
 
-def _write_ply(path: str, cloud_msg) -> None:
-    """ASCII PLY (x, y, z, red, green, blue) of a PointCloud2 with an rgb field."""
-    from ..ros.convert import cloud_from_msg
+def _write_run_info(out: str, args: argparse.Namespace, robot_ids: list[int]) -> None:
+    """What ``scripts/evaluate`` needs to find the ground truth of this run again."""
+    import json
 
-    xyz = cloud_from_msg(cloud_msg)
-    offsets = {f.name: f.offset for f in cloud_msg.fields}
-    rgb = np.zeros((len(xyz), 3), np.uint8)
-    if "rgb" in offsets and len(xyz):
-        raw = np.frombuffer(cloud_msg.data, np.uint8).reshape(len(xyz), cloud_msg.point_step)
-        packed = raw[:, offsets["rgb"]:offsets["rgb"] + 4].copy().view(np.uint32)[:, 0]
-        rgb = np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], 1).astype(np.uint8)
-    with open(path, "w", encoding="ascii") as fh:
-        fh.write(f"ply\nformat ascii 1.0\nelement vertex {len(xyz)}\nproperty float x\n"
-                 "property float y\nproperty float z\nproperty uchar red\nproperty uchar green\n"
-                 "property uchar blue\nend_header\n")
-        np.savetxt(fh, np.column_stack([xyz, rgb]), fmt="%.4f %.4f %.4f %d %d %d")
+    info = {"scenario": args.scenario, "dataset": os.path.abspath(args.dataset) if args.dataset else None,
+            "split": args.split, "robots": args.robots, "seed": args.seed,
+            "camera": os.path.abspath(args.camera) if args.camera else None,
+            "keep_timing": args.keep_timing, "robot_ids": robot_ids}
+    with open(os.path.join(out, "run.json"), "w", encoding="utf-8") as fh:
+        json.dump(info, fh, indent=2)
 
 
 def _free_port() -> int:
@@ -93,7 +90,8 @@ def say(msg: str) -> None:
 
 
 class _Monitor:
-    """Follows the run from inside this process and records what the system publishes (RunData).
+    """Follows the run from inside this process (progress line) and records what the system
+    publishes into a :class:`RunRecorder`.
 
     With ``ack`` it also acknowledges frames itself (no clients running), so lock-step playback
     still advances.
@@ -103,107 +101,48 @@ class _Monitor:
         import rospy
         from rosgraph_msgs.msg import Clock
         from sensor_msgs.msg import Image
-        from std_msgs.msg import Bool, String
 
-        from coop_slam.msg import FrameStats, KeyFrame, MapCorrection, MergeEvent
+        from coop_slam.msg import FrameStats
 
-        from .evaluate import RobotRun, RunData
+        from .evaluate import RunRecorder, _msg_class
 
         rospy.init_node("demo_monitor", anonymous=True, disable_signals=True)
-        self.run = RunData(robots={r: RobotRun() for r in robot_ids})
+        self.recorder = RunRecorder(robot_ids)
+        self.run = self.recorder.run
         self.sim_s = 0.0
-        self.done = threading.Event()
-        self.lock = threading.Lock()
         self.ack = ack
-        from sensor_msgs.msg import PointCloud2
-
-        self.team_cloud = None
-        self._subs = [rospy.Subscriber("/clock", Clock, self._on_clock, queue_size=1),
-                      rospy.Subscriber("/team_map/cloud", PointCloud2,
-                                       lambda m: setattr(self, "team_cloud", m), queue_size=1,
-                                       buff_size=2**25),
-                      rospy.Subscriber("/player/done", Bool, lambda m: m.data and self.done.set()),
-                      rospy.Subscriber("/merge_events", MergeEvent, self._on_merge, queue_size=50),
-                      rospy.Subscriber("/server/stats", String, self._on_stats, queue_size=5)]
+        self._subs = [rospy.Subscriber("/clock", Clock, self._on_clock, queue_size=1)]
+        for topic, type_name in self.recorder.topics().items():
+            if ack and topic.endswith("/frame_stats"):
+                continue  # this monitor publishes them itself
+            self._subs.append(rospy.Subscriber(topic, rospy.AnyMsg, self._on_any,
+                                               (topic, _msg_class(type_name)), queue_size=500,
+                                               buff_size=2**25))
         self._acks = {}
-        for r in robot_ids:
-            if ack:
-                self._subs.append(rospy.Subscriber(f"/robot_{r}/camera/color/image_raw", Image,
-                                                   self._on_image, r, queue_size=5, buff_size=2**24))
-                self._acks[r] = rospy.Publisher(f"/robot_{r}/frame_stats", FrameStats, queue_size=10)
-            else:
-                self._subs.append(rospy.Subscriber(f"/robot_{r}/frame_stats", FrameStats,
-                                                   self._on_stats_frame, r, queue_size=100))
-            self._subs.append(rospy.Subscriber(f"/robot_{r}/keyframes", KeyFrame, self._on_keyframe,
-                                               r, queue_size=500, buff_size=2**24))
-            self._subs.append(rospy.Subscriber(f"/robot_{r}/correction", MapCorrection,
-                                               self._on_correction, r, queue_size=10))
+        for r in robot_ids if ack else ():
+            self._subs.append(rospy.Subscriber(f"/robot_{r}/camera/color/image_raw", Image,
+                                               self._on_image, r, queue_size=5, buff_size=2**24))
+            self._acks[r] = rospy.Publisher(f"/robot_{r}/frame_stats", FrameStats, queue_size=10)
         self._FrameStats = FrameStats
+
+    @property
+    def done(self) -> bool:
+        return self.recorder.done
 
     def _on_clock(self, msg) -> None:
         self.sim_s = msg.clock.to_sec()
 
+    def _on_any(self, raw, args) -> None:
+        topic, cls = args
+        msg = cls()
+        msg.deserialize(raw._buff)
+        self.recorder.feed(topic, msg, self.sim_s, len(raw._buff))
+
     def _on_image(self, msg, robot_id: int) -> None:
-        self.run.robots[robot_id].frames += 1
         ack = self._FrameStats(robot_id=robot_id, tracking_ok=True)
         ack.header.stamp = msg.header.stamp
+        self.recorder.feed(f"/robot_{robot_id}/frame_stats", ack, self.sim_s, 0)
         self._acks[robot_id].publish(ack)
-
-    def _on_stats_frame(self, msg, robot_id: int) -> None:
-        r = self.run.robots[robot_id]
-        r.frames += 1
-        if msg.track_ms > 0:
-            r.track_ms.append(float(msg.track_ms))
-        if not msg.tracking_ok and r.first_keyframe is not None:
-            r.lost_frames += 1
-
-    def _on_keyframe(self, msg, robot_id: int) -> None:
-        import io
-
-        from ..keyframe import ACTION_REMOVE
-        from ..ros.convert import MessageError, pose_from_msg
-
-        buf = io.BytesIO()
-        msg.serialize(buf)
-        r = self.run.robots[robot_id]
-        stamp = msg.header.stamp.to_sec()
-        with self.lock:
-            r.kf_bytes.append((self.sim_s, buf.tell()))
-            if msg.action == ACTION_REMOVE:
-                r.keyframes.pop(msg.keyframe_id, None)
-                return
-            try:
-                T = pose_from_msg(msg.pose)
-            except MessageError:
-                return
-            r.keyframes[msg.keyframe_id] = (stamp, T)
-            if r.first_keyframe is None:
-                r.first_keyframe = (stamp, T)
-
-    def _on_merge(self, msg) -> None:
-        from ..ros.convert import transform_from_msg
-
-        with self.lock:
-            # The keyframe poses as the server used them (local BA may move them afterwards).
-            at_merge = {robot: self.run.robots[robot].keyframes.get(kf)
-                        for robot, kf in ((msg.robot_a, msg.keyframe_a), (msg.robot_b, msg.keyframe_b))
-                        if robot in self.run.robots}
-            self.run.merges.append({"type": msg.type, "robot_a": msg.robot_a, "robot_b": msg.robot_b,
-                                    "keyframe_a": msg.keyframe_a, "keyframe_b": msg.keyframe_b,
-                                    "keyframes_at_merge": at_merge,
-                                    "stamp_s": msg.header.stamp.to_sec(),
-                                    "T_mapA_mapB": transform_from_msg(msg.T_mapA_mapB)})
-
-    def _on_stats(self, msg) -> None:
-        import json
-
-        self.run.server_stats = json.loads(msg.data)
-
-    def _on_correction(self, msg, robot_id: int) -> None:
-        from ..ros.convert import transform_from_msg
-
-        self.run.robots[robot_id].T_world_map = (transform_from_msg(msg.T_world_map) if msg.merged
-                                                 else None)
 
 
 def _wait_for_master(uri: str, timeout_s: float) -> None:
@@ -265,6 +204,9 @@ def run(args: argparse.Namespace) -> int:
         launch_args.append(f"T_base_cam:=[{', '.join(f'{v:.6f}' for v in (*t, *q))}]")
     if args.no_clients:
         launch_args += ["clients:=false", "server:=false"]
+    bag_path = os.path.join(out, "run.bag")
+    launch_args.append(f"record_bag:={bag_path}")
+    _write_run_info(out, args, robot_ids)
     log_path = os.path.join(out, "roslaunch.log")
     say(f"[2/3] running the system (ROS master {uri}; log {log_path})")
     recorder = None
@@ -284,7 +226,7 @@ def run(args: argparse.Namespace) -> int:
         deadline = time.monotonic() + args.timeout
         tty = sys.stdout.isatty()
         last_line = 0.0
-        while not monitor.done.is_set():
+        while not monitor.done:
             if launch.poll() is not None:
                 raise CoopSlamError(f"roslaunch exited early (code {launch.returncode}); see {log_path}")
             if time.monotonic() > deadline:
@@ -321,18 +263,15 @@ def run(args: argparse.Namespace) -> int:
                 os.killpg(launch.pid, signal.SIGKILL)
 
     say("[3/3] evaluating")
-    meta = source.meta or {}
-    import pickle
-
-    with open(os.path.join(out, "run_data.pkl"), "wb") as fh:  # for re-evaluation without a re-run
-        pickle.dump(monitor.run, fh)
-    report = evaluate_run(monitor.run, source.streams, args.keep_timing, meta.get("overlap"), out)
+    run_data = monitor.run
+    if os.path.isfile(bag_path):  # what the system published, as recorded
+        say(f"      from the recorded bag {bag_path}")
+        run_data = run_data_from_bag(bag_path, robot_ids)
+    else:
+        say("      WARNING: no bag was recorded; evaluating what this process received")
+    run_data.duration_s = monitor.run.duration_s
+    report, json_path, md_path, ply = evaluate_results(out, run_data, source, args.keep_timing)
     traj_dir = os.path.join(out, "trajectories")
-    ply = None
-    if monitor.team_cloud is not None:
-        ply = os.path.join(out, "team_map.ply")
-        _write_ply(ply, monitor.team_cloud)
-    json_path, md_path = write_report(out, report)
     say(f"done in {time.monotonic() - t_start:.0f} s")
     say(f"report:       {json_path}")
     say(f"              {md_path}")

@@ -1,8 +1,9 @@
-"""Turn what a run published (keyframes, frame stats, merges, corrections, message sizes) and the
-ground truth into the report: per-robot and team ATE (evo), merge errors and latencies, bandwidth,
-timing, trajectory files and plots.
+"""Turn what a run published (keyframes, frame stats, merges, corrections, optimized team paths,
+message sizes) and the ground truth into the report: per-robot and team ATE/RPE (evo), merge errors
+and latencies, bandwidth per topic and robot, timing, trajectory files and plots.
 
-Pure functions over :class:`RunData`; the demo fills RunData live (see ``tools/demo.py``).
+:class:`RunRecorder` builds :class:`RunData` from the system's messages, live (the demo's monitor)
+or from the bag the demo records (``scripts/evaluate``); :func:`evaluate_run` is pure over RunData.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..datasets import write_tum_trajectory
-from ..evaluation import EvaluationError, ate, merge_error, team_ate
+from ..evaluation import EvaluationError, ate, merge_error, rpe_rmse, team_ate
 from ..geometry import invert, path_length
 from ..playback import RobotStream, build_schedule
 from ..report import count_wrong_merges, new_report
@@ -28,6 +29,9 @@ class RobotRun:
     first_keyframe: tuple | None = None  # (stamp_s, T_map_cam) as first published
     kf_bytes: list = field(default_factory=list)  # (sim stamp_s, bytes) per KeyFrame message
     T_world_map: np.ndarray | None = None  # latest correction, when merged
+    # server's optimized keyframe poses in world (latest /team_map/robot_k/path, when merged):
+    # id -> (stamp_s, T_world_cam)
+    team_keyframes: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -36,6 +40,153 @@ class RunData:
     merges: list = field(default_factory=list)  # dicts: type, robot_a, robot_b, stamp_s, T_mapA_mapB
     server_stats: dict = field(default_factory=dict)
     duration_s: float = 0.0  # sim time from first to last frame
+    topic_bytes: dict = field(default_factory=dict)  # topic -> [(sim t_s, bytes)] per message
+    team_cloud: object = None  # latest /team_map/cloud message
+
+
+_ROBOT_TOPICS = {  # relative to /robot_k; the message type of each
+    "keyframes": "coop_slam/KeyFrame",
+    "frame_stats": "coop_slam/FrameStats",
+    "correction": "coop_slam/MapCorrection",
+    "pose": "geometry_msgs/PoseStamped",
+    "path": "nav_msgs/Path",
+    "local_map": "sensor_msgs/PointCloud2",
+}
+_TEAM_TOPICS = {
+    "/merge_events": "coop_slam/MergeEvent",
+    "/server/stats": "std_msgs/String",
+    "/team_map/cloud": "sensor_msgs/PointCloud2",
+    "/team_map/markers": "visualization_msgs/MarkerArray",
+    "/robot_sightings": "coop_slam/RobotSighting",
+    "/player/done": "std_msgs/Bool",
+}
+
+
+def _msg_class(type_name: str):
+    import importlib
+
+    pkg, name = type_name.split("/")
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+class RunRecorder:
+    """Builds :class:`RunData` from what the system publishes: :meth:`feed` takes one message with
+    the sim time it was seen at and its serialized size; the same code serves live and bag input."""
+
+    def __init__(self, robot_ids: list[int]):
+        import threading
+
+        self.run = RunData(robots={int(r): RobotRun() for r in robot_ids})
+        self.lock = threading.Lock()
+        self.done = False  # the player said it has played everything
+
+    def topics(self) -> dict[str, str]:
+        """Topic -> message type of everything recorded (the demo's rosbag takes the same list)."""
+        out = {f"/robot_{r}/{t}": ty for r in self.run.robots for t, ty in _ROBOT_TOPICS.items()}
+        out.update({f"/team_map/robot_{r}/path": "nav_msgs/Path" for r in self.run.robots})
+        out.update(_TEAM_TOPICS)
+        return out
+
+    def feed(self, topic: str, msg, t_s: float, nbytes: int) -> None:
+        with self.lock:
+            self.run.topic_bytes.setdefault(topic, []).append((float(t_s), int(nbytes)))
+            parts = topic.strip("/").split("/")
+            if topic == "/team_map/cloud":
+                self.run.team_cloud = msg
+            elif topic == "/merge_events":
+                self._on_merge(msg)
+            elif topic == "/server/stats":
+                import json
+
+                self.run.server_stats = json.loads(msg.data)
+            elif topic == "/player/done":
+                self.done = self.done or bool(msg.data)
+            elif len(parts) == 3 and parts[0] == "team_map" and parts[2] == "path":
+                self._on_team_path(msg, int(parts[1].split("_")[1]))
+            elif len(parts) == 2 and parts[0].startswith("robot_"):
+                robot_id = int(parts[0].split("_")[1])
+                handler = getattr(self, f"_on_{parts[1]}", None)
+                if robot_id in self.run.robots and handler is not None:
+                    handler(msg, self.run.robots[robot_id], t_s, nbytes)
+
+    def _on_frame_stats(self, msg, r: RobotRun, t_s, nbytes) -> None:
+        r.frames += 1
+        if msg.track_ms > 0:
+            r.track_ms.append(float(msg.track_ms))
+        if not msg.tracking_ok and r.first_keyframe is not None:
+            r.lost_frames += 1
+
+    def _on_keyframes(self, msg, r: RobotRun, t_s, nbytes) -> None:
+        from ..keyframe import ACTION_REMOVE
+        from ..ros.convert import MessageError, pose_from_msg
+
+        r.kf_bytes.append((float(t_s), int(nbytes)))
+        if msg.action == ACTION_REMOVE:
+            r.keyframes.pop(msg.keyframe_id, None)
+            return
+        try:
+            T = pose_from_msg(msg.pose)
+        except MessageError:
+            return
+        stamp = msg.header.stamp.to_sec()
+        r.keyframes[msg.keyframe_id] = (stamp, T)
+        if r.first_keyframe is None:
+            r.first_keyframe = (stamp, T)
+
+    def _on_correction(self, msg, r: RobotRun, t_s, nbytes) -> None:
+        from ..ros.convert import transform_from_msg
+
+        r.T_world_map = transform_from_msg(msg.T_world_map) if msg.merged else None
+
+    def _on_team_path(self, msg, robot_id: int) -> None:
+        from ..ros.convert import MessageError, pose_from_msg
+
+        r = self.run.robots.get(robot_id)
+        if r is None:
+            return
+        if msg.header.frame_id != "world":
+            r.team_keyframes = {}
+            return
+        poses = {}
+        for ps in msg.poses:
+            try:
+                poses[ps.header.seq] = (ps.header.stamp.to_sec(), pose_from_msg(ps.pose))
+            except MessageError:
+                continue
+        r.team_keyframes = poses
+
+    def _on_merge(self, msg) -> None:
+        from ..ros.convert import transform_from_msg
+
+        # The keyframe poses as the server used them (local BA may move them afterwards).
+        at_merge = {robot: self.run.robots[robot].keyframes.get(kf)
+                    for robot, kf in ((msg.robot_a, msg.keyframe_a), (msg.robot_b, msg.keyframe_b))
+                    if robot in self.run.robots}
+        self.run.merges.append({"type": msg.type, "robot_a": msg.robot_a, "robot_b": msg.robot_b,
+                                "keyframe_a": msg.keyframe_a, "keyframe_b": msg.keyframe_b,
+                                "keyframes_at_merge": at_merge,
+                                "stamp_s": msg.header.stamp.to_sec(),
+                                "T_mapA_mapB": transform_from_msg(msg.T_mapA_mapB)})
+
+
+def run_data_from_bag(bag_path: str, robot_ids: list[int]) -> RunData:
+    """Replay a recorded run through :class:`RunRecorder` (bag time is the sim time)."""
+    import rosbag
+
+    if not os.path.isfile(bag_path):
+        raise EvaluationError(f"bag not found: {bag_path}")
+    rec = RunRecorder(robot_ids)
+    topics = rec.topics()
+    try:
+        bag = rosbag.Bag(bag_path)
+    except (rosbag.ROSBagException, OSError) as exc:
+        raise EvaluationError(f"cannot read bag {bag_path}: {exc}") from exc
+    with bag:
+        for topic, raw, t in bag.read_messages(topics=list(topics), raw=True):
+            msg = _msg_class(topics[topic])()
+            msg.deserialize(raw[1])
+            rec.feed(topic, msg, t.to_sec(), len(raw[1]))
+    return rec.run
 
 
 def _gt_of(stream: RobotStream, keep_timing: bool):
@@ -84,9 +235,22 @@ def evaluate_run(run: RunData, streams: list[RobotStream], keep_timing: bool = F
             if out_dir:
                 write_tum_trajectory(os.path.join(out_dir, "trajectories", f"robot_{rid}_keyframes.txt"),
                                      stamps, poses)
-            if r.T_world_map is not None:
+            try:
+                entry["rpe_rmse_m"] = rpe_rmse(stamps, poses, stamps_gt, poses_gt)
+            except EvaluationError:
+                pass
+            if r.team_keyframes:  # the server's optimized poses, in world
+                ids = sorted(r.team_keyframes)
+                est_world[rid] = (np.array([r.team_keyframes[k][0] for k in ids]),
+                                  np.array([r.team_keyframes[k][1] for k in ids]))
+            elif r.T_world_map is not None:  # client poses moved by the latest correction
                 est_world[rid] = (stamps, np.einsum("ij,njk->nik", r.T_world_map, poses))
+            if rid in est_world:
                 gt_world[rid] = (stamps_gt, poses_gt)
+                if out_dir:
+                    write_tum_trajectory(
+                        os.path.join(out_dir, "trajectories", f"robot_{rid}_world.txt"),
+                        *est_world[rid])
         if out_dir:
             write_tum_trajectory(os.path.join(out_dir, "trajectories", f"robot_{rid}_groundtruth.txt"),
                                  stamps_gt, poses_gt)
@@ -112,13 +276,18 @@ def evaluate_run(run: RunData, streams: list[RobotStream], keep_timing: bool = F
     report["groups"] = run.server_stats.get("groups") or [[s.robot_id] for s in streams]
     if len(est_world) >= 2:
         try:
-            report["team_ate_rmse_m"] = team_ate(est_world, gt_world).rmse_m
+            team = team_ate(est_world, gt_world)
+            report["team_ate_rmse_m"] = team.rmse_m
         except EvaluationError:
-            pass
+            team = None
+        if out_dir and team is not None:
+            _plot_team(out_dir, est_world, gt_world, team)
     elif len(streams) == 1 and report["robots"][0]["ate_rmse_m"] is not None:
         report["team_ate_rmse_m"] = report["robots"][0]["ate_rmse_m"]
     report["server_ms_per_keyframe"] = run.server_stats.get("ms_per_keyframe_mean")
+    report["loop_closures"] = run.server_stats.get("loops")
     report["bandwidth"] = _bandwidth(run)
+    report["topics"] = _topic_bandwidth(run)
     if out_dir:
         _plot(out_dir, run, streams, gts)
     return report
@@ -169,9 +338,23 @@ def _bandwidth(run: RunData) -> dict:
         bins = np.floor(t - t.min()).astype(int)
         peaks.append(np.bincount(bins, weights=b).max() / 1e3)  # busiest second of sim time
     if not per_robot:
-        return {"per_robot_kBps": None, "peak_kBps": None, "total_MB": None}
+        return {"per_robot_kBps": None, "peak_kBps": None, "total_MB": None,
+                "keyframe_bytes_mean": None}
+    sizes = [n for r in run.robots.values() for _, n in r.kf_bytes]
     return {"per_robot_kBps": float(np.mean(per_robot)), "peak_kBps": float(max(peaks)),
-            "total_MB": float(total / 1e6)}
+            "total_MB": float(total / 1e6), "keyframe_bytes_mean": float(np.mean(sizes))}
+
+
+def _topic_bandwidth(run: RunData) -> dict:
+    """topic -> messages, mean and peak (busiest second of sim time) kB/s, total MB."""
+    out = {}
+    for topic, entries in sorted(run.topic_bytes.items()):
+        t = np.array([s for s, _ in entries])
+        b = np.array([n for _, n in entries], float)
+        peak = np.bincount(np.floor(t - t.min()).astype(int), weights=b).max() / 1e3
+        out[topic] = {"messages": len(b), "mean_kBps": float(b.sum() / max(run.duration_s, 1e-9) / 1e3),
+                      "peak_kBps": float(peak), "total_MB": float(b.sum() / 1e6)}
+    return out
 
 
 def _plot(out_dir: str, run: RunData, streams, gts) -> None:
@@ -206,3 +389,110 @@ def _plot(out_dir: str, run: RunData, streams, gts) -> None:
     fig.tight_layout()
     fig.savefig(os.path.join(out_dir, "trajectories.png"), dpi=110)
     plt.close(fig)
+
+
+def _plot_team(out_dir: str, est_world: dict, gt_world: dict, team) -> None:
+    """Top view of every robot's keyframes in world (one alignment for the team) and ground truth."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 6))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for k, rid in enumerate(sorted(est_world)):
+        c = colours[k % len(colours)]
+        _, poses_gt = gt_world[rid]
+        ax.plot(poses_gt[:, 0, 3], poses_gt[:, 1, 3], "--", color=c, alpha=0.5,
+                label=f"robot_{rid} ground truth")
+        aligned = np.einsum("ij,njk->nik", team.T_gt_est, est_world[rid][1])
+        ax.plot(aligned[:, 0, 3], aligned[:, 1, 3], "-o", ms=2, color=c,
+                label=f"robot_{rid} keyframes in world")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.legend(fontsize=8)
+    ax.set_title(f"team map: one alignment for all robots (team ATE {100 * team.rmse_m:.1f} cm)")
+    fig.tight_layout()
+    fig.savefig(os.path.join(out_dir, "team_trajectories.png"), dpi=110)
+    plt.close(fig)
+def _write_ply(path: str, cloud_msg) -> None:
+    """ASCII PLY (x, y, z, red, green, blue) of a PointCloud2 with an rgb field."""
+    from ..ros.convert import cloud_from_msg
+
+    xyz = cloud_from_msg(cloud_msg)
+    offsets = {f.name: f.offset for f in cloud_msg.fields}
+    rgb = np.zeros((len(xyz), 3), np.uint8)
+    if "rgb" in offsets and len(xyz):
+        raw = np.frombuffer(cloud_msg.data, np.uint8).reshape(len(xyz), cloud_msg.point_step)
+        packed = raw[:, offsets["rgb"]:offsets["rgb"] + 4].copy().view(np.uint32)[:, 0]
+        rgb = np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], 1).astype(np.uint8)
+    with open(path, "w", encoding="ascii") as fh:
+        fh.write(f"ply\nformat ascii 1.0\nelement vertex {len(xyz)}\nproperty float x\n"
+                 "property float y\nproperty float z\nproperty uchar red\nproperty uchar green\n"
+                 "property uchar blue\nend_header\n")
+        np.savetxt(fh, np.column_stack([xyz, rgb]), fmt="%.4f %.4f %.4f %d %d %d")
+
+
+
+
+def evaluate_results(out_dir: str, run: RunData, source, keep_timing: bool = False):
+    """Report, trajectories, plots and the team map PLY of one run into ``out_dir``; returns
+    (report, report.json path, report.md path, PLY path or None)."""
+    from ..report import write_report
+
+    meta = source.meta or {}
+    report = evaluate_run(run, source.streams, keep_timing, meta.get("overlap"), out_dir)
+    ply = None
+    if run.team_cloud is not None:
+        ply = os.path.join(out_dir, "team_map.ply")
+        _write_ply(ply, run.team_cloud)
+    json_path, md_path = write_report(out_dir, report)
+    return report, json_path, md_path, ply
+
+
+def main(argv=None) -> int:
+    """``scripts/evaluate RESULTS``: re-evaluate a demo run from its recorded bag."""
+    import argparse
+    import json
+    import sys
+
+    from ..errors import CoopSlamError
+    from ..playback import load_streams
+
+    p = argparse.ArgumentParser(prog="scripts/evaluate", description=main.__doc__.split(":")[1])
+    p.add_argument("results", help="results folder of a demo run (holds run.json and run.bag)")
+    p.add_argument("--bag", help="bag to evaluate (default: RESULTS/run.bag)")
+    args = p.parse_args(argv)
+    try:
+        info_path = os.path.join(args.results, "run.json")
+        if not os.path.isfile(info_path):
+            raise EvaluationError(f"{info_path} not found: is {args.results} a demo results folder?")
+        with open(info_path, encoding="utf-8") as fh:
+            info = json.load(fh)
+        print(f"[evaluate] loading the ground truth ({info.get('scenario') or info.get('dataset')})",
+              flush=True)
+        source = load_streams(scenario=info.get("scenario"), dataset=info.get("dataset"),
+                              split=info.get("split"), robots=info.get("robots"),
+                              seed=info.get("seed", 0), camera_file=info.get("camera"))
+        robot_ids = [s.robot_id for s in source.streams]
+        bag = args.bag or os.path.join(args.results, "run.bag")
+        print(f"[evaluate] reading {bag}", flush=True)
+        run = run_data_from_bag(bag, robot_ids)
+        sched = build_schedule(source.streams, keep_timing=bool(info.get("keep_timing")))
+        run.duration_s = sched[-1].play_s - sched[0].play_s if sched else 0.0
+        _, json_path, md_path, ply = evaluate_results(args.results, run, source,
+                                                      bool(info.get("keep_timing")))
+    except (CoopSlamError, OSError, ValueError) as exc:
+        print(f"[evaluate] ERROR: {exc}", file=sys.stderr)
+        return 2
+    print(f"[evaluate] report: {json_path}\n[evaluate]         {md_path}", flush=True)
+    if ply:
+        print(f"[evaluate] team map: {ply}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(main())
