@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 
 from coop_slam.datasets import CameraModel
+from coop_slam.geometry import se3_from_quat
 from coop_slam.keyframe import KeyframeRecord
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -113,3 +114,29 @@ def observe(points_world, descriptors, T_world_cam, T_world_map, robot_id, keyfr
         map_point_ids=(idx + 1).astype(np.uint32),
         map_points=transform_points(invert(T_world_map), points_world[idx]).astype(np.float32),
     )
+
+
+# --- a team of robots in the cylinder world (server tests and the server rostest) ---------------------
+TEAM_T_WORLD_MAP = {1: se3_from_quat([0.3, -0.2, 0.0], [0, 0, 0.1, 1.0]),
+                    2: se3_from_quat([-1.0, 0.5, 0.1], [0, 0, -0.4, 1.0]),
+                    3: se3_from_quat([0.5, 1.5, -0.1], [0, 0, 0.7, 1.0])}
+
+
+def team_keyframes(robot_id, yaws, points, desc, kid0=1, offset=(0.0, 0.0), seed=0, t0=0.0):
+    """Keyframes of a robot turning on the spot (looking out at the cylinder world), each covisible
+    with its two predecessors; map frames from TEAM_T_WORLD_MAP, one keyframe per second."""
+    out = []
+    for k, yaw in enumerate(yaws):
+        kf = observe(points, desc, looking_out_pose(yaw, center=offset), TEAM_T_WORLD_MAP[robot_id],
+                     robot_id, kid0 + k, seed=seed + k, stamp_s=t0 + k)
+        kf.covisible_ids = np.array([i for i in (kid0 + k - 1, kid0 + k - 2) if i >= kid0], np.uint32)
+        kf.covisible_weights = np.full(len(kf.covisible_ids), 100, np.uint16)
+        out.append(kf)
+    return out
+
+
+def team_vocabulary(keyframes):
+    """A small vocabulary trained on the keyframes' descriptors (the cylinder world's words)."""
+    from coop_slam.bow import Vocabulary
+
+    return Vocabulary.train([kf.descriptors for kf in keyframes], k=8, levels=3, seed=0)

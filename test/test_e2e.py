@@ -37,11 +37,37 @@ def test_revisit_merges_by_place_recognition(tmp_path):
         assert robot["ate_rmse_m"] < 0.005 * robot["path_length_m"]
 
 
-def test_rendezvous_merges_by_rendezvous(tmp_path):
-    report, log, _ = _demo(tmp_path, "--scenario", "rendezvous")
+def _server_config(tmp_path, **sections) -> str:
+    import yaml
+
+    path = tmp_path / "server.yaml"
+    path.write_text(yaml.safe_dump({"server": sections}))
+    return str(path)
+
+
+@pytest.mark.parametrize("mode", ["marker_sighting", "co_observation"])
+def test_rendezvous_merges_by_rendezvous(tmp_path, mode):
+    """Each automatic detection mode alone: marker sightings (the server's co-observation test and
+    place recognition off), or co-observation with no marker cue (clients do not look for markers).
+    The operator trigger goes through the same request path (test_team_server)."""
+    if mode == "marker_sighting":
+        cfg = _server_config(tmp_path, rendezvous={"auto": False},
+                             place_recognition={"enabled": False})
+        extra = []
+    else:
+        cfg = _server_config(tmp_path, place_recognition={"enabled": False})
+        extra = ["--no-markers"]
+    report, log, _ = _demo(tmp_path, "--scenario", "rendezvous", "--server-config", cfg, *extra)
     assert report["groups"] == [[1, 2]], log
     assert report["wrong_merges"] == 0
-    assert report["merges"][0]["type"] == "rendezvous"
+    merge = report["merges"][0]
+    assert merge["type"] == "rendezvous"
+    assert merge["local_trans_err_m"] < 0.05 and merge["local_rot_err_deg"] < 2.0
+    topics = report["topics"]
+    if mode == "marker_sighting":
+        assert topics["/robot_sightings"]["messages"] >= 1
+    else:
+        assert "/robot_sightings" not in topics
 
 
 @pytest.mark.parametrize("scenario", ["disjoint", "aliasing"])

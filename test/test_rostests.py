@@ -4,6 +4,7 @@ import os
 import shutil
 import subprocess
 
+import numpy as np
 import pytest
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -16,7 +17,16 @@ def test_rostest(launch_file, tmp_path):
         pytest.fail("rostest or the catkin workspace is not set up: run through scripts/test")
     env = dict(os.environ, ROS_LOG_DIR=str(tmp_path / "log"), ROS_HOME=str(tmp_path))
     # Without --text rostest's exit status and summary are exact (node output goes to the logs).
-    proc = subprocess.run(["rostest", launch_file], env=env, capture_output=True, text=True,
+    args = []
+    if os.path.basename(launch_file) == "server.test":  # a vocabulary of that test's world
+        from helpers import cylinder_world, team_keyframes, team_vocabulary
+
+        points, desc = cylinder_world(seed=3)
+        kfs = team_keyframes(1, np.linspace(0, 2 * np.pi, 36, endpoint=False), points, desc)
+        vocab_path = str(tmp_path / "vocabulary.npz")
+        team_vocabulary(kfs).save(vocab_path)
+        args.append(f"vocabulary:={vocab_path}")
+    proc = subprocess.run(["rostest", launch_file, *args], env=env, capture_output=True, text=True,
                           timeout=1500)
     out = proc.stdout + proc.stderr
     ok = proc.returncode == 0 and "RESULT: SUCCESS" in out

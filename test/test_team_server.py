@@ -1,35 +1,20 @@
 """Place-recognition stitching in the server core, on a synthetic feature world with known truth."""
 import numpy as np
 import pytest
-from helpers import cylinder_world, looking_out_pose, observe
+from helpers import TEAM_T_WORLD_MAP as T_WORLD_MAP
+from helpers import cylinder_world, looking_out_pose, team_vocabulary
+from helpers import team_keyframes as _keyframes
 
-from coop_slam.bow import Vocabulary
-from coop_slam.geometry import invert, se3_from_quat, transform_error
+from coop_slam.geometry import invert, transform_error
 from coop_slam.keyframe import KeyframeError
 from coop_slam.team.server import ServerConfig, TeamServer
-
-T_WORLD_MAP = {1: se3_from_quat([0.3, -0.2, 0.0], [0, 0, 0.1, 1.0]),
-               2: se3_from_quat([-1.0, 0.5, 0.1], [0, 0, -0.4, 1.0]),
-               3: se3_from_quat([0.5, 1.5, -0.1], [0, 0, 0.7, 1.0])}
-
-
-def _keyframes(robot_id, yaws, points, desc, kid0=1, offset=(0.0, 0.0), seed=0, t0=0.0):
-    out = []
-    for k, yaw in enumerate(yaws):
-        kf = observe(points, desc, looking_out_pose(yaw, center=offset), T_WORLD_MAP[robot_id],
-                     robot_id, kid0 + k, seed=seed + k, stamp_s=t0 + k)
-        kf.covisible_ids = np.array([i for i in (kid0 + k - 1, kid0 + k - 2) if i >= kid0], np.uint32)
-        kf.covisible_weights = np.full(len(kf.covisible_ids), 100, np.uint16)
-        out.append(kf)
-    return out
 
 
 @pytest.fixture(scope="module")
 def world():
     points, desc = cylinder_world(seed=3)
     a = _keyframes(1, np.linspace(0, 2 * np.pi, 36, endpoint=False), points, desc)
-    vocab = Vocabulary.train([kf.descriptors for kf in a], k=8, levels=3, seed=0)
-    return points, desc, a, vocab
+    return points, desc, a, team_vocabulary(a)
 
 
 def test_revisit_merges_with_the_true_transform(world):
@@ -191,3 +176,25 @@ def test_three_robots_end_in_one_group(world):
         T, merged = server.T_world_map(r)
         dt, dr = transform_error(T, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[r])
         assert merged and dt < 0.03 and dr < 1.0
+
+
+def test_rendezvous_with_a_robot_that_stands_still(world):
+    """Robot 1 stopped making keyframes long ago (it waits); robot 2 arrives and sees its view: a
+    sighting / operator request is checked against robot 1's latest keyframe and merges; the
+    automatic co-observation test does not reach that far back in time."""
+    points, desc, _, vocab = world
+    cfg = ServerConfig(robots=[1, 2])
+    cfg.place_recognition.enabled = False  # only the rendezvous paths may merge
+    server = TeamServer(cfg, vocab)
+    for kf in _keyframes(1, np.linspace(1.0, 1.6, 4), points, desc, seed=1):
+        server.add_keyframe(kf)  # stamps 0..3 s
+    for kf in _keyframes(2, np.linspace(0.5, 1.55, 4), points, desc, offset=(0.3, -0.2), seed=50,
+                         t0=30.0):
+        server.add_keyframe(kf)
+    assert server.merges == []
+    merge, message = server.request_rendezvous(2, 1)
+    assert merge is not None, message
+    assert server.groups.groups() == [[1, 2]] and server.merges[0].type == "rendezvous"
+    T, _ = server.T_world_map(2)
+    dt, dr = transform_error(T, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
+    assert dt < 0.02 and dr < 0.5

@@ -112,6 +112,10 @@ class ServerNode:
         self.subs.append(rospy.Subscriber("/robot_sightings", RobotSighting, self._on_sighting,
                                           queue_size=20))
         self.srv = rospy.Service("~rendezvous", Rendezvous, self._on_rendezvous)
+        from coop_slam.srv import GlobalBundleAdjustment
+
+        self.srv_gba = rospy.Service("~global_ba", GlobalBundleAdjustment, self._on_global_ba)
+        self._map_dirty, self._last_stamp_s = False, 0.0
         self.worker = threading.Thread(target=self._work, daemon=True)
         self.worker.start()
         self._publish_tf(rospy.Time.now())
@@ -156,6 +160,34 @@ class ServerNode:
             return RendezvousResponse(accepted=False, message="server busy: request timed out")
         return RendezvousResponse(accepted=done.merge is not None, message=done.message)
 
+    def _on_global_ba(self, req):
+        """Runs in the worker thread like keyframes, so the team map has one writer."""
+        from coop_slam.srv import GlobalBundleAdjustmentResponse
+
+        done = threading.Event()
+        self.queue.put(("global_ba", req.robot_id or None, done))
+        if not done.wait(600.0):
+            return GlobalBundleAdjustmentResponse(success=False, message="server busy: timed out")
+        r = done.result
+        if r is None:
+            return GlobalBundleAdjustmentResponse(success=False, message=done.message)
+        return GlobalBundleAdjustmentResponse(
+            success=True, message=done.message, keyframes=r.keyframes, points=r.points,
+            observations=r.observations, error_before=r.rms_before, error_after=r.rms_after,
+            time_s=r.time_ms / 1e3)
+
+    def _global_ba(self, robot_id, done) -> None:
+        from ..team.global_ba import GlobalBaError
+
+        try:
+            done.result = self.server.global_bundle_adjustment(robot_id)
+            done.message = (f"{done.result.keyframes} keyframes, {done.result.points} points: error "
+                            f"{done.result.rms_before:.2f} -> {done.result.rms_after:.2f}")
+        except GlobalBaError as exc:
+            done.result, done.message = None, str(exc)
+        rospy.loginfo("server: global BA: %s", done.message)
+        done.set()
+
     def _rendezvous(self, robot_a, robot_b, stamp, T_camA_bodyB, done) -> list:
         T_body_cam = None if self.T_base_cam is None else invert(self.T_base_cam)
         merge, message = self.server.request_rendezvous(
@@ -171,6 +203,17 @@ class ServerNode:
             try:
                 item = self.queue.get(timeout=0.5)
             except queue.Empty:
+                if self._map_dirty:  # the queue drained: show the final state of the map
+                    stamp = rospy.Time.from_sec(self._last_stamp_s)
+                    self._publish_tf(stamp)
+                    self._publish_map(stamp)
+                    self._publish_stats()
+                continue
+            if isinstance(item, tuple) and item[0] == "global_ba":
+                self._global_ba(*item[1:])
+                merges, stamp = [], rospy.Time.now()
+                self._publish_tf(stamp)
+                self._publish_map(stamp)
                 continue
             if isinstance(item, tuple):
                 merges = self._rendezvous(*item[1:])
@@ -187,6 +230,7 @@ class ServerNode:
                 self._publish_merge(m)
             if merges or self.server._since_optimize == 0:  # the team map just moved
                 self._publish_tf(stamp)
+            self._map_dirty, self._last_stamp_s = True, stamp.to_sec()
             if merges or stamp.to_sec() - self._last_cloud_s >= self.cloud_period_s:
                 self._last_cloud_s = stamp.to_sec()
                 self._publish_map(stamp)
@@ -221,6 +265,7 @@ class ServerNode:
 
     def _publish_map(self, stamp) -> None:
         """Stitched team cloud and the markers (paths, merge edges, labels), in ``world``."""
+        self._map_dirty = False
         from geometry_msgs.msg import Point
         from std_msgs.msg import ColorRGBA
         from visualization_msgs.msg import Marker, MarkerArray
@@ -285,6 +330,7 @@ class ServerNode:
                  "loops": sum(c.type == "loop" for c in self.server.constraints),
                  "links": sum(c.type != "loop" for c in self.server.constraints),
                  "refused_constraints": self.server.rejected_constraints,
+                 "global_ba_runs": len(self.server.global_ba_runs),
                  "verifications": self.server.verifications, "rejected": self.rejects.total}
         self.pub_stats.publish(String(data=json.dumps(stats)))
 

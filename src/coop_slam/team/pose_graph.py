@@ -389,6 +389,24 @@ class TeamPoseGraph:
         # iSAM2 cannot drop a variable: rebuild it at the next optimisation.
         self._rebuild = True
 
+    def adopt_estimates(self, poses: dict) -> None:
+        """Take refined keyframe poses (e.g. from global bundle adjustment) as the new estimate
+        *and* as the measurement of the odometry / covisible factors between them, so later
+        optimizations keep the refinement instead of pulling back to the client's poses. Each
+        robot's map transform is unchanged; a client update of a keyframe replaces its pose again."""
+        T_world_map = {r: self.T_world_map(r) for r in {int(k[0]) for k in poses}}
+        for key, T in poses.items():
+            key = self._check_key(*key)
+            T = self._pose(T, f"refined pose of keyframe {key[1]} of robot {key[0]}")
+            self._values[key] = T
+            self._client[key] = invert(T_world_map[key[0]]) @ T
+        for fid in {fid for key in poses for fid in self._by_key.get(tuple(key), ())}:
+            f = self._factors[fid]
+            if f.kind in _CLIENT_KINDS:
+                self._drop_factor(fid)
+                self._client_factor(f.kind, f.key_i, f.key_j)
+        self._rebuild = True
+
     # --- constraints --------------------------------------------------------------------------------
     def _sigmas(self, rot, trans, default_rot, default_trans) -> tuple[float, float]:
         sig = (

@@ -27,6 +27,13 @@ from ..registration.relative_pose import (
     estimate_pnp,
 )
 from .fusion import fuse_points, gather_map_points, robot_colours, voxel_downsample
+from .global_ba import (
+    GlobalBaConfig,
+    GlobalBaError,
+    GlobalBaResult,
+    count_observations,
+    global_bundle_adjustment,
+)
 from .groups import MergeGroups, chain_map_transform
 from .merge_order import plan_merge_steps
 from .pose_graph import PoseGraphConfig, PoseGraphError, TeamPoseGraph
@@ -111,6 +118,7 @@ class ServerConfig:
     place_recognition: PlaceRecognitionConfig = field(default_factory=PlaceRecognitionConfig)
     rendezvous: RendezvousConfig = field(default_factory=RendezvousConfig)
     loops: LoopClosureConfig = field(default_factory=LoopClosureConfig)
+    global_ba: GlobalBaConfig = field(default_factory=GlobalBaConfig)
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     optimize_every: int = 5  # incremental (iSAM2) update every N keyframes; full after each merge
     cloud_voxel_m: float = 0.05  # voxel size of the stitched team cloud [m]
@@ -128,6 +136,7 @@ class ServerConfig:
         self.place_recognition.validate()
         self.rendezvous.validate()
         self.loops.validate()
+        self.global_ba.validate()
 
 
 @dataclass
@@ -197,6 +206,9 @@ class TeamServer:
         self._kf_count: dict[int, int] = {}  # keyframes received per robot
         self._last_constraint: dict[int, int] = {}  # robot -> its keyframe count at the last one
         self._need_full = False
+        # (robot, map point id) pairs that merges / loops matched: one physical point each
+        self.point_links: list[tuple[tuple[int, int], tuple[int, int]]] = []
+        self.global_ba_runs: list[GlobalBaResult] = []
         self.keyframe_ms: list[float] = []  # server time per incoming keyframe
         self.verifications = 0
         self.graph = TeamPoseGraph(config.pose_graph)
@@ -238,6 +250,8 @@ class TeamServer:
         self._since_optimize += 1
         if merges or self._need_full:
             self.optimize(full=True)
+        if merges and self.config.global_ba.after_merge:
+            self._global_ba_if_cheap(merges[-1].robot_a)
         elif self._since_optimize >= self.config.optimize_every:
             self.optimize(full=False)
         self.keyframe_ms.append(1e3 * (time.perf_counter() - t0))
@@ -263,6 +277,53 @@ class TeamServer:
         for robot in self.groups.robots:
             if robot in self.graph.robots and self.graph.keyframe_ids(robot):
                 self.groups.set_T_root_map(robot, self.graph.T_world_map(robot))
+
+    def _global_ba_if_cheap(self, robot_id: int) -> None:
+        members = set(self.groups.members(robot_id))
+        n = count_observations(s.record for k, s in self.keyframes.items() if k[0] in members)
+        if n > self.config.global_ba.auto_max_observations:
+            log.info("global BA after the merge skipped: %d observations > %d (call the service)",
+                     n, self.config.global_ba.auto_max_observations)
+            return
+        try:
+            self.global_bundle_adjustment(robot_id)
+        except GlobalBaError as exc:
+            log.warning("global BA after the merge: %s", exc)
+
+    def global_bundle_adjustment(self, robot_id: int | None = None) -> GlobalBaResult:
+        """Bundle-adjust every keyframe and map point of robot_id's group (default: the world
+        group) with the points matched by merges and loops linked; the refined poses become the
+        pose graph's estimate and odometry (see TeamPoseGraph.adopt_estimates)."""
+        robot_id = min(self.known_robots) if robot_id is None else int(robot_id)
+        if robot_id not in self.known_robots:
+            raise GlobalBaError(f"robot {robot_id} is unknown to the server "
+                                f"(known: {sorted(self.known_robots)})")
+        members = set(self.groups.members(robot_id))
+        keys = sorted(k for k in self.keyframes if k[0] in members)
+        if not keys:
+            raise GlobalBaError(f"robot {robot_id}'s group {sorted(members)} has no keyframes yet")
+        records = [self.keyframes[k].record for k in keys]
+        poses = {k: self.T_group_cam(*k) for k in keys}
+        links = [(a, b) for a, b in self.point_links if a[0] in members and b[0] in members]
+        root = min(members)
+        fixed = {min(k for k in keys if k[0] == root)} if any(k[0] == root for k in keys) else None
+        result = global_bundle_adjustment(records, poses, links, fixed, self.config.global_ba)
+        self._graph_call(self.graph.adopt_estimates, result.poses)
+        self.optimize(full=True)
+        self.global_ba_runs.append(result)
+        log.info("global BA of group %s: %d keyframes, %d points, %d observations (%d outliers), "
+                 "error %.2f -> %.2f, %.0f ms", sorted(members), result.keyframes, result.points,
+                 result.observations, result.outliers, result.rms_before, result.rms_after,
+                 result.time_ms)
+        return result
+
+    def _record_links(self, key_a, key_b, res: RelativePoseResult) -> None:
+        """Map points matched by an accepted registration are one physical point."""
+        ids_a = self.keyframes[key_a].record.map_point_ids
+        ids_b = self.keyframes[key_b].record.map_point_ids
+        for ia, ib in np.asarray(res.inlier_idx, int).reshape(-1, 2):
+            if ia < len(ids_a) and ib < len(ids_b) and ids_a[ia] and ids_b[ib]:
+                self.point_links.append(((key_a[0], int(ids_a[ia])), (key_b[0], int(ids_b[ib]))))
 
     def corrected_keyframes(self, robot_id: int, last: int = 20) -> dict[int, np.ndarray]:
         """Optimized poses (in the robot's own map frame) of its ``last`` newest keyframes."""
@@ -453,6 +514,7 @@ class TeamServer:
         else:
             self._graph_call(self.graph.add_merge, key_a[0], key_a[1], key_b[0], key_b[1],
                              res.T_a_b, kind, sig_rot, sig_trans, k)
+        self._record_links(key_a, key_b, res)
         self.constraints.append(ConstraintResult(
             "loop" if key_a[0] == key_b[0] else kind, key_a, key_b, stamp_s, res.T_a_b,
             int(res.n_inliers), float(res.residual_px)))
@@ -463,10 +525,19 @@ class TeamServer:
         return True
 
     # --- rendezvous ---------------------------------------------------------------------------------
-    def _near_in_time(self, robot_id: int, stamp_s: float, window_s: float) -> list[tuple[int, int]]:
-        """Keys of robot_id's keyframes within window_s of stamp_s, nearest first."""
+    def _near_in_time(self, robot_id: int, stamp_s: float, window_s: float,
+                      latest_fallback: bool = False) -> list[tuple[int, int]]:
+        """Keys of robot_id's keyframes within window_s of stamp_s, nearest first. A robot that
+        stands still makes no new keyframes: with ``latest_fallback`` its latest keyframe before
+        the window stands for what it sees. Only for requests that bring their own cue (a marker
+        sighting, an operator): for the automatic test, being seen at the same time is part of the
+        evidence (identical textures in two places pass any geometric check)."""
         keys = [(k, abs(s.record.stamp_s - stamp_s)) for k, s in self.keyframes.items()
                 if k[0] == robot_id and abs(s.record.stamp_s - stamp_s) <= window_s]
+        if not keys and latest_fallback:
+            before = [(k, s.record.stamp_s) for k, s in self.keyframes.items()
+                      if k[0] == robot_id and s.record.stamp_s < stamp_s]
+            return [max(before, key=lambda ks: ks[1])[0]] if before else []
         return [k for k, _ in sorted(keys, key=lambda kd: kd[1])]
 
     def _co_observation(self, rec: KeyframeRecord) -> list[MergeResult]:
@@ -519,9 +590,9 @@ class TeamServer:
                           default=None) for r in (robot_a, robot_b)]
             if None in latest:
                 return None, "no keyframes yet from one of the robots"
-            stamp_s = min(latest)
-        keys_a = self._near_in_time(robot_a, stamp_s, cfg.request_window_s)
-        keys_b = self._near_in_time(robot_b, stamp_s, cfg.request_window_s)
+            stamp_s = max(latest)  # now; a robot that stands still falls back to its latest
+        keys_a = self._near_in_time(robot_a, stamp_s, cfg.request_window_s, latest_fallback=True)
+        keys_b = self._near_in_time(robot_b, stamp_s, cfg.request_window_s, latest_fallback=True)
         if not keys_a or not keys_b:
             return None, f"no keyframes of both robots within {cfg.request_window_s} s of {stamp_s:.2f} s"
         pairs = sorted(((ka, kb) for ka in keys_a[:3] for kb in keys_b[:3]),
@@ -548,6 +619,7 @@ class TeamServer:
         merge = MergeResult(kind, key_a[0], key_b[0], key_a[1], key_b[1], stamp_s, T_mapA_mapB,
                             res.T_a_b, int(res.n_inliers), float(res.residual_px), group)
         self.merges.append(merge)
+        self._record_links(key_a, key_b, res)
         self.consistency.reset(key_b[0])
         log.info("merged robot %d into robot %d's map (%s, %d inliers, %.2f px): group %s",
                  key_b[0], key_a[0], kind, merge.inliers, merge.residual_px, group)

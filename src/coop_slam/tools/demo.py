@@ -46,6 +46,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                      help="record RViz headless to MP4 + PNG (the default)")
     rec.add_argument("--no-record", dest="record", action="store_false",
                      help="do not record RViz")
+    p.add_argument("--server-config", help="server YAML (default: config/server.yaml)")
+    p.add_argument("--client-config", help="client YAML (default: config/client.yaml)")
+    p.add_argument("--no-markers", action="store_true",
+                   help="clients do not look for other robots' markers (rendezvous without cue)")
     p.add_argument("--out", help="results folder (default: results/<date>-<source>)")
     p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
     p.add_argument("--no-clients", action="store_true",
@@ -204,6 +208,13 @@ def run(args: argparse.Namespace) -> int:
         launch_args.append(f"T_base_cam:=[{', '.join(f'{v:.6f}' for v in (*t, *q))}]")
     if args.no_clients:
         launch_args += ["clients:=false", "server:=false"]
+    for flag, arg in (("server_config", args.server_config), ("client_config", args.client_config)):
+        if arg:
+            if not os.path.isfile(arg):
+                raise CoopSlamError(f"--{flag.replace('_', '-')}: file not found: {arg}")
+            launch_args.append(f"{flag}:={os.path.abspath(arg)}")
+    if args.no_markers:
+        launch_args.append("marker_every_frames:=0")
     bag_path = os.path.join(out, "run.bag")
     launch_args.append(f"record_bag:={bag_path}")
     _write_run_info(out, args, robot_ids)

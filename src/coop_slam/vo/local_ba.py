@@ -51,6 +51,11 @@ class BaProblem:
     huber_stereo: float = 2.796
     chi2_mono: float = 5.991
     chi2_stereo: float = 7.815
+    # Standard deviation of the measured disparity (fx * baseline / depth) [px]. None: the
+    # ORB-SLAM model (u_right as noisy as u). With a depth sensor's noise sigma_z = c * z^2 it is
+    # fx * baseline * c at every range, much smaller than a pixel for a Kinect, so depth then
+    # constrains the points (correlated (u, u_right) noise: u_right = u - disparity).
+    disparity_sigma_px: float | None = None
 
 
 @dataclass
@@ -122,10 +127,13 @@ def run_local_ba(problem: BaProblem) -> BaResult:
             gtsam.noiseModel.Robust.Create(huber_m, gtsam.noiseModel.Isotropic.Sigma(2, s))
             for s in sigmas
         ]
-        noise_stereo = [
-            gtsam.noiseModel.Robust.Create(huber_s, gtsam.noiseModel.Isotropic.Sigma(3, s))
-            for s in sigmas
-        ]
+        if p.disparity_sigma_px is None:
+            stereo_models = [gtsam.noiseModel.Isotropic.Sigma(3, s) for s in sigmas]
+        else:
+            corr = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # (u, u_right, v)
+            d2 = np.diag([0.0, p.disparity_sigma_px**2, 0.0])
+            stereo_models = [gtsam.noiseModel.Gaussian.Covariance(s**2 * corr + d2) for s in sigmas]
+        noise_stereo = [gtsam.noiseModel.Robust.Create(huber_s, m) for m in stereo_models]
         # Fixed keyframes: a very stiff prior. A NonlinearEquality linearizes to a constrained noise
         # model that Cholesky reports as indeterminant; LM then recovers only by raising lambda
         # again and again (measured 5x slower on a 4000-factor window).

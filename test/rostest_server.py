@@ -1,0 +1,117 @@
+#!/usr/bin/env python3
+"""rostest node: two robots' keyframes into the server node; after the merge the stitched cloud,
+markers, TF world -> robot_2/map, robot 2's correction and its optimized path are published and
+consistent with the truth; the global BA service succeeds; a bad keyframe is rejected."""
+import json
+import os
+import sys
+import threading
+import time
+import unittest
+
+import numpy as np
+import rospy
+import rostest
+import tf2_ros
+from nav_msgs.msg import Path
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import String
+from visualization_msgs.msg import MarkerArray
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from helpers import TEAM_T_WORLD_MAP, cylinder_world, team_keyframes  # noqa: E402
+
+from coop_slam.geometry import invert, transform_error  # noqa: E402
+from coop_slam.msg import KeyFrame, MapCorrection, MergeEvent  # noqa: E402
+from coop_slam.ros.convert import (  # noqa: E402
+    cloud_from_msg,
+    keyframe_to_msg,
+    pose_from_msg,
+    transform_from_msg,
+)
+
+
+class ServerTeamMapTest(unittest.TestCase):
+    def test_team_map_after_merge(self):
+        rospy.init_node("server_test")
+        got = {}
+        event = {k: threading.Event() for k in ("merge", "cloud", "markers", "corr", "path")}
+
+        def keep(name, ready=lambda m: True):
+            def cb(msg):
+                got[name] = msg
+                if ready(msg) and name in event:
+                    event[name].set()
+            return cb
+
+        subs = [  # noqa: F841 (kept alive)
+            rospy.Subscriber("/merge_events", MergeEvent, keep("merge")),
+            rospy.Subscriber("/team_map/cloud", PointCloud2,
+                             keep("cloud", lambda m: m.width * m.height > 100)),
+            rospy.Subscriber("/team_map/markers", MarkerArray, keep(
+                "markers", lambda m: any(x.ns == "merges" for x in m.markers))),
+            rospy.Subscriber("/robot_2/correction", MapCorrection, keep("corr", lambda m: m.merged)),
+            rospy.Subscriber("/team_map/robot_2/path", Path,
+                             keep("path", lambda m: m.header.frame_id == "world"
+                                  and len(m.poses) == 8)),
+            rospy.Subscriber("/server/stats", String, keep("stats")),
+        ]
+        buf = tf2_ros.Buffer()
+        tf2_ros.TransformListener(buf)
+        pubs = {r: rospy.Publisher(f"/robot_{r}/keyframes", KeyFrame, queue_size=100)
+                for r in (1, 2)}
+        deadline = time.time() + 60
+        while any(p.get_num_connections() == 0 for p in pubs.values()) and time.time() < deadline:
+            time.sleep(0.1)
+        points, desc = cylinder_world(seed=3)
+        kfs = team_keyframes(1, np.linspace(0, 2 * np.pi, 36, endpoint=False), points, desc)
+        kfs += team_keyframes(2, np.linspace(2.0, 3.0, 8), points, desc, offset=(0.2, 0.1),
+                              seed=100, t0=100.0)
+        for kf in kfs:
+            pubs[kf.robot_id].publish(keyframe_to_msg(kf, f"robot_{kf.robot_id}/map"))
+            time.sleep(0.05)
+        bad = team_keyframes(1, [0.5], points, desc, kid0=99)[0]
+        bad.robot_id = 7  # unknown robot: rejected with a log line, nothing stored changes
+        pubs[1].publish(keyframe_to_msg(bad, "robot_7/map"))
+        for name, ev in event.items():
+            self.assertTrue(ev.wait(300.0), f"nothing (valid) on the {name} topic")
+        truth = invert(TEAM_T_WORLD_MAP[1]) @ TEAM_T_WORLD_MAP[2]
+        merge = got["merge"]
+        self.assertEqual((merge.robot_a, merge.robot_b, merge.type), (1, 2, "place_recognition"))
+        dt, dr = transform_error(transform_from_msg(merge.T_mapA_mapB), truth)
+        self.assertLess(dt, 0.03)
+        self.assertLess(dr, 1.0)
+        # Correction, TF and optimized path tell the same story, and it is the true one.
+        T_corr = transform_from_msg(got["corr"].T_world_map)
+        self.assertLess(transform_error(T_corr, truth)[0], 0.03)
+        tf = buf.lookup_transform("world", "robot_2/map", rospy.Time(0), rospy.Duration(30.0))
+        t = tf.transform.translation
+        self.assertLess(np.linalg.norm(np.array([t.x, t.y, t.z]) - T_corr[:3, 3]), 0.03)
+        path = got["path"]
+        self.assertEqual(len(path.poses), 8)
+        first = pose_from_msg(path.poses[0].pose)
+        true_first = truth @ kfs[36].T_map_cam
+        self.assertLess(transform_error(first, true_first)[0], 0.03)
+        # The stitched cloud: both robots' points of the same wall on the same cylinder.
+        from coop_slam.geometry import transform_points
+
+        xyz = transform_points(TEAM_T_WORLD_MAP[1], cloud_from_msg(got["cloud"]))
+        self.assertLess(np.median(np.abs(np.linalg.norm(xyz[:, :2], axis=1) - 5.0)), 0.05)
+        labels = [m.text for m in got["markers"].markers if m.ns == "labels"]
+        self.assertIn("robot_2", labels)
+        # Global bundle adjustment on request.
+        from coop_slam.srv import GlobalBundleAdjustment
+
+        rospy.wait_for_service("/server/global_ba", 30.0)
+        res = rospy.ServiceProxy("/server/global_ba", GlobalBundleAdjustment)(0)
+        self.assertTrue(res.success, res.message)
+        self.assertEqual(res.keyframes, 44)
+        self.assertLessEqual(res.error_after, res.error_before + 1e-6)
+        time.sleep(1.0)
+        stats = json.loads(got["stats"].data)
+        self.assertGreaterEqual(stats["rejected"], 1)
+        self.assertEqual(stats["groups"], [[1, 2]])
+
+
+if __name__ == "__main__":
+    rostest.rosrun("coop_slam", "server_team_map", ServerTeamMapTest)

@@ -1,0 +1,82 @@
+"""Global bundle adjustment of a merged group: perturbed keyframe poses of two robots, tied by
+linked map points, are pulled back to the truth; bad groups are refused."""
+import numpy as np
+import pytest
+from helpers import camera, cylinder_world, looking_out_pose, observe
+
+from coop_slam.geometry import invert, se3, se3_from_quat, transform_error
+from coop_slam.team.global_ba import GlobalBaConfig, GlobalBaError, global_bundle_adjustment
+from coop_slam.team.pose_graph import TeamPoseGraph
+
+T_WORLD_MAP = {1: np.eye(4), 2: se3_from_quat([-1.0, 0.5, 0.1], [0, 0, -0.4, 1.0])}
+
+
+def _team():
+    points, desc = cylinder_world(seed=3)
+    records, truth = [], {}
+    for robot, yaws, centre in ((1, np.linspace(0, 3.0, 12), (0.0, 0.0)),
+                                (2, np.linspace(1.5, 4.5, 12), (0.3, -0.2))):
+        for k, yaw in enumerate(yaws):
+            T_world_cam = looking_out_pose(yaw, center=centre)
+            rec = observe(points, desc, T_world_cam, T_WORLD_MAP[robot], robot, k + 1, seed=k + 10 * robot)
+            records.append(rec)
+            truth[(robot, k + 1)] = T_world_cam
+    # observe() numbers map points by world point: the same id in both robots is one point.
+    ids = set(records[0].map_point_ids.tolist())
+    for r in records[1:12]:
+        ids |= set(r.map_point_ids.tolist())
+    links = [((1, int(i)), (2, int(i))) for i in sorted(ids - {0})]
+    return records, truth, links
+
+
+def _perturbed(truth, fixed, seed=0):
+    rng = np.random.default_rng(seed)
+    out = {}
+    for key, T in truth.items():
+        if key == fixed:
+            out[key] = T.copy()
+            continue
+        w = rng.normal(0, 0.01, 3)
+        c, s = np.cos(w[2]), np.sin(w[2])
+        out[key] = T @ se3(np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]), rng.normal(0, 0.05, 3))
+    return out
+
+
+def test_global_ba_pulls_perturbed_team_back_to_truth():
+    records, truth, links = _team()
+    fixed = (1, 1)
+    start = _perturbed(truth, fixed)
+    res = global_bundle_adjustment(records, start, links, {fixed}, GlobalBaConfig(iterations=20))
+    before = [transform_error(start[k], truth[k])[0] for k in truth]
+    after = [transform_error(res.poses[k], truth[k])[0] for k in truth]
+    assert np.mean(before) > 0.04 and np.mean(after) < 0.01
+    assert np.allclose(res.poses[fixed], truth[fixed], atol=1e-6)
+    assert res.rms_after < res.rms_before and res.keyframes == 24
+    # Robot 2 is tied to robot 1 by the linked points alone (no pose-graph constraint here).
+    assert max(transform_error(res.poses[k], truth[k])[0] for k in truth if k[0] == 2) < 0.02
+
+
+def test_global_ba_result_survives_the_next_pose_graph_optimization():
+    records, truth, links = _team()
+    graph = TeamPoseGraph()
+    start = _perturbed(truth, (1, 1), seed=1)
+    for rec in records:  # client poses = the perturbed ones, as a drifting client would send them
+        graph.add_keyframe(rec.robot_id, rec.keyframe_id, start[(rec.robot_id, rec.keyframe_id)])
+    graph.add_merge(1, 6, 2, 1, invert(truth[(1, 6)]) @ truth[(2, 1)])
+    graph.optimize_full()
+    res = global_bundle_adjustment(records, {k: graph.T_world_cam(*k) for k in truth}, links,
+                                   {(1, 1)}, GlobalBaConfig(iterations=20))
+    graph.adopt_estimates(res.poses)
+    graph.optimize_full()
+    after = [transform_error(graph.T_world_cam(*k), truth[k])[0] for k in truth]
+    assert np.mean(after) < 0.015
+
+
+def test_global_ba_refuses_bad_groups():
+    records, truth, links = _team()
+    with pytest.raises(GlobalBaError, match="no keyframes"):
+        global_bundle_adjustment([], {}, [])
+    other = camera(f=600.0)
+    records[3].camera = other
+    with pytest.raises(GlobalBaError, match="one camera model"):
+        global_bundle_adjustment(records, truth, links)
