@@ -184,6 +184,7 @@ class TeamPoseGraph:
         cfg = self.config
         self._kernel = self._make_kernel(cfg.robust_k)
         self._client: dict[Key, np.ndarray] = {}  # T_map_cam as the client last sent it
+        self._refined: dict[Key, np.ndarray] = {}  # pose from global BA, until the client moves it
         self._values: dict[Key, np.ndarray] = {}  # current estimate T_world_cam
         self._chain: dict[int, list[int]] = {}  # robot -> sorted keyframe ids
         self._map_hint: dict[int, np.ndarray] = {}  # T_world_map for a robot's first keyframe
@@ -243,9 +244,13 @@ class TeamPoseGraph:
         return f
 
     def _client_factor(self, kind: str, key_i: Key, key_j: Key) -> int:
-        """Odometry-type factor from the client's current poses of two keyframes of one robot."""
+        """Odometry-type factor from the client's current poses of two keyframes of one robot (from
+        the refined poses when both were refined together, see :meth:`adopt_estimates`)."""
         cfg = self.config
-        T_i_j = invert(self._client[key_i]) @ self._client[key_j]
+        if key_i in self._refined and key_j in self._refined:
+            T_i_j = invert(self._refined[key_i]) @ self._refined[key_j]
+        else:
+            T_i_j = invert(self._client[key_i]) @ self._client[key_j]
         dist_m = float(np.linalg.norm(T_i_j[:3, 3]))
         sigmas = (
             cfg.odom_rot_sigma_rad + cfg.odom_rot_sigma_per_m * dist_m,
@@ -353,6 +358,7 @@ class TeamPoseGraph:
         self._client[key] = self._pose(
             T_map_cam, f"pose of keyframe {keyframe_id} of robot " f"{robot_id}"
         )
+        self._refined.pop(key, None)
         for fid in list(self._by_key.get(key, ())):
             f = self._factors[fid]
             if f.kind in _CLIENT_KINDS:
@@ -384,6 +390,7 @@ class TeamPoseGraph:
             self._client_factor(KIND_ODOMETRY, prev, nxt)
         chain.pop(pos)
         del self._values[key], self._client[key]
+        self._refined.pop(key, None)
         self._by_key.pop(key, None)
         self._priors.pop(key, None)
         # iSAM2 cannot drop a variable: rebuild it at the next optimisation.
@@ -391,15 +398,15 @@ class TeamPoseGraph:
 
     def adopt_estimates(self, poses: dict) -> None:
         """Take refined keyframe poses (e.g. from global bundle adjustment) as the new estimate
-        *and* as the measurement of the odometry / covisible factors between them, so later
-        optimizations keep the refinement instead of pulling back to the client's poses. Each
-        robot's map transform is unchanged; a client update of a keyframe replaces its pose again."""
-        T_world_map = {r: self.T_world_map(r) for r in {int(k[0]) for k in poses}}
+        *and* as the measurement of the odometry / covisible factors between two refined
+        keyframes, so later optimizations keep the refinement instead of pulling back to the
+        client's poses. Factors to keyframes that were not refined keep the client's relative pose,
+        and a client update of a keyframe (local BA) drops its refinement."""
         for key, T in poses.items():
             key = self._check_key(*key)
             T = self._pose(T, f"refined pose of keyframe {key[1]} of robot {key[0]}")
             self._values[key] = T
-            self._client[key] = invert(T_world_map[key[0]]) @ T
+            self._refined[key] = T
         for fid in {fid for key in poses for fid in self._by_key.get(tuple(key), ())}:
             f = self._factors[fid]
             if f.kind in _CLIENT_KINDS:

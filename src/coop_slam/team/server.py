@@ -90,7 +90,7 @@ class LoopClosureConfig:
     links between robots merged earlier (the place-recognition path, within the team map)."""
 
     enabled: bool = True
-    min_separation_s: float = 15.0  # a robot's own candidate must be at least this much older [s]
+    min_separation_s: float = 5.0  # a robot's own candidate must be at least this much older [s]
     min_interval_kf: int = 5  # keyframes of a robot between two constraints it adds
     # A verified constraint further than this from the current estimate is refused (the robust
     # kernel is the second line of defence): indoor drift between revisits is well below it.

@@ -274,7 +274,7 @@ def evaluate_run(run: RunData, streams: list[RobotStream], keep_timing: bool = F
         [{"trans_err_m": m["local_trans_err_m"], "rot_err_deg": m["local_rot_err_deg"]}
          for m in report["merges"]])
     report["groups"] = run.server_stats.get("groups") or [[s.robot_id] for s in streams]
-    if len(est_world) >= 2:
+    if len(est_world) >= 2 or (len(streams) == 1 and est_world):
         try:
             team = team_ate(est_world, gt_world)
             report["team_ate_rmse_m"] = team.rmse_m
@@ -282,7 +282,7 @@ def evaluate_run(run: RunData, streams: list[RobotStream], keep_timing: bool = F
             team = None
         if out_dir and team is not None:
             _plot_team(out_dir, est_world, gt_world, team)
-    elif len(streams) == 1 and report["robots"][0]["ate_rmse_m"] is not None:
+    if report["team_ate_rmse_m"] is None and len(streams) == 1:
         report["team_ate_rmse_m"] = report["robots"][0]["ate_rmse_m"]
     report["server_ms_per_keyframe"] = run.server_stats.get("ms_per_keyframe_mean")
     report["loop_closures"] = run.server_stats.get("loops")
