@@ -50,7 +50,8 @@ class ServerTeamMapTest(unittest.TestCase):
                              keep("cloud", lambda m: m.width * m.height > 100)),
             rospy.Subscriber("/team_map/markers", MarkerArray, keep(
                 "markers", lambda m: any(x.ns == "merges" for x in m.markers))),
-            rospy.Subscriber("/robot_2/correction", MapCorrection, keep("corr", lambda m: m.merged)),
+            rospy.Subscriber("/robot_2/correction", MapCorrection,
+                             keep("corr", lambda m: m.merged)),
             rospy.Subscriber("/team_map/robot_2/path", Path,
                              keep("path", lambda m: m.header.frame_id == "world"
                                   and len(m.poses) == 8)),

@@ -10,6 +10,7 @@ from coop_slam.geometry import invert, se3, se3_from_quat, transform_error
 from coop_slam.team.global_ba import GlobalBaConfig, GlobalBaError, global_bundle_adjustment
 from coop_slam.team.pose_graph import TeamPoseGraph
 
+EXACT_DEPTH = GlobalBaConfig(iterations=20, min_disparity_sigma_px=0.05)
 T_WORLD_MAP = {1: np.eye(4), 2: se3_from_quat([-1.0, 0.5, 0.1], [0, 0, -0.4, 1.0])}
 
 
@@ -20,7 +21,8 @@ def _team():
                                 (2, np.linspace(1.5, 4.5, 12), (0.3, -0.2))):
         for k, yaw in enumerate(yaws):
             T_world_cam = looking_out_pose(yaw, center=centre)
-            rec = observe(points, desc, T_world_cam, T_WORLD_MAP[robot], robot, k + 1, seed=k + 10 * robot)
+            rec = observe(points, desc, T_world_cam, T_WORLD_MAP[robot], robot, k + 1,
+                          seed=k + 10 * robot)
             records.append(rec)
             truth[(robot, k + 1)] = T_world_cam
     # observe() numbers map points by world point: the same id in both robots is one point.
@@ -48,7 +50,7 @@ def test_global_ba_pulls_perturbed_team_back_to_truth():
     records, truth, links = _team()
     fixed = (1, 1)
     start = _perturbed(truth, fixed)
-    res = global_bundle_adjustment(records, start, links, {fixed}, GlobalBaConfig(iterations=20, min_disparity_sigma_px=0.05))
+    res = global_bundle_adjustment(records, start, links, {fixed}, EXACT_DEPTH)
     before = [transform_error(start[k], truth[k])[0] for k in truth]
     after = [transform_error(res.poses[k], truth[k])[0] for k in truth]
     assert np.mean(before) > 0.04 and np.mean(after) < 0.01
@@ -67,7 +69,7 @@ def test_global_ba_result_survives_the_next_pose_graph_optimization():
     graph.add_merge(1, 6, 2, 1, invert(truth[(1, 6)]) @ truth[(2, 1)])
     graph.optimize_full()
     res = global_bundle_adjustment(records, {k: graph.T_world_cam(*k) for k in truth}, links,
-                                   {(1, 1)}, GlobalBaConfig(iterations=20, min_disparity_sigma_px=0.05))
+                                   {(1, 1)}, EXACT_DEPTH)
     graph.adopt_estimates(res.poses)
     graph.optimize_full()
     after = [transform_error(graph.T_world_cam(*k), truth[k])[0] for k in truth]

@@ -181,8 +181,9 @@ class ServerNode:
 
         try:
             done.result = self.server.global_bundle_adjustment(robot_id)
-            done.message = (f"{done.result.keyframes} keyframes, {done.result.points} points: error "
-                            f"{done.result.rms_before:.2f} -> {done.result.rms_after:.2f}")
+            done.message = (f"{done.result.keyframes} keyframes, {done.result.points} points: "
+                            f"reprojection RMS {done.result.rms_before:.2f} -> "
+                            f"{done.result.rms_after:.2f} px")
         except GlobalBaError as exc:
             done.result, done.message = None, str(exc)
         rospy.loginfo("server: global BA: %s", done.message)

@@ -49,7 +49,9 @@ class GlobalBaConfig:
         require(self.iterations >= 1, "global_ba.iterations must be >= 1")
         require(self.min_observations >= 2, "global_ba.min_observations must be >= 2")
         require(self.virtual_baseline_m > 0, "global_ba.virtual_baseline_m must be > 0")
-        require(0 < self.min_depth_m < self.max_depth_m, "global_ba: need 0 < min_depth_m < max_depth_m")
+        require(
+            0 < self.min_depth_m < self.max_depth_m, "global_ba: need 0 < min_depth_m < max_depth_m"
+        )
         require(self.depth_sigma_per_m2 >= 0, "global_ba.depth_sigma_per_m2 must be >= 0")
         require(self.min_disparity_sigma_px > 0, "global_ba.min_disparity_sigma_px must be > 0")
         require(self.scale_factor > 1, "global_ba.scale_factor must be > 1")
@@ -64,8 +66,8 @@ class GlobalBaResult:
     points: int
     observations: int
     outliers: int  # observations beyond the chi-square gate after optimization
-    rms_before: float  # RMS whitened reprojection error (pixels at pyramid level 0)
-    rms_after: float
+    rms_before: float  # RMS reprojection error [px] of the inlier observations, before
+    rms_after: float  # ... and after (robust: the 95 % best observations)
     time_ms: float
 
 
@@ -86,6 +88,18 @@ class _Landmarks:
         ra, rb = self.find(a), self.find(b)
         if ra != rb:
             self.parent[max(ra, rb)] = min(ra, rb)
+
+
+def _reprojection_rms_px(problem: BaProblem, T_map_cam: np.ndarray, points: np.ndarray) -> float:
+    """RMS image reprojection error [px] over the best 95 % of the observations (outliers would
+    dominate a plain RMS)."""
+    T_cam_map = np.linalg.inv(T_map_cam)[problem.obs_kf]
+    pc = np.einsum("nij,nj->ni", T_cam_map[:, :3, :3], points[problem.obs_pt]) + T_cam_map[:, :3, 3]
+    z = np.maximum(pc[:, 2], 1e-6)
+    du = problem.fx * pc[:, 0] / z + problem.cx - problem.obs_uv[:, 0]
+    dv = problem.fy * pc[:, 1] / z + problem.cy - problem.obs_uv[:, 1]
+    e2 = np.sort(du**2 + dv**2)
+    return float(np.sqrt(np.mean(e2[: max(1, int(0.95 * len(e2)))])))
 
 
 def count_observations(records) -> int:
@@ -167,7 +181,11 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
 
 
 def global_bundle_adjustment(
-    records, T_group_cam: dict, links=(), fixed: set | None = None, config: GlobalBaConfig | None = None
+    records,
+    T_group_cam: dict,
+    links=(),
+    fixed: set | None = None,
+    config: GlobalBaConfig | None = None,
 ) -> GlobalBaResult:
     """Refine the poses of ``records`` (keyframes of one group, initial poses ``T_group_cam``) and
     their map points; ``links`` are pairs of landmarks that are one physical point; ``fixed``
@@ -186,7 +204,7 @@ def global_bundle_adjustment(
         points=n_points,
         observations=len(problem.obs_kf),
         outliers=int(np.count_nonzero(res.outlier_obs)),
-        rms_before=res.error_before,
-        rms_after=res.error_after,
+        rms_before=_reprojection_rms_px(problem, problem.T_map_cam, problem.points_map),
+        rms_after=_reprojection_rms_px(problem, res.T_map_cam, res.points_map),
         time_ms=res.time_ms,
     )

@@ -312,9 +312,9 @@ class TeamServer:
         self.optimize(full=True)
         self.global_ba_runs.append(result)
         log.info("global BA of group %s: %d keyframes, %d points, %d observations (%d outliers), "
-                 "error %.2f -> %.2f, %.0f ms", sorted(members), result.keyframes, result.points,
-                 result.observations, result.outliers, result.rms_before, result.rms_after,
-                 result.time_ms)
+                 "reprojection RMS %.2f -> %.2f px, %.0f ms", sorted(members), result.keyframes,
+                 result.points, result.observations, result.outliers, result.rms_before,
+                 result.rms_after, result.time_ms)
         return result
 
     def _record_links(self, key_a, key_b, res: RelativePoseResult) -> None:
