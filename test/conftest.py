@@ -1,5 +1,6 @@
 """pytest setup: find the shared fakes in test/, and the package in src/ when no catkin workspace
 is sourced (scripts/test sources .ws/devel, whose coop_slam also carries the generated messages)."""
+
 import importlib.util
 import os
 import sys

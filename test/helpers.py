@@ -1,4 +1,5 @@
 """Shared fakes for the tests: small datasets written on the fly and well-formed keyframes."""
+
 from __future__ import annotations
 
 import os
@@ -16,7 +17,9 @@ TINY_TUM = os.path.join(REPO, "test", "fixtures", "tiny_tum")
 
 
 def camera(width=640, height=480, f=525.0) -> CameraModel:
-    return CameraModel(width=width, height=height, fx=f, fy=f, cx=(width - 1) / 2, cy=(height - 1) / 2)
+    return CameraModel(
+        width=width, height=height, fx=f, fy=f, cx=(width - 1) / 2, cy=(height - 1) / 2
+    )
 
 
 def make_keyframe(n=50, robot_id=1, keyframe_id=1, seed=0, with_map_points=True) -> KeyframeRecord:
@@ -24,7 +27,9 @@ def make_keyframe(n=50, robot_id=1, keyframe_id=1, seed=0, with_map_points=True)
     rng = np.random.default_rng(seed)
     cam = camera()
     uv = rng.uniform([0, 0], [cam.width - 1, cam.height - 1], (n, 2))
-    keypoints = np.column_stack([uv, rng.uniform(7, 30, n), rng.uniform(0, 360, n)]).astype(np.float32)
+    keypoints = np.column_stack([uv, rng.uniform(7, 30, n), rng.uniform(0, 360, n)]).astype(
+        np.float32
+    )
     ids = np.where(np.arange(n) % 2 == 0, np.arange(1, n + 1), 0).astype(np.uint32)
     if not with_map_points:
         ids[:] = 0
@@ -52,7 +57,9 @@ def write_kitti(folder: str, n=5, width=64, height=32) -> str:
     for sub in ("image_0", "image_1"):
         os.makedirs(os.path.join(seq, sub), exist_ok=True)
         for i in range(n):
-            cv2.imwrite(os.path.join(seq, sub, f"{i:06d}.png"), np.full((height, width), 10 * i, np.uint8))
+            cv2.imwrite(
+                os.path.join(seq, sub, f"{i:06d}.png"), np.full((height, width), 10 * i, np.uint8)
+            )
     P0 = "700 0 32 0 0 700 16 0 0 0 1 0"
     P1 = "700 0 32 -378 0 700 16 0 0 0 1 0"  # baseline 0.54 m, as KITTI
     with open(os.path.join(seq, "calib.txt"), "w") as fh:
@@ -69,7 +76,9 @@ def cylinder_world(n_points=4000, radius=5.0, seed=0):
     """Points on a cylinder wall around the origin (z up), each with its own ORB-like descriptor."""
     rng = np.random.default_rng(seed)
     a = rng.uniform(0, 2 * np.pi, n_points)
-    points_world = np.column_stack([radius * np.cos(a), radius * np.sin(a), rng.uniform(0, 2.5, n_points)])
+    points_world = np.column_stack(
+        [radius * np.cos(a), radius * np.sin(a), rng.uniform(0, 2.5, n_points)]
+    )
     return points_world, rng.integers(0, 256, (n_points, 32), dtype=np.uint8)
 
 
@@ -83,8 +92,19 @@ def looking_out_pose(yaw, center=(0.0, 0.0), height=1.2):
     return se3(R, [center[0], center[1], height])
 
 
-def observe(points_world, descriptors, T_world_cam, T_world_map, robot_id, keyframe_id, cam=None,
-            seed=0, px_noise=0.5, bit_flips=3, stamp_s=None):
+def observe(
+    points_world,
+    descriptors,
+    T_world_cam,
+    T_world_map,
+    robot_id,
+    keyframe_id,
+    cam=None,
+    seed=0,
+    px_noise=0.5,
+    bit_flips=3,
+    stamp_s=None,
+):
     """A KeyframeRecord of the points a camera sees (noisy pixels, depth and descriptors)."""
     from coop_slam.geometry import invert, transform_points
 
@@ -94,7 +114,13 @@ def observe(points_world, descriptors, T_world_cam, T_world_map, robot_id, keyfr
     z = p_cam[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         uv = np.column_stack([cam.fx * p_cam[:, 0] / z + cam.cx, cam.fy * p_cam[:, 1] / z + cam.cy])
-    vis = (z > 0.3) & (uv[:, 0] >= 2) & (uv[:, 0] < cam.width - 2) & (uv[:, 1] >= 2) & (uv[:, 1] < cam.height - 2)
+    vis = (
+        (z > 0.3)
+        & (uv[:, 0] >= 2)
+        & (uv[:, 0] < cam.width - 2)
+        & (uv[:, 1] >= 2)
+        & (uv[:, 1] < cam.height - 2)
+    )
     idx = np.nonzero(vis)[0]
     n = len(idx)
     uv = uv[idx] + rng.normal(0, px_noise, (n, 2))
@@ -107,19 +133,26 @@ def observe(points_world, descriptors, T_world_cam, T_world_map, robot_id, keyfr
     depth = z[idx] * (1 + rng.normal(0, 0.003, n))
     T_map_cam = invert(T_world_map) @ T_world_cam
     return KeyframeRecord(
-        robot_id=robot_id, keyframe_id=keyframe_id,
-        stamp_s=float(keyframe_id if stamp_s is None else stamp_s), camera=cam, T_map_cam=T_map_cam,
+        robot_id=robot_id,
+        keyframe_id=keyframe_id,
+        stamp_s=float(keyframe_id if stamp_s is None else stamp_s),
+        camera=cam,
+        T_map_cam=T_map_cam,
         keypoints=np.column_stack([uv, np.full(n, 10.0), np.zeros(n)]).astype(np.float32),
-        octaves=np.zeros(n, np.uint8), descriptors=desc, depths_m=depth.astype(np.float32),
+        octaves=np.zeros(n, np.uint8),
+        descriptors=desc,
+        depths_m=depth.astype(np.float32),
         map_point_ids=(idx + 1).astype(np.uint32),
         map_points=transform_points(invert(T_world_map), points_world[idx]).astype(np.float32),
     )
 
 
 # --- a team of robots in the cylinder world (server tests and the server rostest) ---------------------
-TEAM_T_WORLD_MAP = {1: se3_from_quat([0.3, -0.2, 0.0], [0, 0, 0.1, 1.0]),
-                    2: se3_from_quat([-1.0, 0.5, 0.1], [0, 0, -0.4, 1.0]),
-                    3: se3_from_quat([0.5, 1.5, -0.1], [0, 0, 0.7, 1.0])}
+TEAM_T_WORLD_MAP = {
+    1: se3_from_quat([0.3, -0.2, 0.0], [0, 0, 0.1, 1.0]),
+    2: se3_from_quat([-1.0, 0.5, 0.1], [0, 0, -0.4, 1.0]),
+    3: se3_from_quat([0.5, 1.5, -0.1], [0, 0, 0.7, 1.0]),
+}
 
 
 def team_keyframes(robot_id, yaws, points, desc, kid0=1, offset=(0.0, 0.0), seed=0, t0=0.0):
@@ -127,9 +160,19 @@ def team_keyframes(robot_id, yaws, points, desc, kid0=1, offset=(0.0, 0.0), seed
     with its two predecessors; map frames from TEAM_T_WORLD_MAP, one keyframe per second."""
     out = []
     for k, yaw in enumerate(yaws):
-        kf = observe(points, desc, looking_out_pose(yaw, center=offset), TEAM_T_WORLD_MAP[robot_id],
-                     robot_id, kid0 + k, seed=seed + k, stamp_s=t0 + k)
-        kf.covisible_ids = np.array([i for i in (kid0 + k - 1, kid0 + k - 2) if i >= kid0], np.uint32)
+        kf = observe(
+            points,
+            desc,
+            looking_out_pose(yaw, center=offset),
+            TEAM_T_WORLD_MAP[robot_id],
+            robot_id,
+            kid0 + k,
+            seed=seed + k,
+            stamp_s=t0 + k,
+        )
+        kf.covisible_ids = np.array(
+            [i for i in (kid0 + k - 1, kid0 + k - 2) if i >= kid0], np.uint32
+        )
         kf.covisible_weights = np.full(len(kf.covisible_ids), 100, np.uint16)
         out.append(kf)
     return out

@@ -24,11 +24,19 @@ class ClientOutputsTest(unittest.TestCase):
         got = {"kf": [], "pose": [], "path": None, "cloud": None, "stats": []}
         done = threading.Event()
         subs = [
-            rospy.Subscriber("/robot_1/keyframes", KeyFrame, lambda m: got["kf"].append(m), queue_size=100),
-            rospy.Subscriber("/robot_1/pose", PoseStamped, lambda m: got["pose"].append(m), queue_size=100),
+            rospy.Subscriber(
+                "/robot_1/keyframes", KeyFrame, lambda m: got["kf"].append(m), queue_size=100
+            ),
+            rospy.Subscriber(
+                "/robot_1/pose", PoseStamped, lambda m: got["pose"].append(m), queue_size=100
+            ),
             rospy.Subscriber("/robot_1/path", Path, lambda m: got.__setitem__("path", m)),
-            rospy.Subscriber("/robot_1/local_map", PointCloud2, lambda m: got.__setitem__("cloud", m)),
-            rospy.Subscriber("/robot_1/frame_stats", FrameStats, lambda m: got["stats"].append(m), queue_size=100),
+            rospy.Subscriber(
+                "/robot_1/local_map", PointCloud2, lambda m: got.__setitem__("cloud", m)
+            ),
+            rospy.Subscriber(
+                "/robot_1/frame_stats", FrameStats, lambda m: got["stats"].append(m), queue_size=100
+            ),
             rospy.Subscriber("/player/done", Bool, lambda m: m.data and done.set()),
         ]
         buf = tf2_ros.Buffer()
@@ -53,11 +61,15 @@ class ClientOutputsTest(unittest.TestCase):
         self.assertIsNotNone(got["cloud"])
         self.assertEqual(got["cloud"].header.frame_id, "robot_1/map")
         self.assertGreater(len(cloud_from_msg(got["cloud"])), 100)
-        for parent, child in (("robot_1/map", "robot_1/odom"), ("robot_1/odom", "robot_1/base_link"),
-                              ("robot_1/base_link", "robot_1/camera_optical"),
-                              ("robot_1/map", "robot_1/camera_optical")):
-            self.assertTrue(buf.can_transform(parent, child, rospy.Time(0)),
-                            f"no TF {parent} -> {child}")
+        for parent, child in (
+            ("robot_1/map", "robot_1/odom"),
+            ("robot_1/odom", "robot_1/base_link"),
+            ("robot_1/base_link", "robot_1/camera_optical"),
+            ("robot_1/map", "robot_1/camera_optical"),
+        ):
+            self.assertTrue(
+                buf.can_transform(parent, child, rospy.Time(0)), f"no TF {parent} -> {child}"
+            )
         # The pose stream and TF agree on where the camera is.
         T = buf.lookup_transform("robot_1/map", "robot_1/camera_optical", rospy.Time(0))
         p = got["pose"][-1].pose.position

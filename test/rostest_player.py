@@ -22,7 +22,9 @@ class PlayerLockstepTest(unittest.TestCase):
         depth = {1: 0, 2: 0}
         violations = []
         pending = {}
-        acks = {k: rospy.Publisher(f"/robot_{k}/frame_stats", FrameStats, queue_size=10) for k in (1, 2)}
+        acks = {
+            k: rospy.Publisher(f"/robot_{k}/frame_stats", FrameStats, queue_size=10) for k in (1, 2)
+        }
 
         def on_color(msg, k):
             with lock:
@@ -47,7 +49,9 @@ class PlayerLockstepTest(unittest.TestCase):
         subs = []
         for k in (1, 2):
             subs.append(rospy.Subscriber(f"/robot_{k}/camera/color/image_raw", Image, on_color, k))
-            subs.append(rospy.Subscriber(f"/robot_{k}/camera/color/camera_info", CameraInfo, on_info, k))
+            subs.append(
+                rospy.Subscriber(f"/robot_{k}/camera/color/camera_info", CameraInfo, on_info, k)
+            )
             subs.append(rospy.Subscriber(f"/robot_{k}/camera/depth/image_raw", Image, on_depth, k))
         done = threading.Event()
         subs.append(rospy.Subscriber("/player/done", Bool, lambda m: m.data and done.set()))
@@ -62,7 +66,9 @@ class PlayerLockstepTest(unittest.TestCase):
             self.assertEqual(got[k][0][2], "bgr8")
             self.assertGreaterEqual(infos[k], 6)
             self.assertGreaterEqual(depth[k], 6)
-        self.assertEqual(violations, [], "player published before the previous frame was acknowledged")
+        self.assertEqual(
+            violations, [], "player published before the previous frame was acknowledged"
+        )
         self.assertTrue(rospy.get_param("/use_sim_time"))
 
 

@@ -19,8 +19,6 @@ from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from helpers import TEAM_T_WORLD_MAP, cylinder_world, team_keyframes  # noqa: E402
-
 from coop_slam.geometry import invert, transform_error  # noqa: E402
 from coop_slam.msg import KeyFrame, MapCorrection, MergeEvent  # noqa: E402
 from coop_slam.ros.convert import (  # noqa: E402
@@ -29,6 +27,7 @@ from coop_slam.ros.convert import (  # noqa: E402
     pose_from_msg,
     transform_from_msg,
 )
+from helpers import TEAM_T_WORLD_MAP, cylinder_world, team_keyframes  # noqa: E402
 
 
 class ServerTeamMapTest(unittest.TestCase):
@@ -42,32 +41,42 @@ class ServerTeamMapTest(unittest.TestCase):
                 got[name] = msg
                 if ready(msg) and name in event:
                     event[name].set()
+
             return cb
 
         subs = [  # noqa: F841 (kept alive)
             rospy.Subscriber("/merge_events", MergeEvent, keep("merge")),
-            rospy.Subscriber("/team_map/cloud", PointCloud2,
-                             keep("cloud", lambda m: m.width * m.height > 100)),
-            rospy.Subscriber("/team_map/markers", MarkerArray, keep(
-                "markers", lambda m: any(x.ns == "merges" for x in m.markers))),
-            rospy.Subscriber("/robot_2/correction", MapCorrection,
-                             keep("corr", lambda m: m.merged)),
-            rospy.Subscriber("/team_map/robot_2/path", Path,
-                             keep("path", lambda m: m.header.frame_id == "world"
-                                  and len(m.poses) == 8)),
+            rospy.Subscriber(
+                "/team_map/cloud", PointCloud2, keep("cloud", lambda m: m.width * m.height > 100)
+            ),
+            rospy.Subscriber(
+                "/team_map/markers",
+                MarkerArray,
+                keep("markers", lambda m: any(x.ns == "merges" for x in m.markers)),
+            ),
+            rospy.Subscriber(
+                "/robot_2/correction", MapCorrection, keep("corr", lambda m: m.merged)
+            ),
+            rospy.Subscriber(
+                "/team_map/robot_2/path",
+                Path,
+                keep("path", lambda m: m.header.frame_id == "world" and len(m.poses) == 8),
+            ),
             rospy.Subscriber("/server/stats", String, keep("stats")),
         ]
         buf = tf2_ros.Buffer()
         tf2_ros.TransformListener(buf)
-        pubs = {r: rospy.Publisher(f"/robot_{r}/keyframes", KeyFrame, queue_size=100)
-                for r in (1, 2)}
+        pubs = {
+            r: rospy.Publisher(f"/robot_{r}/keyframes", KeyFrame, queue_size=100) for r in (1, 2)
+        }
         deadline = time.time() + 60
         while any(p.get_num_connections() == 0 for p in pubs.values()) and time.time() < deadline:
             time.sleep(0.1)
         points, desc = cylinder_world(seed=3)
         kfs = team_keyframes(1, np.linspace(0, 2 * np.pi, 36, endpoint=False), points, desc)
-        kfs += team_keyframes(2, np.linspace(2.0, 3.0, 8), points, desc, offset=(0.2, 0.1),
-                              seed=100, t0=100.0)
+        kfs += team_keyframes(
+            2, np.linspace(2.0, 3.0, 8), points, desc, offset=(0.2, 0.1), seed=100, t0=100.0
+        )
         for kf in kfs:
             pubs[kf.robot_id].publish(keyframe_to_msg(kf, f"robot_{kf.robot_id}/map"))
             time.sleep(0.05)

@@ -210,17 +210,20 @@ def _dbow2_text() -> str:
     def d(values: list[int]) -> str:
         return " ".join(map(str, values))
 
-    return "\n".join(
-        [
-            "3 2  0 0",
-            f"0 0 {d([0] * 32)}  0",  # node 1 (line 2): inner
-            f"0 1 {d([255] * 32)}  1.5",  # node 2 (line 3): leaf at level 1
-            f"1 1 {d([1] + [0] * 31)}  0.7",  # node 3 (line 4)
-            f"1 1 {d([0] * 31 + [7])}  0.2",  # node 4 (line 5)
-            f"0 0 {d([15] * 32)}  0",  # node 5 (line 6): inner, after the children of node 1
-            f"5 1 {d([15] * 31 + [31])}  0.9",  # node 6 (line 7)
-        ]
-    ) + "\n"
+    return (
+        "\n".join(
+            [
+                "3 2  0 0",
+                f"0 0 {d([0] * 32)}  0",  # node 1 (line 2): inner
+                f"0 1 {d([255] * 32)}  1.5",  # node 2 (line 3): leaf at level 1
+                f"1 1 {d([1] + [0] * 31)}  0.7",  # node 3 (line 4)
+                f"1 1 {d([0] * 31 + [7])}  0.2",  # node 4 (line 5)
+                f"0 0 {d([15] * 32)}  0",  # node 5 (line 6): inner, after the children of node 1
+                f"5 1 {d([15] * 31 + [31])}  0.9",  # node 6 (line 7)
+            ]
+        )
+        + "\n"
+    )
 
 
 def test_load_dbow2_text(tmp_path):

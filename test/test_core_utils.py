@@ -1,9 +1,9 @@
 """Geometry helpers, the config loader, descriptor utilities and keyframe validation."""
+
 from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
-from helpers import make_keyframe
 
 from coop_slam.config import load_config, require
 from coop_slam.descriptors import DescriptorError, hamming_matrix, hamming_rows, match_ratio
@@ -18,6 +18,7 @@ from coop_slam.geometry import (
     transform_points,
 )
 from coop_slam.keyframe import KeyframeError
+from helpers import make_keyframe
 
 
 def test_se3_round_trip_and_error():

@@ -1,10 +1,10 @@
 """Readers (TUM, KITTI), splitter and playback schedule."""
+
 import os
 import shutil
 
 import numpy as np
 import pytest
-from helpers import REDKITCHEN, TINY_TUM, write_kitti
 
 from coop_slam.datasets import (
     DatasetError,
@@ -18,6 +18,7 @@ from coop_slam.datasets import (
 )
 from coop_slam.geometry import se3_from_quat
 from coop_slam.playback import PlaybackError, build_schedule, group_simultaneous, load_streams
+from helpers import REDKITCHEN, TINY_TUM, write_kitti
 
 
 def test_tum_reader_associates_and_loads():

@@ -1,22 +1,29 @@
 """End to end through the README's main command: scripts/demo runs player, server and clients on a
 scenario (lock-step, so results do not depend on machine speed) and its report is checked."""
+
 import json
 import os
 import subprocess
 
 import pytest
+
 from helpers import REDKITCHEN, REPO
 
 
 def _demo(tmp_path, *args, timeout=1500):
     out = tmp_path / "out"
     # RViz recording is covered by test_record_rviz; here it would only slow the run down.
-    proc = subprocess.run([os.path.join(REPO, "scripts", "demo"), *args, "--no-record", "--out",
-                           str(out)],
-                          capture_output=True, text=True, timeout=timeout)
+    proc = subprocess.run(
+        [os.path.join(REPO, "scripts", "demo"), *args, "--no-record", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
     log = out / "roslaunch.log"
     tail = log.read_text(errors="replace")[-4000:] if log.exists() else ""
-    assert proc.returncode == 0, f"demo failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}\n{tail}"
+    assert (
+        proc.returncode == 0
+    ), f"demo failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}\n{tail}"
     with open(out / "report.json") as fh:
         return json.load(fh), tail, out
 
@@ -51,8 +58,9 @@ def test_rendezvous_merges_by_rendezvous(tmp_path, mode):
     place recognition off), or co-observation with no marker cue (clients do not look for markers).
     The operator trigger goes through the same request path (test_team_server)."""
     if mode == "marker_sighting":
-        cfg = _server_config(tmp_path, rendezvous={"auto": False},
-                             place_recognition={"enabled": False})
+        cfg = _server_config(
+            tmp_path, rendezvous={"auto": False}, place_recognition={"enabled": False}
+        )
         extra = []
     else:
         cfg = _server_config(tmp_path, place_recognition={"enabled": False})
@@ -82,8 +90,12 @@ def test_no_merge_without_overlap(tmp_path, scenario):
         assert topics[f"/team_map/robot_{r}/path"]["messages"] >= 1
     if scenario == "disjoint":  # scripts/evaluate re-derives the report from the recorded bag
         (out / "report.json").unlink()
-        proc = subprocess.run([os.path.join(REPO, "scripts", "evaluate"), str(out)],
-                              capture_output=True, text=True, timeout=600)
+        proc = subprocess.run(
+            [os.path.join(REPO, "scripts", "evaluate"), str(out)],
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         assert proc.returncode == 0, proc.stdout + proc.stderr
         with open(out / "report.json") as fh:
             again = json.load(fh)

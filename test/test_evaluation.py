@@ -1,4 +1,5 @@
 """ATE/RPE wrappers around evo, team ATE with one alignment, merge error."""
+
 import numpy as np
 import pytest
 
@@ -10,7 +11,9 @@ def _circle(n=50, r=2.0):
     poses = []
     for k in range(n):
         a = 2 * np.pi * k / n
-        poses.append(se3_from_quat([r * np.cos(a), r * np.sin(a), 0.5], [0, 0, np.sin(a / 2), np.cos(a / 2)]))
+        poses.append(
+            se3_from_quat([r * np.cos(a), r * np.sin(a), 0.5], [0, 0, np.sin(a / 2), np.cos(a / 2)])
+        )
     return np.arange(n) * 0.1 + 1.0, np.array(poses)
 
 
@@ -61,12 +64,12 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
     import rosbag
     import rospy
     from geometry_msgs.msg import PoseStamped
-    from helpers import make_keyframe
     from nav_msgs.msg import Path
 
     from coop_slam.msg import MergeEvent
     from coop_slam.ros.convert import keyframe_to_msg, pose_to_msg, transform_to_msg
     from coop_slam.tools.evaluate import run_data_from_bag
+    from helpers import make_keyframe
 
     bag_path = str(tmp_path / "run.bag")
     stamps, gt = _circle(5)
@@ -74,8 +77,11 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
         for k in range(5):
             kf = make_keyframe(robot_id=2, keyframe_id=k + 1, seed=k)
             kf.T_map_cam, kf.stamp_s = gt[k], stamps[k]
-            bag.write("/robot_2/keyframes", keyframe_to_msg(kf, "robot_2/map"),
-                      rospy.Time.from_sec(stamps[k]))
+            bag.write(
+                "/robot_2/keyframes",
+                keyframe_to_msg(kf, "robot_2/map"),
+                rospy.Time.from_sec(stamps[k]),
+            )
         path = Path()
         path.header.frame_id = "world"
         for k in range(5):
@@ -84,8 +90,16 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
             path.poses.append(ps)
         path.poses[2].pose.orientation.w = float("nan")
         bag.write("/team_map/robot_2/path", path, rospy.Time.from_sec(2.0))
-        merge = MergeEvent(type="rendezvous", robot_a=1, robot_b=2, keyframe_a=3, keyframe_b=4,
-                           T_mapA_mapB=transform_to_msg(np.eye(4)), inliers=50, group=[1, 2])
+        merge = MergeEvent(
+            type="rendezvous",
+            robot_a=1,
+            robot_b=2,
+            keyframe_a=3,
+            keyframe_b=4,
+            T_mapA_mapB=transform_to_msg(np.eye(4)),
+            inliers=50,
+            group=[1, 2],
+        )
         merge.header.stamp = rospy.Time.from_sec(1.5)
         bag.write("/merge_events", merge, rospy.Time.from_sec(1.5))
     run = run_data_from_bag(bag_path, [1, 2])

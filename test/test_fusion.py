@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-from helpers import make_keyframe
 from scipy.spatial import cKDTree
 
 from coop_slam.geometry import se3
@@ -14,6 +13,7 @@ from coop_slam.team.fusion import (
     robot_colours,
     voxel_downsample,
 )
+from helpers import make_keyframe
 
 RADIUS = 0.02
 

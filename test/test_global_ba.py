@@ -2,13 +2,14 @@
 linked map points, are pulled back to the truth; bad groups are refused. The helpers' depth is near
 exact, so the depth factor is given that sensor's small disparity noise (the default, 1 px, is for
 real Kinect depth not exactly registered to colour)."""
+
 import numpy as np
 import pytest
-from helpers import camera, cylinder_world, looking_out_pose, observe
 
 from coop_slam.geometry import invert, se3, se3_from_quat, transform_error
 from coop_slam.team.global_ba import GlobalBaConfig, GlobalBaError, global_bundle_adjustment
 from coop_slam.team.pose_graph import TeamPoseGraph
+from helpers import camera, cylinder_world, looking_out_pose, observe
 
 EXACT_DEPTH = GlobalBaConfig(iterations=20, min_disparity_sigma_px=0.05)
 T_WORLD_MAP = {1: np.eye(4), 2: se3_from_quat([-1.0, 0.5, 0.1], [0, 0, -0.4, 1.0])}
@@ -17,12 +18,15 @@ T_WORLD_MAP = {1: np.eye(4), 2: se3_from_quat([-1.0, 0.5, 0.1], [0, 0, -0.4, 1.0
 def _team():
     points, desc = cylinder_world(seed=3)
     records, truth = [], {}
-    for robot, yaws, centre in ((1, np.linspace(0, 3.0, 12), (0.0, 0.0)),
-                                (2, np.linspace(1.5, 4.5, 12), (0.3, -0.2))):
+    for robot, yaws, centre in (
+        (1, np.linspace(0, 3.0, 12), (0.0, 0.0)),
+        (2, np.linspace(1.5, 4.5, 12), (0.3, -0.2)),
+    ):
         for k, yaw in enumerate(yaws):
             T_world_cam = looking_out_pose(yaw, center=centre)
-            rec = observe(points, desc, T_world_cam, T_WORLD_MAP[robot], robot, k + 1,
-                          seed=k + 10 * robot)
+            rec = observe(
+                points, desc, T_world_cam, T_WORLD_MAP[robot], robot, k + 1, seed=k + 10 * robot
+            )
             records.append(rec)
             truth[(robot, k + 1)] = T_world_cam
     # observe() numbers map points by world point: the same id in both robots is one point.
@@ -68,8 +72,9 @@ def test_global_ba_result_survives_the_next_pose_graph_optimization():
         graph.add_keyframe(rec.robot_id, rec.keyframe_id, start[(rec.robot_id, rec.keyframe_id)])
     graph.add_merge(1, 6, 2, 1, invert(truth[(1, 6)]) @ truth[(2, 1)])
     graph.optimize_full()
-    res = global_bundle_adjustment(records, {k: graph.T_world_cam(*k) for k in truth}, links,
-                                   {(1, 1)}, EXACT_DEPTH)
+    res = global_bundle_adjustment(
+        records, {k: graph.T_world_cam(*k) for k in truth}, links, {(1, 1)}, EXACT_DEPTH
+    )
     graph.adopt_estimates(res.poses)
     graph.optimize_full()
     after = [transform_error(graph.T_world_cam(*k), truth[k])[0] for k in truth]

@@ -1,4 +1,5 @@
 """Marker sighting: a robot body rendered by the synthetic world is found at its true pose."""
+
 import numpy as np
 import pytest
 

@@ -2,6 +2,7 @@
 (plus a static TF world -> robot_1/map and a path of robot 1), a headless recording; checks the MP4,
 that the final PNG shows the cloud, that no child process outlives the recorder, the clear error
 without a master, and the stops on --until-topic and SIGINT."""
+
 from __future__ import annotations
 
 import os
@@ -20,8 +21,11 @@ import pytest
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCRIPT = os.path.join(REPO, "scripts", "record_rviz")
 MISSING = [b for b in ("Xvfb", "rviz", "ffmpeg") if shutil.which(b) is None]
-pytestmark = pytest.mark.skipif(bool(MISSING), reason=f"{', '.join(MISSING)} not installed (Debian "
-                                "packages xvfb, rviz, ffmpeg in debian-packages.txt): cannot record")
+pytestmark = pytest.mark.skipif(
+    bool(MISSING),
+    reason=f"{', '.join(MISSING)} not installed (Debian "
+    "packages xvfb, rviz, ffmpeg in debian-packages.txt): cannot record",
+)
 
 BACKGROUND = (25, 25, 30)  # rviz/coop_slam.rviz Global Options / Background Color
 FLOOR_RGB = (255, 200, 0)  # amber floor plane of the test cloud
@@ -79,7 +83,10 @@ pose_pub = rospy.Publisher("/robot_1/pose", PoseStamped, queue_size=1, latch=Tru
 pose_pub.publish(path.poses[-1])
 print("ready", flush=True)
 rospy.spin()
-""" % (FLOOR_RGB, BOX_RGB)
+""" % (
+    FLOOR_RGB,
+    BOX_RGB,
+)
 
 
 def _free_port() -> int:
@@ -89,11 +96,18 @@ def _free_port() -> int:
 
 
 def _child_env(tmp, master_uri) -> dict:
-    env = dict(os.environ, ROS_MASTER_URI=master_uri, ROS_HOME=str(tmp), ROS_LOG_DIR=str(tmp / "log"),
-               PYTHONUNBUFFERED="1")
+    env = dict(
+        os.environ,
+        ROS_MASTER_URI=master_uri,
+        ROS_HOME=str(tmp),
+        ROS_LOG_DIR=str(tmp / "log"),
+        PYTHONUNBUFFERED="1",
+    )
     env.pop("DISPLAY", None)  # never draw on the developer's screen
     # the package as pytest imports it (sourced workspace, else src/ via conftest) comes last
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (env.get("PYTHONPATH"), os.path.join(REPO, "src")) if p)
+    env["PYTHONPATH"] = os.pathsep.join(
+        p for p in (env.get("PYTHONPATH"), os.path.join(REPO, "src")) if p
+    )
     return env
 
 
@@ -139,8 +153,14 @@ class Proc:
     """A child in its own process group; its output lines collected as they come."""
 
     def __init__(self, cmd, env):
-        self.proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                     text=True, start_new_session=True)
+        self.proc = subprocess.Popen(
+            cmd,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            start_new_session=True,
+        )
         self.lines: list[str] = []
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
@@ -156,7 +176,9 @@ class Proc:
     def wait_for_line(self, prefix: str, timeout: float) -> None:
         deadline = time.monotonic() + timeout
         while not any(line.startswith(prefix) for line in self.lines):
-            assert self.proc.poll() is None, f"{self.proc.args[:2]} exited before '{prefix}':\n{self.output}"
+            assert (
+                self.proc.poll() is None
+            ), f"{self.proc.args[:2]} exited before '{prefix}':\n{self.output}"
             assert time.monotonic() < deadline, f"no '{prefix}' within {timeout} s:\n{self.output}"
             time.sleep(0.1)
 
@@ -196,8 +218,15 @@ def ros(tmp_path_factory):
     procs = []
     try:
         with open(tmp / "roscore.log", "wb") as log:
-            procs.append(subprocess.Popen(["roscore", "-p", port], env=env, stdout=log,
-                                          stderr=subprocess.STDOUT, start_new_session=True))
+            procs.append(
+                subprocess.Popen(
+                    ["roscore", "-p", port],
+                    env=env,
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                    start_new_session=True,
+                )
+            )
         log_tail = lambda: (tmp / "roscore.log").read_text(errors="replace")[-2000:]  # noqa: E731
         assert _master_up(env["ROS_MASTER_URI"]), f"roscore did not come up:\n{log_tail()}"
         pub = Proc([sys.executable, "-c", PUBLISHER], env)
@@ -232,10 +261,24 @@ def test_record_shows_team_cloud(ros):
     mp4 = out / "rviz.mp4"
     assert mp4.is_file() and mp4.stat().st_size > 0
     if shutil.which("ffprobe"):
-        probe = subprocess.run(["ffprobe", "-v", "error", "-select_streams", "v:0", "-count_frames",
-                                "-show_entries", "stream=nb_read_frames,width,height,pix_fmt",
-                                "-of", "default=noprint_wrappers=1", str(mp4)],
-                               capture_output=True, text=True, timeout=60)
+        probe = subprocess.run(
+            [
+                "ffprobe",
+                "-v",
+                "error",
+                "-select_streams",
+                "v:0",
+                "-count_frames",
+                "-show_entries",
+                "stream=nb_read_frames,width,height,pix_fmt",
+                "-of",
+                "default=noprint_wrappers=1",
+                str(mp4),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         info = dict(line.split("=", 1) for line in probe.stdout.split())
         assert int(info["nb_read_frames"]) > 0, probe.stdout + probe.stderr
         assert (info["width"], info["height"], info["pix_fmt"]) == ("1280", "720", "yuv420p")
@@ -255,8 +298,10 @@ def test_record_shows_team_cloud(ros):
 
 def test_no_master_fails_clearly(tmp_path):
     env = _child_env(tmp_path, f"http://127.0.0.1:{_free_port()}")  # nothing listens there
-    rec = Recording(["--headless", "--duration", "1", "--master-timeout", "2", "--out",
-                     str(tmp_path / "out")], env)
+    rec = Recording(
+        ["--headless", "--duration", "1", "--master-timeout", "2", "--out", str(tmp_path / "out")],
+        env,
+    )
     try:
         status = rec.finish(timeout=30)
     finally:
@@ -269,13 +314,18 @@ def test_no_master_fails_clearly(tmp_path):
 def test_stops_on_until_topic(ros):
     env, tmp = ros
     out = tmp / "until"
-    rec = Recording(["--headless", "--until-topic", "/player/done", "--warmup", "0", "--out", str(out)],
-                    env)
+    rec = Recording(
+        ["--headless", "--until-topic", "/player/done", "--warmup", "0", "--out", str(out)], env
+    )
     try:
         rec.wait_for_line("[record] waiting for true on", timeout=60)
         time.sleep(1.0)
-        subprocess.run(["rostopic", "pub", "-1", "/player/done", "std_msgs/Bool", "true"], env=env,
-                       capture_output=True, timeout=30)
+        subprocess.run(
+            ["rostopic", "pub", "-1", "/player/done", "std_msgs/Bool", "true"],
+            env=env,
+            capture_output=True,
+            timeout=30,
+        )
         status = rec.finish(timeout=30)
     finally:
         rec.kill()

@@ -1,9 +1,13 @@
 """ROS message conversion and validation (no master needed)."""
+
 import numpy as np
 import pytest
+
 from helpers import make_keyframe
 
-msg_mod = pytest.importorskip("coop_slam.msg", reason="generated messages need the catkin workspace")
+msg_mod = pytest.importorskip(
+    "coop_slam.msg", reason="generated messages need the catkin workspace"
+)
 from coop_slam.ros.convert import (  # noqa: E402
     MessageError,
     depth_from_msg,

@@ -1,4 +1,5 @@
 """Runs every rostest launch file in test/rostest/ (each with its own master) as one pytest case."""
+
 import glob
 import os
 import shutil
@@ -26,8 +27,9 @@ def test_rostest(launch_file, tmp_path):
         vocab_path = str(tmp_path / "vocabulary.npz")
         team_vocabulary(kfs).save(vocab_path)
         args.append(f"vocabulary:={vocab_path}")
-    proc = subprocess.run(["rostest", launch_file, *args], env=env, capture_output=True, text=True,
-                          timeout=1500)
+    proc = subprocess.run(
+        ["rostest", launch_file, *args], env=env, capture_output=True, text=True, timeout=1500
+    )
     out = proc.stdout + proc.stderr
     ok = proc.returncode == 0 and "RESULT: SUCCESS" in out
     if not ok:

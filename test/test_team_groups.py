@@ -1,4 +1,5 @@
 """Merge groups (union-find) and map-transform chaining."""
+
 import numpy as np
 import pytest
 

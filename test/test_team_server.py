@@ -1,13 +1,14 @@
 """Place-recognition stitching in the server core, on a synthetic feature world with known truth."""
+
 import numpy as np
 import pytest
-from helpers import TEAM_T_WORLD_MAP as T_WORLD_MAP
-from helpers import cylinder_world, looking_out_pose, team_vocabulary
-from helpers import team_keyframes as _keyframes
 
 from coop_slam.geometry import invert, transform_error
 from coop_slam.keyframe import KeyframeError
 from coop_slam.team.server import ServerConfig, TeamServer
+from helpers import TEAM_T_WORLD_MAP as T_WORLD_MAP
+from helpers import cylinder_world, looking_out_pose, team_vocabulary
+from helpers import team_keyframes as _keyframes
 
 
 def _config(robots):
@@ -62,8 +63,10 @@ def test_co_observation_merges_as_rendezvous(world):
     server = TeamServer(_config(robots=[1, 2]), vocab)
     yaws = np.linspace(1.0, 1.6, 4)
     merges = []
-    for kf_a, kf_b in zip(_keyframes(1, yaws, points, desc, seed=1),
-                          _keyframes(2, yaws + 0.05, points, desc, offset=(0.3, -0.2), seed=50)):
+    for kf_a, kf_b in zip(
+        _keyframes(1, yaws, points, desc, seed=1),
+        _keyframes(2, yaws + 0.05, points, desc, offset=(0.3, -0.2), seed=50),
+    ):
         merges += server.add_keyframe(kf_a) + server.add_keyframe(kf_b)
     assert len(merges) == 1 and merges[0].type == "rendezvous"
     dt, dr = transform_error(merges[0].T_mapA_mapB, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
@@ -89,7 +92,9 @@ def test_merge_optimizes_the_team_and_stitches_one_cloud(world):
     server = TeamServer(_config(robots=[1, 2]), vocab)
     for kf in kfs_a:
         server.add_keyframe(kf)
-    for kf in _keyframes(2, np.linspace(2.0, 3.0, 8), points, desc, offset=(0.2, 0.1), seed=100, t0=100.0):
+    for kf in _keyframes(
+        2, np.linspace(2.0, 3.0, 8), points, desc, offset=(0.2, 0.1), seed=100, t0=100.0
+    ):
         server.add_keyframe(kf)
     assert server.groups.groups() == [[1, 2]] and server.optimize_ms
     T, merged = server.T_world_map(2)
@@ -131,11 +136,13 @@ def _drifting(kfs, step_m=0.004, step_rad=0.001):
 
 def test_own_revisit_closes_a_loop_and_removes_drift(world):
     points, desc, _, vocab = world
-    yaws = np.concatenate([np.linspace(0, 2 * np.pi, 36, endpoint=False),
-                           2 * np.pi + np.linspace(0, 1.5, 9)])
+    yaws = np.concatenate(
+        [np.linspace(0, 2 * np.pi, 36, endpoint=False), 2 * np.pi + np.linspace(0, 1.5, 9)]
+    )
     kfs = _drifting(_keyframes(1, yaws, points, desc, seed=300))
-    truth = {kf.keyframe_id: invert(T_WORLD_MAP[1]) @ looking_out_pose(y)
-             for kf, y in zip(kfs, yaws)}
+    truth = {
+        kf.keyframe_id: invert(T_WORLD_MAP[1]) @ looking_out_pose(y) for kf, y in zip(kfs, yaws)
+    }
     server = TeamServer(_config(robots=[1]), vocab)
     for kf in kfs:
         assert server.add_keyframe(kf) == []  # never a merge
@@ -151,8 +158,9 @@ def test_own_revisit_closes_a_loop_and_removes_drift(world):
 
 def test_constraint_far_from_the_estimate_is_refused(world):
     points, desc, _, vocab = world
-    yaws = np.concatenate([np.linspace(0, 2 * np.pi, 36, endpoint=False),
-                           2 * np.pi + np.linspace(0, 1.5, 9)])
+    yaws = np.concatenate(
+        [np.linspace(0, 2 * np.pi, 36, endpoint=False), 2 * np.pi + np.linspace(0, 1.5, 9)]
+    )
     kfs = _drifting(_keyframes(1, yaws, points, desc, seed=300), step_m=0.05)  # 2 m of drift
     cfg = _config(robots=[1])
     cfg.loops.gate_trans_m = 0.5
@@ -169,12 +177,20 @@ def test_three_robots_end_in_one_group(world):
     server = TeamServer(_config(robots=[1, 2, 3]), vocab)
     for kf in _keyframes(1, np.linspace(0, np.pi, 18), points, desc, seed=1):
         server.add_keyframe(kf)
-    for kf in _keyframes(2, np.linspace(np.pi + 0.3, 2 * np.pi - 0.3, 14), points, desc,
-                         offset=(0.1, 0.2), seed=2, t0=100.0):
+    for kf in _keyframes(
+        2,
+        np.linspace(np.pi + 0.3, 2 * np.pi - 0.3, 14),
+        points,
+        desc,
+        offset=(0.1, 0.2),
+        seed=2,
+        t0=100.0,
+    ):
         server.add_keyframe(kf)
     assert server.groups.groups() == [[1], [2], [3]]
-    for kf in _keyframes(3, np.linspace(1.0, 5.0, 30), points, desc, offset=(-0.2, 0.1),
-                         seed=3, t0=200.0):
+    for kf in _keyframes(
+        3, np.linspace(1.0, 5.0, 30), points, desc, offset=(-0.2, 0.1), seed=3, t0=200.0
+    ):
         server.add_keyframe(kf)
     assert server.groups.groups() == [[1, 2, 3]]
     assert [(m.robot_a, m.robot_b) for m in server.merges] == [(1, 3), (2, 3)]
@@ -194,8 +210,9 @@ def test_rendezvous_with_a_robot_that_stands_still(world):
     server = TeamServer(cfg, vocab)
     for kf in _keyframes(1, np.linspace(1.0, 1.6, 4), points, desc, seed=1):
         server.add_keyframe(kf)  # stamps 0..3 s
-    for kf in _keyframes(2, np.linspace(0.5, 1.55, 4), points, desc, offset=(0.3, -0.2), seed=50,
-                         t0=30.0):
+    for kf in _keyframes(
+        2, np.linspace(0.5, 1.55, 4), points, desc, offset=(0.3, -0.2), seed=50, t0=30.0
+    ):
         server.add_keyframe(kf)
     assert server.merges == []
     merge, message = server.request_rendezvous(2, 1)

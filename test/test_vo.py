@@ -7,11 +7,11 @@ from __future__ import annotations
 import dataclasses
 import os
 
-import helpers_vo
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+import helpers_vo
 from coop_slam.config import load_config, load_yaml_config
 from coop_slam.errors import ConfigError
 from coop_slam.geometry import invert, se3, transform_error, transform_points

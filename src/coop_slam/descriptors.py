@@ -29,7 +29,9 @@ def as_descriptors(desc, name: str = "descriptors") -> np.ndarray:
         raise DescriptorError(f"{name} must be uint8, got {arr.dtype}")
     if arr.ndim == 1:
         if arr.size % DESCRIPTOR_BYTES:
-            raise DescriptorError(f"{name} has {arr.size} bytes, not a multiple of {DESCRIPTOR_BYTES}")
+            raise DescriptorError(
+                f"{name} has {arr.size} bytes, not a multiple of {DESCRIPTOR_BYTES}"
+            )
         arr = arr.reshape(-1, DESCRIPTOR_BYTES)
     if arr.ndim != 2 or arr.shape[1] != DESCRIPTOR_BYTES:
         raise DescriptorError(f"{name} has shape {arr.shape}, expected (N, {DESCRIPTOR_BYTES})")
@@ -86,7 +88,11 @@ def hamming_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def match_ratio(
-    query: np.ndarray, train: np.ndarray, ratio: float = 0.8, max_distance: int = 64, mutual: bool = True
+    query: np.ndarray,
+    train: np.ndarray,
+    ratio: float = 0.8,
+    max_distance: int = 64,
+    mutual: bool = True,
 ) -> np.ndarray:
     """Nearest-neighbour matches with Lowe's ratio test; (K, 2) int array of (query_idx, train_idx).
 

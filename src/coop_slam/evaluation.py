@@ -48,12 +48,14 @@ def associate(stamps_est, stamps_gt, max_dt_s: float = 0.02) -> tuple[np.ndarray
 def _traj(poses, stamps):
     from evo.core.trajectory import PoseTrajectory3D
 
-    return PoseTrajectory3D(poses_se3=[np.asarray(p, float) for p in poses],
-                            timestamps=np.asarray(stamps, float))
+    return PoseTrajectory3D(
+        poses_se3=[np.asarray(p, float) for p in poses], timestamps=np.asarray(stamps, float)
+    )
 
 
-def ate(stamps_est, poses_est, stamps_gt, poses_gt, max_dt_s: float = 0.02,
-        align: bool = True) -> AteResult:
+def ate(
+    stamps_est, poses_est, stamps_gt, poses_gt, max_dt_s: float = 0.02, align: bool = True
+) -> AteResult:
     """Absolute trajectory error (translation RMSE) after SE(3) alignment, with evo."""
     from evo.core import metrics
 
@@ -61,11 +63,14 @@ def ate(stamps_est, poses_est, stamps_gt, poses_gt, max_dt_s: float = 0.02,
     poses_gt = np.asarray(poses_gt, float)
     i_est, i_gt = associate(stamps_est, stamps_gt, max_dt_s)
     keep = np.all(np.isfinite(poses_est[i_est]), axis=(1, 2)) & np.all(
-        np.isfinite(poses_gt[i_gt]), axis=(1, 2))
+        np.isfinite(poses_gt[i_gt]), axis=(1, 2)
+    )
     i_est, i_gt = i_est[keep], i_gt[keep]
     if len(i_est) < 3:
-        raise EvaluationError(f"only {len(i_est)} estimated poses match ground truth in time; "
-                              "need at least 3 for ATE")
+        raise EvaluationError(
+            f"only {len(i_est)} estimated poses match ground truth in time; "
+            "need at least 3 for ATE"
+        )
     stamps = np.asarray(stamps_est, float)[i_est]
     ref = _traj(poses_gt[i_gt], stamps)
     est = _traj(poses_est[i_est], stamps)
@@ -85,8 +90,13 @@ def ate(stamps_est, poses_est, stamps_gt, poses_gt, max_dt_s: float = 0.02,
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, est))
     st = ape.get_all_statistics()
-    return AteResult(rmse_m=float(st["rmse"]), mean_m=float(st["mean"]), max_m=float(st["max"]),
-                     count=len(i_est), T_gt_est=T)
+    return AteResult(
+        rmse_m=float(st["rmse"]),
+        mean_m=float(st["mean"]),
+        max_m=float(st["max"]),
+        count=len(i_est),
+        T_gt_est=T,
+    )
 
 
 def team_ate(est: dict[int, tuple], gt: dict[int, tuple], max_dt_s: float = 0.02) -> AteResult:
@@ -111,8 +121,9 @@ def team_ate(est: dict[int, tuple], gt: dict[int, tuple], max_dt_s: float = 0.02
     return ate(s, np.concatenate(poses_e), s, np.concatenate(poses_g), max_dt_s=1e-6)
 
 
-def rpe_rmse(stamps_est, poses_est, stamps_gt, poses_gt, delta: int = 1,
-             max_dt_s: float = 0.02) -> float:
+def rpe_rmse(
+    stamps_est, poses_est, stamps_gt, poses_gt, delta: int = 1, max_dt_s: float = 0.02
+) -> float:
     """Relative pose error (translation RMSE over ``delta`` consecutive poses), with evo."""
     from evo.core import metrics
 
@@ -122,13 +133,18 @@ def rpe_rmse(stamps_est, poses_est, stamps_gt, poses_gt, delta: int = 1,
     stamps = np.asarray(stamps_est, float)[i_est]
     ref = _traj(np.asarray(poses_gt)[i_gt], stamps)
     est = _traj(np.asarray(poses_est)[i_est], stamps)
-    rpe = metrics.RPE(metrics.PoseRelation.translation_part, delta=delta,
-                      delta_unit=metrics.Unit.frames, all_pairs=False)
+    rpe = metrics.RPE(
+        metrics.PoseRelation.translation_part,
+        delta=delta,
+        delta_unit=metrics.Unit.frames,
+        all_pairs=False,
+    )
     rpe.process_data((ref, est))
     return float(rpe.get_statistic(metrics.StatisticsType.rmse))
 
 
-def merge_error(T_mapA_mapB_est: np.ndarray, T_world_mapA_gt: np.ndarray,
-                T_world_mapB_gt: np.ndarray) -> tuple[float, float]:
+def merge_error(
+    T_mapA_mapB_est: np.ndarray, T_world_mapA_gt: np.ndarray, T_world_mapB_gt: np.ndarray
+) -> tuple[float, float]:
     """(translation [m], rotation [deg]) error of an estimated map-to-map transform."""
     return transform_error(T_mapA_mapB_est, invert(T_world_mapA_gt) @ T_world_mapB_gt)

@@ -31,12 +31,16 @@ class KeyframeRecord:
     stamp_s: float
     camera: CameraModel
     T_map_cam: np.ndarray  # (4, 4) camera optical frame in the robot's map frame
-    keypoints: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), np.float32))  # u, v, size, angle
+    keypoints: np.ndarray = field(
+        default_factory=lambda: np.zeros((0, 4), np.float32)
+    )  # u, v, size, angle
     octaves: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint8))
     descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))
     depths_m: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))  # 0 = none
     map_point_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint32))  # 0 = none
-    map_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))  # (M, 3) map
+    map_points: np.ndarray = field(
+        default_factory=lambda: np.zeros((0, 3), np.float32)
+    )  # (M, 3) map
     covisible_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint32))
     covisible_weights: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint16))
     map_segment: int = 0
@@ -100,8 +104,10 @@ class KeyframeRecord:
             )
         for name in ("octaves", "depths_m", "map_point_ids"):
             if len(getattr(self, name)) != n:
-                raise KeyframeError(f"{where}: {name} has {len(getattr(self, name))} entries, "
-                                    f"expected one per keypoint ({n})")
+                raise KeyframeError(
+                    f"{where}: {name} has {len(getattr(self, name))} entries, "
+                    f"expected one per keypoint ({n})"
+                )
         m = int(np.count_nonzero(self.map_point_ids))
         if self.map_points.shape != (m, 3):
             raise KeyframeError(
@@ -115,7 +121,9 @@ class KeyframeRecord:
             raise KeyframeError(f"{where}: negative depth")
         cam = self.camera
         uv = self.keypoints[:, :2]
-        if n and (uv.min() < -1 or uv[:, 0].max() > cam.width + 1 or uv[:, 1].max() > cam.height + 1):
+        if n and (
+            uv.min() < -1 or uv[:, 0].max() > cam.width + 1 or uv[:, 1].max() > cam.height + 1
+        ):
             raise KeyframeError(f"{where}: keypoints outside the {cam.width}x{cam.height} image")
         if len(self.covisible_ids) != len(self.covisible_weights):
             raise KeyframeError(f"{where}: covisible_ids and covisible_weights differ in length")

@@ -39,7 +39,9 @@ class MarkerConfig:
     def validate(self) -> None:
         require(hasattr(cv2.aruco, self.dictionary), f"unknown ArUco dictionary {self.dictionary}")
         require(self.marker_size_m > 0, "marker_size_m must be > 0")
-        require(len(self.T_base_marker) in (0, 7), "T_base_marker needs 7 numbers (x y z qx qy qz qw)")
+        require(
+            len(self.T_base_marker) in (0, 7), "T_base_marker needs 7 numbers (x y z qx qy qz qw)"
+        )
         require(self.max_reprojection_px > 0, "max_reprojection_px must be > 0")
 
     def base_marker(self) -> np.ndarray:
@@ -86,10 +88,14 @@ class MarkerDetector:
             return out
         for c, marker_id in zip(corners, ids.ravel()):
             uv = c.reshape(4, 2).astype(np.float64)
-            if np.min(np.linalg.norm(uv - np.roll(uv, 1, axis=0), axis=1)) < self.config.min_side_px:
+            if (
+                np.min(np.linalg.norm(uv - np.roll(uv, 1, axis=0), axis=1))
+                < self.config.min_side_px
+            ):
                 continue
-            ok, rvec, tvec = cv2.solvePnP(self._object_pts, uv, K, None,
-                                          flags=cv2.SOLVEPNP_IPPE_SQUARE)
+            ok, rvec, tvec = cv2.solvePnP(
+                self._object_pts, uv, K, None, flags=cv2.SOLVEPNP_IPPE_SQUARE
+            )
             if not ok:
                 continue
             proj, _ = cv2.projectPoints(self._object_pts, rvec, tvec, K, None)
@@ -97,8 +103,11 @@ class MarkerDetector:
             if err > self.config.max_reprojection_px:
                 continue
             T_cam_marker = se3(cv2.Rodrigues(rvec)[0], tvec.ravel())
-            out.append(MarkerSighting(int(marker_id), T_cam_marker, T_cam_marker @ self._T_marker_base,
-                                      err, uv))
+            out.append(
+                MarkerSighting(
+                    int(marker_id), T_cam_marker, T_cam_marker @ self._T_marker_base, err, uv
+                )
+            )
         return out
 
 

@@ -94,7 +94,9 @@ def load_streams(
         if split is not None:
             parts = split_ranges(seq, parse_ranges(split))
             if robots is not None and robots != len(parts):
-                raise PlaybackError(f"--robots {robots} disagrees with --split, which gives {len(parts)}")
+                raise PlaybackError(
+                    f"--robots {robots} disagrees with --split, which gives {len(parts)}"
+                )
         else:
             parts = split_equal(seq, robots or 1)
         streams = [RobotStream(robot_id=k + 1, sequence=s) for k, s in enumerate(parts)]
@@ -140,7 +142,9 @@ def build_schedule(streams: list[RobotStream], keep_timing: bool = False) -> lis
     return out
 
 
-def group_simultaneous(schedule: list[ScheduledFrame], tol_s: float = 1e-6) -> list[list[ScheduledFrame]]:
+def group_simultaneous(
+    schedule: list[ScheduledFrame], tol_s: float = 1e-6
+) -> list[list[ScheduledFrame]]:
     """Consecutive frames with the same play time, published together in lock-step mode."""
     groups: list[list[ScheduledFrame]] = []
     for item in schedule:

@@ -11,12 +11,38 @@ import math
 import os
 from typing import Any
 
-ROBOT_KEYS = ("id", "frames", "keyframes", "path_length_m", "ate_rmse_m", "rpe_rmse_m",
-              "tracking_lost", "track_ms_mean", "track_ms_p95")
-MERGE_KEYS = ("type", "robots", "stamp", "trans_err_m", "rot_err_deg", "latency_s",
-              "local_trans_err_m", "local_rot_err_deg")
-TOP_KEYS = ("robots", "merges", "groups", "team_ate_rmse_m", "bandwidth", "server_ms_per_keyframe",
-            "wrong_merges", "loop_closures", "topics")
+ROBOT_KEYS = (
+    "id",
+    "frames",
+    "keyframes",
+    "path_length_m",
+    "ate_rmse_m",
+    "rpe_rmse_m",
+    "tracking_lost",
+    "track_ms_mean",
+    "track_ms_p95",
+)
+MERGE_KEYS = (
+    "type",
+    "robots",
+    "stamp",
+    "trans_err_m",
+    "rot_err_deg",
+    "latency_s",
+    "local_trans_err_m",
+    "local_rot_err_deg",
+)
+TOP_KEYS = (
+    "robots",
+    "merges",
+    "groups",
+    "team_ate_rmse_m",
+    "bandwidth",
+    "server_ms_per_keyframe",
+    "wrong_merges",
+    "loop_closures",
+    "topics",
+)
 BANDWIDTH_KEYS = ("per_robot_kBps", "peak_kBps", "total_MB", "keyframe_bytes_mean")
 WRONG_MERGE_TRANS_M = 0.10  # a merge is wrong when its transform is off by more than this ...
 WRONG_MERGE_ROT_DEG = 5.0  # ... or this
@@ -56,8 +82,12 @@ def count_wrong_merges(merges: list[dict]) -> int | None:
     errs = [(m.get("trans_err_m"), m.get("rot_err_deg")) for m in merges]
     if all(t is None for t, _ in errs):
         return None
-    return sum(1 for t, r in errs if t is not None and
-               (t > WRONG_MERGE_TRANS_M or (r is not None and r > WRONG_MERGE_ROT_DEG)))
+    return sum(
+        1
+        for t, r in errs
+        if t is not None
+        and (t > WRONG_MERGE_TRANS_M or (r is not None and r > WRONG_MERGE_ROT_DEG))
+    )
 
 
 def write_report(out_dir: str, report: dict, extra_md: str = "") -> tuple[str, str]:
@@ -86,8 +116,7 @@ def _fmt(v: Any, digits: int = 3) -> str:
 
 def render_markdown(report: dict) -> str:
     lines = ["# coop_slam run report", ""]
-    lines += ["## Robots", "", "| " + " | ".join(ROBOT_KEYS) + " |",
-              "|" + "---|" * len(ROBOT_KEYS)]
+    lines += ["## Robots", "", "| " + " | ".join(ROBOT_KEYS) + " |", "|" + "---|" * len(ROBOT_KEYS)]
     for r in report["robots"]:
         lines.append("| " + " | ".join(_fmt(r.get(k)) for k in ROBOT_KEYS) + " |")
     lines += ["", "## Merges", ""]
@@ -114,10 +143,16 @@ def render_markdown(report: dict) -> str:
     ]
     topics = report.get("topics") or {}
     if topics:
-        lines += ["## Bandwidth per topic", "", "| topic | messages | mean kB/s | peak kB/s | total MB |",
-                  "|---|---|---|---|---|"]
+        lines += [
+            "## Bandwidth per topic",
+            "",
+            "| topic | messages | mean kB/s | peak kB/s | total MB |",
+            "|---|---|---|---|---|",
+        ]
         for name, t in topics.items():
-            lines.append(f"| {name} | {t['messages']} | {_fmt(t['mean_kBps'], 2)} | "
-                         f"{_fmt(t['peak_kBps'], 1)} | {_fmt(t['total_MB'], 3)} |")
+            lines.append(
+                f"| {name} | {t['messages']} | {_fmt(t['mean_kBps'], 2)} | "
+                f"{_fmt(t['peak_kBps'], 1)} | {_fmt(t['total_MB'], 3)} |"
+            )
         lines.append("")
     return "\n".join(lines)

@@ -206,14 +206,17 @@ DEFAULT_TRAINING_EVERY = 6  # every 6th frame at 15 Hz: ~2.5 training images per
 
 def default_vocabulary_path() -> str:
     """Where the default vocabulary is cached (``$COOP_SLAM_CACHE`` or ``~/.cache/coop_slam``)."""
-    root = os.environ.get("COOP_SLAM_CACHE") or os.path.join(os.path.expanduser("~"), ".cache",
-                                                             "coop_slam")
-    return os.path.join(root, "vocabulary",
-                        f"default-v{DEFAULT_VOCABULARY_VERSION}-k{DEFAULT_K}-L{DEFAULT_LEVELS}.npz")
+    root = os.environ.get("COOP_SLAM_CACHE") or os.path.join(
+        os.path.expanduser("~"), ".cache", "coop_slam"
+    )
+    return os.path.join(
+        root,
+        "vocabulary",
+        f"default-v{DEFAULT_VOCABULARY_VERSION}-k{DEFAULT_K}-L{DEFAULT_LEVELS}.npz",
+    )
 
 
-def ensure_default_vocabulary(progress: ProgressCallback | None = None,
-                              world_progress=None) -> str:
+def ensure_default_vocabulary(progress: ProgressCallback | None = None, world_progress=None) -> str:
     """Return the default vocabulary's path, training it first (world + ORB + k-majority tree) if
     it is not cached yet. Written atomically, so an interrupted run leaves no half file."""
     path = default_vocabulary_path()
@@ -226,7 +229,11 @@ def ensure_default_vocabulary(progress: ProgressCallback | None = None,
     world = read_synthetic(folder)
     sequences = [world.sequences[k] for k in sorted(world.sequences)]
     tmp = f"{path}.{os.getpid()}.tmp.npz"
-    train_from_sequences(sequences, extraction=ExtractionConfig(every=DEFAULT_TRAINING_EVERY),
-                         out=tmp, progress=progress)
+    train_from_sequences(
+        sequences,
+        extraction=ExtractionConfig(every=DEFAULT_TRAINING_EVERY),
+        out=tmp,
+        progress=progress,
+    )
     os.replace(tmp, path)
     return path

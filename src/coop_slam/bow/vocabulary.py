@@ -425,9 +425,7 @@ class Vocabulary:
         out = (dbytes < 0) | (dbytes > 255)
         if np.any(out):
             bad = int(np.flatnonzero(np.any(out, axis=1))[0])
-            raise VocabularyError(
-                f"{source}:{bad + 2}: descriptor byte out of range 0..255"
-            )
+            raise VocabularyError(f"{source}:{bad + 2}: descriptor byte out of range 0..255")
         parent = np.concatenate([[-1], data[:, 0].astype(np.int64)])
         desc = np.zeros((n, DESCRIPTOR_BYTES), dtype=np.uint8)
         desc[1:] = dbytes.astype(np.uint8)

@@ -128,7 +128,9 @@ class Sequence:
             raise DatasetError(f"{self.name}: frame {frame.index} has no depth image")
         raw = _imread(frame.depth_path, cv2.IMREAD_UNCHANGED)
         if raw.ndim != 2:
-            raise DatasetError(f"depth image {frame.depth_path} has {raw.shape[2]} channels, expected 1")
+            raise DatasetError(
+                f"depth image {frame.depth_path} has {raw.shape[2]} channels, expected 1"
+            )
         if raw.dtype == np.uint16:
             return raw.astype(np.float32) / np.float32(self.camera.depth_scale)
         depth = raw.astype(np.float32)

@@ -52,7 +52,9 @@ def read_kitti_poses(path: str) -> np.ndarray:
     return poses
 
 
-def read_kitti(sequence_dir: str, poses_file: str | None = None, name: str | None = None) -> Sequence:
+def read_kitti(
+    sequence_dir: str, poses_file: str | None = None, name: str | None = None
+) -> Sequence:
     """Read a KITTI odometry sequence folder as a stereo :class:`Sequence` (left camera frames)."""
     if not os.path.isdir(sequence_dir):
         raise DatasetError(f"KITTI sequence folder not found: {sequence_dir}")
@@ -91,8 +93,11 @@ def read_kitti(sequence_dir: str, poses_file: str | None = None, name: str | Non
     ]
     seq_name = name or os.path.basename(os.path.normpath(sequence_dir))
     if poses_file is None:
-        guess = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(sequence_dir))), "poses",
-                             f"{seq_name}.txt")
+        guess = os.path.join(
+            os.path.dirname(os.path.dirname(os.path.abspath(sequence_dir))),
+            "poses",
+            f"{seq_name}.txt",
+        )
         poses_file = guess if os.path.isfile(guess) else None
     gt_stamps, gt_poses = np.zeros(0), np.zeros((0, 4, 4))
     if poses_file is not None:
@@ -100,5 +105,11 @@ def read_kitti(sequence_dir: str, poses_file: str | None = None, name: str | Non
         if len(gt_poses) != len(times):
             raise DatasetError(f"{poses_file}: {len(gt_poses)} poses for {len(times)} frames")
         gt_stamps = times.astype(float)
-    return Sequence(name=seq_name, camera=camera, frames=frames, gt_stamps_s=gt_stamps,
-                    gt_poses_se3=gt_poses, gt_max_dt_s=1e-6)
+    return Sequence(
+        name=seq_name,
+        camera=camera,
+        frames=frames,
+        gt_stamps_s=gt_stamps,
+        gt_poses_se3=gt_poses,
+        gt_max_dt_s=1e-6,
+    )

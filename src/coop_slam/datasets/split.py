@@ -49,8 +49,9 @@ def split_equal(seq: Sequence, parts: int, overlap_frames: int = 0) -> list[Sequ
     n = len(seq)
     step = (n + overlap_frames * (parts - 1)) / parts
     if step - overlap_frames < 1:
-        raise DatasetError(f"{seq.name}: {n} frames cannot make {parts} parts overlapping by "
-                           f"{overlap_frames}")
+        raise DatasetError(
+            f"{seq.name}: {n} frames cannot make {parts} parts overlapping by " f"{overlap_frames}"
+        )
     ranges = []
     for k in range(parts):
         first = int(round(k * (step - overlap_frames)))

@@ -120,11 +120,14 @@ def read_tum(
         if camera.sensor == "rgbd":
             raise DatasetError(f"{folder}: depth.txt missing for an RGB-D camera")
         frames = [
-            Frame(index=k, stamp_s=s, color_path=os.path.join(folder, p)) for k, (s, p) in enumerate(rgb)
+            Frame(index=k, stamp_s=s, color_path=os.path.join(folder, p))
+            for k, (s, p) in enumerate(rgb)
         ]
     gt_path = os.path.join(folder, "groundtruth.txt")
     gt_stamps, gt_poses = (
-        read_tum_trajectory(gt_path) if os.path.isfile(gt_path) else (np.zeros(0), np.zeros((0, 4, 4)))
+        read_tum_trajectory(gt_path)
+        if os.path.isfile(gt_path)
+        else (np.zeros(0), np.zeros((0, 4, 4)))
     )
     return Sequence(
         name=name or os.path.basename(os.path.normpath(folder)),

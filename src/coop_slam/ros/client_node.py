@@ -78,8 +78,9 @@ class ClientNode:
         self.depth_scale = float(rospy.get_param("~depth_scale", 1000.0))  # 16UC1 units per metre
         self.cloud_period_s = float(rospy.get_param("~cloud_period_s", 2.0))
         base_cam = rospy.get_param("~T_base_cam", [])  # [x y z qx qy qz qw]
-        self.T_base_cam = (se3_from_quat(base_cam[:3], base_cam[3:]) if base_cam
-                           else default_T_base_cam())
+        self.T_base_cam = (
+            se3_from_quat(base_cam[:3], base_cam[3:]) if base_cam else default_T_base_cam()
+        )
         self.vo_cfg = load_vo_config(rospy.get_param("~config", ""), rospy.get_param("~vo", {}))
         self._RgbdOdometry = RgbdOdometry
         self.vo = None
@@ -103,8 +104,9 @@ class ClientNode:
 
         self.tf = tf2_ros.TransformBroadcaster()
         self.static_tf = tf2_ros.StaticTransformBroadcaster()
-        self.static_tf.sendTransform(transform_stamped(self.T_base_cam, self.base_frame,
-                                                       self.cam_frame, rospy.Time(0)))
+        self.static_tf.sendTransform(
+            transform_stamped(self.T_base_cam, self.base_frame, self.cam_frame, rospy.Time(0))
+        )
         # Relative names: the launch file puts the node in the robot's namespace (/robot_k/...).
         self.pub_kf = rospy.Publisher("keyframes", KeyFrame, queue_size=200)
         self.pub_pose = rospy.Publisher("pose", PoseStamped, queue_size=10)
@@ -116,17 +118,23 @@ class ClientNode:
         from coop_slam.msg import RobotSighting
 
         self.pub_sighting = rospy.Publisher("/robot_sightings", RobotSighting, queue_size=10)
-        self.sub_info = rospy.Subscriber("camera/color/camera_info", CameraInfo,
-                                         self._on_info, queue_size=5)
-        color = message_filters.Subscriber("camera/color/image_raw", Image, queue_size=5,
-                                           buff_size=2**24)
-        depth = message_filters.Subscriber("camera/depth/image_raw", Image, queue_size=5,
-                                           buff_size=2**24)
+        self.sub_info = rospy.Subscriber(
+            "camera/color/camera_info", CameraInfo, self._on_info, queue_size=5
+        )
+        color = message_filters.Subscriber(
+            "camera/color/image_raw", Image, queue_size=5, buff_size=2**24
+        )
+        depth = message_filters.Subscriber(
+            "camera/depth/image_raw", Image, queue_size=5, buff_size=2**24
+        )
         self.sync = message_filters.TimeSynchronizer([color, depth], 10)
         self.sync.registerCallback(self._on_frame)
-        self.sub_corr = rospy.Subscriber("correction", MapCorrection, self._on_correction,
-                                         queue_size=5)
-        rospy.loginfo("client %s: waiting for %s", self.name, rospy.resolve_name("camera/color/image_raw"))
+        self.sub_corr = rospy.Subscriber(
+            "correction", MapCorrection, self._on_correction, queue_size=5
+        )
+        rospy.loginfo(
+            "client %s: waiting for %s", self.name, rospy.resolve_name("camera/color/image_raw")
+        )
 
     # --- callbacks ----------------------------------------------------------------------------------
     def _on_info(self, msg: CameraInfo) -> None:
@@ -137,9 +145,17 @@ class ClientNode:
             return
         with self.lock:
             if self.camera is not None and cam != self.camera:
-                rospy.logwarn("client %s: camera model changed (%dx%d fx=%.1f -> %dx%d fx=%.1f); "
-                              "starting a new map", self.name, self.camera.width, self.camera.height,
-                              self.camera.fx, cam.width, cam.height, cam.fx)
+                rospy.logwarn(
+                    "client %s: camera model changed (%dx%d fx=%.1f -> %dx%d fx=%.1f); "
+                    "starting a new map",
+                    self.name,
+                    self.camera.width,
+                    self.camera.height,
+                    self.camera.fx,
+                    cam.width,
+                    cam.height,
+                    cam.fx,
+                )
                 self._close_vo()
             self.camera = cam
 
@@ -162,10 +178,15 @@ class ClientNode:
                     raise MessageError("no camera_info received yet")
                 image = image_from_msg(color_msg)
                 depth = depth_from_msg(depth_msg, self.depth_scale)
-                if image.shape[:2] != (self.camera.height, self.camera.width) or depth.shape != image.shape[:2]:
-                    raise MessageError(f"image {image.shape[1]}x{image.shape[0]} / depth "
-                                       f"{depth.shape[1]}x{depth.shape[0]} do not match camera_info "
-                                       f"{self.camera.width}x{self.camera.height}")
+                if (
+                    image.shape[:2] != (self.camera.height, self.camera.width)
+                    or depth.shape != image.shape[:2]
+                ):
+                    raise MessageError(
+                        f"image {image.shape[1]}x{image.shape[0]} / depth "
+                        f"{depth.shape[1]}x{depth.shape[0]} do not match camera_info "
+                        f"{self.camera.width}x{self.camera.height}"
+                    )
                 if self.vo is None:
                     self.vo = self._RgbdOdometry(self.vo_cfg, self.camera)
                 res = self.vo.track(stamp.to_sec(), image, depth)
@@ -191,16 +212,21 @@ class ClientNode:
         for s in self.markers.detect(image, self.camera.K):
             if s.marker_id == self.robot_id or s.marker_id < 1:
                 continue  # our own body, or not a robot id
-            msg = RobotSighting(observer_id=self.robot_id, observed_id=s.marker_id,
-                                marker_id=s.marker_id, T_cam_body=pose_to_msg(s.T_cam_body),
-                                reprojection_error_px=s.reprojection_error_px)
+            msg = RobotSighting(
+                observer_id=self.robot_id,
+                observed_id=s.marker_id,
+                marker_id=s.marker_id,
+                T_cam_body=pose_to_msg(s.T_cam_body),
+                reprojection_error_px=s.reprojection_error_px,
+            )
             msg.header.stamp, msg.header.frame_id = stamp, self.cam_frame
             self.pub_sighting.publish(msg)
 
     def _on_correction(self, msg) -> None:
         if msg.robot_id != self.robot_id:
-            self.rejects.reject("correction", f"correction for robot {msg.robot_id} on "
-                                f"{self.name}'s topic")
+            self.rejects.reject(
+                "correction", f"correction for robot {msg.robot_id} on " f"{self.name}'s topic"
+            )
             return
         try:
             T_world_map = transform_from_msg(msg.T_world_map, "T_world_map")
@@ -223,16 +249,28 @@ class ClientNode:
     # --- publishing ---------------------------------------------------------------------------------
     def _record(self, kf, action: int) -> KeyframeRecord:
         T_map_cam = self.T_base_cam @ kf.T_map_cam
-        pts = transform_points(self.T_base_cam, kf.map_points_xyz) if len(kf.map_points_xyz) else \
-            np.zeros((0, 3))
+        pts = (
+            transform_points(self.T_base_cam, kf.map_points_xyz)
+            if len(kf.map_points_xyz)
+            else np.zeros((0, 3))
+        )
         return KeyframeRecord(
-            robot_id=self.robot_id, keyframe_id=int(kf.keyframe_id), stamp_s=float(kf.stamp_s),
-            camera=self.camera, T_map_cam=T_map_cam,
+            robot_id=self.robot_id,
+            keyframe_id=int(kf.keyframe_id),
+            stamp_s=float(kf.stamp_s),
+            camera=self.camera,
+            T_map_cam=T_map_cam,
             keypoints=np.column_stack([kf.uv_px, kf.size_px, kf.angle_deg]).astype(np.float32),
-            octaves=kf.octaves, descriptors=kf.descriptors, depths_m=kf.depths_m,
-            map_point_ids=kf.map_point_ids, map_points=pts.astype(np.float32),
-            covisible_ids=kf.covisible_ids, covisible_weights=kf.covisible_weights,
-            map_segment=int(kf.map_segment), action=action)
+            octaves=kf.octaves,
+            descriptors=kf.descriptors,
+            depths_m=kf.depths_m,
+            map_point_ids=kf.map_point_ids,
+            map_points=pts.astype(np.float32),
+            covisible_ids=kf.covisible_ids,
+            covisible_weights=kf.covisible_weights,
+            map_segment=int(kf.map_segment),
+            action=action,
+        )
 
     def _publish_events(self) -> None:
         from ..keyframe import ACTION_REMOVE
@@ -243,16 +281,26 @@ class ClientNode:
             if ev.kind == EVENT_WARNING:
                 rospy.logwarn("client %s: %s", self.name, ev.message)
             elif ev.kind == EVENT_NEW_SEGMENT:
-                rospy.logwarn("client %s: tracking lost for good; new map segment %d (%s)",
-                              self.name, ev.map_segment, ev.message)
+                rospy.logwarn(
+                    "client %s: tracking lost for good; new map segment %d (%s)",
+                    self.name,
+                    ev.map_segment,
+                    ev.message,
+                )
                 self.segment = ev.map_segment
             elif ev.kind in KEYFRAME_ACTIONS:
                 action = KEYFRAME_ACTIONS[ev.kind]
                 if action == ACTION_REMOVE:
                     self.kf_poses.pop(ev.keyframe_id, None)
-                    rec = KeyframeRecord(robot_id=self.robot_id, keyframe_id=ev.keyframe_id,
-                                         stamp_s=0.0, camera=self.camera, T_map_cam=np.eye(4),
-                                         map_segment=ev.map_segment, action=action)
+                    rec = KeyframeRecord(
+                        robot_id=self.robot_id,
+                        keyframe_id=ev.keyframe_id,
+                        stamp_s=0.0,
+                        camera=self.camera,
+                        T_map_cam=np.eye(4),
+                        map_segment=ev.map_segment,
+                        action=action,
+                    )
                 else:
                     rec = self._record(ev.keyframe, action)
                     self.kf_poses[rec.keyframe_id] = (rec.stamp_s, rec.T_map_cam)
@@ -267,17 +315,21 @@ class ClientNode:
         msg.header.stamp, msg.header.frame_id = stamp, self.map_frame
         self.pub_pose.publish(msg)
         T_odom_base = T_odom_cam @ invert(self.T_base_cam)
-        self.tf.sendTransform([
-            transform_stamped(self.T_map_odom, self.map_frame, self.odom_frame, stamp),
-            transform_stamped(T_odom_base, self.odom_frame, self.base_frame, stamp),
-        ])
+        self.tf.sendTransform(
+            [
+                transform_stamped(self.T_map_odom, self.map_frame, self.odom_frame, stamp),
+                transform_stamped(T_odom_base, self.odom_frame, self.base_frame, stamp),
+            ]
+        )
 
     def _publish_path(self) -> None:
         path = Path()
         path.header.frame_id = self.map_frame
         for kid in sorted(self.kf_poses):
             stamp_s, T_map_cam = self.kf_poses[kid]
-            ps = PoseStamped(pose=pose_to_msg(self.T_map_odom @ T_map_cam @ invert(self.T_base_cam)))
+            ps = PoseStamped(
+                pose=pose_to_msg(self.T_map_odom @ T_map_cam @ invert(self.T_base_cam))
+            )
             ps.header.stamp, ps.header.frame_id = rospy.Time.from_sec(stamp_s), self.map_frame
             path.poses.append(ps)
         if path.poses:
@@ -286,15 +338,24 @@ class ClientNode:
 
     def _publish_cloud(self, stamp) -> None:
         _, xyz = self.vo.map_point_arrays()
-        pts = transform_points(self.T_map_odom @ self.T_base_cam, xyz) if len(xyz) else np.zeros((0, 3))
+        pts = (
+            transform_points(self.T_map_odom @ self.T_base_cam, xyz)
+            if len(xyz)
+            else np.zeros((0, 3))
+        )
         self.pub_cloud.publish(cloud_to_msg(pts, self.map_frame, stamp))
 
     def shutdown(self) -> None:
         with self.lock:
             if self.vo is not None:
                 self.vo.close()
-        rospy.loginfo("client %s: %d frames, %d keyframes, %d rejected messages", self.name,
-                      self.frames, len(self.kf_poses), self.rejects.total)
+        rospy.loginfo(
+            "client %s: %d frames, %d keyframes, %d rejected messages",
+            self.name,
+            self.frames,
+            len(self.kf_poses),
+            self.rejects.total,
+        )
 
 
 def main() -> None:

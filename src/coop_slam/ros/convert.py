@@ -92,7 +92,9 @@ def image_to_msg(img: np.ndarray, encoding: str, stamp=None, frame_id: str = "")
 def image_from_msg(msg: Image) -> np.ndarray:
     """numpy view of an image message (BGR for colour); raises MessageError when malformed."""
     if msg.encoding not in _ENCODINGS:
-        raise MessageError(f"image encoding '{msg.encoding}' unsupported; use one of {sorted(_ENCODINGS)}")
+        raise MessageError(
+            f"image encoding '{msg.encoding}' unsupported; use one of {sorted(_ENCODINGS)}"
+        )
     if msg.width == 0 or msg.height == 0:
         raise MessageError(f"image is empty ({msg.width}x{msg.height})")
     dtype, channels = _ENCODINGS[msg.encoding]
@@ -103,11 +105,17 @@ def image_from_msg(msg: Image) -> np.ndarray:
             f"image data holds {len(msg.data)} bytes, expected {msg.step * msg.height} "
             f"({msg.width}x{msg.height} {msg.encoding}, step {msg.step})"
         )
-    buf = np.frombuffer(msg.data, dtype=np.uint8, count=msg.step * msg.height).reshape(msg.height, msg.step)
+    buf = np.frombuffer(msg.data, dtype=np.uint8, count=msg.step * msg.height).reshape(
+        msg.height, msg.step
+    )
     img = buf[:, :row].copy().view(dtype)
     if msg.is_bigendian and itemsize > 1:
         img = img.byteswap()
-    img = img.reshape(msg.height, msg.width, channels) if channels > 1 else img.reshape(msg.height, msg.width)
+    img = (
+        img.reshape(msg.height, msg.width, channels)
+        if channels > 1
+        else img.reshape(msg.height, msg.width)
+    )
     if msg.encoding == "rgb8":
         img = img[:, :, ::-1].copy()
     return img
@@ -142,14 +150,24 @@ def camera_info_to_msg(camera: CameraModel, stamp=None, frame_id: str = "") -> C
     return msg
 
 
-def camera_from_info(msg: CameraInfo, sensor: str = "rgbd", depth_scale: float = 1000.0,
-                     baseline_m: float = 0.0) -> CameraModel:
+def camera_from_info(
+    msg: CameraInfo, sensor: str = "rgbd", depth_scale: float = 1000.0, baseline_m: float = 0.0
+) -> CameraModel:
     K = list(msg.K)
     if len(K) != 9 or not np.all(np.isfinite(K)):
         raise MessageError("camera_info K must hold 9 finite numbers")
     try:
-        return CameraModel(width=msg.width, height=msg.height, fx=K[0], fy=K[4], cx=K[2], cy=K[5],
-                           sensor=sensor, depth_scale=depth_scale, baseline_m=baseline_m)
+        return CameraModel(
+            width=msg.width,
+            height=msg.height,
+            fx=K[0],
+            fy=K[4],
+            cx=K[2],
+            cy=K[5],
+            sensor=sensor,
+            depth_scale=depth_scale,
+            baseline_m=baseline_m,
+        )
     except DatasetError as exc:
         raise MessageError(f"camera_info: {exc}") from None
 
@@ -167,9 +185,16 @@ def keyframe_to_msg(kf: KeyframeRecord, frame_id: str):
     msg.map_segment = kf.map_segment
     msg.action = kf.action
     cam = kf.camera
-    msg.camera = CameraModelMsg(sensor_type=_SENSORS.index(cam.sensor), width=cam.width,
-                                height=cam.height, fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy,
-                                baseline_m=cam.baseline_m)
+    msg.camera = CameraModelMsg(
+        sensor_type=_SENSORS.index(cam.sensor),
+        width=cam.width,
+        height=cam.height,
+        fx=cam.fx,
+        fy=cam.fy,
+        cx=cam.cx,
+        cy=cam.cy,
+        baseline_m=cam.baseline_m,
+    )
     msg.pose = pose_to_msg(kf.T_map_cam)
     msg.keypoints = np.asarray(kf.keypoints, np.float32).ravel().tolist()
     msg.octaves = np.asarray(kf.octaves, np.uint8).tobytes()
@@ -194,20 +219,32 @@ def keyframe_from_msg(msg, known_robots: set[int] | None = None) -> KeyframeReco
     try:
         if msg.camera.sensor_type >= len(_SENSORS):
             raise KeyframeError(f"camera sensor_type {msg.camera.sensor_type} unknown")
-        cam = camera_from_fields(width=msg.camera.width, height=msg.camera.height, fx=msg.camera.fx,
-                                 fy=msg.camera.fy, cx=msg.camera.cx, cy=msg.camera.cy,
-                                 sensor=_SENSORS[msg.camera.sensor_type],
-                                 baseline_m=msg.camera.baseline_m)
+        cam = camera_from_fields(
+            width=msg.camera.width,
+            height=msg.camera.height,
+            fx=msg.camera.fx,
+            fy=msg.camera.fy,
+            cx=msg.camera.cx,
+            cy=msg.camera.cy,
+            sensor=_SENSORS[msg.camera.sensor_type],
+            baseline_m=msg.camera.baseline_m,
+        )
         keypoints = np.asarray(msg.keypoints, np.float32)
         descriptors = _bytes(msg.descriptors)
         map_points = np.asarray(msg.map_points, np.float32)
         where = f"keyframe {msg.keyframe_id} of robot {msg.robot_id}"
         if keypoints.size % 4:
-            raise KeyframeError(f"{where}: keypoints holds {keypoints.size} floats, not 4 per keypoint")
+            raise KeyframeError(
+                f"{where}: keypoints holds {keypoints.size} floats, not 4 per keypoint"
+            )
         if descriptors.size % 32:
-            raise KeyframeError(f"{where}: descriptors hold {descriptors.size} bytes, not a multiple of 32")
+            raise KeyframeError(
+                f"{where}: descriptors hold {descriptors.size} bytes, not a multiple of 32"
+            )
         if map_points.size % 3:
-            raise KeyframeError(f"{where}: map_points holds {map_points.size} floats, not 3 per point")
+            raise KeyframeError(
+                f"{where}: map_points holds {map_points.size} floats, not 3 per point"
+            )
         o = msg.pose.orientation
         q = np.array([o.x, o.y, o.z, o.w])
         if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
@@ -243,12 +280,17 @@ def cloud_to_msg(points: np.ndarray, frame_id: str, stamp=None, rgb: np.ndarray 
     from sensor_msgs.msg import PointCloud2, PointField
 
     points = np.asarray(points, np.float32).reshape(-1, 3)
-    fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1)
-              for i, n in enumerate("xyz")]
+    fields = [
+        PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+        for i, n in enumerate("xyz")
+    ]
     if rgb is not None:
         rgb = np.asarray(rgb, np.uint8).reshape(-1, 3)
-        packed = ((rgb[:, 0].astype(np.uint32) << 16) | (rgb[:, 1].astype(np.uint32) << 8)
-                  | rgb[:, 2].astype(np.uint32))
+        packed = (
+            (rgb[:, 0].astype(np.uint32) << 16)
+            | (rgb[:, 1].astype(np.uint32) << 8)
+            | rgb[:, 2].astype(np.uint32)
+        )
         data = np.empty((len(points), 4), np.float32)
         data[:, :3] = points
         data[:, 3] = packed.view(np.float32)
@@ -278,8 +320,9 @@ def cloud_from_msg(msg) -> np.ndarray:
     if len(msg.data) < n * msg.point_step:
         raise MessageError(f"point cloud data holds {len(msg.data)} bytes for {n} points")
     raw = np.frombuffer(msg.data, np.uint8, count=n * msg.point_step).reshape(n, msg.point_step)
-    return np.stack([raw[:, offsets[k]:offsets[k] + 4].copy().view(np.float32)[:, 0] for k in "xyz"],
-                    axis=1)
+    return np.stack(
+        [raw[:, offsets[k] : offsets[k] + 4].copy().view(np.float32)[:, 0] for k in "xyz"], axis=1
+    )
 
 
 def transform_stamped(T: np.ndarray, parent: str, child: str, stamp):

@@ -9,7 +9,9 @@ from ..config import require
 
 @dataclass
 class PlayerConfig:
-    scenario: str = ""  # synthetic scenario name (rendezvous, revisit, disjoint, aliasing, multi, team)
+    scenario: str = (
+        ""  # synthetic scenario name (rendezvous, revisit, disjoint, aliasing, multi, team)
+    )
     dataset: str = ""  # TUM RGB-D or KITTI odometry folder (instead of a scenario)
     bag: str = ""  # rosbag file to replay (instead of a scenario or dataset)
     split: str = ""  # frame ranges, one robot each, inclusive: "0-299,300-599"
@@ -28,11 +30,15 @@ class PlayerConfig:
     exit_when_done: bool = False  # exit after the last frame instead of spinning (latched topics)
 
     def validate(self) -> None:
-        require(sum(map(bool, (self.scenario, self.dataset, self.bag))) == 1,
-                "player: set exactly one of ~scenario, ~dataset or ~bag")
+        require(
+            sum(map(bool, (self.scenario, self.dataset, self.bag))) == 1,
+            "player: set exactly one of ~scenario, ~dataset or ~bag",
+        )
         require(self.rate > 0, f"player: ~rate must be > 0, got {self.rate}")
         require(self.ack_timeout_s > 0, "player: ~ack_timeout_s must be > 0")
         require(self.robots >= 0, "player: ~robots must be >= 0")
         require(self.duration_s >= 0, "player: ~duration_s must be >= 0")
-        require(self.depth_encoding in ("32FC1", "16UC1"),
-                f"player: ~depth_encoding must be 32FC1 or 16UC1, got '{self.depth_encoding}'")
+        require(
+            self.depth_encoding in ("32FC1", "16UC1"),
+            f"player: ~depth_encoding must be 32FC1 or 16UC1, got '{self.depth_encoding}'",
+        )

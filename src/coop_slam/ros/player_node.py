@@ -44,18 +44,22 @@ class _RobotTopics:
         self.info = rospy.Publisher(f"{ns}/camera/color/camera_info", CameraInfo, queue_size=5)
         self.depth = (
             rospy.Publisher(f"{ns}/camera/depth/image_raw", Image, queue_size=5)
-            if seq.camera.sensor == "rgbd" else None
+            if seq.camera.sensor == "rgbd"
+            else None
         )
         self.right = (
             rospy.Publisher(f"{ns}/camera/right/image_raw", Image, queue_size=5)
-            if seq.camera.sensor == "stereo" else None
+            if seq.camera.sensor == "stereo"
+            else None
         )
         self.gt = rospy.Publisher(f"{ns}/ground_truth/pose", PoseStamped, queue_size=20)
         self.gt_poses = seq.frame_poses()
         self.gt_index = {f.index: i for i, f in enumerate(seq.frames)}
         self.acked_s = -1.0
         self.cond = threading.Condition()
-        self.ack_sub = rospy.Subscriber(f"{ns}/frame_stats", FrameStats, self._on_ack, queue_size=50)
+        self.ack_sub = rospy.Subscriber(
+            f"{ns}/frame_stats", FrameStats, self._on_ack, queue_size=50
+        )
 
     def _on_ack(self, msg) -> None:
         with self.cond:
@@ -78,10 +82,14 @@ class _RobotTopics:
                 depth_img = np.clip(np.rint(depth_m * 1000.0), 0, 65535).astype(np.uint16)
             else:
                 depth_img = depth_m
-            self.depth.publish(image_to_msg(depth_img, self.depth_encoding, stamp, self.optical_frame))
+            self.depth.publish(
+                image_to_msg(depth_img, self.depth_encoding, stamp, self.optical_frame)
+            )
         if self.right is not None:
             right = seq.load_right(frame)
-            self.right.publish(image_to_msg(right, enc, stamp, f"{self.stream.name}/camera_right_optical"))
+            self.right.publish(
+                image_to_msg(right, enc, stamp, f"{self.stream.name}/camera_right_optical")
+            )
         # Colour last: clients synchronise on it, so depth/right are already there.
         self.color.publish(image_to_msg(color, enc, stamp, self.optical_frame))
         T = self.gt_poses[self.gt_index[frame.index]]
@@ -115,7 +123,8 @@ class PlayerNode:
             start_offsets_s=offsets,
             world_params={"duration_s": cfg.duration_s} if cfg.duration_s > 0 else None,
             progress=lambda done, total: rospy.loginfo_throttle(
-                5.0, "player: generating world %d/%d frames", done, total),
+                5.0, "player: generating world %d/%d frames", done, total
+            ),
         )
         self.schedule = build_schedule(self.source.streams, keep_timing=cfg.keep_timing)
         self.topics = {s.robot_id: _RobotTopics(s, cfg.depth_encoding) for s in self.source.streams}
@@ -139,12 +148,18 @@ class PlayerNode:
         if not self.schedule:
             rospy.logwarn("player: nothing to play")
             return
-        self.clock.publish(Clock(clock=rospy.Time.from_sec(max(0.0, self.schedule[0].play_s - 0.1))))
+        self.clock.publish(
+            Clock(clock=rospy.Time.from_sec(max(0.0, self.schedule[0].play_s - 0.1)))
+        )
         self._wait_for_subscribers()
         groups = group_simultaneous(self.schedule)
         total = len(self.schedule)
-        rospy.loginfo("player: %d robots, %d frames, %s", len(self.topics), total,
-                      "lock-step" if cfg.lockstep else f"{cfg.rate:g} x real time")
+        rospy.loginfo(
+            "player: %d robots, %d frames, %s",
+            len(self.topics),
+            total,
+            "lock-step" if cfg.lockstep else f"{cfg.rate:g} x real time",
+        )
         warned_free = set()
         wall0, sim0 = time.monotonic(), groups[0][0].play_s
         published = 0
@@ -153,7 +168,9 @@ class PlayerNode:
             if rospy.is_shutdown():
                 return
             play_s = group[0].play_s
-            lockstep_ids = [g.robot_id for g in group if cfg.lockstep and self.topics[g.robot_id].has_consumer]
+            lockstep_ids = [
+                g.robot_id for g in group if cfg.lockstep and self.topics[g.robot_id].has_consumer
+            ]
             if not lockstep_ids and cfg.rate > 0:
                 delay = wall0 + (play_s - sim0) / cfg.rate - time.monotonic()
                 if delay > 0:
@@ -162,23 +179,39 @@ class PlayerNode:
                 for g in group:
                     if g.robot_id not in lockstep_ids and g.robot_id not in warned_free:
                         warned_free.add(g.robot_id)
-                        rospy.logwarn("player: no consumer acknowledges robot_%d's frames; it plays "
-                                      "at %g x real time", g.robot_id, cfg.rate)
+                        rospy.logwarn(
+                            "player: no consumer acknowledges robot_%d's frames; it plays "
+                            "at %g x real time",
+                            g.robot_id,
+                            cfg.rate,
+                        )
             self.clock.publish(Clock(clock=rospy.Time.from_sec(play_s)))
             for g in group:
                 try:
                     self.topics[g.robot_id].publish(play_s, g.frame)
                 except DatasetError as exc:
-                    rospy.logerr("player: skipping robot_%d frame %d: %s", g.robot_id, g.frame.index, exc)
+                    rospy.logerr(
+                        "player: skipping robot_%d frame %d: %s", g.robot_id, g.frame.index, exc
+                    )
             for rid in lockstep_ids:
                 if not self.topics[rid].wait_ack(play_s, cfg.ack_timeout_s):
-                    rospy.logwarn("player: robot_%d did not acknowledge the frame at %.3f s within "
-                                  "%.0f s; going on", rid, play_s, cfg.ack_timeout_s)
+                    rospy.logwarn(
+                        "player: robot_%d did not acknowledge the frame at %.3f s within "
+                        "%.0f s; going on",
+                        rid,
+                        play_s,
+                        cfg.ack_timeout_s,
+                    )
             published += len(group)
             if time.monotonic() - last_progress > cfg.progress_period_s or published == total:
                 last_progress = time.monotonic()
-                rospy.loginfo("player: %d/%d frames (%.0f %%), sim time %.2f s", published, total,
-                              100.0 * published / total, play_s)
+                rospy.loginfo(
+                    "player: %d/%d frames (%.0f %%), sim time %.2f s",
+                    published,
+                    total,
+                    100.0 * published / total,
+                    play_s,
+                )
         # A last clock tick lets consumers finish time-based work on the final frame.
         self.clock.publish(Clock(clock=rospy.Time.from_sec(self.schedule[-1].play_s + 0.5)))
         self.done.publish(Bool(True))
@@ -231,7 +264,9 @@ class BagPlayer:
         for topic, type_name in self.pubs.items():
             cls = roslib.message.get_message_class(type_name)
             if cls is None:
-                rospy.logwarn("player: message type %s of %s unknown here; skipped", type_name, topic)
+                rospy.logwarn(
+                    "player: message type %s of %s unknown here; skipped", type_name, topic
+                )
                 continue
             publishers[topic] = rospy.Publisher(topic, cls, queue_size=20)
         time.sleep(min(self.cfg.wait_for_subscribers_s, 2.0))  # let subscribers connect
@@ -249,6 +284,8 @@ class BagPlayer:
             publishers[topic].publish(msg)
             if time.monotonic() - last_progress > self.cfg.progress_period_s:
                 last_progress = time.monotonic()
-                rospy.loginfo("player: %d/%d bag messages (%.0f %%)", k + 1, total, 100.0 * (k + 1) / total)
+                rospy.loginfo(
+                    "player: %d/%d bag messages (%.0f %%)", k + 1, total, 100.0 * (k + 1) / total
+                )
         self.done.publish(Bool(True))
         rospy.loginfo("player: bag done")

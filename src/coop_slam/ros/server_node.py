@@ -17,15 +17,15 @@ import queue
 import threading
 
 import rospy
-from geometry_msgs.msg import PoseStamped
 import yaml
+from geometry_msgs.msg import PoseStamped
 from std_msgs.msg import String
 
 from ..bow import Vocabulary
 from ..config import load_config
 from ..errors import CoopSlamError
-from ..team.server import ServerConfig, TeamServer
 from ..geometry import invert, se3_from_quat
+from ..team.server import ServerConfig, TeamServer
 from .convert import (
     MessageError,
     cloud_to_msg,
@@ -64,8 +64,10 @@ class ServerNode:
 
             vocab_path = default_vocabulary_path()
         if not os.path.isfile(vocab_path):
-            raise CoopSlamError(f"vocabulary file not found: {vocab_path} (run scripts/setup, which "
-                                "builds the default vocabulary, or set ~vocabulary)")
+            raise CoopSlamError(
+                f"vocabulary file not found: {vocab_path} (run scripts/setup, which "
+                "builds the default vocabulary, or set ~vocabulary)"
+            )
         rospy.loginfo("server: loading vocabulary %s", vocab_path)
         self.vocab_path = vocab_path
         self.server = TeamServer(self.cfg, Vocabulary.load(vocab_path))
@@ -76,32 +78,52 @@ class ServerNode:
         self.pub_stats = rospy.Publisher("/server/stats", String, queue_size=5, latch=True)
         from coop_slam.msg import Vocabulary as VocabularyMsg
 
-        self.pub_vocab = rospy.Publisher("/server/vocabulary", VocabularyMsg, queue_size=1,
-                                         latch=True)
+        self.pub_vocab = rospy.Publisher(
+            "/server/vocabulary", VocabularyMsg, queue_size=1, latch=True
+        )
         with open(vocab_path, "rb") as fh:
             data = fh.read()
-        self.pub_vocab.publish(VocabularyMsg(
-            format="coop_slam-npz" if data[:2] == b"PK" else "dbow2-text",
-            sha256=hashlib.sha256(data).hexdigest(), k=self.server.vocabulary.k,
-            levels=self.server.vocabulary.levels, data=data))
+        self.pub_vocab.publish(
+            VocabularyMsg(
+                format="coop_slam-npz" if data[:2] == b"PK" else "dbow2-text",
+                sha256=hashlib.sha256(data).hexdigest(),
+                k=self.server.vocabulary.k,
+                levels=self.server.vocabulary.levels,
+                data=data,
+            )
+        )
         from sensor_msgs.msg import PointCloud2
         from visualization_msgs.msg import MarkerArray
 
         self.cloud_period_s = float(rospy.get_param("~cloud_period_s", 2.0))
         self._last_cloud_s = -1e9
         self.pub_cloud = rospy.Publisher("/team_map/cloud", PointCloud2, queue_size=1, latch=True)
-        self.pub_markers = rospy.Publisher("/team_map/markers", MarkerArray, queue_size=1, latch=True)
+        self.pub_markers = rospy.Publisher(
+            "/team_map/markers", MarkerArray, queue_size=1, latch=True
+        )
         from nav_msgs.msg import Path
 
         self._Path = Path
-        self.pub_path = {r: rospy.Publisher(f"/team_map/robot_{r}/path", Path, queue_size=1,
-                                            latch=True) for r in self.cfg.robots}
-        self.pub_corr = {r: rospy.Publisher(f"/robot_{r}/correction", MapCorrection, queue_size=5,
-                                            latch=True) for r in self.cfg.robots}
+        self.pub_path = {
+            r: rospy.Publisher(f"/team_map/robot_{r}/path", Path, queue_size=1, latch=True)
+            for r in self.cfg.robots
+        }
+        self.pub_corr = {
+            r: rospy.Publisher(f"/robot_{r}/correction", MapCorrection, queue_size=5, latch=True)
+            for r in self.cfg.robots
+        }
         self._MergeEvent, self._MapCorrection = MergeEvent, MapCorrection
-        self.subs = [rospy.Subscriber(f"/robot_{r}/keyframes", KeyFrame, self._on_keyframe,
-                                      callback_args=r, queue_size=500, buff_size=2**24)
-                     for r in self.cfg.robots]
+        self.subs = [
+            rospy.Subscriber(
+                f"/robot_{r}/keyframes",
+                KeyFrame,
+                self._on_keyframe,
+                callback_args=r,
+                queue_size=500,
+                buff_size=2**24,
+            )
+            for r in self.cfg.robots
+        ]
         from coop_slam.msg import RobotSighting
         from coop_slam.srv import Rendezvous
 
@@ -109,8 +131,9 @@ class ServerNode:
         self.T_base_cam = se3_from_quat(base_cam[:3], base_cam[3:]) if base_cam else None
         self.sighting_period_s = float(rospy.get_param("~sighting_period_s", 2.0))
         self._last_sighting: dict[tuple[int, int], float] = {}
-        self.subs.append(rospy.Subscriber("/robot_sightings", RobotSighting, self._on_sighting,
-                                          queue_size=20))
+        self.subs.append(
+            rospy.Subscriber("/robot_sightings", RobotSighting, self._on_sighting, queue_size=20)
+        )
         self.srv = rospy.Service("~rendezvous", Rendezvous, self._on_rendezvous)
         from coop_slam.srv import GlobalBundleAdjustment
 
@@ -129,15 +152,22 @@ class ServerNode:
             self.rejects.reject(topic, str(exc))
             return
         if rec.robot_id != topic_robot:
-            self.rejects.reject(topic, f"keyframe of robot {rec.robot_id} on robot {topic_robot}'s topic")
+            self.rejects.reject(
+                topic, f"keyframe of robot {rec.robot_id} on robot {topic_robot}'s topic"
+            )
             return
         self.queue.put(rec)
 
     def _on_sighting(self, msg) -> None:
         """A marker sighting asks for a rendezvous check (at most once per pair and period)."""
-        if msg.observer_id not in self.server.known_robots or msg.observed_id not in self.server.known_robots:
-            self.rejects.reject("/robot_sightings", f"sighting between unknown robots "
-                                f"{msg.observer_id} and {msg.observed_id}")
+        if (
+            msg.observer_id not in self.server.known_robots
+            or msg.observed_id not in self.server.known_robots
+        ):
+            self.rejects.reject(
+                "/robot_sightings",
+                f"sighting between unknown robots " f"{msg.observer_id} and {msg.observed_id}",
+            )
             return
         try:
             T_cam_body = pose_from_msg(msg.T_cam_body, "T_cam_body")
@@ -172,18 +202,26 @@ class ServerNode:
         if r is None:
             return GlobalBundleAdjustmentResponse(success=False, message=done.message)
         return GlobalBundleAdjustmentResponse(
-            success=True, message=done.message, keyframes=r.keyframes, points=r.points,
-            observations=r.observations, error_before=r.rms_before, error_after=r.rms_after,
-            time_s=r.time_ms / 1e3)
+            success=True,
+            message=done.message,
+            keyframes=r.keyframes,
+            points=r.points,
+            observations=r.observations,
+            error_before=r.rms_before,
+            error_after=r.rms_after,
+            time_s=r.time_ms / 1e3,
+        )
 
     def _global_ba(self, robot_id, done) -> None:
         from ..team.global_ba import GlobalBaError
 
         try:
             done.result = self.server.global_bundle_adjustment(robot_id)
-            done.message = (f"{done.result.keyframes} keyframes, {done.result.points} points: "
-                            f"reprojection RMS {done.result.rms_before:.2f} -> "
-                            f"{done.result.rms_after:.2f} px")
+            done.message = (
+                f"{done.result.keyframes} keyframes, {done.result.points} points: "
+                f"reprojection RMS {done.result.rms_before:.2f} -> "
+                f"{done.result.rms_after:.2f} px"
+            )
         except GlobalBaError as exc:
             done.result, done.message = None, str(exc)
         rospy.loginfo("server: global BA: %s", done.message)
@@ -192,8 +230,11 @@ class ServerNode:
     def _rendezvous(self, robot_a, robot_b, stamp, T_camA_bodyB, done) -> list:
         T_body_cam = None if self.T_base_cam is None else invert(self.T_base_cam)
         merge, message = self.server.request_rendezvous(
-            robot_a, robot_b, stamp, T_camA_bodyB if T_body_cam is not None else None, T_body_cam)
-        rospy.loginfo("server: rendezvous request robot_%d / robot_%d: %s", robot_a, robot_b, message)
+            robot_a, robot_b, stamp, T_camA_bodyB if T_body_cam is not None else None, T_body_cam
+        )
+        rospy.loginfo(
+            "server: rendezvous request robot_%d / robot_%d: %s", robot_a, robot_b, message
+        )
         if done is not None:
             done.merge, done.message = merge, message
             done.set()
@@ -239,15 +280,29 @@ class ServerNode:
                 self._publish_stats()
 
     def _publish_merge(self, m) -> None:
-        msg = self._MergeEvent(type=m.type, robot_a=m.robot_a, robot_b=m.robot_b,
-                               keyframe_a=m.keyframe_a, keyframe_b=m.keyframe_b,
-                               T_mapA_mapB=transform_to_msg(m.T_mapA_mapB), inliers=m.inliers,
-                               residual_px=m.residual_px, group=m.group)
+        msg = self._MergeEvent(
+            type=m.type,
+            robot_a=m.robot_a,
+            robot_b=m.robot_b,
+            keyframe_a=m.keyframe_a,
+            keyframe_b=m.keyframe_b,
+            T_mapA_mapB=transform_to_msg(m.T_mapA_mapB),
+            inliers=m.inliers,
+            residual_px=m.residual_px,
+            group=m.group,
+        )
         msg.header.stamp = rospy.Time.from_sec(m.stamp_s)
         msg.header.frame_id = "world"
         self.pub_merge.publish(msg)
-        rospy.loginfo("server: %s merge robot_%d -> robot_%d (%d inliers, %.2f px), group %s",
-                      m.type, m.robot_b, m.robot_a, m.inliers, m.residual_px, m.group)
+        rospy.loginfo(
+            "server: %s merge robot_%d -> robot_%d (%d inliers, %.2f px), group %s",
+            m.type,
+            m.robot_b,
+            m.robot_a,
+            m.inliers,
+            m.residual_px,
+            m.group,
+        )
 
     def _publish_tf(self, stamp) -> None:
         transforms = []
@@ -256,9 +311,13 @@ class ServerNode:
             if merged:
                 transforms.append(transform_stamped(T, "world", f"robot_{r}/map", stamp))
             corrected = self.server.corrected_keyframes(r)
-            corr = self._MapCorrection(robot_id=r, merged=merged, T_world_map=transform_to_msg(T),
-                                       keyframe_ids=list(corrected),
-                                       keyframe_poses=[pose_to_msg(P) for P in corrected.values()])
+            corr = self._MapCorrection(
+                robot_id=r,
+                merged=merged,
+                T_world_map=transform_to_msg(T),
+                keyframe_ids=list(corrected),
+                keyframe_poses=[pose_to_msg(P) for P in corrected.values()],
+            )
             corr.header.stamp, corr.header.frame_id = stamp, "world"
             self.pub_corr[r].publish(corr)
         if transforms:
@@ -314,8 +373,11 @@ class ServerNode:
             label.text = f"robot_{robot}" + ("" if merged else " (unmerged)")
             label.pose.position = Point(pos[-1][0], pos[-1][1], pos[-1][2] + 0.6)
             markers.markers.append(label)
-        colours = {"place_recognition": (1.0, 0.9, 0.1, 1.0), "rendezvous": (1.0, 0.2, 1.0, 1.0),
-                   "loop": (0.2, 1.0, 1.0, 1.0)}
+        colours = {
+            "place_recognition": (1.0, 0.9, 0.1, 1.0),
+            "rendezvous": (1.0, 0.2, 1.0, 1.0),
+            "loop": (0.2, 1.0, 1.0, 1.0),
+        }
         for k, (kind, pa, pb) in enumerate(edges):
             edge = marker("merges", k, Marker.LINE_LIST, colours.get(kind, (1, 1, 1, 1)), 0.06)
             edge.points = [Point(*pa), Point(*pb)]
@@ -325,14 +387,19 @@ class ServerNode:
     def _publish_stats(self) -> None:
         ms = self.server.keyframe_ms
         opt = self.server.optimize_ms
-        stats = {"keyframes": len(ms), "ms_per_keyframe_mean": sum(ms) / len(ms) if ms else None,
-                 "optimize_ms_mean": sum(opt) / len(opt) if opt else None,
-                 "merges": len(self.server.merges), "groups": self.server.groups.groups(),
-                 "loops": sum(c.type == "loop" for c in self.server.constraints),
-                 "links": sum(c.type != "loop" for c in self.server.constraints),
-                 "refused_constraints": self.server.rejected_constraints,
-                 "global_ba_runs": len(self.server.global_ba_runs),
-                 "verifications": self.server.verifications, "rejected": self.rejects.total}
+        stats = {
+            "keyframes": len(ms),
+            "ms_per_keyframe_mean": sum(ms) / len(ms) if ms else None,
+            "optimize_ms_mean": sum(opt) / len(opt) if opt else None,
+            "merges": len(self.server.merges),
+            "groups": self.server.groups.groups(),
+            "loops": sum(c.type == "loop" for c in self.server.constraints),
+            "links": sum(c.type != "loop" for c in self.server.constraints),
+            "refused_constraints": self.server.rejected_constraints,
+            "global_ba_runs": len(self.server.global_ba_runs),
+            "verifications": self.server.verifications,
+            "rejected": self.rejects.total,
+        }
         self.pub_stats.publish(String(data=json.dumps(stats)))
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import collections
-
 import time
 
 import rospy
@@ -27,7 +26,10 @@ class RejectCounter:
             self._last_log[topic] = now
             rospy.logwarn(
                 "%s: rejected message on %s (%d rejected so far): %s",
-                self.node_name, topic, self.counts[topic], reason,
+                self.node_name,
+                topic,
+                self.counts[topic],
+                reason,
             )
 
     @property

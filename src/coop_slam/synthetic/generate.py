@@ -139,7 +139,9 @@ def _render_frames(scenario, noise, camera, out_dir, robot_id, frames) -> int:
         raw[raw > 65535] = 0  # out of the 16-bit range: no measurement rather than a wrong one
         name = _frame_name(me.stamps_s[k])
         rgb_name = _frame_name(me.stamps_s[k], "rgb")
-        if not cv2.imwrite(os.path.join(folder, "rgb", rgb_name), bgr, [cv2.IMWRITE_JPEG_QUALITY, 95]):
+        if not cv2.imwrite(
+            os.path.join(folder, "rgb", rgb_name), bgr, [cv2.IMWRITE_JPEG_QUALITY, 95]
+        ):
             raise GenerateError(f"cannot write {os.path.join(folder, 'rgb', rgb_name)}")
         if not cv2.imwrite(os.path.join(folder, "depth", name), raw.astype(np.uint16), png):
             raise GenerateError(f"cannot write {os.path.join(folder, 'depth', name)}")

@@ -137,7 +137,8 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
             if np.all(np.isfinite(p)):
                 position.setdefault(root, []).append(p)
     kept = sorted(
-        root for root, ks in seen_by.items()
+        root
+        for root, ks in seen_by.items()
         if len(ks) >= config.min_observations and root in position
     )
     index = {root: j for j, root in enumerate(kept)}
@@ -174,8 +175,10 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
         scale_factor=config.scale_factor,
         n_levels=config.n_levels,
         iterations=config.iterations,
-        disparity_sigma_px=max(config.min_disparity_sigma_px,
-                               fx * config.virtual_baseline_m * config.depth_sigma_per_m2),
+        disparity_sigma_px=max(
+            config.min_disparity_sigma_px,
+            fx * config.virtual_baseline_m * config.depth_sigma_per_m2,
+        ),
     )
     return problem, keys, len(kept)
 

@@ -17,8 +17,9 @@ class GroupError(CoopSlamError):
     """Unknown robot or invalid transform handed to the merge groups."""
 
 
-def chain_map_transform(T_mapA_camA: np.ndarray, T_camA_camB: np.ndarray,
-                        T_mapB_camB: np.ndarray) -> np.ndarray:
+def chain_map_transform(
+    T_mapA_camA: np.ndarray, T_camA_camB: np.ndarray, T_mapB_camB: np.ndarray
+) -> np.ndarray:
     """``T_mapA_mapB`` from keyframe poses in their own maps and the verified relative pose."""
     return T_mapA_camA @ T_camA_camB @ invert(T_mapB_camB)
 

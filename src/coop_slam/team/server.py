@@ -233,15 +233,22 @@ class TeamServer:
             self._graph_call(self.graph.update_keyframe, *key, rec.T_map_cam)
         elif rec.action in (ACTION_NEW, ACTION_UPDATE):
             if key in self.keyframes:
-                raise ServerError(f"keyframe {rec.keyframe_id} of robot {rec.robot_id} was "
-                                  "already received as new")
+                raise ServerError(
+                    f"keyframe {rec.keyframe_id} of robot {rec.robot_id} was "
+                    "already received as new"
+                )
             bow, _ = self.vocabulary.transform(rec.descriptors)
             covisible = [(rec.robot_id, int(k)) for k in rec.covisible_ids]
             self.keyframes[key] = _Stored(rec)
             self.database.add(rec.robot_id, rec.keyframe_id, bow, covisible)
-            self._graph_call(self.graph.add_keyframe, rec.robot_id, rec.keyframe_id, rec.T_map_cam,
-                             self.groups.T_root_map(rec.robot_id),
-                             [int(k) for k in rec.covisible_ids])
+            self._graph_call(
+                self.graph.add_keyframe,
+                rec.robot_id,
+                rec.keyframe_id,
+                rec.T_map_cam,
+                self.groups.T_root_map(rec.robot_id),
+                [int(k) for k in rec.covisible_ids],
+            )
             self._kf_count[rec.robot_id] = self._kf_count.get(rec.robot_id, 0) + 1
             if self.config.rendezvous.auto:
                 merges = self._co_observation(rec)
@@ -282,8 +289,11 @@ class TeamServer:
         members = set(self.groups.members(robot_id))
         n = count_observations(s.record for k, s in self.keyframes.items() if k[0] in members)
         if n > self.config.global_ba.auto_max_observations:
-            log.info("global BA after the merge skipped: %d observations > %d (call the service)",
-                     n, self.config.global_ba.auto_max_observations)
+            log.info(
+                "global BA after the merge skipped: %d observations > %d (call the service)",
+                n,
+                self.config.global_ba.auto_max_observations,
+            )
             return
         try:
             self.global_bundle_adjustment(robot_id)
@@ -296,8 +306,10 @@ class TeamServer:
         pose graph's estimate and odometry (see TeamPoseGraph.adopt_estimates)."""
         robot_id = min(self.known_robots) if robot_id is None else int(robot_id)
         if robot_id not in self.known_robots:
-            raise GlobalBaError(f"robot {robot_id} is unknown to the server "
-                                f"(known: {sorted(self.known_robots)})")
+            raise GlobalBaError(
+                f"robot {robot_id} is unknown to the server "
+                f"(known: {sorted(self.known_robots)})"
+            )
         members = set(self.groups.members(robot_id))
         keys = sorted(k for k in self.keyframes if k[0] in members)
         if not keys:
@@ -311,10 +323,18 @@ class TeamServer:
         self._graph_call(self.graph.adopt_estimates, result.poses)
         self.optimize(full=True)
         self.global_ba_runs.append(result)
-        log.info("global BA of group %s: %d keyframes, %d points, %d observations (%d outliers), "
-                 "reprojection RMS %.2f -> %.2f px, %.0f ms", sorted(members), result.keyframes,
-                 result.points, result.observations, result.outliers, result.rms_before,
-                 result.rms_after, result.time_ms)
+        log.info(
+            "global BA of group %s: %d keyframes, %d points, %d observations (%d outliers), "
+            "reprojection RMS %.2f -> %.2f px, %.0f ms",
+            sorted(members),
+            result.keyframes,
+            result.points,
+            result.observations,
+            result.outliers,
+            result.rms_before,
+            result.rms_after,
+            result.time_ms,
+        )
         return result
 
     def _record_links(self, key_a, key_b, res: RelativePoseResult) -> None:
@@ -338,7 +358,9 @@ class TeamServer:
         world_root = min(self.known_robots)
         roots = sorted({self.groups.root(r) for r in self.groups.robots} - {world_root})
         T = np.eye(4)
-        T[0, 3] = ([world_root] + roots).index(self.groups.root(robot_id)) * self.config.unmerged_offset_m
+        T[0, 3] = ([world_root] + roots).index(
+            self.groups.root(robot_id)
+        ) * self.config.unmerged_offset_m
         return T
 
     def T_view_map(self, robot_id: int) -> np.ndarray:
@@ -363,6 +385,7 @@ class TeamServer:
     def team_view(self) -> tuple[dict[int, np.ndarray], list[tuple[str, np.ndarray, np.ndarray]]]:
         """Optimized keyframe positions per robot and merge / constraint edges (type, position a,
         position b), in the frame the team cloud is drawn in."""
+
         def position(key):
             return (self._view_offset(key[0]) @ self.T_group_cam(*key))[:3, 3]
 
@@ -371,10 +394,15 @@ class TeamServer:
             poses = self.optimized_keyframes(robot)
             offset = self._view_offset(robot)
             paths[robot] = np.array([(offset @ T)[:3, 3] for T in poses.values()])
-        links = [(m.type, (m.robot_a, m.keyframe_a), (m.robot_b, m.keyframe_b)) for m in self.merges]
+        links = [
+            (m.type, (m.robot_a, m.keyframe_a), (m.robot_b, m.keyframe_b)) for m in self.merges
+        ]
         links += [(c.type, c.key_a, c.key_b) for c in self.constraints]
-        edges = [(kind, position(ka), position(kb)) for kind, ka, kb in links
-                 if ka in self.keyframes and kb in self.keyframes]
+        edges = [
+            (kind, position(ka), position(kb))
+            for kind, ka, kb in links
+            if ka in self.keyframes and kb in self.keyframes
+        ]
         return paths, edges
 
     def team_cloud(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -409,11 +437,15 @@ class TeamServer:
         rb, key_b = rec.robot_id, (rec.robot_id, rec.keyframe_id)
         loops = self.config.loops
         candidates = [
-            c for c in self.database.query(bow, rb, rec.keyframe_id, covisible=covisible,
-                                           other_robots_only=not loops.enabled)
-            if c.key in self.keyframes and not (
+            c
+            for c in self.database.query(
+                bow, rb, rec.keyframe_id, covisible=covisible, other_robots_only=not loops.enabled
+            )
+            if c.key in self.keyframes
+            and not (
                 c.key[0] == rb
-                and rec.stamp_s - self.keyframes[c.key].record.stamp_s < loops.min_separation_s)
+                and rec.stamp_s - self.keyframes[c.key].record.stamp_s < loops.min_separation_s
+            )
         ]
         consistent = self.consistency.check(rb, candidates, self.database)
         cross = [k for k in consistent if not self.groups.same_group(k[0], rb)]
@@ -430,31 +462,42 @@ class TeamServer:
             budget -= 1
             res = self._verify_pnp(cand_key, key_b)
             if res.accepted and res.n_inliers < self.config.place_recognition.merge_min_inliers:
-                log.info("place recognition %s - %s: %d inliers, fewer than a merge needs (%d)",
-                         cand_key, key_b, res.n_inliers,
-                         self.config.place_recognition.merge_min_inliers)
+                log.info(
+                    "place recognition %s - %s: %d inliers, fewer than a merge needs (%d)",
+                    cand_key,
+                    key_b,
+                    res.n_inliers,
+                    self.config.place_recognition.merge_min_inliers,
+                )
             elif res.accepted:
                 verified_roots.add(root)
                 # Seen at (about) the same time, it is a rendezvous, whichever path verified it.
                 dt = abs(self.keyframes[cand_key].record.stamp_s - rec.stamp_s)
-                kind = TYPE_RENDEZVOUS if dt <= self.config.rendezvous.window_s else TYPE_PLACE_RECOGNITION
+                kind = (
+                    TYPE_RENDEZVOUS
+                    if dt <= self.config.rendezvous.window_s
+                    else TYPE_PLACE_RECOGNITION
+                )
                 self._pending[(min(cand_key[0], rb), max(cand_key[0], rb))] = _Verified(
-                    kind, cand_key, key_b, res, rec.stamp_s)
+                    kind, cand_key, key_b, res, rec.stamp_s
+                )
         merges = self._apply_merge_plan()
-        due = self._kf_count.get(rb, 0) - self._last_constraint.get(rb, -10**9)
+        due = self._kf_count.get(rb, 0) - self._last_constraint.get(rb, -(10**9))
         if merges or not inner or budget == 0 or due < loops.min_interval_kf:
             return merges
         for cand_key in inner[:budget]:
             res = self._verify_pnp(cand_key, key_b)
-            if res.accepted and self._add_constraint(TYPE_PLACE_RECOGNITION, cand_key, key_b, res,
-                                                     rec.stamp_s):
+            if res.accepted and self._add_constraint(
+                TYPE_PLACE_RECOGNITION, cand_key, key_b, res, rec.stamp_s
+            ):
                 break
         return merges
 
     def _verify_pnp(self, key_a, key_b) -> RelativePoseResult:
         self.verifications += 1
-        res = estimate_pnp(self._view(key_a), self._view(key_b),
-                           self.config.place_recognition.registration)
+        res = estimate_pnp(
+            self._view(key_a), self._view(key_b), self.config.place_recognition.registration
+        )
         log.debug("place recognition %s vs %s: %s", key_a, key_b, res.reason)
         return res
 
@@ -476,15 +519,18 @@ class TeamServer:
         counts = {pair: max(1, self.match_counts.get(pair, 0)) for pair in self._pending}
         merges = []
         for step in plan_merge_steps(counts, self.groups.groups()):
-            v = self._pending.pop((min(step.robot_a, step.robot_b), max(step.robot_a, step.robot_b)))
+            v = self._pending.pop(
+                (min(step.robot_a, step.robot_b), max(step.robot_a, step.robot_b))
+            )
             merges.append(self._merge(v.kind, v.key_a, v.key_b, v.result, v.stamp_s))
         for v in self._pending.values():
             self._add_constraint(v.kind, v.key_a, v.key_b, v.result, v.stamp_s)
         self._pending.clear()
         return merges
 
-    def _add_constraint(self, kind: str, key_a, key_b, res: RelativePoseResult,
-                        stamp_s: float) -> bool:
+    def _add_constraint(
+        self, kind: str, key_a, key_b, res: RelativePoseResult, stamp_s: float
+    ) -> bool:
         """A verified relative pose between keyframes of one group goes into the pose graph as a
         robust loop (same robot) or merge (two robots) factor, unless it contradicts the current
         estimate by more than the gate. A full optimization follows."""
@@ -497,8 +543,13 @@ class TeamServer:
         dt, dr = transform_error(res.T_a_b, T_est)
         if dt > loops.gate_trans_m or dr > loops.gate_rot_deg:
             self.rejected_constraints += 1
-            log.info("constraint %s - %s refused: %.2f m / %.1f deg from the current estimate",
-                     key_a, key_b, dt, dr)
+            log.info(
+                "constraint %s - %s refused: %.2f m / %.1f deg from the current estimate",
+                key_a,
+                key_b,
+                dt,
+                dr,
+            )
             return False
         sig_rot, sig_trans = self._sigmas(res)
         # The disagreement the gate let through is drift of the odometry chain, not an error of
@@ -509,34 +560,76 @@ class TeamServer:
         if sig_rot is not None:
             k *= float(np.sqrt(1.0 + (dt / sig_trans) ** 2 + (np.radians(dr) / sig_rot) ** 2))
         if key_a[0] == key_b[0]:
-            self._graph_call(self.graph.add_loop, key_a[0], key_a[1], key_b[1], res.T_a_b,
-                             "loop", sig_rot, sig_trans, k)
+            self._graph_call(
+                self.graph.add_loop,
+                key_a[0],
+                key_a[1],
+                key_b[1],
+                res.T_a_b,
+                "loop",
+                sig_rot,
+                sig_trans,
+                k,
+            )
         else:
-            self._graph_call(self.graph.add_merge, key_a[0], key_a[1], key_b[0], key_b[1],
-                             res.T_a_b, kind, sig_rot, sig_trans, k)
+            self._graph_call(
+                self.graph.add_merge,
+                key_a[0],
+                key_a[1],
+                key_b[0],
+                key_b[1],
+                res.T_a_b,
+                kind,
+                sig_rot,
+                sig_trans,
+                k,
+            )
         self._record_links(key_a, key_b, res)
-        self.constraints.append(ConstraintResult(
-            "loop" if key_a[0] == key_b[0] else kind, key_a, key_b, stamp_s, res.T_a_b,
-            int(res.n_inliers), float(res.residual_px)))
+        self.constraints.append(
+            ConstraintResult(
+                "loop" if key_a[0] == key_b[0] else kind,
+                key_a,
+                key_b,
+                stamp_s,
+                res.T_a_b,
+                int(res.n_inliers),
+                float(res.residual_px),
+            )
+        )
         self._last_constraint[key_b[0]] = self._kf_count.get(key_b[0], 0)
         self._need_full = True
-        log.info("%s constraint %s - %s (%d inliers, %.2f px; %.3f m / %.2f deg from estimate)",
-                 self.constraints[-1].type, key_a, key_b, res.n_inliers, res.residual_px, dt, dr)
+        log.info(
+            "%s constraint %s - %s (%d inliers, %.2f px; %.3f m / %.2f deg from estimate)",
+            self.constraints[-1].type,
+            key_a,
+            key_b,
+            res.n_inliers,
+            res.residual_px,
+            dt,
+            dr,
+        )
         return True
 
     # --- rendezvous ---------------------------------------------------------------------------------
-    def _near_in_time(self, robot_id: int, stamp_s: float, window_s: float,
-                      latest_fallback: bool = False) -> list[tuple[int, int]]:
+    def _near_in_time(
+        self, robot_id: int, stamp_s: float, window_s: float, latest_fallback: bool = False
+    ) -> list[tuple[int, int]]:
         """Keys of robot_id's keyframes within window_s of stamp_s, nearest first. A robot that
         stands still makes no new keyframes: with ``latest_fallback`` its latest keyframe before
         the window stands for what it sees. Only for requests that bring their own cue (a marker
         sighting, an operator): for the automatic test, being seen at the same time is part of the
         evidence (identical textures in two places pass any geometric check)."""
-        keys = [(k, abs(s.record.stamp_s - stamp_s)) for k, s in self.keyframes.items()
-                if k[0] == robot_id and abs(s.record.stamp_s - stamp_s) <= window_s]
+        keys = [
+            (k, abs(s.record.stamp_s - stamp_s))
+            for k, s in self.keyframes.items()
+            if k[0] == robot_id and abs(s.record.stamp_s - stamp_s) <= window_s
+        ]
         if not keys and latest_fallback:
-            before = [(k, s.record.stamp_s) for k, s in self.keyframes.items()
-                      if k[0] == robot_id and s.record.stamp_s < stamp_s]
+            before = [
+                (k, s.record.stamp_s)
+                for k, s in self.keyframes.items()
+                if k[0] == robot_id and s.record.stamp_s < stamp_s
+            ]
             return [max(before, key=lambda ks: ks[1])[0]] if before else []
         return [k for k, _ in sorted(keys, key=lambda kd: kd[1])]
 
@@ -554,50 +647,75 @@ class TeamServer:
                     return [merge]
         return []
 
-    def _verify_rendezvous(self, key_a, key_b, stamp_s: float, T_init=None,
-                           prior_sigma=None) -> MergeResult | None:
+    def _verify_rendezvous(
+        self, key_a, key_b, stamp_s: float, T_init=None, prior_sigma=None
+    ) -> MergeResult | None:
         cfg = self.config.rendezvous
         score = self.vocabulary.score(self.database.bow(*key_a), self.database.bow(*key_b))
         if score < cfg.min_bow_score and T_init is None:
             return None
         self.verifications += 1
-        res = estimate_3d3d(self._view(key_a), self._view(key_b), cfg.registration, T_init=T_init,
-                            prior_sigma=prior_sigma)
+        res = estimate_3d3d(
+            self._view(key_a),
+            self._view(key_b),
+            cfg.registration,
+            T_init=T_init,
+            prior_sigma=prior_sigma,
+        )
         log.debug("rendezvous %s vs %s (bow %.3f): %s", key_a, key_b, score, res.reason)
         if not res.accepted:
             return None
         self._pending[(min(key_a[0], key_b[0]), max(key_a[0], key_b[0]))] = _Verified(
-            TYPE_RENDEZVOUS, key_a, key_b, res, stamp_s)
+            TYPE_RENDEZVOUS, key_a, key_b, res, stamp_s
+        )
         merges = self._apply_merge_plan()
         return merges[0] if merges else None
 
-    def request_rendezvous(self, robot_a: int, robot_b: int, stamp_s: float | None = None,
-                           T_camA_bodyB: np.ndarray | None = None,
-                           T_bodyB_camB: np.ndarray | None = None) -> tuple[MergeResult | None, str]:
+    def request_rendezvous(
+        self,
+        robot_a: int,
+        robot_b: int,
+        stamp_s: float | None = None,
+        T_camA_bodyB: np.ndarray | None = None,
+        T_bodyB_camB: np.ndarray | None = None,
+    ) -> tuple[MergeResult | None, str]:
         """Operator trigger or marker sighting: robots a and b are together (at stamp_s, default
         their latest keyframes). A marker pose, when given, is only an initial guess and a weak
         prior; the merge still needs verified feature correspondences. Returns (merge, message)."""
         for r in (robot_a, robot_b):
             if r not in self.known_robots:
-                return None, f"robot {r} is unknown to the server (known: {sorted(self.known_robots)})"
+                return (
+                    None,
+                    f"robot {r} is unknown to the server (known: {sorted(self.known_robots)})",
+                )
         if robot_a == robot_b:
             return None, "a rendezvous needs two different robots"
         if self.groups.same_group(robot_a, robot_b):
             return None, f"robots {robot_a} and {robot_b} are already merged"
         cfg = self.config.rendezvous
         if stamp_s is None:
-            latest = [max((s.record.stamp_s for k, s in self.keyframes.items() if k[0] == r),
-                          default=None) for r in (robot_a, robot_b)]
+            latest = [
+                max(
+                    (s.record.stamp_s for k, s in self.keyframes.items() if k[0] == r), default=None
+                )
+                for r in (robot_a, robot_b)
+            ]
             if None in latest:
                 return None, "no keyframes yet from one of the robots"
             stamp_s = max(latest)  # now; a robot that stands still falls back to its latest
         keys_a = self._near_in_time(robot_a, stamp_s, cfg.request_window_s, latest_fallback=True)
         keys_b = self._near_in_time(robot_b, stamp_s, cfg.request_window_s, latest_fallback=True)
         if not keys_a or not keys_b:
-            return None, f"no keyframes of both robots within {cfg.request_window_s} s of {stamp_s:.2f} s"
-        pairs = sorted(((ka, kb) for ka in keys_a[:3] for kb in keys_b[:3]),
-                       key=lambda p: abs(self.keyframes[p[0]].record.stamp_s
-                                         - self.keyframes[p[1]].record.stamp_s))
+            return (
+                None,
+                f"no keyframes of both robots within {cfg.request_window_s} s of {stamp_s:.2f} s",
+            )
+        pairs = sorted(
+            ((ka, kb) for ka in keys_a[:3] for kb in keys_b[:3]),
+            key=lambda p: abs(
+                self.keyframes[p[0]].record.stamp_s - self.keyframes[p[1]].record.stamp_s
+            ),
+        )
         for key_a, key_b in pairs[: cfg.max_pairs]:
             T_init = prior = None
             if T_camA_bodyB is not None and T_bodyB_camB is not None:
@@ -607,22 +725,52 @@ class TeamServer:
             merge = self._verify_rendezvous(key_a, key_b, stamp_s, T_init, prior)
             if merge is not None:
                 return merge, f"merged ({merge.inliers} inliers, {merge.residual_px:.2f} px)"
-        return None, (f"no verified overlap between robots {robot_a} and {robot_b} around "
-                      f"{stamp_s:.2f} s: not merged (a marker sighting alone is not enough)")
+        return None, (
+            f"no verified overlap between robots {robot_a} and {robot_b} around "
+            f"{stamp_s:.2f} s: not merged (a marker sighting alone is not enough)"
+        )
 
-    def _merge(self, kind: str, key_a, key_b, res: RelativePoseResult, stamp_s: float) -> MergeResult:
+    def _merge(
+        self, kind: str, key_a, key_b, res: RelativePoseResult, stamp_s: float
+    ) -> MergeResult:
         rec_a, rec_b = self.keyframes[key_a].record, self.keyframes[key_b].record
         T_mapA_mapB = chain_map_transform(rec_a.T_map_cam, res.T_a_b, rec_b.T_map_cam)
         group = self.groups.merge(key_a[0], key_b[0], T_mapA_mapB)
-        self._graph_call(self.graph.add_merge, key_a[0], key_a[1], key_b[0], key_b[1], res.T_a_b,
-                         kind, *self._sigmas(res))
-        merge = MergeResult(kind, key_a[0], key_b[0], key_a[1], key_b[1], stamp_s, T_mapA_mapB,
-                            res.T_a_b, int(res.n_inliers), float(res.residual_px), group)
+        self._graph_call(
+            self.graph.add_merge,
+            key_a[0],
+            key_a[1],
+            key_b[0],
+            key_b[1],
+            res.T_a_b,
+            kind,
+            *self._sigmas(res),
+        )
+        merge = MergeResult(
+            kind,
+            key_a[0],
+            key_b[0],
+            key_a[1],
+            key_b[1],
+            stamp_s,
+            T_mapA_mapB,
+            res.T_a_b,
+            int(res.n_inliers),
+            float(res.residual_px),
+            group,
+        )
         self.merges.append(merge)
         self._record_links(key_a, key_b, res)
         self.consistency.reset(key_b[0])
-        log.info("merged robot %d into robot %d's map (%s, %d inliers, %.2f px): group %s",
-                 key_b[0], key_a[0], kind, merge.inliers, merge.residual_px, group)
+        log.info(
+            "merged robot %d into robot %d's map (%s, %d inliers, %.2f px): group %s",
+            key_b[0],
+            key_a[0],
+            kind,
+            merge.inliers,
+            merge.residual_px,
+            group,
+        )
         return merge
 
     # --- team frame ---------------------------------------------------------------------------------

@@ -13,7 +13,9 @@ import time
 from typing import Callable, Iterator
 
 Figure = tuple[str, float, str]
-_REPO = os.path.normpath(os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", ".."))
+_REPO = os.path.normpath(
+    os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", "..")
+)
 REDKITCHEN = os.path.normpath(os.path.join(_REPO, "..", "shared", "data", "redkitchen_0000_0599"))
 CONFIG_DIR = os.path.join(_REPO, "config")
 
@@ -53,7 +55,6 @@ def _vo_runs():
 
 def bench_vo() -> Iterator[Figure]:
     """Tracking time with local mapping running alongside, keyframes/s, ATE and KeyFrame size."""
-    import io
 
     import numpy as np
 
@@ -72,8 +73,11 @@ def bench_vo() -> Iterator[Figure]:
         yield (f"vo_{name}_keyframes_per_s", run.keyframes_created / duration, "1/s")
         ate = keyframe_ate(run, seq)
         yield (f"vo_{name}_keyframe_ate", ate, "m")
-        yield (f"vo_{name}_keyframe_ate_percent_of_path",
-               100 * ate / max(path_length(seq.frame_poses()), 1e-9), "%")
+        yield (
+            f"vo_{name}_keyframe_ate_percent_of_path",
+            100 * ate / max(path_length(seq.frame_poses()), 1e-9),
+            "%",
+        )
         yield (f"vo_{name}_lost_frames", float(np.count_nonzero(~run.ok)), "frames")
         size = _keyframe_msg_bytes(run.keyframes, seq.camera)
         if size is not None:
@@ -90,12 +94,21 @@ def _keyframe_msg_bytes(keyframes, camera):
         return None
     sizes = []
     for kf in keyframes:
-        rec = KeyframeRecord(robot_id=1, keyframe_id=int(kf.keyframe_id), stamp_s=float(kf.stamp_s),
-                             camera=camera, T_map_cam=kf.T_map_cam,
-                             keypoints=kf.keypoints_flat().reshape(-1, 4), octaves=kf.octaves,
-                             descriptors=kf.descriptors, depths_m=kf.depths_m,
-                             map_point_ids=kf.map_point_ids, map_points=kf.map_points_xyz,
-                             covisible_ids=kf.covisible_ids, covisible_weights=kf.covisible_weights)
+        rec = KeyframeRecord(
+            robot_id=1,
+            keyframe_id=int(kf.keyframe_id),
+            stamp_s=float(kf.stamp_s),
+            camera=camera,
+            T_map_cam=kf.T_map_cam,
+            keypoints=kf.keypoints_flat().reshape(-1, 4),
+            octaves=kf.octaves,
+            descriptors=kf.descriptors,
+            depths_m=kf.depths_m,
+            map_point_ids=kf.map_point_ids,
+            map_points=kf.map_points_xyz,
+            covisible_ids=kf.covisible_ids,
+            covisible_weights=kf.covisible_weights,
+        )
         buf = io.BytesIO()
         keyframe_to_msg(rec, "robot_1/map").serialize(buf)
         sizes.append(buf.tell())
@@ -125,12 +138,23 @@ def bench_server() -> Iterator[Figure]:
     for robot_id, name in enumerate(halves, 1):
         run, seq = _VO_RUNS[name]
         for kf in run.keyframes:
-            records.append(KeyframeRecord(
-                robot_id=robot_id, keyframe_id=int(kf.keyframe_id), stamp_s=float(kf.stamp_s),
-                camera=seq.camera, T_map_cam=kf.T_map_cam, keypoints=kf.keypoints_flat().reshape(-1, 4),
-                octaves=kf.octaves, descriptors=kf.descriptors, depths_m=kf.depths_m,
-                map_point_ids=kf.map_point_ids, map_points=kf.map_points_xyz,
-                covisible_ids=kf.covisible_ids, covisible_weights=kf.covisible_weights))
+            records.append(
+                KeyframeRecord(
+                    robot_id=robot_id,
+                    keyframe_id=int(kf.keyframe_id),
+                    stamp_s=float(kf.stamp_s),
+                    camera=seq.camera,
+                    T_map_cam=kf.T_map_cam,
+                    keypoints=kf.keypoints_flat().reshape(-1, 4),
+                    octaves=kf.octaves,
+                    descriptors=kf.descriptors,
+                    depths_m=kf.depths_m,
+                    map_point_ids=kf.map_point_ids,
+                    map_points=kf.map_points_xyz,
+                    covisible_ids=kf.covisible_ids,
+                    covisible_weights=kf.covisible_weights,
+                )
+            )
     records.sort(key=lambda r: r.stamp_s)
     t0 = time.perf_counter()
     for rec in records:

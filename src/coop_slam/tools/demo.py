@@ -14,7 +14,6 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 
 import numpy as np
@@ -35,27 +34,43 @@ def parse_args(argv=None) -> argparse.Namespace:
     src.add_argument("--bag", help="rosbag file to replay")
     p.add_argument("--robots", type=int, default=None, help="number of robots")
     p.add_argument("--split", help="inclusive frame ranges, one robot each: 0-299,300-599")
-    p.add_argument("--keep-timing", action="store_true",
-                   help="play split segments at their original times (default: all start together)")
+    p.add_argument(
+        "--keep-timing",
+        action="store_true",
+        help="play split segments at their original times (default: all start together)",
+    )
     p.add_argument("--seed", type=int, default=0, help="synthetic world seed")
     p.add_argument("--camera", help="camera.yaml for a dataset folder without one")
-    p.add_argument("--rate", type=float, default=None,
-                   help="play at RATE x real time instead of lock-step")
+    p.add_argument(
+        "--rate", type=float, default=None, help="play at RATE x real time instead of lock-step"
+    )
     rec = p.add_mutually_exclusive_group()
-    rec.add_argument("--record", dest="record", action="store_true", default=True,
-                     help="record RViz headless to MP4 + PNG (the default)")
-    rec.add_argument("--no-record", dest="record", action="store_false",
-                     help="do not record RViz")
+    rec.add_argument(
+        "--record",
+        dest="record",
+        action="store_true",
+        default=True,
+        help="record RViz headless to MP4 + PNG (the default)",
+    )
+    rec.add_argument("--no-record", dest="record", action="store_false", help="do not record RViz")
     p.add_argument("--server-config", help="server YAML (default: config/server.yaml)")
     p.add_argument("--client-config", help="client YAML (default: config/client.yaml)")
-    p.add_argument("--no-markers", action="store_true",
-                   help="clients do not look for other robots' markers (rendezvous without cue)")
+    p.add_argument(
+        "--no-markers",
+        action="store_true",
+        help="clients do not look for other robots' markers (rendezvous without cue)",
+    )
     p.add_argument("--out", help="results folder (default: results/<date>-<source>)")
     p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
-    p.add_argument("--no-clients", action="store_true",
-                   help="only play the data (no clients, no server)")
-    p.add_argument("--settle", type=float, default=5.0,
-                   help="seconds to wait after the last frame for the last keyframes and merges")
+    p.add_argument(
+        "--no-clients", action="store_true", help="only play the data (no clients, no server)"
+    )
+    p.add_argument(
+        "--settle",
+        type=float,
+        default=5.0,
+        help="seconds to wait after the last frame for the last keyframes and merges",
+    )
     args = p.parse_args(argv)
     if args.scenario is None and args.dataset is None and args.bag is None:
         args.scenario = DEFAULT_SCENARIO
@@ -75,10 +90,16 @@ def _write_run_info(out: str, args: argparse.Namespace, robot_ids: list[int]) ->
     """What ``scripts/evaluate`` needs to find the ground truth of this run again."""
     import json
 
-    info = {"scenario": args.scenario, "dataset": os.path.abspath(args.dataset) if args.dataset else None,
-            "split": args.split, "robots": args.robots, "seed": args.seed,
-            "camera": os.path.abspath(args.camera) if args.camera else None,
-            "keep_timing": args.keep_timing, "robot_ids": robot_ids}
+    info = {
+        "scenario": args.scenario,
+        "dataset": os.path.abspath(args.dataset) if args.dataset else None,
+        "split": args.split,
+        "robots": args.robots,
+        "seed": args.seed,
+        "camera": os.path.abspath(args.camera) if args.camera else None,
+        "keep_timing": args.keep_timing,
+        "robot_ids": robot_ids,
+    }
     with open(os.path.join(out, "run.json"), "w", encoding="utf-8") as fh:
         json.dump(info, fh, indent=2)
 
@@ -119,13 +140,28 @@ class _Monitor:
         for topic, type_name in self.recorder.topics().items():
             if ack and topic.endswith("/frame_stats"):
                 continue  # this monitor publishes them itself
-            self._subs.append(rospy.Subscriber(topic, rospy.AnyMsg, self._on_any,
-                                               (topic, _msg_class(type_name)), queue_size=500,
-                                               buff_size=2**25))
+            self._subs.append(
+                rospy.Subscriber(
+                    topic,
+                    rospy.AnyMsg,
+                    self._on_any,
+                    (topic, _msg_class(type_name)),
+                    queue_size=500,
+                    buff_size=2**25,
+                )
+            )
         self._acks = {}
         for r in robot_ids if ack else ():
-            self._subs.append(rospy.Subscriber(f"/robot_{r}/camera/color/image_raw", Image,
-                                               self._on_image, r, queue_size=5, buff_size=2**24))
+            self._subs.append(
+                rospy.Subscriber(
+                    f"/robot_{r}/camera/color/image_raw",
+                    Image,
+                    self._on_image,
+                    r,
+                    queue_size=5,
+                    buff_size=2**24,
+                )
+            )
             self._acks[r] = rospy.Publisher(f"/robot_{r}/frame_stats", FrameStats, queue_size=10)
         self._FrameStats = FrameStats
 
@@ -163,8 +199,11 @@ def _final_global_ba() -> None:
     except (rospy.ROSException, rospy.ServiceException) as exc:
         say(f"      global BA not run: {exc}")
         return
-    say(f"      global BA: {res.message} ({res.time_s:.1f} s)" if res.success
-        else f"      global BA not run: {res.message}")
+    say(
+        f"      global BA: {res.message} ({res.time_s:.1f} s)"
+        if res.success
+        else f"      global BA not run: {res.message}"
+    )
     time.sleep(2.0)  # wall time: the server republishes the team map
 
 
@@ -181,14 +220,17 @@ def _wait_for_master(uri: str, timeout_s: float) -> None:
 
 def run(args: argparse.Namespace) -> int:
     name = args.scenario or os.path.basename(os.path.normpath(args.dataset or args.bag or "run"))
-    out = os.path.abspath(args.out or os.path.join(
-        "results", f"{datetime.datetime.now():%Y%m%d-%H%M%S}-{name}"))
+    out = os.path.abspath(
+        args.out or os.path.join("results", f"{datetime.datetime.now():%Y%m%d-%H%M%S}-{name}")
+    )
     os.makedirs(out, exist_ok=True)
     t_start = time.monotonic()
 
     if args.bag:
-        raise CoopSlamError("--bag: evaluation of bag runs needs ground truth; play bags with "
-                            "roslaunch coop_slam player.launch bag:=FILE for now")
+        raise CoopSlamError(
+            "--bag: evaluation of bag runs needs ground truth; play bags with "
+            "roslaunch coop_slam player.launch bag:=FILE for now"
+        )
     say(f"[1/3] preparing data ({'scenario ' + args.scenario if args.scenario else args.dataset})")
     last = [0.0]
 
@@ -197,9 +239,15 @@ def run(args: argparse.Namespace) -> int:
             last[0] = time.monotonic()
             say(f"      rendering {done}/{total} frames ({100.0 * done / max(total, 1):.0f} %)")
 
-    source = load_streams(scenario=args.scenario, dataset=args.dataset, split=args.split,
-                          robots=args.robots, seed=args.seed, camera_file=args.camera,
-                          progress=progress)
+    source = load_streams(
+        scenario=args.scenario,
+        dataset=args.dataset,
+        split=args.split,
+        robots=args.robots,
+        seed=args.seed,
+        camera_file=args.camera,
+        progress=progress,
+    )
     schedule = build_schedule(source.streams, keep_timing=args.keep_timing)
     robot_ids = [s.robot_id for s in source.streams]
     total = len(schedule)
@@ -207,11 +255,18 @@ def run(args: argparse.Namespace) -> int:
 
     port = _free_port()
     uri = f"http://127.0.0.1:{port}"
-    env = dict(os.environ, ROS_MASTER_URI=uri, ROS_HOSTNAME="127.0.0.1",
-               ROS_LOG_DIR=os.path.join(out, "ros_log"))
+    env = dict(
+        os.environ,
+        ROS_MASTER_URI=uri,
+        ROS_HOSTNAME="127.0.0.1",
+        ROS_LOG_DIR=os.path.join(out, "ros_log"),
+    )
     os.environ.update(ROS_MASTER_URI=uri, ROS_HOSTNAME="127.0.0.1")
-    launch_args = [f"robots:={len(robot_ids)}", f"seed:={args.seed}",
-                   f"keep_timing:={str(args.keep_timing).lower()}"]
+    launch_args = [
+        f"robots:={len(robot_ids)}",
+        f"seed:={args.seed}",
+        f"keep_timing:={str(args.keep_timing).lower()}",
+    ]
     if args.scenario:
         launch_args.append(f"scenario:={args.scenario}")
     else:
@@ -241,30 +296,48 @@ def run(args: argparse.Namespace) -> int:
     say(f"[2/3] running the system (ROS master {uri}; log {log_path})")
     recorder = None
     with open(log_path, "w") as log:
-        launch = subprocess.Popen(["roslaunch", "-p", str(port), "coop_slam", "demo.launch",
-                                   *launch_args], stdout=log, stderr=subprocess.STDOUT, env=env,
-                                  start_new_session=True)
+        launch = subprocess.Popen(
+            ["roslaunch", "-p", str(port), "coop_slam", "demo.launch", *launch_args],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=env,
+            start_new_session=True,
+        )
     try:
         _wait_for_master(uri, 30.0)
         monitor = _Monitor(robot_ids, ack=args.no_clients)
         if args.record:
             recorder = subprocess.Popen(
-                [os.path.join(REPO, "scripts", "record_rviz"), "--headless", "--out",
-                 os.path.join(out, "video")], stdout=open(os.path.join(out, "record.log"), "w"),
-                stderr=subprocess.STDOUT, env=env, start_new_session=True)
+                [
+                    os.path.join(REPO, "scripts", "record_rviz"),
+                    "--headless",
+                    "--out",
+                    os.path.join(out, "video"),
+                ],
+                stdout=open(os.path.join(out, "record.log"), "w"),
+                stderr=subprocess.STDOUT,
+                env=env,
+                start_new_session=True,
+            )
         t0, t1 = schedule[0].play_s, schedule[-1].play_s
         deadline = time.monotonic() + args.timeout
         tty = sys.stdout.isatty()
         last_line = 0.0
         while not monitor.done:
             if launch.poll() is not None:
-                raise CoopSlamError(f"roslaunch exited early (code {launch.returncode}); see {log_path}")
+                raise CoopSlamError(
+                    f"roslaunch exited early (code {launch.returncode}); see {log_path}"
+                )
             if time.monotonic() > deadline:
-                raise CoopSlamError(f"run did not finish within {args.timeout:.0f} s; see {log_path}")
+                raise CoopSlamError(
+                    f"run did not finish within {args.timeout:.0f} s; see {log_path}"
+                )
             got = sum(r.frames for r in monitor.run.robots.values())
             elapsed = min(max(monitor.sim_s - t0, 0.0), t1 - t0)
-            line = (f"[demo]       sim time {elapsed:6.1f}/{t1 - t0:.1f} s "
-                    f"({100 * elapsed / max(t1 - t0, 1e-9):3.0f} %), frames received {got}/{total}")
+            line = (
+                f"[demo]       sim time {elapsed:6.1f}/{t1 - t0:.1f} s "
+                f"({100 * elapsed / max(t1 - t0, 1e-9):3.0f} %), frames received {got}/{total}"
+            )
             if tty:
                 print("\r" + line, end="", flush=True)
             elif time.monotonic() - last_line > 10.0:
@@ -311,8 +384,10 @@ def run(args: argparse.Namespace) -> int:
     if ply:
         say(f"team map:     {ply}")
     if args.record:
-        say(f"video:        {os.path.join(out, 'video', 'rviz.mp4')}  (final view: "
-            f"{os.path.join(out, 'video', 'map.png')})")
+        say(
+            f"video:        {os.path.join(out, 'video', 'rviz.mp4')}  (final view: "
+            f"{os.path.join(out, 'video', 'map.png')})"
+        )
     return 0
 
 

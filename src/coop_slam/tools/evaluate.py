@@ -37,7 +37,9 @@ class RobotRun:
 @dataclass
 class RunData:
     robots: dict = field(default_factory=dict)  # robot id -> RobotRun
-    merges: list = field(default_factory=list)  # dicts: type, robot_a, robot_b, stamp_s, T_mapA_mapB
+    merges: list = field(
+        default_factory=list
+    )  # dicts: type, robot_a, robot_b, stamp_s, T_mapA_mapB
     server_stats: dict = field(default_factory=dict)
     duration_s: float = 0.0  # sim time from first to last frame
     topic_bytes: dict = field(default_factory=dict)  # topic -> [(sim t_s, bytes)] per message
@@ -159,14 +161,23 @@ class RunRecorder:
         from ..ros.convert import transform_from_msg
 
         # The keyframe poses as the server used them (local BA may move them afterwards).
-        at_merge = {robot: self.run.robots[robot].keyframes.get(kf)
-                    for robot, kf in ((msg.robot_a, msg.keyframe_a), (msg.robot_b, msg.keyframe_b))
-                    if robot in self.run.robots}
-        self.run.merges.append({"type": msg.type, "robot_a": msg.robot_a, "robot_b": msg.robot_b,
-                                "keyframe_a": msg.keyframe_a, "keyframe_b": msg.keyframe_b,
-                                "keyframes_at_merge": at_merge,
-                                "stamp_s": msg.header.stamp.to_sec(),
-                                "T_mapA_mapB": transform_from_msg(msg.T_mapA_mapB)})
+        at_merge = {
+            robot: self.run.robots[robot].keyframes.get(kf)
+            for robot, kf in ((msg.robot_a, msg.keyframe_a), (msg.robot_b, msg.keyframe_b))
+            if robot in self.run.robots
+        }
+        self.run.merges.append(
+            {
+                "type": msg.type,
+                "robot_a": msg.robot_a,
+                "robot_b": msg.robot_b,
+                "keyframe_a": msg.keyframe_a,
+                "keyframe_b": msg.keyframe_b,
+                "keyframes_at_merge": at_merge,
+                "stamp_s": msg.header.stamp.to_sec(),
+                "T_mapA_mapB": transform_from_msg(msg.T_mapA_mapB),
+            }
+        )
 
 
 def run_data_from_bag(bag_path: str, robot_ids: list[int]) -> RunData:
@@ -200,12 +211,19 @@ def _gt_of(stream: RobotStream, keep_timing: bool):
 
 def _kf_arrays(run: RobotRun):
     ids = sorted(run.keyframes)
-    return (np.array([run.keyframes[k][0] for k in ids]),
-            np.array([run.keyframes[k][1] for k in ids]).reshape(-1, 4, 4))
+    return (
+        np.array([run.keyframes[k][0] for k in ids]),
+        np.array([run.keyframes[k][1] for k in ids]).reshape(-1, 4, 4),
+    )
 
 
-def evaluate_run(run: RunData, streams: list[RobotStream], keep_timing: bool = False,
-                 overlap: dict | None = None, out_dir: str | None = None) -> dict:
+def evaluate_run(
+    run: RunData,
+    streams: list[RobotStream],
+    keep_timing: bool = False,
+    overlap: dict | None = None,
+    out_dir: str | None = None,
+) -> dict:
     """The report dict (see coop_slam.report); writes trajectories and plots into ``out_dir``."""
     report = new_report([s.robot_id for s in streams])
     gts = {s.robot_id: _gt_of(s, keep_timing) for s in streams}
@@ -233,16 +251,21 @@ def evaluate_run(run: RunData, streams: list[RobotStream], keep_timing: bool = F
             except EvaluationError:
                 pass
             if out_dir:
-                write_tum_trajectory(os.path.join(out_dir, "trajectories", f"robot_{rid}_keyframes.txt"),
-                                     stamps, poses)
+                write_tum_trajectory(
+                    os.path.join(out_dir, "trajectories", f"robot_{rid}_keyframes.txt"),
+                    stamps,
+                    poses,
+                )
             try:
                 entry["rpe_rmse_m"] = rpe_rmse(stamps, poses, stamps_gt, poses_gt)
             except EvaluationError:
                 pass
             if r.team_keyframes:  # the server's optimized poses, in world
                 ids = sorted(r.team_keyframes)
-                est_world[rid] = (np.array([r.team_keyframes[k][0] for k in ids]),
-                                  np.array([r.team_keyframes[k][1] for k in ids]))
+                est_world[rid] = (
+                    np.array([r.team_keyframes[k][0] for k in ids]),
+                    np.array([r.team_keyframes[k][1] for k in ids]),
+                )
             elif r.T_world_map is not None:  # client poses moved by the latest correction
                 est_world[rid] = (stamps, np.einsum("ij,njk->nik", r.T_world_map, poses))
             if rid in est_world:
@@ -250,18 +273,29 @@ def evaluate_run(run: RunData, streams: list[RobotStream], keep_timing: bool = F
                 if out_dir:
                     write_tum_trajectory(
                         os.path.join(out_dir, "trajectories", f"robot_{rid}_world.txt"),
-                        *est_world[rid])
+                        *est_world[rid],
+                    )
         if out_dir:
-            write_tum_trajectory(os.path.join(out_dir, "trajectories", f"robot_{rid}_groundtruth.txt"),
-                                 stamps_gt, poses_gt)
+            write_tum_trajectory(
+                os.path.join(out_dir, "trajectories", f"robot_{rid}_groundtruth.txt"),
+                stamps_gt,
+                poses_gt,
+            )
     # Merges: transform error against ground truth and latency from the first true overlap.
     for m in run.merges:
         a, b = m["robot_a"], m["robot_b"]
-        entry = {"type": m["type"], "robots": [a, b], "stamp": m["stamp_s"], "trans_err_m": None,
-                 "rot_err_deg": None, "latency_s": None}
+        entry = {
+            "type": m["type"],
+            "robots": [a, b],
+            "stamp": m["stamp_s"],
+            "trans_err_m": None,
+            "rot_err_deg": None,
+            "latency_s": None,
+        }
         if a in T_world_map_gt and b in T_world_map_gt:
             entry["trans_err_m"], entry["rot_err_deg"] = merge_error(
-                m["T_mapA_mapB"], T_world_map_gt[a], T_world_map_gt[b])
+                m["T_mapA_mapB"], T_world_map_gt[a], T_world_map_gt[b]
+            )
         local = _local_merge_error(m, run, gts)
         entry["local_trans_err_m"], entry["local_rot_err_deg"] = local if local else (None, None)
         first = _first_overlap(overlap, a, b)
@@ -271,8 +305,11 @@ def evaluate_run(run: RunData, streams: list[RobotStream], keep_timing: bool = F
     # A wrong merge is a wrong registration: judged at the matched keyframes, where odometry drift
     # (which only the team optimization can remove) does not enter.
     report["wrong_merges"] = count_wrong_merges(
-        [{"trans_err_m": m["local_trans_err_m"], "rot_err_deg": m["local_rot_err_deg"]}
-         for m in report["merges"]])
+        [
+            {"trans_err_m": m["local_trans_err_m"], "rot_err_deg": m["local_rot_err_deg"]}
+            for m in report["merges"]
+        ]
+    )
     report["groups"] = run.server_stats.get("groups") or [[s.robot_id] for s in streams]
     if len(est_world) >= 2 or (len(streams) == 1 and est_world):
         try:
@@ -295,7 +332,8 @@ def evaluate_run(run: RunData, streams: list[RobotStream], keep_timing: bool = F
 
 def _local_merge_error(m: dict, run: RunData, gts: dict) -> tuple[float, float] | None:
     """Error of T_mapA_mapB against the truth at the matched keyframes: the map transform that the
-    true relative pose of the two keyframes would have given, with both keyframes' estimated poses."""
+    true relative pose of the two keyframes would have given, with both keyframes' estimated poses.
+    """
     poses = []
     for robot, kf in ((m["robot_a"], m.get("keyframe_a")), (m["robot_b"], m.get("keyframe_b"))):
         r = run.robots.get(robot)
@@ -315,14 +353,19 @@ def _local_merge_error(m: dict, run: RunData, gts: dict) -> tuple[float, float] 
     (T_mapA_camA, T_world_camA), (T_mapB_camB, T_world_camB) = poses
     # merge_error(T_est, T_world_mapA, T_world_mapB) with the maps placed so that the keyframes'
     # estimated poses coincide with their true ones.
-    return merge_error(m["T_mapA_mapB"], T_world_camA @ invert(T_mapA_camA),
-                       T_world_camB @ invert(T_mapB_camB))
+    return merge_error(
+        m["T_mapA_mapB"], T_world_camA @ invert(T_mapA_camA), T_world_camB @ invert(T_mapB_camB)
+    )
 
 
 def _first_overlap(overlap: dict | None, a: int, b: int) -> float | None:
     if not overlap:
         return None
-    times = [e["stamp_s"] for e in overlap.get("first_overlap", []) if sorted(e["robots"]) == sorted([a, b])]
+    times = [
+        e["stamp_s"]
+        for e in overlap.get("first_overlap", [])
+        if sorted(e["robots"]) == sorted([a, b])
+    ]
     return min(times) if times else None
 
 
@@ -338,11 +381,19 @@ def _bandwidth(run: RunData) -> dict:
         bins = np.floor(t - t.min()).astype(int)
         peaks.append(np.bincount(bins, weights=b).max() / 1e3)  # busiest second of sim time
     if not per_robot:
-        return {"per_robot_kBps": None, "peak_kBps": None, "total_MB": None,
-                "keyframe_bytes_mean": None}
+        return {
+            "per_robot_kBps": None,
+            "peak_kBps": None,
+            "total_MB": None,
+            "keyframe_bytes_mean": None,
+        }
     sizes = [n for r in run.robots.values() for _, n in r.kf_bytes]
-    return {"per_robot_kBps": float(np.mean(per_robot)), "peak_kBps": float(max(peaks)),
-            "total_MB": float(total / 1e6), "keyframe_bytes_mean": float(np.mean(sizes))}
+    return {
+        "per_robot_kBps": float(np.mean(per_robot)),
+        "peak_kBps": float(max(peaks)),
+        "total_MB": float(total / 1e6),
+        "keyframe_bytes_mean": float(np.mean(sizes)),
+    }
 
 
 def _topic_bandwidth(run: RunData) -> dict:
@@ -352,8 +403,12 @@ def _topic_bandwidth(run: RunData) -> dict:
         t = np.array([s for s, _ in entries])
         b = np.array([n for _, n in entries], float)
         peak = np.bincount(np.floor(t - t.min()).astype(int), weights=b).max() / 1e3
-        out[topic] = {"messages": len(b), "mean_kBps": float(b.sum() / max(run.duration_s, 1e-9) / 1e3),
-                      "peak_kBps": float(peak), "total_MB": float(b.sum() / 1e6)}
+        out[topic] = {
+            "messages": len(b),
+            "mean_kBps": float(b.sum() / max(run.duration_s, 1e-9) / 1e3),
+            "peak_kBps": float(peak),
+            "total_MB": float(b.sum() / 1e6),
+        }
     return out
 
 
@@ -369,8 +424,14 @@ def _plot(out_dir: str, run: RunData, streams, gts) -> None:
     for k, stream in enumerate(streams):
         rid, c = stream.robot_id, colours[k % len(colours)]
         stamps_gt, poses_gt = gts[rid]
-        ax.plot(poses_gt[:, 0, 3], poses_gt[:, 1, 3], "--", color=c, alpha=0.5,
-                label=f"robot_{rid} ground truth")
+        ax.plot(
+            poses_gt[:, 0, 3],
+            poses_gt[:, 1, 3],
+            "--",
+            color=c,
+            alpha=0.5,
+            label=f"robot_{rid} ground truth",
+        )
         r = run.robots.get(rid)
         if r and len(r.keyframes) >= 3:
             stamps, poses = _kf_arrays(r)
@@ -379,8 +440,14 @@ def _plot(out_dir: str, run: RunData, streams, gts) -> None:
             except EvaluationError:
                 continue
             aligned = np.einsum("ij,njk->nik", res.T_gt_est, poses)
-            ax.plot(aligned[:, 0, 3], aligned[:, 1, 3], "-o", ms=2, color=c,
-                    label=f"robot_{rid} keyframes (ATE {100 * res.rmse_m:.1f} cm)")
+            ax.plot(
+                aligned[:, 0, 3],
+                aligned[:, 1, 3],
+                "-o",
+                ms=2,
+                color=c,
+                label=f"robot_{rid} keyframes (ATE {100 * res.rmse_m:.1f} cm)",
+            )
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal", adjustable="datalim")
@@ -403,11 +470,23 @@ def _plot_team(out_dir: str, est_world: dict, gt_world: dict, team) -> None:
     for k, rid in enumerate(sorted(est_world)):
         c = colours[k % len(colours)]
         _, poses_gt = gt_world[rid]
-        ax.plot(poses_gt[:, 0, 3], poses_gt[:, 1, 3], "--", color=c, alpha=0.5,
-                label=f"robot_{rid} ground truth")
+        ax.plot(
+            poses_gt[:, 0, 3],
+            poses_gt[:, 1, 3],
+            "--",
+            color=c,
+            alpha=0.5,
+            label=f"robot_{rid} ground truth",
+        )
         aligned = np.einsum("ij,njk->nik", team.T_gt_est, est_world[rid][1])
-        ax.plot(aligned[:, 0, 3], aligned[:, 1, 3], "-o", ms=2, color=c,
-                label=f"robot_{rid} keyframes in world")
+        ax.plot(
+            aligned[:, 0, 3],
+            aligned[:, 1, 3],
+            "-o",
+            ms=2,
+            color=c,
+            label=f"robot_{rid} keyframes in world",
+        )
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal", adjustable="datalim")
@@ -416,6 +495,8 @@ def _plot_team(out_dir: str, est_world: dict, gt_world: dict, team) -> None:
     fig.tight_layout()
     fig.savefig(os.path.join(out_dir, "team_trajectories.png"), dpi=110)
     plt.close(fig)
+
+
 def _write_ply(path: str, cloud_msg) -> None:
     """ASCII PLY (x, y, z, red, green, blue) of a PointCloud2 with an rgb field."""
     from ..ros.convert import cloud_from_msg
@@ -425,15 +506,17 @@ def _write_ply(path: str, cloud_msg) -> None:
     rgb = np.zeros((len(xyz), 3), np.uint8)
     if "rgb" in offsets and len(xyz):
         raw = np.frombuffer(cloud_msg.data, np.uint8).reshape(len(xyz), cloud_msg.point_step)
-        packed = raw[:, offsets["rgb"]:offsets["rgb"] + 4].copy().view(np.uint32)[:, 0]
-        rgb = np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], 1).astype(np.uint8)
+        packed = raw[:, offsets["rgb"] : offsets["rgb"] + 4].copy().view(np.uint32)[:, 0]
+        rgb = np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], 1).astype(
+            np.uint8
+        )
     with open(path, "w", encoding="ascii") as fh:
-        fh.write(f"ply\nformat ascii 1.0\nelement vertex {len(xyz)}\nproperty float x\n"
-                 "property float y\nproperty float z\nproperty uchar red\nproperty uchar green\n"
-                 "property uchar blue\nend_header\n")
+        fh.write(
+            f"ply\nformat ascii 1.0\nelement vertex {len(xyz)}\nproperty float x\n"
+            "property float y\nproperty float z\nproperty uchar red\nproperty uchar green\n"
+            "property uchar blue\nend_header\n"
+        )
         np.savetxt(fh, np.column_stack([xyz, rgb]), fmt="%.4f %.4f %.4f %d %d %d")
-
-
 
 
 def evaluate_results(out_dir: str, run: RunData, source, keep_timing: bool = False):
@@ -467,22 +550,32 @@ def main(argv=None) -> int:
     try:
         info_path = os.path.join(args.results, "run.json")
         if not os.path.isfile(info_path):
-            raise EvaluationError(f"{info_path} not found: is {args.results} a demo results folder?")
+            raise EvaluationError(
+                f"{info_path} not found: is {args.results} a demo results folder?"
+            )
         with open(info_path, encoding="utf-8") as fh:
             info = json.load(fh)
-        print(f"[evaluate] loading the ground truth ({info.get('scenario') or info.get('dataset')})",
-              flush=True)
-        source = load_streams(scenario=info.get("scenario"), dataset=info.get("dataset"),
-                              split=info.get("split"), robots=info.get("robots"),
-                              seed=info.get("seed", 0), camera_file=info.get("camera"))
+        print(
+            f"[evaluate] loading the ground truth ({info.get('scenario') or info.get('dataset')})",
+            flush=True,
+        )
+        source = load_streams(
+            scenario=info.get("scenario"),
+            dataset=info.get("dataset"),
+            split=info.get("split"),
+            robots=info.get("robots"),
+            seed=info.get("seed", 0),
+            camera_file=info.get("camera"),
+        )
         robot_ids = [s.robot_id for s in source.streams]
         bag = args.bag or os.path.join(args.results, "run.bag")
         print(f"[evaluate] reading {bag}", flush=True)
         run = run_data_from_bag(bag, robot_ids)
         sched = build_schedule(source.streams, keep_timing=bool(info.get("keep_timing")))
         run.duration_s = sched[-1].play_s - sched[0].play_s if sched else 0.0
-        _, json_path, md_path, ply = evaluate_results(args.results, run, source,
-                                                      bool(info.get("keep_timing")))
+        _, json_path, md_path, ply = evaluate_results(
+            args.results, run, source, bool(info.get("keep_timing"))
+        )
     except (CoopSlamError, OSError, ValueError) as exc:
         print(f"[evaluate] ERROR: {exc}", file=sys.stderr)
         return 2

@@ -47,7 +47,9 @@ def _size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"size '{text}' is not WIDTHxHEIGHT, e.g. 1280x720") from None
+        raise argparse.ArgumentTypeError(
+            f"size '{text}' is not WIDTHxHEIGHT, e.g. 1280x720"
+        ) from None
     if not (64 <= w <= 8192 and 64 <= h <= 8192):
         raise argparse.ArgumentTypeError(f"size {w}x{h} out of range (64..8192 per side)")
     return w, h
@@ -62,20 +64,42 @@ def _positive(text: str) -> float:
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="scripts/record_rviz", description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", default="record", help="output folder for rviz.mp4 and map.png [record]")
+    p.add_argument(
+        "--out", default="record", help="output folder for rviz.mp4 and map.png [record]"
+    )
     p.add_argument("--config", help=f"RViz config [the package's rviz/{CONFIG_NAME}]")
-    p.add_argument("--duration", type=_positive, metavar="S", help="stop after S seconds of recording")
-    p.add_argument("--until-topic", metavar="TOPIC",
-                   help="stop when this std_msgs/Bool topic carries true (e.g. /player/done)")
+    p.add_argument(
+        "--duration", type=_positive, metavar="S", help="stop after S seconds of recording"
+    )
+    p.add_argument(
+        "--until-topic",
+        metavar="TOPIC",
+        help="stop when this std_msgs/Bool topic carries true (e.g. /player/done)",
+    )
     p.add_argument("--size", type=_size, default=(1280, 720), help="screen / video size [1280x720]")
     p.add_argument("--framerate", type=_positive, default=10.0, help="video frame rate [10]")
     p.add_argument("--headless", action="store_true", help="use Xvfb even when DISPLAY is set")
-    p.add_argument("--warmup", type=float, default=2.0, metavar="S",
-                   help="wait S seconds after RViz has loaded its displays before recording [2]")
-    p.add_argument("--master-timeout", type=_positive, default=10.0, metavar="S",
-                   help="give up when no ROS master answers within S seconds [10]")
-    p.add_argument("--rviz-timeout", type=_positive, default=60.0, metavar="S",
-                   help="give up when RViz has not loaded its displays within S seconds [60]")
+    p.add_argument(
+        "--warmup",
+        type=float,
+        default=2.0,
+        metavar="S",
+        help="wait S seconds after RViz has loaded its displays before recording [2]",
+    )
+    p.add_argument(
+        "--master-timeout",
+        type=_positive,
+        default=10.0,
+        metavar="S",
+        help="give up when no ROS master answers within S seconds [10]",
+    )
+    p.add_argument(
+        "--rviz-timeout",
+        type=_positive,
+        default=60.0,
+        metavar="S",
+        help="give up when RViz has not loaded its displays within S seconds [60]",
+    )
     return p.parse_args(argv)
 
 
@@ -92,8 +116,9 @@ def find_config(explicit: str | None = None) -> Path:
         candidates.append(Path(sys.argv[0]).resolve().parent.parent / "rviz" / CONFIG_NAME)
     candidates.append(Path(__file__).resolve().parents[3] / "rviz" / CONFIG_NAME)
     try:
-        pkg = subprocess.run(["rospack", "find", "coop_slam"], capture_output=True, text=True,
-                             timeout=20).stdout.strip()
+        pkg = subprocess.run(
+            ["rospack", "find", "coop_slam"], capture_output=True, text=True, timeout=20
+        ).stdout.strip()
         if pkg:
             candidates.append(Path(pkg) / "rviz" / CONFIG_NAME)
     except (OSError, subprocess.TimeoutExpired):
@@ -101,8 +126,10 @@ def find_config(explicit: str | None = None) -> Path:
     for path in candidates:
         if path.is_file():
             return path
-    raise RecordError(f"rviz/{CONFIG_NAME} not found (looked at {', '.join(map(str, candidates))}); "
-                      "pass --config")
+    raise RecordError(
+        f"rviz/{CONFIG_NAME} not found (looked at {', '.join(map(str, candidates))}); "
+        "pass --config"
+    )
 
 
 def master_uri() -> str:
@@ -127,12 +154,22 @@ def _with_timeout(seconds: float, fn):
 def encoder_args() -> tuple[str, list[str]]:
     """H.264 (libx264) when Debian's ffmpeg has it, else MPEG-4 part 2; yuv420p either way."""
     try:
-        encoders = subprocess.run(["ffmpeg", "-hide_banner", "-encoders"], capture_output=True,
-                                  text=True, timeout=30).stdout
+        encoders = subprocess.run(
+            ["ffmpeg", "-hide_banner", "-encoders"], capture_output=True, text=True, timeout=30
+        ).stdout
     except (OSError, subprocess.TimeoutExpired):
         encoders = ""
     if any(line.split()[1:2] == ["libx264"] for line in encoders.splitlines()):
-        return "libx264", ["-c:v", "libx264", "-preset", "veryfast", "-crf", "23", "-pix_fmt", "yuv420p"]
+        return "libx264", [
+            "-c:v",
+            "libx264",
+            "-preset",
+            "veryfast",
+            "-crf",
+            "23",
+            "-pix_fmt",
+            "yuv420p",
+        ]
     return "mpeg4", ["-c:v", "mpeg4", "-q:v", "4", "-pix_fmt", "yuv420p"]
 
 
@@ -220,8 +257,14 @@ class Recorder:
         log_path = self.tmp / f"{name}.log" if log else None
         out = open(log_path, "wb") if log_path else subprocess.DEVNULL
         try:
-            proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=self.env,
-                                    start_new_session=True, **kw)
+            proc = subprocess.Popen(
+                cmd,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                env=self.env,
+                start_new_session=True,
+                **kw,
+            )
         except OSError as exc:
             raise RecordError(f"cannot start {cmd[0]}: {exc}") from None
         finally:
@@ -264,7 +307,8 @@ class Recorder:
                 if time.monotonic() > deadline:
                     raise RecordError(
                         f"no ROS master reachable at {uri} within {self.args.master_timeout:g} s: rviz "
-                        "needs one; start roscore (or set ROS_MASTER_URI)") from None
+                        "needs one; start roscore (or set ROS_MASTER_URI)"
+                    ) from None
                 time.sleep(0.3)
 
     def start_xvfb(self) -> None:
@@ -274,8 +318,11 @@ class Recorder:
         r, wfd = os.pipe()
         try:
             # -displayfd: Xvfb takes the first free display number and writes it once it accepts clients
-            xvfb = self.spawn("Xvfb", ["Xvfb", "-displayfd", str(wfd), "-screen", "0", f"{w}x{h}x24",
-                                       "-nolisten", "tcp"], pass_fds=(wfd,))
+            xvfb = self.spawn(
+                "Xvfb",
+                ["Xvfb", "-displayfd", str(wfd), "-screen", "0", f"{w}x{h}x24", "-nolisten", "tcp"],
+                pass_fds=(wfd,),
+            )
             os.close(wfd)
             wfd = -1
             text = b""
@@ -306,8 +353,11 @@ class Recorder:
         cfg = patched_config(config, self.tmp / CONFIG_NAME, self.args.size)
         # SIGTERM (not SIGINT) at the end: rviz then skips saving the temporary config as the user's
         # "last config" in ~/.rviz/persistent_settings
-        rviz = self.spawn("rviz", ["rviz", "--fullscreen", "-d", str(cfg), f"__name:={node}"],
-                          stdin=subprocess.DEVNULL)
+        rviz = self.spawn(
+            "rviz",
+            ["rviz", "--fullscreen", "-d", str(cfg), f"__name:={node}"],
+            stdin=subprocess.DEVNULL,
+        )
         say(f"rviz -d {config} on {self.display} (pid {rviz.pid})")
         t0 = time.monotonic()
         deadline = t0 + self.args.rviz_timeout
@@ -327,8 +377,10 @@ class Recorder:
                 pass
             if time.monotonic() > deadline:
                 if registered:
-                    say(f"rviz subscribed to no display topic within {self.args.rviz_timeout:g} s; "
-                        "recording anyway")
+                    say(
+                        f"rviz subscribed to no display topic within {self.args.rviz_timeout:g} s; "
+                        "recording anyway"
+                    )
                     break
                 raise self.fail(f"rviz did not come up within {self.args.rviz_timeout:g} s", rviz)
             time.sleep(0.25)
@@ -341,15 +393,27 @@ class Recorder:
 
     def _grab_input(self) -> list[str]:
         w, h = self.args.size
-        return ["-f", "x11grab", "-draw_mouse", "0", "-video_size", f"{w}x{h}", "-i", f"{self.display}+0,0"]
+        return [
+            "-f",
+            "x11grab",
+            "-draw_mouse",
+            "0",
+            "-video_size",
+            f"{w}x{h}",
+            "-i",
+            f"{self.display}+0,0",
+        ]
 
     def start_ffmpeg(self, mp4: Path) -> Child:
         name, codec = encoder_args()
         fps = f"{self.args.framerate:g}"
-        cmd = (["ffmpeg", "-hide_banner", "-loglevel", "warning", "-y", "-framerate", fps]
-               + self._grab_input()
-               + ["-vf", "scale=trunc(iw/2)*2:trunc(ih/2)*2"] + codec
-               + ["-r", fps, "-movflags", "+faststart", str(mp4)])
+        cmd = (
+            ["ffmpeg", "-hide_banner", "-loglevel", "warning", "-y", "-framerate", fps]
+            + self._grab_input()
+            + ["-vf", "scale=trunc(iw/2)*2:trunc(ih/2)*2"]
+            + codec
+            + ["-r", fps, "-movflags", "+faststart", str(mp4)]
+        )
         ffmpeg = self.spawn("ffmpeg", cmd, stop_signal=signal.SIGINT, stdin=subprocess.PIPE)
         say(f"recording {self.display} to {mp4} ({name}, {fps} fps, pid {ffmpeg.pid})")
         return ffmpeg
@@ -368,11 +432,20 @@ class Recorder:
         self.children.remove(ffmpeg)
 
     def screenshot(self, png: Path) -> None:
-        cmd = (["ffmpeg", "-hide_banner", "-loglevel", "error", "-y"] + self._grab_input()
-               + ["-frames:v", "1", str(png)])
+        cmd = (
+            ["ffmpeg", "-hide_banner", "-loglevel", "error", "-y"]
+            + self._grab_input()
+            + ["-frames:v", "1", str(png)]
+        )
         try:
-            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=30, env=self.env,
-                                  start_new_session=True)
+            proc = subprocess.run(
+                cmd,
+                capture_output=True,
+                text=True,
+                timeout=30,
+                env=self.env,
+                start_new_session=True,
+            )
         except subprocess.TimeoutExpired:
             raise RecordError("ffmpeg took over 30 s to grab the final PNG") from None
         if proc.returncode != 0 or not png.is_file():
@@ -394,7 +467,9 @@ class Recorder:
     def run(self) -> int:
         args = self.args
         if shutil.which("ffmpeg") is None:
-            raise RecordError("ffmpeg not found: install Debian's 'ffmpeg' (see debian-packages.txt)")
+            raise RecordError(
+                "ffmpeg not found: install Debian's 'ffmpeg' (see debian-packages.txt)"
+            )
         config = find_config(args.config)
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -404,8 +479,10 @@ class Recorder:
         if args.headless or not self.display:
             self.start_xvfb()
         else:
-            say(f"using DISPLAY={self.display} (rviz goes full screen; the top-left "
-                f"{args.size[0]}x{args.size[1]} is recorded)")
+            say(
+                f"using DISPLAY={self.display} (rviz goes full screen; the top-left "
+                f"{args.size[0]}x{args.size[1]} is recorded)"
+            )
         rviz = self.start_rviz(config)
         ffmpeg = self.start_ffmpeg(mp4)
         t0 = time.monotonic()
@@ -460,8 +537,11 @@ def main(argv=None) -> int:
         say(f"ERROR: {exc}")
         return 1
     except (Interrupted, KeyboardInterrupt) as exc:
-        say(f"interrupted ({exc}) - nothing recorded" if isinstance(exc, Interrupted)
-            else f"aborted ({exc})")
+        say(
+            f"interrupted ({exc}) - nothing recorded"
+            if isinstance(exc, Interrupted)
+            else f"aborted ({exc})"
+        )
         return 130
     finally:
         for s in old:  # a further Ctrl-C must not cut the cleanup short
