@@ -52,7 +52,8 @@ def make_keyframe(n=50, robot_id=1, keyframe_id=1, seed=0, with_map_points=True)
 
 
 def write_kitti(folder: str, n=5, width=64, height=32) -> str:
-    """A minimal KITTI odometry layout: sequences/00 with stereo images, calib, times; poses/00.txt."""
+    """A minimal KITTI odometry layout: sequences/00 with stereo images, calib, times;
+    poses/00.txt."""
     seq = os.path.join(folder, "sequences", "00")
     for sub in ("image_0", "image_1"):
         os.makedirs(os.path.join(seq, sub), exist_ok=True)
@@ -147,7 +148,7 @@ def observe(
     )
 
 
-# --- a team of robots in the cylinder world (server tests and the server rostest) ---------------------
+# --- a team of robots in the cylinder world (server tests and the server rostest) -----------------
 TEAM_T_WORLD_MAP = {
     1: se3_from_quat([0.3, -0.2, 0.0], [0, 0, 0.1, 1.0]),
     2: se3_from_quat([-1.0, 0.5, 0.1], [0, 0, -0.4, 1.0]),

@@ -2,7 +2,8 @@
 
 A few randomly textured planes (a back wall, a floor and two side walls, like a room) rendered with
 ``cv2.warpPerspective`` along a known trajectory, with exact per-pixel depth from ray/plane
-intersection and a z-buffer. Deterministic for a given seed. Stand-in until coop_slam.synthetic lands.
+intersection and a z-buffer. Deterministic for a given seed. Stand-in until coop_slam.synthetic
+lands.
 """
 
 from __future__ import annotations
@@ -44,7 +45,8 @@ class Plane:
 
 
 def room(rng: np.random.Generator) -> list[Plane]:
-    """Back wall at z = 4 m, floor at y = 1.2 m, side walls at x = -/+ 2 m (world = first camera)."""
+    """Back wall at z = 4 m, floor at y = 1.2 m, side walls at x = -/+ 2 m (world = first
+    camera)."""
     ex, ey, ez = np.eye(3)
     return [
         Plane(np.array([-2.0, -1.5, 4.0]), ex, ey, (4.0, 2.7), random_texture(rng)),
@@ -66,7 +68,8 @@ def render(planes: list[Plane], T_world_cam: np.ndarray, camera: CameraModel = C
     depth = np.full((h, w), np.inf, np.float32)
     for pl in planes:
         th, tw = pl.texture.shape
-        # Texture pixel (s, t) -> world origin + axis_u * s * su + axis_v * t * sv -> image (homography).
+        # Texture pixel (s, t) -> world origin + axis_u * s * su + axis_v * t * sv -> image
+        # (homography).
         su, sv = pl.size_m[0] / tw, pl.size_m[1] / th
         A = np.column_stack([R @ pl.axis_u_w * su, R @ pl.axis_v_w * sv, R @ pl.origin_w + t])
         H = K @ A

@@ -23,7 +23,7 @@ class ClientOutputsTest(unittest.TestCase):
         rospy.init_node("client_test")
         got = {"kf": [], "pose": [], "path": None, "cloud": None, "stats": []}
         done = threading.Event()
-        subs = [
+        subs = [  # noqa: F841 - keeps the subscribers referenced for the whole test
             rospy.Subscriber(
                 "/robot_1/keyframes", KeyFrame, lambda m: got["kf"].append(m), queue_size=100
             ),

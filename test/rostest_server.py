@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """rostest node: two robots' keyframes into the server node; after the merge the stitched cloud,
 markers, TF world -> robot_2/map, robot 2's correction and its optimized path are published and
-consistent with the truth; the global BA service succeeds; a bad keyframe is rejected."""
+consistent with the truth; the global BA service succeeds; the rendezvous service refuses merged
+or unknown robots with a reason; a bad keyframe is rejected."""
 import json
 import os
 import sys
@@ -117,6 +118,16 @@ class ServerTeamMapTest(unittest.TestCase):
         self.assertTrue(res.success, res.message)
         self.assertEqual(res.keyframes, 44)
         self.assertLessEqual(res.error_after, res.error_before + 1e-6)
+        # Operator trigger (service): refused with a reason for merged or unknown robots.
+        from coop_slam.srv import Rendezvous
+
+        rendezvous = rospy.ServiceProxy("/server/rendezvous", Rendezvous)
+        res = rendezvous(robot_a=1, robot_b=2, stamp=rospy.Time(0))
+        self.assertFalse(res.accepted)
+        self.assertIn("already merged", res.message)
+        res = rendezvous(robot_a=1, robot_b=9, stamp=rospy.Time(0))
+        self.assertFalse(res.accepted)
+        self.assertIn("robot 9 is unknown", res.message)
         time.sleep(1.0)
         stats = json.loads(got["stats"].data)
         self.assertGreaterEqual(stats["rejected"], 1)

@@ -1,7 +1,7 @@
-"""scripts/record_rviz end to end: a roscore on a free port, a latched coloured team cloud in `world`
-(plus a static TF world -> robot_1/map and a path of robot 1), a headless recording; checks the MP4,
-that the final PNG shows the cloud, that no child process outlives the recorder, the clear error
-without a master, and the stops on --until-topic and SIGINT."""
+"""scripts/record_rviz end to end: a roscore on a free port, a latched coloured team cloud in
+`world` (plus a static TF world -> robot_1/map and a path of robot 1), a headless recording; checks
+the MP4, that the final PNG shows the cloud, that no child process outlives the recorder, the clear
+error without a master, and the stops on --until-topic and SIGINT."""
 
 from __future__ import annotations
 
@@ -52,7 +52,9 @@ u = rng.uniform(-0.6, 0.6, (3000, 2))
 face = rng.integers(0, 5, 3000)
 box = np.zeros((3000, 3))
 box[:, 0] = np.where(face == 0, -0.6, np.where(face == 1, 0.6, u[:, 0]))
-box[:, 1] = np.where(face == 2, -0.6, np.where(face == 3, 0.6, np.where(face < 2, u[:, 0], u[:, 1])))
+box[:, 1] = np.where(
+    face == 2, -0.6, np.where(face == 3, 0.6, np.where(face < 2, u[:, 0], u[:, 1]))
+)
 box[:, 2] = np.where(face == 4, 1.2, 0.6 + u[:, 1])
 box += [2.5, 1.0, 0.0]
 points = np.vstack([floor, box])
@@ -288,9 +290,11 @@ def test_record_shows_team_cloud(ros):
     img = img[:, :, ::-1]  # RGB
     assert img.shape == (720, 1280, 3)
     colours, counts = np.unique(img.reshape(-1, 3), axis=0, return_counts=True)
-    # the config is loaded: its dark background fills most of the screen (rviz full screen, no panels)
+    # the config is loaded: its dark background fills most of the screen
+    # (rviz full screen, no panels)
     assert np.abs(colours[np.argmax(counts)].astype(int) - BACKGROUND).max() <= 5
-    # the cloud is drawn: thousands of floor pixels, the box, and robot 1's path through the static TF
+    # the cloud is drawn: thousands of floor pixels, the box, and robot 1's path through the
+    # static TF
     assert _count(img, FLOOR_RGB) > 2000, _count(img, FLOOR_RGB)
     assert _count(img, BOX_RGB) > 300, _count(img, BOX_RGB)
     assert _count(img, ROBOT1_RGB) > 50, _count(img, ROBOT1_RGB)

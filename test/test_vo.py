@@ -1,5 +1,6 @@
 """Tests of the client's RGB-D visual odometry (coop_slam.vo): pose optimization, local BA, map
-consistency under keyframe culling, tracking on a synthetic room, bad input, and RedKitchen accuracy.
+consistency under keyframe culling, tracking on a synthetic room, bad input, and RedKitchen
+accuracy.
 """
 
 from __future__ import annotations
@@ -65,7 +66,7 @@ def _random_pose(rng, rot_deg, trans_m):
     )
 
 
-# --- pose optimization and local BA ------------------------------------------------------------------
+# --- pose optimization and local BA ---------------------------------------------------------------
 def test_pose_optimization_recovers_pose_and_rejects_outliers():
     rng = np.random.default_rng(0)
     points_map = rng.uniform([-2, -1.5, 1.5], [2, 1.5, 5], (400, 3))
@@ -145,7 +146,7 @@ def test_local_ba_reduces_error_of_perturbed_map():
     assert result.outlier_obs.mean() < 0.05
 
 
-# --- synthetic tracking ------------------------------------------------------------------------------
+# --- synthetic tracking ---------------------------------------------------------------------------
 def _track_all(vo, stamps, frames):
     return [vo.track(s, img, d) for s, (img, d) in zip(stamps, frames)]
 
@@ -218,7 +219,8 @@ def test_relocalizes_after_blackout_and_starts_segment_when_lost_long(room_seque
         back = vo.track(stamps[11], *frames[11])
         assert back.ok and back.state == STATE_RELOCALIZED
         assert vo.track(stamps[12], *frames[12]).state == STATE_OK
-        # A long blackout: a new map segment, announced by an event, starts at the next usable frame.
+        # A long blackout: a new map segment, announced by an event, starts at the next usable
+        # frame.
         states = [vo.track(stamps[13] + 0.01 * i, black, no_depth).state for i in range(1, 7)]
         assert STATE_LOST in states and vo.map_segment == 1
         assert any(e.kind == EVENT_NEW_SEGMENT for e in vo.drain_events())
@@ -228,7 +230,7 @@ def test_relocalizes_after_blackout_and_starts_segment_when_lost_long(room_seque
         assert all(kf.map_segment == 1 for kf in vo.keyframes())
 
 
-# --- bad input -----------------------------------------------------------------------------------------
+# --- bad input ------------------------------------------------------------------------------------
 def test_bad_input_raises_vo_error_or_returns_not_ok(room_sequence):
     _stamps, frames, _ = room_sequence
     img, depth = frames[0]
@@ -273,7 +275,7 @@ def test_backwards_timestamp_resets_with_warning(room_sequence):
         assert new_ids and min(new_ids) > 1
 
 
-# --- configuration -------------------------------------------------------------------------------------
+# --- configuration --------------------------------------------------------------------------------
 def test_client_yaml_loads_and_typos_are_rejected(tmp_path):
     cfg = load_yaml_config(VoConfig, os.path.join(REPO, "config", "client.yaml"), section="vo")
     assert cfg == dataclasses.replace(cfg)  # a plain VoConfig
@@ -284,7 +286,7 @@ def test_client_yaml_loads_and_typos_are_rejected(tmp_path):
         load_config(VoConfig, {"min_depth_m": 5.0, "max_depth_m": 1.0})
 
 
-# --- real data -----------------------------------------------------------------------------------------
+# --- real data ------------------------------------------------------------------------------------
 @pytest.mark.skipif(
     not os.path.isdir(REDKITCHEN), reason=f"RedKitchen data not found at {REDKITCHEN}"
 )

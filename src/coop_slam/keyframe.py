@@ -1,8 +1,8 @@
 """The keyframe record clients send to the server (the pure-core twin of ``msg/KeyFrame.msg``).
 
 :class:`KeyframeRecord` holds numpy arrays shaped for computation; :func:`KeyframeRecord.validate`
-is the one place where an incoming keyframe is checked (sizes, NaN/inf, robot ids, descriptor bytes),
-so every node rejects bad input the same way and nothing malformed reaches a map.
+is the one place where an incoming keyframe is checked (sizes, NaN/inf, robot ids, descriptor
+bytes), so every node rejects bad input the same way and nothing malformed reaches a map.
 """
 
 from __future__ import annotations
@@ -55,7 +55,8 @@ class KeyframeRecord:
         return self.keypoints[:, :2]
 
     def points_cam(self) -> np.ndarray:
-        """(N, 3) camera-frame points back-projected from depth; NaN rows where there is no depth."""
+        """(N, 3) camera-frame points back-projected from depth; NaN rows where there is no
+        depth."""
         z = self.depths_m.astype(float)
         cam = self.camera
         x = (self.keypoints[:, 0] - cam.cx) / cam.fx * z

@@ -1,9 +1,10 @@
 """Robot sightings: detect other robots' ArUco markers and estimate where their bodies are.
 
-Each robot carries its id as an ArUco marker (DICT_4X4_50) on the four sides of its body. Because all
-four sides carry the same id, one sighting fixes the observed body's position but its heading only up
-to quarter turns: :func:`body_hypotheses` returns all four, and the server uses a sighting only as an
-initial guess / weak prior for feature-based registration, never as the sole evidence of a merge.
+Each robot carries its id as an ArUco marker (DICT_4X4_50) on the four sides of its body. Because
+all four sides carry the same id, one sighting fixes the observed body's position but its heading
+only up to quarter turns: :func:`body_hypotheses` returns all four, and the server uses a sighting
+only as an initial guess / weak prior for feature-based registration, never as the sole evidence of
+a merge.
 """
 
 from __future__ import annotations
@@ -17,8 +18,8 @@ from .config import require
 from .errors import CoopSlamError
 from .geometry import invert, se3, se3_from_quat
 
-# Marker frame (OpenCV): x right, y up, z out of the marker towards the viewer. On the front face of a
-# body (facing base_link +x): marker x = base +y, marker y = base +z, marker z = base +x.
+# Marker frame (OpenCV): x right, y up, z out of the marker towards the viewer. On the front face of
+# a body (facing base_link +x): marker x = base +y, marker y = base +z, marker z = base +x.
 R_BASE_MARKER_FRONT = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 
@@ -30,8 +31,8 @@ class MarkerError(CoopSlamError):
 class MarkerConfig:
     dictionary: str = "DICT_4X4_50"
     marker_size_m: float = 0.25  # side of the black square [m]
-    # Front-face marker centre in base_link: [x, y, z, qx, qy, qz, qw]; empty = the synthetic robots'
-    # body (0.4 m cube side, marker centre 0.38 m up).
+    # Front-face marker centre in base_link: [x, y, z, qx, qy, qz, qw]; empty = the synthetic
+    # robots' body (0.4 m cube side, marker centre 0.38 m up).
     T_base_marker: list[float] = field(default_factory=list)
     max_reprojection_px: float = 2.0  # RMS corner error above which a detection is dropped [px]
     min_side_px: float = 20.0  # smaller markers give poses too noisy to use [px]

@@ -1,7 +1,7 @@
 """The run report (``report.json`` + ``report.md``): one schema, every key always present.
 
-The keys are a contract (see the README): later stages fill more of them, none is ever renamed, and a
-value that was not measured is ``null`` rather than absent.
+The keys are a contract (see the README): later stages fill more of them, none is ever renamed, and
+a value that was not measured is ``null`` rather than absent.
 """
 
 from __future__ import annotations
@@ -76,7 +76,8 @@ def new_report(robot_ids: list[int]) -> dict:
 
 
 def count_wrong_merges(merges: list[dict]) -> int | None:
-    """Merges whose transform error exceeds the thresholds (None when no error could be computed)."""
+    """Merges whose transform error exceeds the thresholds (None when no error could be
+    computed)."""
     if not merges:
         return 0
     errs = [(m.get("trans_err_m"), m.get("rot_err_deg")) for m in merges]

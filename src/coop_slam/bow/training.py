@@ -196,9 +196,10 @@ __all__ = [
 ]
 
 
-# --- the default vocabulary -------------------------------------------------------------------------
-# Built by the project itself from its own synthetic world (never downloaded). The training world uses
-# a seed no test or demo scenario uses, so the vocabulary has not seen the places it must recognise.
+# --- the default vocabulary -----------------------------------------------------------------------
+# Built by the project itself from its own synthetic world (never downloaded). The training world
+# uses a seed no test or demo scenario uses, so the vocabulary has not seen the places it must
+# recognise.
 DEFAULT_VOCABULARY_VERSION = 1
 DEFAULT_TRAINING_WORLD = {"scenario": "team", "seed": 1000, "robots": 4}
 DEFAULT_TRAINING_EVERY = 6  # every 6th frame at 15 Hz: ~2.5 training images per second of travel

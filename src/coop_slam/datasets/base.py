@@ -1,7 +1,7 @@
 """Common representation of an image sequence with ground truth, whatever it was read from.
 
-A :class:`Sequence` lists frames (paths, timestamps) and loads images lazily, so a reader never holds
-a whole dataset in memory. Ground truth is always ``T_world_cam`` (camera optical frame in the
+A :class:`Sequence` lists frames (paths, timestamps) and loads images lazily, so a reader never
+holds a whole dataset in memory. Ground truth is always ``T_world_cam`` (camera optical frame in the
 dataset's world frame), as an (N, 4, 4) array.
 """
 
@@ -148,7 +148,8 @@ def _imread(path: str, flags: int) -> np.ndarray:
 
 
 def read_camera_yaml(path: str, sensor: str = "rgbd") -> CameraModel:
-    """Camera model from a flat YAML file (width, height, fx, fy, cx, cy[, depth_scale, baseline_m])."""
+    """Camera model from a flat YAML file
+    (width, height, fx, fy, cx, cy[, depth_scale, baseline_m])."""
     import yaml
 
     if not os.path.isfile(path):

@@ -1,7 +1,8 @@
-"""KITTI odometry format: ``sequences/NN/{image_0,image_1,calib.txt,times.txt}`` and ``poses/NN.txt``.
+"""KITTI odometry format: ``sequences/NN/{image_0,image_1,calib.txt,times.txt}`` and
+``poses/NN.txt``.
 
-Images are rectified greyscale stereo pairs; ``calib.txt`` holds the projection matrices P0..P3, from
-which the left camera's intrinsics and the stereo baseline follow. Poses (when present) are 3x4
+Images are rectified greyscale stereo pairs; ``calib.txt`` holds the projection matrices P0..P3,
+from which the left camera's intrinsics and the stereo baseline follow. Poses (when present) are 3x4
 row-major ``T_world_cam0`` with the world being the first left-camera frame.
 """
 
@@ -66,7 +67,8 @@ def read_kitti(
         raise DatasetError(f"{sequence_dir}/image_0 holds no PNG images")
     if len(left) != len(right):
         raise DatasetError(
-            f"{sequence_dir}: {len(left)} left but {len(right)} right images; stereo pairs must match"
+            f"{sequence_dir}: {len(left)} left but {len(right)} right images; "
+            "stereo pairs must match"
         )
     times_path = os.path.join(sequence_dir, "times.txt")
     if not os.path.isfile(times_path):

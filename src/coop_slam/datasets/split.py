@@ -15,7 +15,8 @@ def parse_ranges(text: str) -> list[tuple[int, int]]:
             first, last = int(first_s), int(last_s)
         except ValueError:
             raise DatasetError(
-                f"bad frame range '{part}' in '{text}': use FIRST-LAST (inclusive), e.g. 0-299,300-599"
+                f"bad frame range '{part}' in '{text}': "
+                "use FIRST-LAST (inclusive), e.g. 0-299,300-599"
             ) from None
         if first < 0 or last < first:
             raise DatasetError(f"bad frame range '{part}': need 0 <= FIRST <= LAST")
@@ -26,7 +27,8 @@ def parse_ranges(text: str) -> list[tuple[int, int]]:
 
 
 def split_ranges(seq: Sequence, ranges: list[tuple[int, int]] | str) -> list[Sequence]:
-    """One sequence per inclusive frame range (positions in ``seq``), named ``<name>_<first>-<last>``."""
+    """One sequence per inclusive frame range (positions in ``seq``), named
+    ``<name>_<first>-<last>``."""
     if isinstance(ranges, str):
         ranges = parse_ranges(ranges)
     out = []

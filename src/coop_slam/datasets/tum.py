@@ -27,8 +27,10 @@ def _read_list(path: str) -> list[tuple[float, str]]:
             parts = line.split()
             try:
                 rows.append((float(parts[0]), parts[1]))
-            except (ValueError, IndexError):
-                raise DatasetError(f"{path}:{lineno}: expected 'timestamp filename', got {line!r}")
+            except (ValueError, IndexError) as exc:
+                raise DatasetError(
+                    f"{path}:{lineno}: expected 'timestamp filename', got {line!r}"
+                ) from exc
     return rows
 
 

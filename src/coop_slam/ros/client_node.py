@@ -47,7 +47,8 @@ def default_T_base_cam() -> np.ndarray:
 
 
 def load_vo_config(config_file: str, overrides: dict):
-    """VoConfig from the YAML file (its ``vo`` section or the whole file) and ROS param overrides."""
+    """VoConfig from the YAML file (its ``vo`` section or the whole file) and ROS param
+    overrides."""
     from ..vo.config import VoConfig
 
     values = {}
@@ -136,7 +137,7 @@ class ClientNode:
             "client %s: waiting for %s", self.name, rospy.resolve_name("camera/color/image_raw")
         )
 
-    # --- callbacks ----------------------------------------------------------------------------------
+    # --- callbacks --------------------------------------------------------------------------------
     def _on_info(self, msg: CameraInfo) -> None:
         try:
             cam = camera_from_info(msg, sensor="rgbd", depth_scale=self.depth_scale)
@@ -246,7 +247,7 @@ class ClientNode:
                 T_odom_cam = self.kf_poses[kid][1]
                 self.T_map_odom = T_map_cam_opt @ invert(T_odom_cam)
 
-    # --- publishing ---------------------------------------------------------------------------------
+    # --- publishing -------------------------------------------------------------------------------
     def _record(self, kf, action: int) -> KeyframeRecord:
         T_map_cam = self.T_base_cam @ kf.T_map_cam
         pts = (
@@ -364,6 +365,6 @@ def main() -> None:
         node = ClientNode()
     except CoopSlamError as exc:
         rospy.logfatal("client: %s", exc)
-        raise SystemExit(1)
+        raise SystemExit(1) from exc
     rospy.on_shutdown(node.shutdown)
     rospy.spin()

@@ -23,7 +23,7 @@ class MessageError(CoopSlamError):
     """An incoming ROS message is malformed (wrong sizes, NaN, unknown encoding, ...)."""
 
 
-# --- poses -------------------------------------------------------------------------------------------
+# --- poses ----------------------------------------------------------------------------------------
 def pose_to_msg(T: np.ndarray) -> Pose:
     t, q = quat_from_se3(T)
     msg = Pose()
@@ -62,7 +62,7 @@ def transform_from_msg(msg: Transform, name: str = "transform") -> np.ndarray:
         raise MessageError(f"{name}: {exc}") from None
 
 
-# --- images ------------------------------------------------------------------------------------------
+# --- images ---------------------------------------------------------------------------------------
 _ENCODINGS = {
     "bgr8": (np.uint8, 3),
     "rgb8": (np.uint8, 3),
@@ -134,7 +134,7 @@ def depth_from_msg(msg: Image, depth_scale: float = 1000.0) -> np.ndarray:
     return depth
 
 
-# --- camera ------------------------------------------------------------------------------------------
+# --- camera ---------------------------------------------------------------------------------------
 def camera_info_to_msg(camera: CameraModel, stamp=None, frame_id: str = "") -> CameraInfo:
     msg = CameraInfo()
     if stamp is not None:
@@ -172,7 +172,7 @@ def camera_from_info(
         raise MessageError(f"camera_info: {exc}") from None
 
 
-# --- keyframes ---------------------------------------------------------------------------------------
+# --- keyframes ------------------------------------------------------------------------------------
 def keyframe_to_msg(kf: KeyframeRecord, frame_id: str):
     from coop_slam.msg import CameraModel as CameraModelMsg
     from coop_slam.msg import KeyFrame
@@ -274,7 +274,7 @@ def keyframe_from_msg(msg, known_robots: set[int] | None = None) -> KeyframeReco
         raise MessageError(str(exc)) from None
 
 
-# --- point clouds ------------------------------------------------------------------------------------
+# --- point clouds ---------------------------------------------------------------------------------
 def cloud_to_msg(points: np.ndarray, frame_id: str, stamp=None, rgb: np.ndarray | None = None):
     """PointCloud2 (x, y, z float32 [+ rgb packed float32]) built with numpy, no per-point loop."""
     from sensor_msgs.msg import PointCloud2, PointField

@@ -1,8 +1,9 @@
 """Dataset player node: publishes robots' camera streams, ground truth and /clock.
 
-Per robot k (``robot_k``): ``camera/color/image_raw`` (bgr8, or mono8), ``camera/color/camera_info``,
-``camera/depth/image_raw`` (32FC1 metres or 16UC1 millimetres, registered to colour), for stereo
-``camera/right/image_raw``, and ``ground_truth/pose`` (camera optical frame in ``gt_world``).
+Per robot k (``robot_k``): ``camera/color/image_raw`` (bgr8, or mono8),
+``camera/color/camera_info``, ``camera/depth/image_raw`` (32FC1 metres or 16UC1 millimetres,
+registered to colour), for stereo ``camera/right/image_raw``, and ``ground_truth/pose`` (camera
+optical frame in ``gt_world``).
 
 Timing never uses rospy's clock (this node *drives* /clock). In lock-step mode the next frames are
 published only after every consuming client acknowledged the previous ones on
@@ -226,7 +227,7 @@ def main() -> None:
         node = BagPlayer(cfg) if cfg.bag else PlayerNode(cfg)
     except CoopSlamError as exc:
         rospy.logfatal("player: %s", exc)
-        raise SystemExit(1)
+        raise SystemExit(1) from exc
     node.run()
     if cfg.exit_when_done:
         return

@@ -409,6 +409,6 @@ def main() -> None:
         node = ServerNode()
     except CoopSlamError as exc:
         rospy.logfatal("server: %s", exc)
-        raise SystemExit(1)
+        raise SystemExit(1) from exc
     rospy.on_shutdown(node._publish_stats)
     rospy.spin()

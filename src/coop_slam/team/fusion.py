@@ -128,10 +128,10 @@ def fuse_points(
 
     ``matches`` (K, 2) are index pairs known to be one physical point: each connected set of them
     becomes one point at the mean. Then points of different robots closer than ``radius_m`` are
-    merged (count-weighted mean) in rounds of mutual-nearest pairs until no such pair is left; mutual
-    pairs avoid chaining a dense surface into one blob. A fused point keeps the robot id and point
-    id of its member with the smallest robot id. Points of one robot are never merged with each
-    other (its SLAM already keeps them distinct).
+    merged (count-weighted mean) in rounds of mutual-nearest pairs until no such pair is left;
+    mutual pairs avoid chaining a dense surface into one blob. A fused point keeps the robot id and
+    point id of its member with the smallest robot id. Points of one robot are never merged with
+    each other (its SLAM already keeps them distinct).
     """
     points = np.asarray(points_world, dtype=float).reshape(-1, 3)
     robots = np.asarray(robot_ids).reshape(-1)

@@ -25,7 +25,8 @@ def chain_map_transform(
 
 
 class MergeGroups:
-    """Union-find over robot ids with, for each robot, ``T_root_map``: its map in its group's frame."""
+    """Union-find over robot ids with, for each robot, ``T_root_map``: its map in its group's
+    frame."""
 
     def __init__(self, robot_ids=()):
         self._parent: dict[int, int] = {}

@@ -200,7 +200,7 @@ class TeamPoseGraph:
         self._rebuild = False  # iSAM2 cannot absorb the last changes: next call is a full one
         self.stats = OptimizationStats()
 
-    # --- checks -------------------------------------------------------------------------------------
+    # --- checks -----------------------------------------------------------------------------------
     @staticmethod
     def _pose(T, name: str) -> np.ndarray:
         try:
@@ -223,7 +223,7 @@ class TeamPoseGraph:
                 f"robot {robot_id} is unknown to the pose graph " f"(known: {self.robots})"
             )
 
-    # --- factor bookkeeping -------------------------------------------------------------------------
+    # --- factor bookkeeping -----------------------------------------------------------------------
     def _add_factor(self, f: _Factor) -> int:
         fid = self._next_fid
         self._next_fid += 1
@@ -289,7 +289,7 @@ class TeamPoseGraph:
             and {self._factors[fid].key_i, self._factors[fid].key_j} == {key_i, key_j}
         ]
 
-    # --- keyframes ----------------------------------------------------------------------------------
+    # --- keyframes --------------------------------------------------------------------------------
     def set_map_transform(self, robot_id: int, T_world_map: np.ndarray) -> None:
         """Where a robot's map sits in its group frame, used for the initial estimate of the robot's
         first keyframe. Later keyframes chain from the robot's existing estimates, which already
@@ -414,7 +414,7 @@ class TeamPoseGraph:
                 self._client_factor(f.kind, f.key_i, f.key_j)
         self._rebuild = True
 
-    # --- constraints --------------------------------------------------------------------------------
+    # --- constraints ------------------------------------------------------------------------------
     def _sigmas(self, rot, trans, default_rot, default_trans) -> tuple[float, float]:
         sig = (
             default_rot if rot is None else float(rot),
@@ -499,7 +499,7 @@ class TeamPoseGraph:
             raise PoseGraphError(f"{factor_id} is not a loop or merge constraint of the graph")
         self._drop_factor(factor_id)
 
-    # --- gauge --------------------------------------------------------------------------------------
+    # --- gauge ------------------------------------------------------------------------------------
     def _component_labels(self) -> dict[Key, int]:
         """Connected component of every keyframe over the between factors."""
         keys = list(self._values)
@@ -541,7 +541,7 @@ class TeamPoseGraph:
             )
         return removed
 
-    # --- optimisation -------------------------------------------------------------------------------
+    # --- optimisation -----------------------------------------------------------------------------
     def _graph(self, fids) -> gtsam.NonlinearFactorGraph:
         graph = gtsam.NonlinearFactorGraph()
         for fid in fids:
@@ -618,7 +618,7 @@ class TeamPoseGraph:
         self.stats = stats
         return stats
 
-    # --- results ------------------------------------------------------------------------------------
+    # --- results ----------------------------------------------------------------------------------
     @property
     def robots(self) -> list[int]:
         return sorted(set(self._chain) | set(self._map_hint))
@@ -691,7 +691,7 @@ class TeamPoseGraph:
         return out
 
 
-# --- synthetic team and benchmark ---------------------------------------------------------------------
+# --- synthetic team and benchmark -----------------------------------------------------------------
 @dataclass
 class SyntheticTeam:
     """Ground truth, drifting client poses and constraints for pose-graph tests and benchmarks."""

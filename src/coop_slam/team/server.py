@@ -1,5 +1,6 @@
 """The server's pure core: team keyframe store, shared-vocabulary database, place-recognition
-stitching (BoW retrieval -> consistency -> PnP RANSAC -> two-view BA -> acceptance) and merge groups.
+stitching (BoW retrieval -> consistency -> PnP RANSAC -> two-view BA -> acceptance) and merge
+groups.
 
 Wrong merges are worse than late ones: a candidate must be temporally consistent and pass the
 registration's geometric acceptance tests before two maps are joined.
@@ -215,7 +216,7 @@ class TeamServer:
         self.optimize_ms: list[float] = []
         self._since_optimize = 0
 
-    # --- keyframes ----------------------------------------------------------------------------------
+    # --- keyframes --------------------------------------------------------------------------------
     def add_keyframe(self, rec: KeyframeRecord) -> list[MergeResult]:
         """Store (or update / remove) one keyframe; returns the merges it caused."""
         t0 = time.perf_counter()
@@ -264,7 +265,7 @@ class TeamServer:
         self.keyframe_ms.append(1e3 * (time.perf_counter() - t0))
         return merges
 
-    # --- team optimization --------------------------------------------------------------------------
+    # --- team optimization ------------------------------------------------------------------------
     def _graph_call(self, fn, *args) -> None:
         try:
             fn(*args)
@@ -610,7 +611,7 @@ class TeamServer:
         )
         return True
 
-    # --- rendezvous ---------------------------------------------------------------------------------
+    # --- rendezvous -------------------------------------------------------------------------------
     def _near_in_time(
         self, robot_id: int, stamp_s: float, window_s: float, latest_fallback: bool = False
     ) -> list[tuple[int, int]]:
@@ -773,7 +774,7 @@ class TeamServer:
         )
         return merge
 
-    # --- team frame ---------------------------------------------------------------------------------
+    # --- team frame -------------------------------------------------------------------------------
     def T_world_map(self, robot_id: int) -> tuple[np.ndarray, bool]:
         """Robot's map in its group's frame, and whether that group is the world (holds robot 1 /
         the smallest id of the team)."""

@@ -229,7 +229,8 @@ def evaluate_run(
     gts = {s.robot_id: _gt_of(s, keep_timing) for s in streams}
     est_world, gt_world = {}, {}
     # Ground-truth pose of each robot's map frame: the SE(3) alignment of its keyframe trajectory
-    # to ground truth (as for its ATE), so a map's drift is averaged rather than frozen at one frame.
+    # to ground truth (as for its ATE), so a map's drift is averaged rather than frozen at one
+    # frame.
     T_world_map_gt = {}
     for entry, stream in zip(report["robots"], streams):
         rid = stream.robot_id
@@ -459,7 +460,8 @@ def _plot(out_dir: str, run: RunData, streams, gts) -> None:
 
 
 def _plot_team(out_dir: str, est_world: dict, gt_world: dict, team) -> None:
-    """Top view of every robot's keyframes in world (one alignment for the team) and ground truth."""
+    """Top view of every robot's keyframes in world (one alignment for the team) and ground
+    truth."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -1,10 +1,11 @@
-"""Record RViz to an MP4 (plus a final PNG), headless if need be: the logic behind ``scripts/record_rviz``.
+"""Record RViz to an MP4 (plus a final PNG), headless if need be: the logic behind
+``scripts/record_rviz``.
 
 Starts Xvfb (software GL) when there is no DISPLAY or ``--headless`` is given, RViz full screen with
 ``rviz/coop_slam.rviz`` and ``ffmpeg -f x11grab``; stops after ``--duration`` seconds, when
 ``--until-topic`` (std_msgs/Bool) carries true, or on SIGINT/SIGTERM; then saves the screen as a PNG
-and ends every child process (each runs in its own process group), also on errors and a second Ctrl-C.
-Writes ``OUT/rviz.mp4`` and ``OUT/map.png``. Needs a reachable ROS master (ROS_MASTER_URI).
+and ends every child process (each runs in its own process group), also on errors and a second
+Ctrl-C. Writes ``OUT/rviz.mp4`` and ``OUT/map.png``. Needs a reachable ROS master (ROS_MASTER_URI).
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ def say(msg: str) -> None:
     print(f"[record] {msg}", flush=True)
 
 
-# --- arguments ---------------------------------------------------------------------------------------
+# --- arguments ------------------------------------------------------------------------------------
 def _size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
@@ -103,9 +104,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-# --- helpers -----------------------------------------------------------------------------------------
+# --- helpers --------------------------------------------------------------------------------------
 def find_config(explicit: str | None = None) -> Path:
-    """``explicit``, else rviz/coop_slam.rviz next to the script, the source tree or ``rospack find``."""
+    """``explicit``, else rviz/coop_slam.rviz next to the script, the source tree or
+    ``rospack find``."""
     if explicit:
         path = Path(explicit).expanduser()
         if not path.is_file():
@@ -229,7 +231,7 @@ class Child:
             pass
 
 
-# --- the recorder ------------------------------------------------------------------------------------
+# --- the recorder ---------------------------------------------------------------------------------
 class Recorder:
     def __init__(self, args: argparse.Namespace):
         self.args = args
@@ -306,8 +308,8 @@ class Recorder:
             except Exception:  # noqa: BLE001 - connection refused, timeouts, DNS: all "not there"
                 if time.monotonic() > deadline:
                     raise RecordError(
-                        f"no ROS master reachable at {uri} within {self.args.master_timeout:g} s: rviz "
-                        "needs one; start roscore (or set ROS_MASTER_URI)"
+                        f"no ROS master reachable at {uri} within {self.args.master_timeout:g} s: "
+                        "rviz needs one; start roscore (or set ROS_MASTER_URI)"
                     ) from None
                 time.sleep(0.3)
 
@@ -317,7 +319,8 @@ class Recorder:
         w, h = self.args.size
         r, wfd = os.pipe()
         try:
-            # -displayfd: Xvfb takes the first free display number and writes it once it accepts clients
+            # -displayfd: Xvfb takes the first free display number and writes it once it accepts
+            # clients
             xvfb = self.spawn(
                 "Xvfb",
                 ["Xvfb", "-displayfd", str(wfd), "-screen", "0", f"{w}x{h}x24", "-nolisten", "tcp"],

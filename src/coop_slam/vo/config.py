@@ -30,7 +30,7 @@ class VoConfig:
     # sigma already makes the depth uncertainty grow with z^2, so no hard cut is needed for RGB-D
     virtual_baseline_m: float = 0.08  # baseline of the virtual stereo pair built from depth [m]
 
-    # --- colour / depth calibration -----------------------------------------------------------------
+    # --- colour / depth calibration ---------------------------------------------------------------
     # Colour intrinsics overriding the camera model given to RgbdOdometry (0 = use the model) [px].
     color_fx: float = 0.0
     color_fy: float = 0.0

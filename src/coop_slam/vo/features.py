@@ -1,12 +1,12 @@
 """ORB features of one RGB-D frame, spread over the image and the scale pyramid, with depth.
 
-OpenCV's ORB keeps the keypoints with the best Harris score, which clusters them on strongly textured
-regions. As ORB-SLAM does with its quadtree, we detect more candidates than needed and keep the best
-of each grid cell of each pyramid level first (round robin over cells: every cell's best, then every
-cell's second best, ...). Detection uses a low FAST threshold so texture-poor cells still have
-candidates; in textured cells the Harris ranking still prefers the strong corners, which gives the
-effect of ORB-SLAM's two-threshold FAST fallback with one detection pass (a second masked ORB pass
-costs a full detection: measured 6 ms). Descriptors are computed for the kept keypoints only.
+OpenCV's ORB keeps the keypoints with the best Harris score, which clusters them on strongly
+textured regions. As ORB-SLAM does with its quadtree, we detect more candidates than needed and keep
+the best of each grid cell of each pyramid level first (round robin over cells: every cell's best,
+then every cell's second best, ...). Detection uses a low FAST threshold so texture-poor cells still
+have candidates; in textured cells the Harris ranking still prefers the strong corners, which gives
+the effect of ORB-SLAM's two-threshold FAST fallback with one detection pass (a second masked ORB
+pass costs a full detection: measured 6 ms). Descriptors are computed for the kept keypoints only.
 """
 
 from __future__ import annotations
@@ -93,7 +93,8 @@ class OrbExtractor:
         return self._with_depth(attrs[:, :2], attrs[:, 2:], desc, depth_m)
 
     def _bucket(self, attrs: np.ndarray) -> np.ndarray:
-        """Indices of up to n_features keypoints: best per (level, cell) first, then second best, ..."""
+        """Indices of up to n_features keypoints: best per (level, cell) first, then
+        second best, ..."""
         cfg = self.config
         n = len(attrs)
         if n <= cfg.n_features:

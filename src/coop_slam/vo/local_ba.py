@@ -3,14 +3,15 @@
 The problem is plain numpy data (picklable) so it can run in a worker process (:class:`BaWorker`):
 GTSAM's Python bindings hold the GIL while optimizing (measured: a 370 ms optimize() stalled another
 Python thread for 330 ms), so a background *thread* would stall tracking for the whole optimization.
-The worker is a plain ``python -m coop_slam.vo.local_ba`` child fed pickles over a pipe rather than a
-multiprocessing pool: "spawn" re-imports the caller's ``__main__`` (breaks scripts and ROS nodes
+The worker is a plain ``python -m coop_slam.vo.local_ba`` child fed pickles over a pipe rather than
+a multiprocessing pool: "spawn" re-imports the caller's ``__main__`` (breaks scripts and ROS nodes
 without a main guard) and "fork" of a multi-threaded process can deadlock.
 
-Factors, as ORB-SLAM2's RGB-D local BA: keypoints with a usable depth get a ``GenericStereoFactor3D``
-on (u, v, u_right) of a virtual stereo pair (u_right = u - fx * baseline / depth), the others a
-``GenericProjectionFactorCal3_S2``; both with a Huber kernel and sigma = scale**octave px. Keyframes
-outside the window that see window points are held fixed (stiff ``PriorFactorPose3``).
+Factors, as ORB-SLAM2's RGB-D local BA: keypoints with a usable depth get a
+``GenericStereoFactor3D`` on (u, v, u_right) of a virtual stereo pair
+(u_right = u - fx * baseline / depth), the others a ``GenericProjectionFactorCal3_S2``; both with a
+Huber kernel and sigma = scale**octave px. Keyframes outside the window that see window points are
+held fixed (stiff ``PriorFactorPose3``).
 """
 
 from __future__ import annotations
@@ -203,7 +204,8 @@ class BaWorker:
 
     def __init__(self):
         env = dict(os.environ)
-        # The child must import this package the way the parent did (catkin devel space, PYTHONPATH=src).
+        # The child must import this package the way the parent did (catkin devel space,
+        # PYTHONPATH=src).
         env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
         self._proc = subprocess.Popen(
             [sys.executable, "-c", "from coop_slam.vo.local_ba import serve; serve()"],

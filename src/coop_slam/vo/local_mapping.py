@@ -1,10 +1,10 @@
 """Local mapping: what ORB-SLAM's LocalMapping thread does after tracking inserted a keyframe.
 
 For each new keyframe: refresh the statistics of the points it observes, fuse duplicate points with
-its covisible keyframes (projection search both ways), cull recent points that tracking rarely finds,
-run local BA over the covisible window (when no other keyframe is waiting), then cull redundant
-keyframes. Keyframe events (new / update / remove) are emitted from here, so a NEW keyframe is sent
-after its points were fused and its covisibility is known.
+its covisible keyframes (projection search both ways), cull recent points that tracking rarely
+finds, run local BA over the covisible window (when no other keyframe is waiting), then cull
+redundant keyframes. Keyframe events (new / update / remove) are emitted from here, so a NEW
+keyframe is sent after its points were fused and its covisibility is known.
 
 With ``threaded`` the steps run in a background thread and the BA itself in a worker process (GTSAM
 holds the GIL); every map access holds ``Map.lock`` for a short, bounded section. Without it,
@@ -52,7 +52,8 @@ def keyframe_features(kf: Keyframe, bf: float, close_depth_m: float) -> FrameFea
 
 
 class LocalMapper:
-    """Local mapping steps on a :class:`Map`; ``submit`` queues a keyframe (see module docstring)."""
+    """Local mapping steps on a :class:`Map`; ``submit`` queues a keyframe (see module
+    docstring)."""
 
     def __init__(
         self,
@@ -87,7 +88,7 @@ class LocalMapper:
             self._thread = threading.Thread(target=self._loop, name="vo_local_mapping", daemon=True)
             self._thread.start()
 
-    # --- public -------------------------------------------------------------------------------------
+    # --- public -----------------------------------------------------------------------------------
     @property
     def idle(self) -> bool:
         return self._idle.is_set() and self._queue.empty()
@@ -121,7 +122,7 @@ class LocalMapper:
             self._worker.close()
             self._worker = None
 
-    # --- the steps ---------------------------------------------------------------------------------
+    # --- the steps --------------------------------------------------------------------------------
     def _loop(self) -> None:
         while not self._stop:
             try:
@@ -182,7 +183,8 @@ class LocalMapper:
         vmap.update_covisibility(kf_id)
 
     def _fuse(self, vmap: Map, kf: Keyframe, neighbours: list[int]) -> set[int]:
-        """Project points between the keyframe and its neighbours; merge duplicates, add observations."""
+        """Project points between the keyframe and its neighbours; merge duplicates, add
+        observations."""
         pts = vmap.points
         touched: set[int] = set()
         own = kf.map_point_ids[kf.map_point_ids > 0].astype(np.int64)
@@ -254,7 +256,7 @@ class LocalMapper:
             vmap.remove_point(int(pid))
         self.stats["points_culled"] += int(bad.sum())
 
-    # --- local BA ----------------------------------------------------------------------------------
+    # --- local BA ---------------------------------------------------------------------------------
     def build_ba_problem(self, vmap: Map, kf_id: int) -> BaProblem | None:
         cfg = self.config
         window = [kf_id] + vmap.best_covisible(kf_id, cfg.ba_window - 1)
@@ -380,7 +382,7 @@ class LocalMapper:
         for k in moved:
             self._emit(VoEvent(EVENT_KEYFRAME_UPDATE, vmap.segment, k, vmap.snapshot(k)))
 
-    # --- keyframe culling --------------------------------------------------------------------------
+    # --- keyframe culling -------------------------------------------------------------------------
     def cull_keyframes(self, vmap: Map, kf_id: int) -> list[int]:
         """Remove covisible keyframes whose close points are >= 90 % seen by >= 3 other keyframes
         at the same or a finer scale (ORB-SLAM's KeyFrameCulling)."""

@@ -3,8 +3,8 @@
 Map points live in growable numpy arrays indexed by their id (ids are positive, unique per robot
 and increasing, as the KeyFrame message requires), so projection, culling and statistics are array
 operations. Each point also has a small ``{keyframe_id: keypoint_index}`` dict of observations; each
-keyframe's ``map_point_ids`` is the inverse relation. ``check_consistency`` verifies that the two agree
-(no dangling references), which local mapping and keyframe culling must preserve.
+keyframe's ``map_point_ids`` is the inverse relation. ``check_consistency`` verifies that the two
+agree (no dangling references), which local mapping and keyframe culling must preserve.
 
 The map is not thread-safe by itself: the owner (``RgbdOdometry``) holds ``Map.lock`` around every
 access from the tracking thread and the local-mapping thread.

@@ -1,4 +1,5 @@
-"""Vectorized projection matching of map points to keypoints, and the pose-independent helpers it needs.
+"""Vectorized projection matching of map points to keypoints, and the pose-independent helpers it
+needs.
 
 All candidate (point, keypoint) pairs within the search radius come from one KD-tree query
 (``sparse_distance_matrix``); the gates (radius scaled by the predicted octave, octave window,
@@ -100,8 +101,8 @@ def search_by_projection(
     ``point_desc`` (P, 32) and ``point_angle_deg`` (P,) are indexed like the projected points (use
     ``proj.index``). Returns (proj_idx, kp_idx, hamming) with proj_idx indexing ``proj`` rows, each
     keypoint used at most once. ``exclude_kp`` marks keypoints that must not be matched;
-    ``chi2_gate`` rejects pairs whose (u, v[, u_right]) reprojection error, weighted by the keypoint's
-    octave, exceeds it (a depth-consistency test used when fusing points).
+    ``chi2_gate`` rejects pairs whose (u, v[, u_right]) reprojection error, weighted by the
+    keypoint's octave, exceeds it (a depth-consistency test used when fusing points).
     """
     empty = (np.zeros(0, int), np.zeros(0, int), np.zeros(0, np.int32))
     m = len(proj.index)
@@ -145,7 +146,8 @@ def search_by_projection(
     )
     best_oct = frame.octaves[kj[best]]
     ok = dist[best] <= max_distance
-    # Ratio test only between keypoints of the same level, as ORB-SLAM (other levels are other scales).
+    # Ratio test only between keypoints of the same level, as ORB-SLAM (other levels are other
+    # scales).
     ok &= ~((second_oct == best_oct) & (dist[best] > ratio * second_dist))
     best = best[ok]
     if len(best) == 0:

@@ -15,8 +15,8 @@
 
 When tracking fails the odometry is *lost*: it tries to relocalize against its own recent keyframes
 (brute-force descriptor matching + PnP RANSAC + local-map search), a few keyframes per frame so the
-time per frame stays bounded; after ``max_lost_frames`` failures it starts a new map segment (new map
-frame, ``map_segment`` + 1, EVENT_NEW_SEGMENT). It never reports a pose it did not verify.
+time per frame stays bounded; after ``max_lost_frames`` failures it starts a new map segment (new
+map frame, ``map_segment`` + 1, EVENT_NEW_SEGMENT). It never reports a pose it did not verify.
 """
 
 from __future__ import annotations
@@ -95,9 +95,10 @@ class RgbdOdometry:
         self._last_stamp: float | None = None
         self.frames_processed = 0
 
-    # --- public API --------------------------------------------------------------------------------
+    # --- public API -------------------------------------------------------------------------------
     def track(self, stamp_s: float, image: np.ndarray, depth_m: np.ndarray) -> TrackResult:
-        """Track one frame. Raises VoError on malformed input; a frame it cannot use is a lost result."""
+        """Track one frame. Raises VoError on malformed input; a frame it cannot use is a lost
+        result."""
         t0 = time.perf_counter()
         c0 = time.thread_time()
         gray, depth = self._check_inputs(stamp_s, image, depth_m)
@@ -105,7 +106,10 @@ class RgbdOdometry:
         if self._last_stamp is not None and stamp_s == self._last_stamp:
             raise VoError(f"duplicate timestamp {stamp_s:.6f} s: frame ignored")
         if self._last_stamp is not None and stamp_s < self._last_stamp:
-            msg = f"timestamp {stamp_s:.6f} s is not after the previous {self._last_stamp:.6f} s: map reset"
+            msg = (
+                f"timestamp {stamp_s:.6f} s is not after the previous "
+                f"{self._last_stamp:.6f} s: map reset"
+            )
             log.warning(msg)
             self._emit(VoEvent(EVENT_WARNING, self.map_segment, message=msg))
             self.reset()
@@ -158,7 +162,8 @@ class RgbdOdometry:
         self._mapper.flush(timeout_s)
 
     def reset(self) -> None:
-        """Drop the map; the next frame starts a new map segment (keyframe/point ids keep growing)."""
+        """Drop the map; the next frame starts a new map segment (keyframe/point ids keep
+        growing)."""
         self._mapper.flush()
         if self._map.keyframes:
             self.map_segment += 1
@@ -189,7 +194,7 @@ class RgbdOdometry:
         """The live map (hold ``vo_map.lock`` while reading it in threaded mode)."""
         return self._map
 
-    # --- input checks ------------------------------------------------------------------------------
+    # --- input checks -----------------------------------------------------------------------------
     def _check_inputs(self, stamp_s, image, depth_m):
         cam = self.camera
         try:
@@ -206,7 +211,8 @@ class RgbdOdometry:
             )
         if image.shape[:2] != (cam.height, cam.width):
             raise VoError(
-                f"image is {image.shape[1]}x{image.shape[0]} but the camera model is {cam.width}x{cam.height}"
+                f"image is {image.shape[1]}x{image.shape[0]} "
+                f"but the camera model is {cam.width}x{cam.height}"
             )
         if image.ndim == 3:
             if image.shape[2] == 3:
@@ -231,7 +237,7 @@ class RgbdOdometry:
             raise VoError(f"depth image must be float metres or uint16, got {depth_m.dtype}")
         return np.ascontiguousarray(gray), depth
 
-    # --- states ------------------------------------------------------------------------------------
+    # --- states -----------------------------------------------------------------------------------
     def _clear_tracking(self) -> None:
         self._state = STATE_INITIALIZING
         self._T_map_cam = np.eye(4)
@@ -370,10 +376,11 @@ class RgbdOdometry:
             and rotation_angle_deg(step[:3, :3]) <= self.config.max_frame_rotation_deg
         )
 
-    # --- tracking ----------------------------------------------------------------------------------
+    # --- tracking ---------------------------------------------------------------------------------
     def _local_map(self, seed_point_ids: np.ndarray):
         """Local keyframes (sharing points with the seed points, plus their best covisibles) and the
-        copied arrays of their map points. Returns (ref_kf_id, ids, xyz, desc, angle, normal, max_dist).
+        copied arrays of their map points.
+        Returns (ref_kf_id, ids, xyz, desc, angle, normal, max_dist).
         """
         cfg = self.config
         vmap = self._map
@@ -484,7 +491,8 @@ class RgbdOdometry:
         return _Tracked(invert(T_cam_map), kp_idx, ids[rows], ref)
 
     def _pnp(self, feats: FrameFeatures, kf_id: int):
-        """Pose from brute-force matches to a keyframe's map points + PnP RANSAC (or (None, None))."""
+        """Pose from brute-force matches to a keyframe's map points + PnP RANSAC
+        (or (None, None))."""
         cfg = self.config
         with self._map.lock:
             kf = self._map.keyframes.get(kf_id)
@@ -538,7 +546,7 @@ class RgbdOdometry:
             return None, None
         return invert(T_cam_map), pids[m[inl[good], 1]]
 
-    # --- keyframes ---------------------------------------------------------------------------------
+    # --- keyframes --------------------------------------------------------------------------------
     def _need_keyframe(self, feats: FrameFeatures, tracked: _Tracked) -> bool:
         """ORB-SLAM2's NeedNewKeyFrame for RGB-D."""
         cfg = self.config
@@ -586,7 +594,8 @@ class RgbdOdometry:
         return (c1a or c1b or c1c) and c2
 
     def _insert_keyframe(self, stamp_s, feats: FrameFeatures, T_map_cam, kp_idx, point_ids) -> int:
-        """Create a keyframe from the frame, with new map points from depth for unmatched keypoints."""
+        """Create a keyframe from the frame, with new map points from depth for unmatched
+        keypoints."""
         cfg = self.config
         vmap = self._map
         kf_id = self._next_kf_id

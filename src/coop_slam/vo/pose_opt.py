@@ -1,10 +1,10 @@
 """Motion-only pose optimization (ORB-SLAM's ``PoseOptimization``) in numpy.
 
 Residuals are (u, v) for keypoints without depth and (u, v, u_right) for keypoints with depth, where
-``u_right = u - bf / z`` is the column in a virtual right camera (``bf`` = fx * virtual baseline), so
-depth enters as a pixel-like residual with the same octave-dependent weight. A Huber kernel in the
-first rounds, then outliers are classified by a chi-square gate after each round and left out of the
-next one (they can come back). A few hundred correspondences take well under a millisecond per
+``u_right = u - bf / z`` is the column in a virtual right camera (``bf`` = fx * virtual baseline),
+so depth enters as a pixel-like residual with the same octave-dependent weight. A Huber kernel in
+the first rounds, then outliers are classified by a chi-square gate after each round and left out of
+the next one (they can come back). A few hundred correspondences take well under a millisecond per
 Gauss-Newton iteration because the normal equations are built with one einsum.
 """
 
@@ -35,7 +35,8 @@ def optimize_pose(
     chi2_mono: float = 5.991,
     chi2_stereo: float = 7.815,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Refine ``T_cam_map`` from 3D map points and their keypoints; returns (T_cam_map, inlier mask).
+    """Refine ``T_cam_map`` from 3D map points and their keypoints; returns
+    (T_cam_map, inlier mask).
 
     ``u_right_px`` is NaN for keypoints without depth; ``info`` is 1/sigma^2 per keypoint [1/px^2].
     """

@@ -11,7 +11,8 @@ from .map import Keyframe
 
 
 class VoError(CoopSlamError):
-    """Input the visual odometry cannot process (empty or mis-sized image, wrong depth type, ...)."""
+    """Input the visual odometry cannot process
+    (empty or mis-sized image, wrong depth type, ...)."""
 
 
 # Tracking states of TrackResult.state.
