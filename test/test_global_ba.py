@@ -11,7 +11,7 @@ from coop_slam.team.global_ba import GlobalBaConfig, GlobalBaError, global_bundl
 from coop_slam.team.pose_graph import TeamPoseGraph
 from helpers import camera, cylinder_world, looking_out_pose, observe
 
-EXACT_DEPTH = GlobalBaConfig(iterations=20, min_disparity_sigma_px=0.05)
+EXACT_DEPTH = GlobalBaConfig(iterations=20, disparity_sigma_px=0.05)
 T_WORLD_MAP = {1: np.eye(4), 2: se3_from_quat([-1.0, 0.5, 0.1], [0, 0, -0.4, 1.0])}
 
 

@@ -13,7 +13,7 @@ from helpers import team_keyframes as _keyframes
 
 def _config(robots):
     cfg = ServerConfig(robots=robots)
-    cfg.global_ba.min_disparity_sigma_px = 0.05  # the helpers' depth is near exact (0.3 % noise)
+    cfg.global_ba.disparity_sigma_px = 0.05  # the helpers' depth is near exact (0.3 % noise)
     return cfg
 
 

@@ -11,7 +11,7 @@ keyframe, held fixed. One camera model per problem: robots with different intrin
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -33,11 +33,15 @@ class GlobalBaConfig:
     iterations: int = 10  # Levenberg-Marquardt iterations
     min_observations: int = 2  # landmarks seen by fewer keyframes are left out
     virtual_baseline_m: float = 0.08  # of the stereo-like depth factor, as the client's [m]
-    # depth noise sigma_z = depth_sigma_per_m2 * z^2 (Kinect-class) and a floor on the disparity
-    # sigma: 1 px as ORB-SLAM, since real depth is not exactly registered to colour (measured on
-    # RedKitchen: 0.05 px made the team map worse, 1-2 px better); exact synthetic depth: 0.05
-    depth_sigma_per_m2: float = 1.425e-3
-    min_disparity_sigma_px: float = 1.0
+    # Noise of the measured disparity fx * baseline / depth [px]. 0: estimated from the data --
+    # a first pass with a weak depth factor (1 px, as ORB-SLAM), then disparity_sigma_scale x the
+    # robust spread (MAD) of its disparity residuals, within the range below. Real depth that is
+    # not exactly registered to colour comes out weak, good depth strong (measured: RedKitchen
+    # 1 px, the synthetic worlds 0.25 px). > 0: that value, one pass.
+    disparity_sigma_px: float = 0.0
+    disparity_sigma_scale: float = 2.0
+    min_disparity_sigma_px: float = 0.03
+    max_disparity_sigma_px: float = 1.0
     min_depth_m: float = 0.3  # depth range used by that factor [m]
     max_depth_m: float = 6.0
     scale_factor: float = 1.2  # ORB pyramid of the clients
@@ -52,8 +56,12 @@ class GlobalBaConfig:
         require(
             0 < self.min_depth_m < self.max_depth_m, "global_ba: need 0 < min_depth_m < max_depth_m"
         )
-        require(self.depth_sigma_per_m2 >= 0, "global_ba.depth_sigma_per_m2 must be >= 0")
-        require(self.min_disparity_sigma_px > 0, "global_ba.min_disparity_sigma_px must be > 0")
+        require(self.disparity_sigma_px >= 0, "global_ba.disparity_sigma_px must be >= 0")
+        require(self.disparity_sigma_scale > 0, "global_ba.disparity_sigma_scale must be > 0")
+        require(
+            0 < self.min_disparity_sigma_px <= self.max_disparity_sigma_px,
+            "global_ba: need 0 < min_disparity_sigma_px <= max_disparity_sigma_px",
+        )
         require(self.scale_factor > 1, "global_ba.scale_factor must be > 1")
         require(self.n_levels >= 1, "global_ba.n_levels must be >= 1")
         require(self.auto_max_observations >= 0, "global_ba.auto_max_observations must be >= 0")
@@ -66,6 +74,7 @@ class GlobalBaResult:
     points: int
     observations: int
     outliers: int  # observations beyond the chi-square gate after optimization
+    disparity_sigma_px: float  # disparity noise used in the (last) pass
     rms_before: float  # RMS reprojection error [px] of the inlier observations, before
     rms_after: float  # ... and after (robust: the 95 % best observations)
     time_ms: float
@@ -100,6 +109,20 @@ def _reprojection_rms_px(problem: BaProblem, T_map_cam: np.ndarray, points: np.n
     dv = problem.fy * pc[:, 1] / z + problem.cy - problem.obs_uv[:, 1]
     e2 = np.sort(du**2 + dv**2)
     return float(np.sqrt(np.mean(e2[: max(1, int(0.95 * len(e2)))])))
+
+
+def disparity_spread_px(problem: BaProblem, T_map_cam: np.ndarray, points: np.ndarray) -> float:
+    """Robust standard deviation (1.4826 MAD) of measured minus predicted disparity [px] over the
+    observations with depth: how well the depth agrees with the geometry of the images."""
+    stereo = np.isfinite(problem.obs_u_right)
+    if not np.any(stereo):
+        return float("nan")
+    T_cam_map = np.linalg.inv(T_map_cam)[problem.obs_kf[stereo]]
+    p_world = points[problem.obs_pt[stereo]]
+    pc = np.einsum("nij,nj->ni", T_cam_map[:, :3, :3], p_world) + T_cam_map[:, :3, 3]
+    d_pred = problem.fx * problem.baseline_m / np.maximum(pc[:, 2], 1e-6)
+    r = problem.obs_uv[stereo, 0] - problem.obs_u_right[stereo] - d_pred
+    return float(1.4826 * np.median(np.abs(r - np.median(r))))
 
 
 def count_observations(records) -> int:
@@ -175,10 +198,7 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
         scale_factor=config.scale_factor,
         n_levels=config.n_levels,
         iterations=config.iterations,
-        disparity_sigma_px=max(
-            config.min_disparity_sigma_px,
-            fx * config.virtual_baseline_m * config.depth_sigma_per_m2,
-        ),
+        disparity_sigma_px=config.disparity_sigma_px or config.max_disparity_sigma_px,
     )
     return problem, keys, len(kept)
 
@@ -201,13 +221,35 @@ def global_bundle_adjustment(
     res = run_local_ba(problem)
     if not res.ok:
         raise GlobalBaError(res.message)
+    time_ms, sigma = res.time_ms, problem.disparity_sigma_px
+    if config.disparity_sigma_px == 0:
+        spread = disparity_spread_px(problem, res.T_map_cam, res.points_map)
+        if np.isfinite(spread):
+            sigma = float(
+                np.clip(
+                    config.disparity_sigma_scale * spread,
+                    config.min_disparity_sigma_px,
+                    config.max_disparity_sigma_px,
+                )
+            )
+            second = replace(
+                problem,
+                disparity_sigma_px=sigma,
+                T_map_cam=res.T_map_cam,
+                points_map=res.points_map,
+            )
+            res = run_local_ba(second)
+            if not res.ok:
+                raise GlobalBaError(res.message)
+            time_ms += res.time_ms
     return GlobalBaResult(
         poses={k: T for k, T in zip(keys, res.T_map_cam)},
         keyframes=len(keys),
         points=n_points,
         observations=len(problem.obs_kf),
         outliers=int(np.count_nonzero(res.outlier_obs)),
+        disparity_sigma_px=sigma,
         rms_before=_reprojection_rms_px(problem, problem.T_map_cam, problem.points_map),
         rms_after=_reprojection_rms_px(problem, res.T_map_cam, res.points_map),
-        time_ms=res.time_ms,
+        time_ms=time_ms,
     )

@@ -185,28 +185,6 @@ class _Monitor:
         self._acks[robot_id].publish(ack)
 
 
-def _final_global_ba() -> None:
-    """The server's global bundle adjustment of the world group, as a user would request it at the
-    end of a mission; the monitor then receives the refined team map."""
-    import rospy
-
-    from coop_slam.srv import GlobalBundleAdjustment
-
-    say("      global bundle adjustment of the team map (service /server/global_ba)")
-    try:
-        rospy.wait_for_service("/server/global_ba", 30.0)
-        res = rospy.ServiceProxy("/server/global_ba", GlobalBundleAdjustment)(0)
-    except (rospy.ROSException, rospy.ServiceException) as exc:
-        say(f"      global BA not run: {exc}")
-        return
-    say(
-        f"      global BA: {res.message} ({res.time_s:.1f} s)"
-        if res.success
-        else f"      global BA not run: {res.message}"
-    )
-    time.sleep(2.0)  # wall time: the server republishes the team map
-
-
 def _wait_for_master(uri: str, timeout_s: float) -> None:
     import rosgraph
 
@@ -345,8 +323,6 @@ def run(args: argparse.Namespace) -> int:
                 print(line, flush=True)
             time.sleep(0.5)
         time.sleep(args.settle)  # let clients and server finish the last keyframes
-        if not args.no_clients:
-            _final_global_ba()
         if recorder is not None:
             say("      stopping the recording (final picture of the map)")
             os.killpg(recorder.pid, signal.SIGINT)
