@@ -1,7 +1,7 @@
 """Global bundle adjustment of a merged group: perturbed keyframe poses of two robots, tied by
 linked map points, are pulled back to the truth; bad groups are refused. The helpers' depth is near
-exact, so the depth factor is given that sensor's small disparity noise (the default, 1 px, is for
-real Kinect depth not exactly registered to colour)."""
+exact, so most tests give the depth factor that sensor's small disparity noise; one checks that the
+default (noise estimated from the data) finds it small too."""
 
 import numpy as np
 import pytest
@@ -79,6 +79,16 @@ def test_global_ba_result_survives_the_next_pose_graph_optimization():
     graph.optimize_full()
     after = [transform_error(graph.T_world_cam(*k), truth[k])[0] for k in truth]
     assert np.mean(after) < 0.015
+
+
+def test_global_ba_estimates_the_depth_noise_from_the_data():
+    records, truth, links = _team()
+    start = _perturbed(truth, (1, 1), seed=3)
+    res = global_bundle_adjustment(records, start, links, {(1, 1)}, GlobalBaConfig(iterations=20))
+    before = np.mean([transform_error(start[k], truth[k])[0] for k in truth])
+    after = np.mean([transform_error(res.poses[k], truth[k])[0] for k in truth])
+    assert 0.03 <= res.disparity_sigma_px < 0.5  # much better than the weak first pass (1 px)
+    assert after < 0.3 * before
 
 
 def test_global_ba_refuses_bad_groups():
