@@ -47,7 +47,8 @@ class GlobalBaConfig:
     scale_factor: float = 1.2  # ORB pyramid of the clients
     n_levels: int = 8
     after_merge: bool = True  # run automatically after a merge when the problem is small enough
-    auto_max_observations: int = 60000  # ... i.e. has at most this many observations
+    auto_max_observations: int = 40000  # ... i.e. its keyframes hold at most this many map-point
+    # observations (a few seconds on this machine)
 
     def validate(self) -> None:
         require(self.iterations >= 1, "global_ba.iterations must be >= 1")
