@@ -338,6 +338,37 @@ class TeamServer:
         )
         return result
 
+    def _add_factor(self, kind: str, key_a, key_b, res: RelativePoseResult, robust_k=None) -> None:
+        """A verified relative pose into the pose graph (loop factor within one robot, merge factor
+        between two), its matched map points into the links for global BA."""
+        sig_rot, sig_trans = self._sigmas(res)
+        if key_a[0] == key_b[0]:
+            self._graph_call(
+                self.graph.add_loop,
+                key_a[0],
+                key_a[1],
+                key_b[1],
+                res.T_a_b,
+                "loop",
+                sig_rot,
+                sig_trans,
+                robust_k,
+            )
+        else:
+            self._graph_call(
+                self.graph.add_merge,
+                key_a[0],
+                key_a[1],
+                key_b[0],
+                key_b[1],
+                res.T_a_b,
+                kind,
+                sig_rot,
+                sig_trans,
+                robust_k,
+            )
+        self._record_links(key_a, key_b, res)
+
     def _record_links(self, key_a, key_b, res: RelativePoseResult) -> None:
         """Map points matched by an accepted registration are one physical point."""
         ids_a = self.keyframes[key_a].record.map_point_ids
@@ -560,32 +591,7 @@ class TeamServer:
         k = self.graph.config.robust_k
         if sig_rot is not None:
             k *= float(np.sqrt(1.0 + (dt / sig_trans) ** 2 + (np.radians(dr) / sig_rot) ** 2))
-        if key_a[0] == key_b[0]:
-            self._graph_call(
-                self.graph.add_loop,
-                key_a[0],
-                key_a[1],
-                key_b[1],
-                res.T_a_b,
-                "loop",
-                sig_rot,
-                sig_trans,
-                k,
-            )
-        else:
-            self._graph_call(
-                self.graph.add_merge,
-                key_a[0],
-                key_a[1],
-                key_b[0],
-                key_b[1],
-                res.T_a_b,
-                kind,
-                sig_rot,
-                sig_trans,
-                k,
-            )
-        self._record_links(key_a, key_b, res)
+        self._add_factor(kind, key_a, key_b, res, robust_k=k)
         self.constraints.append(
             ConstraintResult(
                 "loop" if key_a[0] == key_b[0] else kind,
@@ -737,16 +743,7 @@ class TeamServer:
         rec_a, rec_b = self.keyframes[key_a].record, self.keyframes[key_b].record
         T_mapA_mapB = chain_map_transform(rec_a.T_map_cam, res.T_a_b, rec_b.T_map_cam)
         group = self.groups.merge(key_a[0], key_b[0], T_mapA_mapB)
-        self._graph_call(
-            self.graph.add_merge,
-            key_a[0],
-            key_a[1],
-            key_b[0],
-            key_b[1],
-            res.T_a_b,
-            kind,
-            *self._sigmas(res),
-        )
+        self._add_factor(kind, key_a, key_b, res)
         merge = MergeResult(
             kind,
             key_a[0],
@@ -761,7 +758,6 @@ class TeamServer:
             group,
         )
         self.merges.append(merge)
-        self._record_links(key_a, key_b, res)
         self.consistency.reset(key_b[0])
         log.info(
             "merged robot %d into robot %d's map (%s, %d inliers, %.2f px): group %s",

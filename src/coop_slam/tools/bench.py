@@ -84,31 +84,37 @@ def bench_vo() -> Iterator[Figure]:
             yield (f"vo_{name}_keyframe_msg_bytes_mean", size, "bytes")
 
 
+def _record(kf, robot_id: int, camera):
+    """The KeyframeRecord a client would send for one of its keyframes."""
+    from ..keyframe import KeyframeRecord
+
+    return KeyframeRecord(
+        robot_id=robot_id,
+        keyframe_id=int(kf.keyframe_id),
+        stamp_s=float(kf.stamp_s),
+        camera=camera,
+        T_map_cam=kf.T_map_cam,
+        keypoints=kf.keypoints_flat().reshape(-1, 4),
+        octaves=kf.octaves,
+        descriptors=kf.descriptors,
+        depths_m=kf.depths_m,
+        map_point_ids=kf.map_point_ids,
+        map_points=kf.map_points_xyz,
+        covisible_ids=kf.covisible_ids,
+        covisible_weights=kf.covisible_weights,
+    )
+
+
 def _keyframe_msg_bytes(keyframes, camera):
     import io
 
     try:
-        from ..keyframe import KeyframeRecord
         from ..ros.convert import keyframe_to_msg
     except ImportError:  # no catkin workspace sourced: no generated messages
         return None
     sizes = []
     for kf in keyframes:
-        rec = KeyframeRecord(
-            robot_id=1,
-            keyframe_id=int(kf.keyframe_id),
-            stamp_s=float(kf.stamp_s),
-            camera=camera,
-            T_map_cam=kf.T_map_cam,
-            keypoints=kf.keypoints_flat().reshape(-1, 4),
-            octaves=kf.octaves,
-            descriptors=kf.descriptors,
-            depths_m=kf.depths_m,
-            map_point_ids=kf.map_point_ids,
-            map_points=kf.map_points_xyz,
-            covisible_ids=kf.covisible_ids,
-            covisible_weights=kf.covisible_weights,
-        )
+        rec = _record(kf, 1, camera)
         buf = io.BytesIO()
         keyframe_to_msg(rec, "robot_1/map").serialize(buf)
         sizes.append(buf.tell())
@@ -127,7 +133,6 @@ def bench_server() -> Iterator[Figure]:
 
     from ..bow import Vocabulary
     from ..bow.training import ensure_default_vocabulary
-    from ..keyframe import KeyframeRecord
     from ..team.server import ServerConfig, TeamServer
 
     if not _VO_RUNS:
@@ -138,23 +143,7 @@ def bench_server() -> Iterator[Figure]:
     for robot_id, name in enumerate(halves, 1):
         run, seq = _VO_RUNS[name]
         for kf in run.keyframes:
-            records.append(
-                KeyframeRecord(
-                    robot_id=robot_id,
-                    keyframe_id=int(kf.keyframe_id),
-                    stamp_s=float(kf.stamp_s),
-                    camera=seq.camera,
-                    T_map_cam=kf.T_map_cam,
-                    keypoints=kf.keypoints_flat().reshape(-1, 4),
-                    octaves=kf.octaves,
-                    descriptors=kf.descriptors,
-                    depths_m=kf.depths_m,
-                    map_point_ids=kf.map_point_ids,
-                    map_points=kf.map_points_xyz,
-                    covisible_ids=kf.covisible_ids,
-                    covisible_weights=kf.covisible_weights,
-                )
-            )
+            records.append(_record(kf, robot_id, seq.camera))
     records.sort(key=lambda r: r.stamp_s)
     t0 = time.perf_counter()
     for rec in records:

@@ -413,8 +413,9 @@ def _topic_bandwidth(run: RunData) -> dict:
     return out
 
 
-def _plot(out_dir: str, run: RunData, streams, gts) -> None:
-    """Top view of every robot's keyframes (aligned to ground truth) and ground truth."""
+def _save_top_view(path: str, title: str, curves) -> None:
+    """x-y top view of trajectories: ``curves`` are (poses (N, 4, 4), colour index, label, is
+    estimate); ground truth dashed, estimates with keyframe dots."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -422,17 +423,28 @@ def _plot(out_dir: str, run: RunData, streams, gts) -> None:
 
     fig, ax = plt.subplots(figsize=(7, 6))
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for k, stream in enumerate(streams):
-        rid, c = stream.robot_id, colours[k % len(colours)]
-        stamps_gt, poses_gt = gts[rid]
+    for poses, k, label, estimate in curves:
+        style = dict(marker="o", ms=2) if estimate else dict(linestyle="--", alpha=0.5)
         ax.plot(
-            poses_gt[:, 0, 3],
-            poses_gt[:, 1, 3],
-            "--",
-            color=c,
-            alpha=0.5,
-            label=f"robot_{rid} ground truth",
+            poses[:, 0, 3], poses[:, 1, 3], color=colours[k % len(colours)], label=label, **style
         )
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _plot(out_dir: str, run: RunData, streams, gts) -> None:
+    """Top view of every robot's keyframes (aligned to ground truth) and ground truth."""
+    curves = []
+    for k, stream in enumerate(streams):
+        rid = stream.robot_id
+        stamps_gt, poses_gt = gts[rid]
+        curves.append((poses_gt, k, f"robot_{rid} ground truth", False))
         r = run.robots.get(rid)
         if r and len(r.keyframes) >= 3:
             stamps, poses = _kf_arrays(r)
@@ -441,62 +453,29 @@ def _plot(out_dir: str, run: RunData, streams, gts) -> None:
             except EvaluationError:
                 continue
             aligned = np.einsum("ij,njk->nik", res.T_gt_est, poses)
-            ax.plot(
-                aligned[:, 0, 3],
-                aligned[:, 1, 3],
-                "-o",
-                ms=2,
-                color=c,
-                label=f"robot_{rid} keyframes (ATE {100 * res.rmse_m:.1f} cm)",
+            curves.append(
+                (aligned, k, f"robot_{rid} keyframes (ATE {100 * res.rmse_m:.1f} cm)", True)
             )
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.legend(fontsize=8)
-    ax.set_title("trajectories (each robot aligned to its ground truth)")
-    fig.tight_layout()
-    fig.savefig(os.path.join(out_dir, "trajectories.png"), dpi=110)
-    plt.close(fig)
+    _save_top_view(
+        os.path.join(out_dir, "trajectories.png"),
+        "trajectories (each robot aligned to its ground truth)",
+        curves,
+    )
 
 
 def _plot_team(out_dir: str, est_world: dict, gt_world: dict, team) -> None:
     """Top view of every robot's keyframes in world (one alignment for the team) and ground
     truth."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 6))
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    curves = []
     for k, rid in enumerate(sorted(est_world)):
-        c = colours[k % len(colours)]
-        _, poses_gt = gt_world[rid]
-        ax.plot(
-            poses_gt[:, 0, 3],
-            poses_gt[:, 1, 3],
-            "--",
-            color=c,
-            alpha=0.5,
-            label=f"robot_{rid} ground truth",
-        )
+        curves.append((gt_world[rid][1], k, f"robot_{rid} ground truth", False))
         aligned = np.einsum("ij,njk->nik", team.T_gt_est, est_world[rid][1])
-        ax.plot(
-            aligned[:, 0, 3],
-            aligned[:, 1, 3],
-            "-o",
-            ms=2,
-            color=c,
-            label=f"robot_{rid} keyframes in world",
-        )
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.legend(fontsize=8)
-    ax.set_title(f"team map: one alignment for all robots (team ATE {100 * team.rmse_m:.1f} cm)")
-    fig.tight_layout()
-    fig.savefig(os.path.join(out_dir, "team_trajectories.png"), dpi=110)
-    plt.close(fig)
+        curves.append((aligned, k, f"robot_{rid} keyframes in world", True))
+    _save_top_view(
+        os.path.join(out_dir, "team_trajectories.png"),
+        f"team map: one alignment for all robots (team ATE {100 * team.rmse_m:.1f} cm)",
+        curves,
+    )
 
 
 def _write_ply(path: str, cloud_msg) -> None:
