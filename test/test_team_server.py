@@ -69,6 +69,7 @@ def test_co_observation_merges_as_rendezvous(world):
     ):
         merges += server.add_keyframe(kf_a) + server.add_keyframe(kf_b)
     assert len(merges) == 1 and merges[0].type == "rendezvous"
+    assert merges[0].keyframe_b >= 2  # the first verification waits for a second, agreeing one
     dt, dr = transform_error(merges[0].T_mapA_mapB, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
     assert dt < 0.02 and dr < 0.5
     merge, message = server.request_rendezvous(1, 2)

@@ -75,6 +75,12 @@ class RendezvousConfig:
     request_window_s: float = 2.0  # keyframes around a sighting / operator request [s]
     min_bow_score: float = 0.03  # BoW L1 score a pair needs before 3D-3D verification
     max_pairs: int = 4  # keyframe pairs verified per rendezvous request
+    # The automatic test has no cue of its own: identical textures seen at the same time in two
+    # places pass any two-view check, so it merges only once this many verifications from
+    # different keyframes of the joining robot agree on the map transform (within the tolerance).
+    auto_confirmations: int = 2
+    confirm_trans_m: float = 0.05
+    confirm_rot_deg: float = 2.0
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
 
     def validate(self) -> None:
@@ -82,6 +88,9 @@ class RendezvousConfig:
         require(self.request_window_s > 0, "rendezvous.request_window_s must be > 0")
         require(0 <= self.min_bow_score <= 1, "rendezvous.min_bow_score must be in [0, 1]")
         require(self.max_pairs >= 1, "rendezvous.max_pairs must be >= 1")
+        require(self.auto_confirmations >= 1, "rendezvous.auto_confirmations must be >= 1")
+        require(self.confirm_trans_m > 0, "rendezvous.confirm_trans_m must be > 0")
+        require(self.confirm_rot_deg > 0, "rendezvous.confirm_rot_deg must be > 0")
         self.registration.validate()
 
 
@@ -210,6 +219,9 @@ class TeamServer:
         # (robot, map point id) pairs that merges / loops matched: one physical point each
         self.point_links: list[tuple[tuple[int, int], tuple[int, int]]] = []
         self.global_ba_runs: list[GlobalBaResult] = []
+        # (low robot, high robot) -> [((key_low, key_high), T_mapLow_mapHigh)] of automatic
+        # co-observations, for their confirmation
+        self._co_observations: dict[tuple[int, int], list] = {}
         self.keyframe_ms: list[float] = []  # server time per incoming keyframe
         self.verifications = 0
         self.graph = TeamPoseGraph(config.pose_graph)
@@ -258,8 +270,8 @@ class TeamServer:
         self._since_optimize += 1
         if merges or self._need_full:
             self.optimize(full=True)
-        if merges and self.config.global_ba.after_merge:
-            self._global_ba_if_cheap(merges[-1].robot_a)
+            if merges and self.config.global_ba.after_merge:
+                self._global_ba_if_cheap(merges[-1].robot_a)
         elif self._since_optimize >= self.config.optimize_every:
             self.optimize(full=False)
         self.keyframe_ms.append(1e3 * (time.perf_counter() - t0))
@@ -649,13 +661,45 @@ class TeamServer:
             if self.groups.same_group(other, rec.robot_id):
                 continue
             for key_a in self._near_in_time(other, rec.stamp_s, cfg.window_s)[:2]:
-                merge = self._verify_rendezvous(key_a, key_b, rec.stamp_s)
+                merge = self._verify_rendezvous(key_a, key_b, rec.stamp_s, confirm=True)
                 if merge is not None:
                     return [merge]
         return []
 
+    def _confirmed(self, key_a, key_b, res: RelativePoseResult) -> bool:
+        """Whether earlier automatic verifications of this robot pair (either direction, other
+        keyframes) agree with this one on the map transform; this one is remembered either way."""
+        cfg = self.config.rendezvous
+        T = chain_map_transform(
+            self.keyframes[key_a].record.T_map_cam,
+            res.T_a_b,
+            self.keyframes[key_b].record.T_map_cam,
+        )
+        if key_a[0] > key_b[0]:  # one direction per pair: T_mapLow_mapHigh
+            T, key_a, key_b = invert(T), key_b, key_a
+        hits = self._co_observations.setdefault((key_a[0], key_b[0]), [])
+        tolerance = (cfg.confirm_trans_m, cfg.confirm_rot_deg)
+        agreeing = {
+            keys
+            for keys, T_prev in hits
+            if key_a not in keys
+            and key_b not in keys
+            and all(e <= tol for e, tol in zip(transform_error(T, T_prev), tolerance))
+        }
+        hits.append(((key_a, key_b), T))
+        if len(agreeing) + 1 < cfg.auto_confirmations:
+            log.info(
+                "co-observation %s - %s verified (%d inliers); waiting for %d more agreeing",
+                key_a,
+                key_b,
+                res.n_inliers,
+                cfg.auto_confirmations - 1 - len(agreeing),
+            )
+            return False
+        return True
+
     def _verify_rendezvous(
-        self, key_a, key_b, stamp_s: float, T_init=None, prior_sigma=None
+        self, key_a, key_b, stamp_s: float, T_init=None, prior_sigma=None, confirm=False
     ) -> MergeResult | None:
         cfg = self.config.rendezvous
         score = self.vocabulary.score(self.database.bow(*key_a), self.database.bow(*key_b))
@@ -670,7 +714,7 @@ class TeamServer:
             prior_sigma=prior_sigma,
         )
         log.debug("rendezvous %s vs %s (bow %.3f): %s", key_a, key_b, score, res.reason)
-        if not res.accepted:
+        if not res.accepted or (confirm and not self._confirmed(key_a, key_b, res)):
             return None
         self._pending[(min(key_a[0], key_b[0]), max(key_a[0], key_b[0]))] = _Verified(
             TYPE_RENDEZVOUS, key_a, key_b, res, stamp_s
