@@ -100,11 +100,18 @@ class _Landmarks:
             self.parent[max(ra, rb)] = min(ra, rb)
 
 
+def _points_cam(problem: BaProblem, T_map_cam: np.ndarray, points: np.ndarray, mask=None):
+    """(O, 3) observed landmarks in their observing camera's frame (observations in ``mask``)."""
+    mask = slice(None) if mask is None else mask
+    T_cam_map = np.linalg.inv(T_map_cam)[problem.obs_kf[mask]]
+    p_map = points[problem.obs_pt[mask]]
+    return np.einsum("nij,nj->ni", T_cam_map[:, :3, :3], p_map) + T_cam_map[:, :3, 3]
+
+
 def _reprojection_rms_px(problem: BaProblem, T_map_cam: np.ndarray, points: np.ndarray) -> float:
     """RMS image reprojection error [px] over the best 95 % of the observations (outliers would
     dominate a plain RMS)."""
-    T_cam_map = np.linalg.inv(T_map_cam)[problem.obs_kf]
-    pc = np.einsum("nij,nj->ni", T_cam_map[:, :3, :3], points[problem.obs_pt]) + T_cam_map[:, :3, 3]
+    pc = _points_cam(problem, T_map_cam, points)
     z = np.maximum(pc[:, 2], 1e-6)
     du = problem.fx * pc[:, 0] / z + problem.cx - problem.obs_uv[:, 0]
     dv = problem.fy * pc[:, 1] / z + problem.cy - problem.obs_uv[:, 1]
@@ -118,9 +125,7 @@ def disparity_spread_px(problem: BaProblem, T_map_cam: np.ndarray, points: np.nd
     stereo = np.isfinite(problem.obs_u_right)
     if not np.any(stereo):
         return float("nan")
-    T_cam_map = np.linalg.inv(T_map_cam)[problem.obs_kf[stereo]]
-    p_world = points[problem.obs_pt[stereo]]
-    pc = np.einsum("nij,nj->ni", T_cam_map[:, :3, :3], p_world) + T_cam_map[:, :3, 3]
+    pc = _points_cam(problem, T_map_cam, points, stereo)
     d_pred = problem.fx * problem.baseline_m / np.maximum(pc[:, 2], 1e-6)
     r = problem.obs_uv[stereo, 0] - problem.obs_u_right[stereo] - d_pred
     return float(1.4826 * np.median(np.abs(r - np.median(r))))

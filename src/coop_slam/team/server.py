@@ -189,6 +189,11 @@ class _Verified:
     stamp_s: float
 
 
+def _pair(a: int, b: int) -> tuple[int, int]:
+    """A robot pair as the key of pair tables (match counts, pending merges)."""
+    return (min(a, b), max(a, b))
+
+
 @dataclass
 class _Stored:
     record: KeyframeRecord
@@ -397,19 +402,23 @@ class TeamServer:
         poses = self.graph.keyframe_poses(robot_id)
         return {k: T_map_world @ poses[k] for k in sorted(poses)[-last:]}
 
-    def _view_offset(self, robot_id: int) -> np.ndarray:
-        """Unmerged groups are drawn shifted along x so their maps do not overlap on screen."""
+    def _view_offsets(self) -> dict[int, np.ndarray]:
+        """robot -> shift of its group on screen: unmerged groups are drawn apart along x so
+        their maps do not overlap."""
         world_root = min(self.known_robots)
         roots = sorted({self.groups.root(r) for r in self.groups.robots} - {world_root})
-        T = np.eye(4)
-        T[0, 3] = ([world_root] + roots).index(
-            self.groups.root(robot_id)
-        ) * self.config.unmerged_offset_m
-        return T
+        order = [world_root] + roots
+        offsets = {}
+        for robot in self.groups.robots:
+            offsets[robot] = np.eye(4)
+            offsets[robot][0, 3] = (
+                order.index(self.groups.root(robot)) * self.config.unmerged_offset_m
+            )
+        return offsets
 
     def T_view_map(self, robot_id: int) -> np.ndarray:
         """Where a robot's map is drawn: its group frame, unmerged groups shifted along x."""
-        return self._view_offset(robot_id) @ self.groups.T_root_map(robot_id)
+        return self._view_offsets()[robot_id] @ self.groups.T_root_map(robot_id)
 
     def T_group_cam(self, robot_id: int, keyframe_id: int) -> np.ndarray:
         """A keyframe's pose in its group frame: the optimized one when the pose graph has it,
@@ -430,14 +439,15 @@ class TeamServer:
         """Optimized keyframe positions per robot and merge / constraint edges (type, position a,
         position b), in the frame the team cloud is drawn in."""
 
+        offsets = self._view_offsets()
+
         def position(key):
-            return (self._view_offset(key[0]) @ self.T_group_cam(*key))[:3, 3]
+            return (offsets[key[0]] @ self.T_group_cam(*key))[:3, 3]
 
         paths = {}
         for robot in sorted({r for r, _ in self.keyframes}):
             poses = self.optimized_keyframes(robot)
-            offset = self._view_offset(robot)
-            paths[robot] = np.array([(offset @ T)[:3, 3] for T in poses.values()])
+            paths[robot] = np.array([(offsets[robot] @ T)[:3, 3] for T in poses.values()])
         links = [
             (m.type, (m.robot_a, m.keyframe_a), (m.robot_b, m.keyframe_b)) for m in self.merges
         ]
@@ -459,9 +469,11 @@ class TeamServer:
         if not records:
             return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int64)
 
+        offsets = self._view_offsets()
+
         def T_view_map_of(rec):
             T_group_cam = self.T_group_cam(rec.robot_id, rec.keyframe_id)
-            return self._view_offset(rec.robot_id) @ T_group_cam @ invert(rec.T_map_cam)
+            return offsets[rec.robot_id] @ T_group_cam @ invert(rec.T_map_cam)
 
         points, robots, ids = gather_map_points(records, T_view_map_of, per_keyframe=True)
         points, ids, robots = fuse_points(points, robots, ids, radius_m=cfg.fuse_radius_m)
@@ -495,7 +507,7 @@ class TeamServer:
         cross = [k for k in consistent if not self.groups.same_group(k[0], rb)]
         inner = [k for k in consistent if self.groups.same_group(k[0], rb)]
         for k in cross:
-            pair = (min(k[0], rb), max(k[0], rb))
+            pair = _pair(k[0], rb)
             self.match_counts[pair] = self.match_counts.get(pair, 0) + 1
         budget = self.config.place_recognition.max_verifications
         verified_roots = set()
@@ -522,7 +534,7 @@ class TeamServer:
                     if dt <= self.config.rendezvous.window_s
                     else TYPE_PLACE_RECOGNITION
                 )
-                self._pending[(min(cand_key[0], rb), max(cand_key[0], rb))] = _Verified(
+                self._pending[_pair(cand_key[0], rb)] = _Verified(
                     kind, cand_key, key_b, res, rec.stamp_s
                 )
         merges = self._apply_merge_plan()
@@ -563,9 +575,7 @@ class TeamServer:
         counts = {pair: max(1, self.match_counts.get(pair, 0)) for pair in self._pending}
         merges = []
         for step in plan_merge_steps(counts, self.groups.groups()):
-            v = self._pending.pop(
-                (min(step.robot_a, step.robot_b), max(step.robot_a, step.robot_b))
-            )
+            v = self._pending.pop(_pair(step.robot_a, step.robot_b))
             merges.append(self._merge(v.kind, v.key_a, v.key_b, v.result, v.stamp_s))
         for v in self._pending.values():
             self._add_constraint(v.kind, v.key_a, v.key_b, v.result, v.stamp_s)
@@ -716,7 +726,7 @@ class TeamServer:
         log.debug("rendezvous %s vs %s (bow %.3f): %s", key_a, key_b, score, res.reason)
         if not res.accepted or (confirm and not self._confirmed(key_a, key_b, res)):
             return None
-        self._pending[(min(key_a[0], key_b[0]), max(key_a[0], key_b[0]))] = _Verified(
+        self._pending[_pair(key_a[0], key_b[0])] = _Verified(
             TYPE_RENDEZVOUS, key_a, key_b, res, stamp_s
         )
         merges = self._apply_merge_plan()
