@@ -110,3 +110,51 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
     assert len(run.topic_bytes["/robot_2/keyframes"]) == 5
     with pytest.raises(EvaluationError, match="bag not found"):
         run_data_from_bag(str(tmp_path / "missing.bag"), [1])
+
+
+def test_sensor_bag_gives_robots_and_ground_truth_and_evaluates_without_it(tmp_path):
+    """read_bag_input (scripts/demo --bag): robots from their colour topics, ground truth from
+    robot_k/ground_truth/pose where present (a NaN sample skipped); a robot without ground truth
+    gets null accuracy fields and its keyframes are still written and plotted."""
+    import rosbag
+    import rospy
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import Image
+
+    from coop_slam.ros.convert import pose_to_msg
+    from coop_slam.tools.evaluate import RobotRun, RunData, evaluate_run, read_bag_input
+
+    bag_path = str(tmp_path / "sensors.bag")
+    stamps, gt = _circle(6)
+    with rosbag.Bag(bag_path, "w") as bag:
+        for k in range(6):
+            t = rospy.Time.from_sec(stamps[k])
+            for rid in (1, 3):
+                img = Image(height=1, width=1, encoding="mono8", step=1, data=b"\x00")
+                img.header.stamp = t
+                bag.write(f"/robot_{rid}/camera/color/image_raw", img, t)
+            ps = PoseStamped(pose=pose_to_msg(gt[k]))
+            ps.header.stamp = t
+            if k == 2:
+                ps.pose.position.x = float("nan")
+            bag.write("/robot_1/ground_truth/pose", ps, t)
+    inputs = read_bag_input(bag_path)
+    assert inputs.robot_ids == [1, 3] and inputs.frames == 12
+    assert len(inputs.gts[1][0]) == 5 and len(inputs.gts[3][0]) == 0
+    assert inputs.end_s - inputs.start_s == pytest.approx(stamps[-1] - stamps[0], abs=1e-6)
+
+    run = RunData()
+    for rid in (1, 3):
+        run.robots[rid] = RobotRun(frames=6, keyframes={k: (stamps[k], gt[k]) for k in range(6)})
+    report = evaluate_run(run, inputs.gts, out_dir=str(tmp_path / "out"))
+    by_id = {r["id"]: r for r in report["robots"]}
+    assert by_id[1]["ate_rmse_m"] == pytest.approx(0.0, abs=1e-6)
+    assert by_id[3]["ate_rmse_m"] is None and by_id[3]["path_length_m"] is None
+    assert by_id[3]["keyframes"] == 6
+    assert (tmp_path / "out" / "trajectories" / "robot_3_keyframes.txt").exists()
+    assert (tmp_path / "out" / "trajectories.png").exists()
+
+    with rosbag.Bag(str(tmp_path / "other.bag"), "w") as bag:
+        bag.write("/camera/rgb/image_color", Image(), rospy.Time.from_sec(1.0))
+    with pytest.raises(EvaluationError, match="no robot camera topics.*/camera/rgb/image_color"):
+        read_bag_input(str(tmp_path / "other.bag"))

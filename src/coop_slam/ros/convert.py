@@ -35,9 +35,10 @@ def pose_to_msg(T: np.ndarray) -> Pose:
 def pose_from_msg(msg: Pose, name: str = "pose") -> np.ndarray:
     p, o = msg.position, msg.orientation
     try:
-        return se3_from_quat([p.x, p.y, p.z], [o.x, o.y, o.z, o.w])
+        T = se3_from_quat([p.x, p.y, p.z], [o.x, o.y, o.z, o.w])
     except GeometryError as exc:
         raise MessageError(f"{name}: {exc}") from None
+    return _finite_pose(T, name)
 
 
 def _finite_pose(T: np.ndarray, name: str) -> np.ndarray:

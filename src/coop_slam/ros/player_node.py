@@ -13,6 +13,7 @@ at ``rate`` × real time.
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 
@@ -20,7 +21,6 @@ import numpy as np
 import rospy
 from geometry_msgs.msg import PoseStamped
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Bool
 
 from ..config import load_config
@@ -31,35 +31,64 @@ from .convert import camera_info_to_msg, image_to_msg, pose_to_msg
 from .player_config import PlayerConfig
 
 
-class _RobotTopics:
-    def __init__(self, stream: RobotStream, depth_encoding: str):
+def frame_messages(
+    stream: RobotStream,
+    frame,
+    play_s: float,
+    depth_encoding: str = "32FC1",
+    T_world_cam: np.ndarray | None = None,
+):
+    """The messages of one robot's frame at ``play_s``, in publishing order: [(topic, msg)].
+
+    Camera info, depth (or right image), then colour: clients synchronise on colour, so the rest
+    is there when it arrives; ground truth ``T_world_cam`` (camera optical frame in ``gt_world``),
+    when given and finite, last.
+    """
+    seq = stream.sequence
+    ns = f"/{stream.name}"
+    optical_frame = f"{stream.name}/camera_optical"
+    stamp = rospy.Time.from_sec(play_s)
+    color = seq.load_color(frame)
+    enc = "bgr8" if color.ndim == 3 else "mono8"
+    out = [(f"{ns}/camera/color/camera_info", camera_info_to_msg(seq.camera, stamp, optical_frame))]
+    if seq.camera.sensor == "rgbd":
+        depth_m = seq.load_depth_m(frame)
+        if depth_encoding == "16UC1":
+            depth_img = np.clip(np.rint(depth_m * 1000.0), 0, 65535).astype(np.uint16)
+        else:
+            depth_img = depth_m
+        out.append(
+            (
+                f"{ns}/camera/depth/image_raw",
+                image_to_msg(depth_img, depth_encoding, stamp, optical_frame),
+            )
+        )
+    if seq.camera.sensor == "stereo":
+        right = seq.load_right(frame)
+        out.append(
+            (
+                f"{ns}/camera/right/image_raw",
+                image_to_msg(right, enc, stamp, f"{stream.name}/camera_right_optical"),
+            )
+        )
+    out.append((f"{ns}/camera/color/image_raw", image_to_msg(color, enc, stamp, optical_frame)))
+    if T_world_cam is not None and np.all(np.isfinite(T_world_cam)):
+        msg = PoseStamped(pose=pose_to_msg(T_world_cam))
+        msg.header.stamp, msg.header.frame_id = stamp, "gt_world"
+        out.append((f"{ns}/ground_truth/pose", msg))
+    return out
+
+
+class _Acks:
+    """A robot's lock-step acknowledgements: the latest frame stamp its client reported done."""
+
+    def __init__(self, robot_name: str):
         from coop_slam.msg import FrameStats
 
-        self.stream = stream
-        ns = f"/{stream.name}"
-        self.optical_frame = f"{stream.name}/camera_optical"
-        self.depth_encoding = depth_encoding
-        seq = stream.sequence
-        self.camera = seq.camera
-        self.color = rospy.Publisher(f"{ns}/camera/color/image_raw", Image, queue_size=5)
-        self.info = rospy.Publisher(f"{ns}/camera/color/camera_info", CameraInfo, queue_size=5)
-        self.depth = (
-            rospy.Publisher(f"{ns}/camera/depth/image_raw", Image, queue_size=5)
-            if seq.camera.sensor == "rgbd"
-            else None
-        )
-        self.right = (
-            rospy.Publisher(f"{ns}/camera/right/image_raw", Image, queue_size=5)
-            if seq.camera.sensor == "stereo"
-            else None
-        )
-        self.gt = rospy.Publisher(f"{ns}/ground_truth/pose", PoseStamped, queue_size=20)
-        self.gt_poses = seq.frame_poses()
-        self.gt_index = {f.index: i for i, f in enumerate(seq.frames)}
         self.acked_s = -1.0
         self.cond = threading.Condition()
-        self.ack_sub = rospy.Subscriber(
-            f"{ns}/frame_stats", FrameStats, self._on_ack, queue_size=50
+        self.sub = rospy.Subscriber(
+            f"/{robot_name}/frame_stats", FrameStats, self._on_ack, queue_size=50
         )
 
     def _on_ack(self, msg) -> None:
@@ -69,37 +98,9 @@ class _RobotTopics:
 
     @property
     def has_consumer(self) -> bool:
-        return self.ack_sub.get_num_connections() > 0
+        return self.sub.get_num_connections() > 0
 
-    def publish(self, play_s: float, frame) -> None:
-        seq = self.stream.sequence
-        stamp = rospy.Time.from_sec(play_s)
-        color = seq.load_color(frame)
-        enc = "bgr8" if color.ndim == 3 else "mono8"
-        self.info.publish(camera_info_to_msg(self.camera, stamp, self.optical_frame))
-        if self.depth is not None:
-            depth_m = seq.load_depth_m(frame)
-            if self.depth_encoding == "16UC1":
-                depth_img = np.clip(np.rint(depth_m * 1000.0), 0, 65535).astype(np.uint16)
-            else:
-                depth_img = depth_m
-            self.depth.publish(
-                image_to_msg(depth_img, self.depth_encoding, stamp, self.optical_frame)
-            )
-        if self.right is not None:
-            right = seq.load_right(frame)
-            self.right.publish(
-                image_to_msg(right, enc, stamp, f"{self.stream.name}/camera_right_optical")
-            )
-        # Colour last: clients synchronise on it, so depth/right are already there.
-        self.color.publish(image_to_msg(color, enc, stamp, self.optical_frame))
-        T = self.gt_poses[self.gt_index[frame.index]]
-        if np.all(np.isfinite(T)):
-            msg = PoseStamped(pose=pose_to_msg(T))
-            msg.header.stamp, msg.header.frame_id = stamp, "gt_world"
-            self.gt.publish(msg)
-
-    def wait_ack(self, play_s: float, timeout_s: float) -> bool:
+    def wait(self, play_s: float, timeout_s: float) -> bool:
         deadline = time.monotonic() + timeout_s
         with self.cond:
             while self.acked_s < play_s - 1e-6:
@@ -108,6 +109,34 @@ class _RobotTopics:
                     return False
                 self.cond.wait(min(remaining, 0.1))
         return True
+
+
+class _RobotTopics:
+    def __init__(self, stream: RobotStream, depth_encoding: str):
+        self.stream = stream
+        self.depth_encoding = depth_encoding
+        self.gt_poses = stream.sequence.frame_poses()
+        self.gt_index = {f.index: i for i, f in enumerate(stream.sequence.frames)}
+        self.pubs = {}
+        first = stream.sequence.frames[0]
+        for topic, msg in frame_messages(stream, first, 0.0, depth_encoding, np.eye(4)):
+            self.pubs[topic] = rospy.Publisher(topic, type(msg), queue_size=20)
+        self.color = self.pubs[f"/{stream.name}/camera/color/image_raw"]
+        self.acks = _Acks(stream.name)
+
+    @property
+    def has_consumer(self) -> bool:
+        return self.acks.has_consumer
+
+    def publish(self, play_s: float, frame) -> None:
+        T_world_cam = self.gt_poses[self.gt_index[frame.index]]
+        for topic, msg in frame_messages(
+            self.stream, frame, play_s, self.depth_encoding, T_world_cam
+        ):
+            self.pubs[topic].publish(msg)
+
+    def wait_ack(self, play_s: float, timeout_s: float) -> bool:
+        return self.acks.wait(play_s, timeout_s)
 
 
 class PlayerNode:
@@ -219,26 +248,23 @@ class PlayerNode:
         rospy.loginfo("player: done, %d frames played", published)
 
 
-def main() -> None:
-    rospy.init_node("dataset_player")
-    params = {k: v for k, v in rospy.get_param("~", {}).items()}
-    try:
-        cfg = load_config(PlayerConfig, params)
-        node = BagPlayer(cfg) if cfg.bag else PlayerNode(cfg)
-    except CoopSlamError as exc:
-        rospy.logfatal("player: %s", exc)
-        raise SystemExit(1) from exc
-    node.run()
-    if cfg.exit_when_done:
-        return
-    rospy.spin()
+# What the system itself publishes: a bag recorded on a running team may hold these, and replaying
+# them would fight the live clients and server.
+SYSTEM_OUTPUT_TOPICS = re.compile(
+    r"^/(robot_\d+/(keyframes|frame_stats|correction|pose|path|local_map)"
+    r"|team_map/.*|merge_events|server/.*|robot_sightings|player/.*|clock|rosout(_agg)?|tf)$"
+)
+COLOR_TOPIC = re.compile(r"^/robot_(\d+)/camera/color/image_raw$")
 
 
 class BagPlayer:
-    """Replays a rosbag (the user's own recording) with /clock at ``rate`` x real time.
+    """Replays a rosbag (the user's own recording, or one written by ``scripts/export_bag``) and
+    drives /clock with the bag's time.
 
-    Topics keep their names; lock-step is not available for bags because a bag has no notion of
-    which consumer must acknowledge which message.
+    Topics keep their names; the system's own outputs in the bag are not replayed. In lock-step
+    mode, robot k's next colour image waits until its client acknowledged the previous one on
+    ``robot_k/frame_stats`` (other robots' messages keep flowing meanwhile); robots without a
+    consumer, and everything when not in lock-step, play at ``rate`` x real time.
     """
 
     def __init__(self, cfg: PlayerConfig):
@@ -254,13 +280,23 @@ class BagPlayer:
         self.done.publish(Bool(False))
         self.pubs = {}
         for topic, info in self.bag.get_type_and_topic_info().topics.items():
-            if topic in ("/clock", "/rosout", "/rosout_agg"):
+            if SYSTEM_OUTPUT_TOPICS.match(topic):
                 continue
             self.pubs[topic] = info.msg_type
+        self.robot_ids = sorted(
+            int(m.group(1)) for m in map(COLOR_TOPIC.match, self.pubs) if m is not None
+        )
+        if not self.robot_ids:
+            raise PlaybackError(
+                f"bag {cfg.bag} has no robot camera topics (/robot_<k>/camera/color/image_raw); "
+                f"it has: {', '.join(sorted(self.pubs)) or 'nothing'}"
+            )
+        self.acks = {rid: _Acks(f"robot_{rid}") for rid in self.robot_ids}
 
     def run(self) -> None:
         import roslib.message
 
+        cfg = self.cfg
         publishers = {}
         for topic, type_name in self.pubs.items():
             cls = roslib.message.get_message_class(type_name)
@@ -270,23 +306,75 @@ class BagPlayer:
                 )
                 continue
             publishers[topic] = rospy.Publisher(topic, cls, queue_size=20)
-        time.sleep(min(self.cfg.wait_for_subscribers_s, 2.0))  # let subscribers connect
-        total = self.bag.get_message_count()
         start = self.bag.get_start_time()
+        self.clock.publish(Clock(clock=rospy.Time.from_sec(max(0.0, start - 0.1))))
+        deadline = time.monotonic() + cfg.wait_for_subscribers_s
+        colors = {rid: publishers[f"/robot_{rid}/camera/color/image_raw"] for rid in self.acks}
+        while time.monotonic() < deadline and not rospy.is_shutdown():
+            if all(p.get_num_connections() > 0 for p in colors.values()):
+                break
+            time.sleep(0.1)
+        time.sleep(0.5)  # let the connections settle so the first messages are not lost
+        lockstep = {rid for rid, a in self.acks.items() if cfg.lockstep and a.has_consumer}
+        for rid in sorted(set(self.acks) - lockstep):
+            rospy.logwarn(
+                "player: robot_%d's frames play at %g x real time (%s)",
+                rid,
+                cfg.rate,
+                "no consumer acknowledges them" if cfg.lockstep else "lock-step off",
+            )
+        total = self.bag.get_message_count(topic_filters=list(publishers))
+        rospy.loginfo("player: bag %s, robots %s, %d messages", cfg.bag, self.robot_ids, total)
+        pending = {}  # robot id -> stamp of its last colour image not yet acknowledged
         wall0 = time.monotonic()
         last_progress = wall0
         for k, (topic, msg, t) in enumerate(self.bag.read_messages(topics=list(publishers))):
             if rospy.is_shutdown():
                 return
-            delay = wall0 + (t.to_sec() - start) / self.cfg.rate - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
+            m = COLOR_TOPIC.match(topic)
+            rid = int(m.group(1)) if m else None
+            if rid in lockstep:
+                if rid in pending and not self.acks[rid].wait(pending[rid], cfg.ack_timeout_s):
+                    rospy.logwarn(
+                        "player: robot_%d did not acknowledge the frame at %.3f s within "
+                        "%.0f s; going on",
+                        rid,
+                        pending[rid],
+                        cfg.ack_timeout_s,
+                    )
+                pending[rid] = msg.header.stamp.to_sec()
+            elif not lockstep:
+                delay = wall0 + (t.to_sec() - start) / cfg.rate - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
             self.clock.publish(Clock(clock=t))
             publishers[topic].publish(msg)
-            if time.monotonic() - last_progress > self.cfg.progress_period_s:
+            if time.monotonic() - last_progress > cfg.progress_period_s:
                 last_progress = time.monotonic()
                 rospy.loginfo(
-                    "player: %d/%d bag messages (%.0f %%)", k + 1, total, 100.0 * (k + 1) / total
+                    "player: %d/%d bag messages (%.0f %%), sim time %.2f s",
+                    k + 1,
+                    total,
+                    100.0 * (k + 1) / max(total, 1),
+                    t.to_sec() - start,
                 )
+        for rid, stamp_s in pending.items():
+            self.acks[rid].wait(stamp_s, cfg.ack_timeout_s)
+        self.clock.publish(Clock(clock=rospy.Time.from_sec(self.bag.get_end_time() + 0.5)))
         self.done.publish(Bool(True))
         rospy.loginfo("player: bag done")
+
+
+def main() -> None:
+    rospy.init_node("dataset_player")
+    params = {k: v for k, v in rospy.get_param("~", {}).items()}
+    try:
+        cfg = load_config(PlayerConfig, params)
+        node = BagPlayer(cfg) if cfg.bag else PlayerNode(cfg)
+    except CoopSlamError as exc:
+        rospy.logfatal("player: %s", exc)
+        raise SystemExit(1) from exc
+    node.run()
+    if cfg.exit_when_done:
+        return
+    rospy.spin()

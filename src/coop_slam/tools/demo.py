@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import CoopSlamError
 from ..geometry import quat_from_se3
 from ..playback import build_schedule, load_streams
-from .evaluate import evaluate_results, run_data_from_bag
+from .evaluate import evaluate_results, ground_truth_of, read_bag_input, run_data_from_bag
 
 DEFAULT_SCENARIO = "team"
 
@@ -80,6 +80,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error("--rate must be > 0")
     if args.split and not args.dataset:
         p.error("--split needs --dataset")
+    if args.bag and (args.robots is not None or args.keep_timing or args.camera):
+        p.error("--bag: robots, timing and camera come from the bag")
     return args
 
 
@@ -98,6 +100,7 @@ def _write_run_info(out: str, args: argparse.Namespace, robot_ids: list[int]) ->
         "seed": args.seed,
         "camera": os.path.abspath(args.camera) if args.camera else None,
         "keep_timing": args.keep_timing,
+        "bag": os.path.abspath(args.bag) if args.bag else None,
         "robot_ids": robot_ids,
     }
     with open(os.path.join(out, "run.json"), "w", encoding="utf-8") as fh:
@@ -205,31 +208,38 @@ def run(args: argparse.Namespace) -> int:
     t_start = time.monotonic()
 
     if args.bag:
-        raise CoopSlamError(
-            "--bag: evaluation of bag runs needs ground truth; play bags with "
-            "roslaunch coop_slam player.launch bag:=FILE for now"
+        say(f"[1/3] reading the bag {args.bag}")
+        source, inputs = None, read_bag_input(args.bag)
+        robot_ids, total = inputs.robot_ids, inputs.frames
+        t0, t1 = inputs.start_s, inputs.end_s
+        say(
+            f"      {len(robot_ids)} robots, {total} frames, {t1 - t0:.1f} s, ground truth for "
+            f"{sum(len(s) > 0 for s, _ in inputs.gts.values())} robots"
         )
-    say(f"[1/3] preparing data ({'scenario ' + args.scenario if args.scenario else args.dataset})")
-    last = [0.0]
+    else:
+        what = f"scenario {args.scenario}" if args.scenario else args.dataset
+        say(f"[1/3] preparing data ({what})")
+        last = [0.0]
 
-    def progress(done: int, total: int) -> None:
-        if time.monotonic() - last[0] > 2.0 or done == total:
-            last[0] = time.monotonic()
-            say(f"      rendering {done}/{total} frames ({100.0 * done / max(total, 1):.0f} %)")
+        def progress(done: int, total: int) -> None:
+            if time.monotonic() - last[0] > 2.0 or done == total:
+                last[0] = time.monotonic()
+                say(f"      rendering {done}/{total} frames ({100.0 * done / max(total, 1):.0f} %)")
 
-    source = load_streams(
-        scenario=args.scenario,
-        dataset=args.dataset,
-        split=args.split,
-        robots=args.robots,
-        seed=args.seed,
-        camera_file=args.camera,
-        progress=progress,
-    )
-    schedule = build_schedule(source.streams, keep_timing=args.keep_timing)
-    robot_ids = [s.robot_id for s in source.streams]
-    total = len(schedule)
-    say(f"      {len(robot_ids)} robots, {total} frames, data in {source.folder}")
+        source = load_streams(
+            scenario=args.scenario,
+            dataset=args.dataset,
+            split=args.split,
+            robots=args.robots,
+            seed=args.seed,
+            camera_file=args.camera,
+            progress=progress,
+        )
+        schedule = build_schedule(source.streams, keep_timing=args.keep_timing)
+        robot_ids = [s.robot_id for s in source.streams]
+        total = len(schedule)
+        t0, t1 = schedule[0].play_s, schedule[-1].play_s
+        say(f"      {len(robot_ids)} robots, {total} frames, data in {source.folder}")
 
     port = _free_port()
     uri = f"http://127.0.0.1:{port}"
@@ -247,6 +257,8 @@ def run(args: argparse.Namespace) -> int:
     ]
     if args.scenario:
         launch_args.append(f"scenario:={args.scenario}")
+    elif args.bag:
+        launch_args.append(f"bag:={os.path.abspath(args.bag)}")
     else:
         launch_args.append(f"dataset:={os.path.abspath(args.dataset)}")
         if args.split:
@@ -255,7 +267,7 @@ def run(args: argparse.Namespace) -> int:
             launch_args.append(f"camera_file:={os.path.abspath(args.camera)}")
     if args.rate is not None:
         launch_args += ["lockstep:=false", f"rate:={args.rate}"]
-    if "T_base_cam" in (source.meta or {}):
+    if source is not None and "T_base_cam" in (source.meta or {}):
         t, q = quat_from_se3(np.asarray(source.meta["T_base_cam"], float))
         launch_args.append(f"T_base_cam:=[{', '.join(f'{v:.6f}' for v in (*t, *q))}]")
     if args.no_clients:
@@ -297,7 +309,6 @@ def run(args: argparse.Namespace) -> int:
                 env=env,
                 start_new_session=True,
             )
-        t0, t1 = schedule[0].play_s, schedule[-1].play_s
         deadline = time.monotonic() + args.timeout
         tty = sys.stdout.isatty()
         last_line = 0.0
@@ -351,7 +362,11 @@ def run(args: argparse.Namespace) -> int:
     else:
         say("      WARNING: no bag was recorded; evaluating what this process received")
     run_data.duration_s = monitor.run.duration_s
-    report, json_path, md_path, ply = evaluate_results(out, run_data, source, args.keep_timing)
+    if source is None:
+        gts, overlap = inputs.gts, None
+    else:
+        gts, overlap = ground_truth_of(source, args.keep_timing), (source.meta or {}).get("overlap")
+    report, json_path, md_path, ply = evaluate_results(out, run_data, gts, overlap)
     traj_dir = os.path.join(out, "trajectories")
     say(f"done in {time.monotonic() - t_start:.0f} s")
     say(f"report:       {json_path}")

@@ -9,6 +9,7 @@ or from the bag the demo records (``scripts/evaluate``); :func:`evaluate_run` is
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -16,7 +17,7 @@ import numpy as np
 from ..datasets import write_tum_trajectory
 from ..evaluation import EvaluationError, ate, merge_error, rpe_rmse, team_ate
 from ..geometry import invert, path_length
-from ..playback import RobotStream, build_schedule
+from ..playback import build_schedule
 from ..report import count_wrong_merges, new_report
 
 
@@ -200,13 +201,83 @@ def run_data_from_bag(bag_path: str, robot_ids: list[int]) -> RunData:
     return rec.run
 
 
-def _gt_of(stream: RobotStream, keep_timing: bool):
-    """Ground truth of a robot on the playback timeline: (stamps, T_world_cam)."""
-    sched = [s for s in build_schedule([stream], keep_timing) if s.robot_id == stream.robot_id]
-    poses = stream.sequence.frame_poses()
-    ok = np.all(np.isfinite(poses), axis=(1, 2))
-    stamps = np.array([s.play_s for s in sched])
-    return stamps[ok], poses[ok]
+def ground_truth_of(source, keep_timing: bool = False) -> dict:
+    """Ground truth of every robot of a played source on the playback timeline:
+    robot id -> (stamps, T_world_cam), frames without ground truth left out."""
+    gts = {}
+    for stream in source.streams:
+        sched = build_schedule([stream], keep_timing)
+        poses = stream.sequence.frame_poses()
+        ok = np.all(np.isfinite(poses), axis=(1, 2))
+        stamps = np.array([s.play_s for s in sched])
+        gts[stream.robot_id] = (stamps[ok], poses[ok])
+    return gts
+
+
+GT_TOPIC = re.compile(r"^/robot_(\d+)/ground_truth/pose$")
+COLOR_TOPIC = re.compile(r"^/robot_(\d+)/camera/color/image_raw$")
+
+
+@dataclass
+class BagInput:
+    """What a sensor bag (``scripts/demo --bag``) holds for the run and its evaluation."""
+
+    robot_ids: list[int]
+    frames: int  # colour images of all robots
+    start_s: float
+    end_s: float
+    gts: dict  # robot id -> (stamps, T_world_cam); empty arrays for robots without ground truth
+
+
+def read_bag_input(bag_path: str) -> BagInput:
+    """Robots (``/robot_<k>/camera/color/image_raw``) and ground truth
+    (``/robot_<k>/ground_truth/pose``, as the player publishes it) of a sensor bag."""
+    import rosbag
+
+    from ..ros.convert import MessageError, pose_from_msg
+
+    if not os.path.isfile(bag_path):
+        raise EvaluationError(f"bag not found: {bag_path}")
+    try:
+        bag = rosbag.Bag(bag_path)
+    except (rosbag.ROSBagException, OSError) as exc:
+        raise EvaluationError(f"cannot read bag {bag_path}: {exc}") from exc
+    with bag:
+        topics = bag.get_type_and_topic_info().topics
+        colors = {t: int(m.group(1)) for t in topics if (m := COLOR_TOPIC.match(t))}
+        if not colors:
+            raise EvaluationError(
+                f"bag {bag_path} has no robot camera topics (/robot_<k>/camera/color/image_raw); "
+                f"it has: {', '.join(sorted(topics)) or 'nothing'}"
+            )
+        robot_ids = sorted(colors.values())
+        gt_topics = {t: int(m.group(1)) for t in topics if (m := GT_TOPIC.match(t))}
+        samples = {rid: ([], []) for rid in robot_ids}
+        if gt_topics:
+            for topic, msg, _ in bag.read_messages(topics=list(gt_topics)):
+                rid = gt_topics[topic]
+                if rid not in samples:
+                    continue
+                try:
+                    T = pose_from_msg(msg.pose, f"{topic} pose")
+                except MessageError:
+                    continue  # a NaN ground-truth sample is no sample
+                samples[rid][0].append(msg.header.stamp.to_sec())
+                samples[rid][1].append(T)
+        gts = {}
+        for rid, (stamps, poses) in samples.items():
+            order = np.argsort(stamps)
+            gts[rid] = (
+                np.asarray(stamps, float)[order],
+                np.asarray(poses, float).reshape(-1, 4, 4)[order],
+            )
+        return BagInput(
+            robot_ids,
+            sum(topics[t].message_count for t in colors),
+            bag.get_start_time(),
+            bag.get_end_time(),
+            gts,
+        )
 
 
 def _kf_arrays(run: RobotRun):
@@ -219,21 +290,22 @@ def _kf_arrays(run: RobotRun):
 
 def evaluate_run(
     run: RunData,
-    streams: list[RobotStream],
-    keep_timing: bool = False,
+    gts: dict,
     overlap: dict | None = None,
     out_dir: str | None = None,
 ) -> dict:
-    """The report dict (see coop_slam.report); writes trajectories and plots into ``out_dir``."""
-    report = new_report([s.robot_id for s in streams])
-    gts = {s.robot_id: _gt_of(s, keep_timing) for s in streams}
+    """The report dict (see coop_slam.report) of a run against ground truth ``gts`` (robot id ->
+    (stamps, T_world_cam) on the playback timeline, e.g. :func:`ground_truth_of`; empty arrays
+    where a robot has none, whose accuracy fields then stay null); writes trajectories and plots
+    into ``out_dir``."""
+    robot_ids = sorted(gts)
+    report = new_report(robot_ids)
     est_world, gt_world = {}, {}
     # Ground-truth pose of each robot's map frame: the SE(3) alignment of its keyframe trajectory
     # to ground truth (as for its ATE), so a map's drift is averaged rather than frozen at one
     # frame.
     T_world_map_gt = {}
-    for entry, stream in zip(report["robots"], streams):
-        rid = stream.robot_id
+    for entry, rid in zip(report["robots"], robot_ids):
         r = run.robots.get(rid, RobotRun())
         stamps_gt, poses_gt = gts[rid]
         entry["frames"] = r.frames
@@ -269,14 +341,14 @@ def evaluate_run(
                 )
             elif r.T_world_map is not None:  # client poses moved by the latest correction
                 est_world[rid] = (stamps, np.einsum("ij,njk->nik", r.T_world_map, poses))
-            if rid in est_world:
+            if rid in est_world and len(stamps_gt):
                 gt_world[rid] = (stamps_gt, poses_gt)
                 if out_dir:
                     write_tum_trajectory(
                         os.path.join(out_dir, "trajectories", f"robot_{rid}_world.txt"),
                         *est_world[rid],
                     )
-        if out_dir:
+        if out_dir and len(stamps_gt):
             write_tum_trajectory(
                 os.path.join(out_dir, "trajectories", f"robot_{rid}_groundtruth.txt"),
                 stamps_gt,
@@ -311,23 +383,23 @@ def evaluate_run(
             for m in report["merges"]
         ]
     )
-    report["groups"] = run.server_stats.get("groups") or [[s.robot_id] for s in streams]
-    if len(est_world) >= 2 or (len(streams) == 1 and est_world):
+    report["groups"] = run.server_stats.get("groups") or [[rid] for rid in robot_ids]
+    if len(gt_world) >= 2 or (len(robot_ids) == 1 and gt_world):
         try:
-            team = team_ate(est_world, gt_world)
+            team = team_ate({rid: est_world[rid] for rid in gt_world}, gt_world)
             report["team_ate_rmse_m"] = team.rmse_m
         except EvaluationError:
             team = None
         if out_dir and team is not None:
-            _plot_team(out_dir, est_world, gt_world, team)
-    if report["team_ate_rmse_m"] is None and len(streams) == 1:
+            _plot_team(out_dir, {rid: est_world[rid] for rid in gt_world}, gt_world, team)
+    if report["team_ate_rmse_m"] is None and len(robot_ids) == 1:
         report["team_ate_rmse_m"] = report["robots"][0]["ate_rmse_m"]
     report["server_ms_per_keyframe"] = run.server_stats.get("ms_per_keyframe_mean")
     report["loop_closures"] = run.server_stats.get("loops")
     report["bandwidth"] = _bandwidth(run)
     report["topics"] = _topic_bandwidth(run)
     if out_dir:
-        _plot(out_dir, run, streams, gts)
+        _plot(out_dir, run, gts)
     return report
 
 
@@ -438,14 +510,18 @@ def _save_top_view(path: str, title: str, curves) -> None:
     plt.close(fig)
 
 
-def _plot(out_dir: str, run: RunData, streams, gts) -> None:
-    """Top view of every robot's keyframes (aligned to ground truth) and ground truth."""
+def _plot(out_dir: str, run: RunData, gts) -> None:
+    """Top view of every robot's keyframes (aligned to ground truth) and ground truth; without
+    ground truth, the keyframes in their own map frames."""
     curves = []
-    for k, stream in enumerate(streams):
-        rid = stream.robot_id
+    for k, rid in enumerate(sorted(gts)):
         stamps_gt, poses_gt = gts[rid]
-        curves.append((poses_gt, k, f"robot_{rid} ground truth", False))
         r = run.robots.get(rid)
+        if len(stamps_gt) == 0:
+            if r and r.keyframes:
+                curves.append((_kf_arrays(r)[1], k, f"robot_{rid} keyframes (own map)", True))
+            continue
+        curves.append((poses_gt, k, f"robot_{rid} ground truth", False))
         if r and len(r.keyframes) >= 3:
             stamps, poses = _kf_arrays(r)
             try:
@@ -500,13 +576,13 @@ def _write_ply(path: str, cloud_msg) -> None:
         np.savetxt(fh, np.column_stack([xyz, rgb]), fmt="%.4f %.4f %.4f %d %d %d")
 
 
-def evaluate_results(out_dir: str, run: RunData, source, keep_timing: bool = False):
-    """Report, trajectories, plots and the team map PLY of one run into ``out_dir``; returns
-    (report, report.json path, report.md path, PLY path or None)."""
+def evaluate_results(out_dir: str, run: RunData, gts: dict, overlap: dict | None = None):
+    """Report, trajectories, plots and the team map PLY of one run into ``out_dir`` (arguments as
+    for :func:`evaluate_run`); returns (report, report.json path, report.md path, PLY path or
+    None)."""
     from ..report import write_report
 
-    meta = source.meta or {}
-    report = evaluate_run(run, source.streams, keep_timing, meta.get("overlap"), out_dir)
+    report = evaluate_run(run, gts, overlap, out_dir)
     ply = None
     if run.team_cloud is not None:
         ply = os.path.join(out_dir, "team_map.ply")
@@ -536,27 +612,34 @@ def main(argv=None) -> int:
             )
         with open(info_path, encoding="utf-8") as fh:
             info = json.load(fh)
-        print(
-            f"[evaluate] loading the ground truth ({info.get('scenario') or info.get('dataset')})",
-            flush=True,
-        )
-        source = load_streams(
-            scenario=info.get("scenario"),
-            dataset=info.get("dataset"),
-            split=info.get("split"),
-            robots=info.get("robots"),
-            seed=info.get("seed", 0),
-            camera_file=info.get("camera"),
-        )
-        robot_ids = [s.robot_id for s in source.streams]
         bag = args.bag or os.path.join(args.results, "run.bag")
+        if info.get("bag"):  # the run played a sensor bag: ground truth (if any) is in it
+            print(f"[evaluate] reading the ground truth in {info['bag']}", flush=True)
+            inputs = read_bag_input(info["bag"])
+            gts, overlap, duration_s = inputs.gts, None, inputs.end_s - inputs.start_s
+        else:
+            print(
+                "[evaluate] loading the ground truth "
+                f"({info.get('scenario') or info.get('dataset')})",
+                flush=True,
+            )
+            source = load_streams(
+                scenario=info.get("scenario"),
+                dataset=info.get("dataset"),
+                split=info.get("split"),
+                robots=info.get("robots"),
+                seed=info.get("seed", 0),
+                camera_file=info.get("camera"),
+            )
+            keep_timing = bool(info.get("keep_timing"))
+            gts = ground_truth_of(source, keep_timing)
+            overlap = (source.meta or {}).get("overlap")
+            sched = build_schedule(source.streams, keep_timing=keep_timing)
+            duration_s = sched[-1].play_s - sched[0].play_s if sched else 0.0
         print(f"[evaluate] reading {bag}", flush=True)
-        run = run_data_from_bag(bag, robot_ids)
-        sched = build_schedule(source.streams, keep_timing=bool(info.get("keep_timing")))
-        run.duration_s = sched[-1].play_s - sched[0].play_s if sched else 0.0
-        _, json_path, md_path, ply = evaluate_results(
-            args.results, run, source, bool(info.get("keep_timing"))
-        )
+        run = run_data_from_bag(bag, sorted(gts))
+        run.duration_s = duration_s
+        _, json_path, md_path, ply = evaluate_results(args.results, run, gts, overlap)
     except (CoopSlamError, OSError, ValueError) as exc:
         print(f"[evaluate] ERROR: {exc}", file=sys.stderr)
         return 2
