@@ -211,6 +211,12 @@ def run(args: argparse.Namespace) -> int:
         say(f"[1/3] reading the bag {args.bag}")
         source, inputs = None, read_bag_input(args.bag)
         robot_ids, total = inputs.robot_ids, inputs.frames
+        if robot_ids != list(range(1, len(robot_ids) + 1)):
+            # demo.launch starts clients robot_1..robot_N
+            raise CoopSlamError(
+                f"--bag: the demo runs robots numbered 1..N, the bag has robots {robot_ids}; "
+                "remap its topics (rosbag filter or roslaunch coop_slam client.launch per robot)"
+            )
         t0, t1 = inputs.start_s, inputs.end_s
         say(
             f"      {len(robot_ids)} robots, {total} frames, {t1 - t0:.1f} s, ground truth for "
