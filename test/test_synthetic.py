@@ -344,3 +344,13 @@ def test_reader_rejects_bad_folders(tmp_path):
     )
     with pytest.raises(DatasetError, match="T_base_cam"):
         read_synthetic(str(tmp_path))
+
+
+def test_world_cache_key_covers_the_routes():
+    """A scenario whose routes change (same name, seed, robots) never reuses a cached world."""
+    sc = make_scenario("team", seed=0, robots=4)
+    cam = generate_mod.DEFAULT_CAMERA
+    key = generate_mod.params_hash(generate_mod._params(sc, True, cam))
+    assert key == generate_mod.params_hash(generate_mod._params(sc, True, cam))
+    sc.trajectories[3].poses_se3[:, 0, 3] += 0.01  # robot 4 drives 1 cm further east
+    assert key != generate_mod.params_hash(generate_mod._params(sc, True, cam))

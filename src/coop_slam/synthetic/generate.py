@@ -9,8 +9,9 @@ Layout of the output folder::
     .complete             written last: the folder is whole
 
 Outputs are cached under ``${COOP_SLAM_CACHE:-~/.cache/coop_slam}/worlds/<scenario>-<hash>``, the
-hash covering every parameter and the generator version; a complete folder is returned as is. The
-folder is written under a temporary name and renamed at the end, so readers never see half a world.
+hash covering every parameter, the routes and the generator version; a complete folder is returned
+as is. The folder is written under a temporary name and renamed at the end, so readers never see
+half a world.
 """
 
 from __future__ import annotations
@@ -64,7 +65,18 @@ def _params(scenario: Scenario, noise: bool, camera: CameraModel) -> dict:
         "marker_size_m": scenario.marker_size_m,
         "camera": camera.to_dict(),
         "generator_version": GENERATOR_VERSION,
+        # The routes themselves: a changed scenario never reuses an old world from the cache.
+        "routes_sha1": _routes_digest(scenario),
+        "layout": scenario.layout,
     }
+
+
+def _routes_digest(scenario: Scenario) -> str:
+    h = hashlib.sha1()
+    for traj in scenario.trajectories:
+        # Rounded, so that last-bit float differences between machines keep the same key.
+        h.update(np.round(traj.poses_se3, 6).astype(np.float64).tobytes())
+    return h.hexdigest()[:12]
 
 
 def params_hash(params: dict) -> str:

@@ -334,8 +334,9 @@ def aliasing(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scena
 def team(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenario:
     """Demo default. Robot 1 drives the south corridor and waits in the east corridor; robot 2
     starts in the north corridor, revisits the south corridor later and joins robot 1 from behind
-    (rendezvous). Robot 3 crosses the rooms and revisits robot 2's start; robot 4 waits at the end
-    of the east corridor and meets robot 1 face to face."""
+    (rendezvous). Robot 3 crosses the rooms and revisits robot 2's start; robot 4 starts at the
+    north end of the east corridor, where robot 1 arrives and waits later (a revisit), and drives
+    on into the north corridor, where robot 3 later follows its view."""
     rng = np.random.default_rng(seed)
     speeds = _speeds(rng, robots, base=0.42)
     routes = [
@@ -352,7 +353,7 @@ def team(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenario:
         )
     if robots >= 4:
         routes.append(
-            Route(6.5 + _jitter(rng), 7.0, 0.0, speeds[3]).drive((11.0, 7.0), (11.0, 6.2))
+            Route(11.0, 5.6 + _jitter(rng), 90.0, speeds[3]).drive((11.0, 7.0), (9.5, 7.0))
         )
     return _scenario("team", seed, "ring", rate_hz, duration_s, routes, team.__doc__)
 
