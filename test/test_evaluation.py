@@ -158,3 +158,25 @@ def test_sensor_bag_gives_robots_and_ground_truth_and_evaluates_without_it(tmp_p
         bag.write("/camera/rgb/image_color", Image(), rospy.Time.from_sec(1.0))
     with pytest.raises(EvaluationError, match="no robot camera topics.*/camera/rgb/image_color"):
         read_bag_input(str(tmp_path / "other.bag"))
+
+
+def test_merge_latency_counts_from_the_first_shared_view_of_its_kind():
+    """Rendezvous latency from the first co-observation, place recognition from the first revisit
+    (either direction); a marker sighting without a shared scene is no start."""
+    from coop_slam.tools.evaluate import _first_evidence
+
+    overlap = {
+        "rendezvous": [{"robots": [2, 1], "stamp_s": 19.6}],
+        "revisit": [
+            {"robot": 2, "of_robot": 1, "stamp_s": 21.6, "earlier_stamp_s": 19.6},
+            {"robot": 1, "of_robot": 2, "stamp_s": 18.6, "earlier_stamp_s": 15.8},
+        ],
+        "marker_sightings": [{"observer": 1, "target": 2, "stamp_s": 4.8}],
+        "first_overlap": [{"robots": [1, 2], "stamp_s": 4.8, "kind": "marker"}],
+    }
+    assert _first_evidence(overlap, "rendezvous", 1, 2) == 19.6
+    assert _first_evidence(overlap, "place_recognition", 2, 1) == 18.6
+    only_revisit = dict(overlap, rendezvous=[])
+    assert _first_evidence(only_revisit, "rendezvous", 1, 2) == 18.6
+    assert _first_evidence(overlap, "rendezvous", 1, 3) is None
+    assert _first_evidence(None, "rendezvous", 1, 2) is None

@@ -122,7 +122,15 @@ def render_markdown(report: dict) -> str:
         lines.append("| " + " | ".join(_fmt(r.get(k)) for k in ROBOT_KEYS) + " |")
     lines += ["", "## Merges", ""]
     if report["merges"]:
-        lines += ["| " + " | ".join(MERGE_KEYS) + " |", "|" + "---|" * len(MERGE_KEYS)]
+        lines += [
+            "Errors against ground truth: `trans_err_m`/`rot_err_deg` of the map transform (maps "
+            "placed by their own ATE alignment), `local_*` at the matched keyframes; `latency_s` "
+            "from the first co-observation of one scene (rendezvous) or first revisit (place "
+            "recognition) in the ground truth.",
+            "",
+            "| " + " | ".join(MERGE_KEYS) + " |",
+            "|" + "---|" * len(MERGE_KEYS),
+        ]
         for m in report["merges"]:
             lines.append("| " + " | ".join(_fmt(m.get(k)) for k in MERGE_KEYS) + " |")
     else:

@@ -354,7 +354,8 @@ def evaluate_run(
                 stamps_gt,
                 poses_gt,
             )
-    # Merges: transform error against ground truth and latency from the first true overlap.
+    # Merges: transform error against ground truth and latency from the first moment ground truth
+    # allowed a merge of that kind.
     for m in run.merges:
         a, b = m["robot_a"], m["robot_b"]
         entry = {
@@ -371,7 +372,7 @@ def evaluate_run(
             )
         local = _local_merge_error(m, run, gts)
         entry["local_trans_err_m"], entry["local_rot_err_deg"] = local if local else (None, None)
-        first = _first_overlap(overlap, a, b)
+        first = _first_evidence(overlap, m["type"], a, b)
         if first is not None:
             entry["latency_s"] = m["stamp_s"] - first
         report["merges"].append(entry)
@@ -431,15 +432,21 @@ def _local_merge_error(m: dict, run: RunData, gts: dict) -> tuple[float, float] 
     )
 
 
-def _first_overlap(overlap: dict | None, a: int, b: int) -> float | None:
+def _first_evidence(overlap: dict | None, kind: str, a: int, b: int) -> float | None:
+    """When ground truth first allowed a merge of this kind between robots a and b: the first
+    co-observation of one scene for a rendezvous, the first revisit (either robot seeing what the
+    other saw earlier) for place recognition, the other kind when that never happened. Marker
+    sightings alone do not count: without a shared scene no merge is possible (nor wanted)."""
     if not overlap:
         return None
-    times = [
-        e["stamp_s"]
-        for e in overlap.get("first_overlap", [])
-        if sorted(e["robots"]) == sorted([a, b])
-    ]
-    return min(times) if times else None
+    from ..synthetic.overlap import OverlapEvents
+
+    events = OverlapEvents.from_dict(overlap)
+    revisits = [t for t in (events.revisit_time(a, b), events.revisit_time(b, a)) if t is not None]
+    revisit = min(revisits) if revisits else None
+    together = events.rendezvous_time(a, b)
+    first, second = (together, revisit) if kind == "rendezvous" else (revisit, together)
+    return first if first is not None else second
 
 
 def _bandwidth(run: RunData) -> dict:
