@@ -222,3 +222,33 @@ def test_rendezvous_with_a_robot_that_stands_still(world):
     T, _ = server.T_world_map(2)
     dt, dr = transform_error(T, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
     assert dt < 0.02 and dr < 0.5
+
+
+@pytest.mark.parametrize("late", [False, True])
+def test_cued_request_is_retried_on_the_next_keyframes(world, late):
+    """A marker sighting whose keyframes do not show the shared scene yet stays open: the next
+    keyframe of either robot within the request window is verified and merges; one taken after
+    the window closes the request instead."""
+    points, desc, _, vocab = world
+    cfg = _config(robots=[1, 2])
+    cfg.place_recognition.enabled = False
+    cfg.rendezvous.auto = False  # only the request may merge
+    server = TeamServer(cfg, vocab)
+    for kf in _keyframes(1, np.linspace(1.0, 1.6, 4), points, desc, seed=1):
+        server.add_keyframe(kf)  # stamps 0..3 s
+    # Robot 2 still looks the other way when robot 1 sees its marker at 1 s.
+    (away,) = _keyframes(2, [1.3 + np.pi], points, desc, offset=(0.3, -0.2), seed=50, t0=1.0)
+    assert server.add_keyframe(away) == []
+    merge, message = server.request_rendezvous(1, 2, stamp_s=1.0)
+    assert merge is None and "will be tried as they arrive" in message
+    t_next = 1.0 + cfg.rendezvous.request_window_s + (1.0 if late else -0.5)
+    (turned,) = _keyframes(2, [1.3], points, desc, kid0=2, offset=(0.3, -0.2), seed=51, t0=t_next)
+    merges = server.add_keyframe(turned)
+    assert server._open_requests == {}
+    if late:
+        assert merges == [] and server.groups.groups() == [[1], [2]]
+        return
+    assert len(merges) == 1 and merges[0].type == "rendezvous"
+    assert merges[0].stamp_s == t_next  # when the keyframe showing the shared scene was taken
+    dt, dr = transform_error(merges[0].T_mapA_mapB, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
+    assert dt < 0.02 and dr < 0.5

@@ -55,7 +55,7 @@ class ServerNode:
 
         from coop_slam.msg import KeyFrame, MapCorrection, MergeEvent
 
-        node_params = ("config", "vocabulary", "T_base_cam", "sighting_period_s", "cloud_period_s")
+        node_params = ("config", "vocabulary", "T_base_cam", "cloud_period_s")
         overrides = {k: v for k, v in rospy.get_param("~", {}).items() if k not in node_params}
         self.cfg = load_server_config(rospy.get_param("~config", ""), overrides)
         vocab_path = rospy.get_param("~vocabulary", "")
@@ -129,7 +129,6 @@ class ServerNode:
 
         base_cam = rospy.get_param("~T_base_cam", [])  # the robots' camera mounting, 7 numbers
         self.T_base_cam = se3_from_quat(base_cam[:3], base_cam[3:]) if base_cam else None
-        self.sighting_period_s = float(rospy.get_param("~sighting_period_s", 2.0))
         self._last_sighting: dict[tuple[int, int], float] = {}
         self.subs.append(
             rospy.Subscriber("/robot_sightings", RobotSighting, self._on_sighting, queue_size=20)
@@ -175,7 +174,7 @@ class ServerNode:
             self.rejects.reject("/robot_sightings", str(exc))
             return
         pair, now = (msg.observer_id, msg.observed_id), msg.header.stamp.to_sec()
-        if now - self._last_sighting.get(pair, -1e9) < self.sighting_period_s:
+        if now - self._last_sighting.get(pair, -1e9) < self.cfg.rendezvous.sighting_period_s:
             return
         self._last_sighting[pair] = now
         self.queue.put(("rendezvous", msg.observer_id, msg.observed_id, now, T_cam_body, None))

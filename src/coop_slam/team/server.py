@@ -73,6 +73,12 @@ class RendezvousConfig:
     auto: bool = True  # test the time-aligned latest keyframes of unmerged robots continuously
     window_s: float = 2.0  # keyframes closer in time than this count as simultaneous [s]
     request_window_s: float = 2.0  # keyframes around a sighting / operator request [s]
+    # A marker sighting of a not-yet-merged robot becomes a request at most this often per
+    # observer/observed pair: each costs up to max_pairs verifications [s].
+    sighting_period_s: float = 1.0
+    # A merge needs this many verified inliers (as place_recognition.merge_min_inliers): robots
+    # facing each other see a little of the same side walls, enough for a weak, biased fit.
+    merge_min_inliers: int = 60
     min_bow_score: float = 0.03  # BoW L1 score a pair needs before 3D-3D verification
     max_pairs: int = 4  # keyframe pairs verified per rendezvous request
     # The automatic test has no cue of its own: identical textures seen at the same time in two
@@ -86,6 +92,8 @@ class RendezvousConfig:
     def validate(self) -> None:
         require(self.window_s > 0, "rendezvous.window_s must be > 0")
         require(self.request_window_s > 0, "rendezvous.request_window_s must be > 0")
+        require(self.sighting_period_s >= 0, "rendezvous.sighting_period_s must be >= 0")
+        require(self.merge_min_inliers >= 1, "rendezvous.merge_min_inliers must be >= 1")
         require(0 <= self.min_bow_score <= 1, "rendezvous.min_bow_score must be in [0, 1]")
         require(self.max_pairs >= 1, "rendezvous.max_pairs must be >= 1")
         require(self.auto_confirmations >= 1, "rendezvous.auto_confirmations must be >= 1")
@@ -120,6 +128,14 @@ class LoopClosureConfig:
         require(self.sigma_scale > 0, "loops.sigma_scale must be > 0")
         require(self.min_sigma_trans_m > 0, "loops.min_sigma_trans_m must be > 0")
         require(self.min_sigma_rot_deg > 0, "loops.min_sigma_rot_deg must be > 0")
+
+
+@dataclass
+class _OpenRequest:
+    robot_a: int
+    robot_b: int
+    stamp_s: float
+    T_init: np.ndarray | None  # camera A -> camera B from the marker, when there is one
 
 
 @dataclass
@@ -218,6 +234,9 @@ class TeamServer:
         self.rejected_constraints = 0  # verified, but too far from the current estimate
         self.match_counts: dict[tuple[int, int], int] = {}  # robot pair -> keyframe matches
         self._pending: dict[tuple[int, int], _Verified] = {}
+        # Cued requests (marker sighting, operator) not verified yet: the keyframes that show the
+        # shared scene often reach the server just after the cue. robot pair -> _OpenRequest
+        self._open_requests: dict[tuple[int, int], _OpenRequest] = {}
         self._kf_count: dict[int, int] = {}  # keyframes received per robot
         self._last_constraint: dict[int, int] = {}  # robot -> its keyframe count at the last one
         self._need_full = False
@@ -270,6 +289,8 @@ class TeamServer:
             self._kf_count[rec.robot_id] = self._kf_count.get(rec.robot_id, 0) + 1
             if self.config.rendezvous.auto:
                 merges = self._co_observation(rec)
+            if not merges and self._open_requests:  # robots seen together: a rendezvous
+                merges = self._retry_requests(rec)
             if not merges and self.config.place_recognition.enabled:
                 merges = self._place_recognition(rec, bow, covisible)
         self._since_optimize += 1
@@ -724,7 +745,18 @@ class TeamServer:
             prior_sigma=prior_sigma,
         )
         log.debug("rendezvous %s vs %s (bow %.3f): %s", key_a, key_b, score, res.reason)
-        if not res.accepted or (confirm and not self._confirmed(key_a, key_b, res)):
+        if not res.accepted:
+            return None
+        if res.n_inliers < cfg.merge_min_inliers:
+            log.info(
+                "rendezvous %s - %s: %d inliers, fewer than a merge needs (%d)",
+                key_a,
+                key_b,
+                res.n_inliers,
+                cfg.merge_min_inliers,
+            )
+            return None
+        if confirm and not self._confirmed(key_a, key_b, res):
             return None
         self._pending[_pair(key_a[0], key_b[0])] = _Verified(
             TYPE_RENDEZVOUS, key_a, key_b, res, stamp_s
@@ -771,25 +803,67 @@ class TeamServer:
                 None,
                 f"no keyframes of both robots within {cfg.request_window_s} s of {stamp_s:.2f} s",
             )
+        T_init = None
+        if T_camA_bodyB is not None and T_bodyB_camB is not None:
+            # The sighting is at the marker's image time; keyframes are close to it in time.
+            T_init = T_camA_bodyB @ T_bodyB_camB
+        request = _OpenRequest(robot_a, robot_b, stamp_s, T_init)
+        merge = self._verify_request(request, keys_a[:3], keys_b[:3], cfg.max_pairs)
+        if merge is not None:
+            return merge, f"merged ({merge.inliers} inliers, {merge.residual_px:.2f} px)"
+        self._open_requests[_pair(robot_a, robot_b)] = request
+        return None, (
+            f"no verified overlap between robots {robot_a} and {robot_b} around "
+            f"{stamp_s:.2f} s yet: not merged (a marker sighting alone is not enough); "
+            f"keyframes up to {stamp_s + cfg.request_window_s:.2f} s will be tried as they arrive"
+        )
+
+    def _verify_request(self, request: _OpenRequest, keys_a, keys_b, max_pairs: int):
+        """Verify keyframe pairs of a cued request, closest in time first; the merge or None."""
         pairs = sorted(
-            ((ka, kb) for ka in keys_a[:3] for kb in keys_b[:3]),
+            ((ka, kb) for ka in keys_a for kb in keys_b),
             key=lambda p: abs(
                 self.keyframes[p[0]].record.stamp_s - self.keyframes[p[1]].record.stamp_s
             ),
         )
-        for key_a, key_b in pairs[: cfg.max_pairs]:
-            T_init = prior = None
-            if T_camA_bodyB is not None and T_bodyB_camB is not None:
-                # The sighting is at the marker's image time; keyframes are close to it in time.
-                T_init = T_camA_bodyB @ T_bodyB_camB
-                prior = (np.radians(10.0), 0.2)
-            merge = self._verify_rendezvous(key_a, key_b, stamp_s, T_init, prior)
+        prior = (np.radians(10.0), 0.2) if request.T_init is not None else None
+        for key_a, key_b in pairs[:max_pairs]:
+            # The merge happens when both the cue and the keyframes exist.
+            stamp_s = max(
+                request.stamp_s,
+                self.keyframes[key_a].record.stamp_s,
+                self.keyframes[key_b].record.stamp_s,
+            )
+            merge = self._verify_rendezvous(key_a, key_b, stamp_s, request.T_init, prior)
             if merge is not None:
-                return merge, f"merged ({merge.inliers} inliers, {merge.residual_px:.2f} px)"
-        return None, (
-            f"no verified overlap between robots {robot_a} and {robot_b} around "
-            f"{stamp_s:.2f} s: not merged (a marker sighting alone is not enough)"
-        )
+                return merge
+        return None
+
+    def _retry_requests(self, rec: KeyframeRecord) -> list[MergeResult]:
+        """A new keyframe taken within the window of an open cued request of its robot is
+        verified against the other robot's keyframes nearest the cue; requests whose window has
+        passed (or whose robots merged meanwhile) are closed."""
+        window = self.config.rendezvous.request_window_s
+        for pair, request in list(self._open_requests.items()):
+            if self.groups.same_group(request.robot_a, request.robot_b) or (
+                rec.robot_id in pair and rec.stamp_s > request.stamp_s + window
+            ):
+                del self._open_requests[pair]
+                continue
+            if rec.robot_id not in pair or abs(rec.stamp_s - request.stamp_s) > window:
+                continue
+            key_new = (rec.robot_id, rec.keyframe_id)
+            other = request.robot_b if rec.robot_id == request.robot_a else request.robot_a
+            keys_other = self._near_in_time(other, request.stamp_s, window, latest_fallback=True)
+            if rec.robot_id == request.robot_a:
+                merge = self._verify_request(request, [key_new], keys_other[:2], 2)
+            else:
+                merge = self._verify_request(request, keys_other[:2], [key_new], 2)
+            if merge is not None:
+                del self._open_requests[pair]
+                log.info("rendezvous request %s / %s: merged on a later keyframe", *pair)
+                return [merge]
+        return []
 
     def _merge(
         self, kind: str, key_a, key_b, res: RelativePoseResult, stamp_s: float
