@@ -25,6 +25,9 @@ class PlayerConfig:
     rate: float = 1.0  # real-time factor when not in lock-step (or for robots without consumer)
     ack_timeout_s: float = 60.0  # lock-step: how long to wait for a consumer [s]
     wait_for_subscribers_s: float = 15.0  # wait this long for image subscribers before playing [s]
+    # Node (e.g. a rosbag recorder) that must subscribe to every robot's keyframes before playing,
+    # so a recording misses none of them; "" = do not wait.
+    wait_for_node: str = ""
     depth_encoding: str = "32FC1"  # 32FC1 (metres) or 16UC1 (millimetres), as in REP-118
     progress_period_s: float = 5.0  # wall time between progress log lines [s]
     exit_when_done: bool = False  # exit after the last frame instead of spinning (latched topics)

@@ -139,6 +139,24 @@ class _RobotTopics:
         return self.acks.wait(play_s, timeout_s)
 
 
+def wait_for_node(node: str, robot_ids, timeout_s: float) -> None:
+    """Block until ``node`` subscribes to every robot's keyframe topic (or ``timeout_s`` passed):
+    a recorder that discovers topics by pattern connects late and would miss the first ones."""
+    import rosgraph
+
+    if not node:
+        return
+    topics = {f"/robot_{r}/keyframes" for r in robot_ids}
+    master = rosgraph.Master(rospy.get_name())
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not rospy.is_shutdown():
+        subscribers = dict(master.getSystemState()[1])  # topic -> subscribing nodes
+        if all(node in subscribers.get(topic, ()) for topic in topics):
+            return
+        time.sleep(0.2)
+    rospy.logwarn("player: %s did not subscribe to %s in time; playing anyway", node, topics)
+
+
 class PlayerNode:
     def __init__(self, cfg: PlayerConfig):
         self.cfg = cfg
@@ -168,6 +186,7 @@ class PlayerNode:
             if all(t.color.get_num_connections() > 0 for t in self.topics.values()):
                 break
             time.sleep(0.1)
+        wait_for_node(self.cfg.wait_for_node, list(self.topics), self.cfg.wait_for_subscribers_s)
         time.sleep(0.5)  # let the connections settle so the first frames are not lost
         for rid, t in self.topics.items():
             if t.color.get_num_connections() == 0:
@@ -314,6 +333,7 @@ class BagPlayer:
             if all(p.get_num_connections() > 0 for p in colors.values()):
                 break
             time.sleep(0.1)
+        wait_for_node(cfg.wait_for_node, self.robot_ids, cfg.wait_for_subscribers_s)
         time.sleep(0.5)  # let the connections settle so the first messages are not lost
         lockstep = {rid for rid, a in self.acks.items() if cfg.lockstep and a.has_consumer}
         for rid in sorted(set(self.acks) - lockstep):
