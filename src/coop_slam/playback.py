@@ -9,6 +9,7 @@ playback timeline (robots start together unless the original timing is kept).
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,6 +27,10 @@ from .datasets import (
 from .errors import CoopSlamError
 
 PLAYBACK_T0_S = 1.0  # first sim time when robots start together (ROS time 0 means "unset")
+# A robot's streams as the player publishes them (and a sensor bag must hold them): the colour
+# image tells which robots there are; ground truth is optional.
+COLOR_TOPIC = re.compile(r"^/robot_(\d+)/camera/color/image_raw$")
+GROUND_TRUTH_TOPIC = re.compile(r"^/robot_(\d+)/ground_truth/pose$")
 
 
 class PlaybackError(CoopSlamError):

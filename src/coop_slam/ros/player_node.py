@@ -26,7 +26,14 @@ from std_msgs.msg import Bool
 from ..config import load_config
 from ..datasets import DatasetError
 from ..errors import CoopSlamError
-from ..playback import PlaybackError, RobotStream, build_schedule, group_simultaneous, load_streams
+from ..playback import (
+    COLOR_TOPIC,
+    PlaybackError,
+    RobotStream,
+    build_schedule,
+    group_simultaneous,
+    load_streams,
+)
 from .convert import camera_info_to_msg, image_to_msg, pose_to_msg
 from .player_config import PlayerConfig
 
@@ -273,7 +280,6 @@ SYSTEM_OUTPUT_TOPICS = re.compile(
     r"^/(robot_\d+/(keyframes|frame_stats|correction|pose|path|local_map)"
     r"|team_map/.*|merge_events|server/.*|robot_sightings|player/.*|clock|rosout(_agg)?|tf)$"
 )
-COLOR_TOPIC = re.compile(r"^/robot_(\d+)/camera/color/image_raw$")
 
 
 class BagPlayer:

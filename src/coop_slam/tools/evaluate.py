@@ -9,7 +9,6 @@ or from the bag the demo records (``scripts/evaluate``); :func:`evaluate_run` is
 from __future__ import annotations
 
 import os
-import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -17,7 +16,7 @@ import numpy as np
 from ..datasets import write_tum_trajectory
 from ..evaluation import EvaluationError, ate, merge_error, rpe_rmse, team_ate
 from ..geometry import invert, path_length
-from ..playback import build_schedule
+from ..playback import COLOR_TOPIC, GROUND_TRUTH_TOPIC, build_schedule
 from ..report import count_wrong_merges, new_report
 
 
@@ -214,10 +213,6 @@ def ground_truth_of(source, keep_timing: bool = False) -> dict:
     return gts
 
 
-GT_TOPIC = re.compile(r"^/robot_(\d+)/ground_truth/pose$")
-COLOR_TOPIC = re.compile(r"^/robot_(\d+)/camera/color/image_raw$")
-
-
 @dataclass
 class BagInput:
     """What a sensor bag (``scripts/demo --bag``) holds for the run and its evaluation."""
@@ -251,7 +246,7 @@ def read_bag_input(bag_path: str) -> BagInput:
                 f"it has: {', '.join(sorted(topics)) or 'nothing'}"
             )
         robot_ids = sorted(colors.values())
-        gt_topics = {t: int(m.group(1)) for t in topics if (m := GT_TOPIC.match(t))}
+        gt_topics = {t: int(m.group(1)) for t in topics if (m := GROUND_TRUTH_TOPIC.match(t))}
         samples = {rid: ([], []) for rid in robot_ids}
         if gt_topics:
             for topic, msg, _ in bag.read_messages(topics=list(gt_topics)):
@@ -386,13 +381,14 @@ def evaluate_run(
     )
     report["groups"] = run.server_stats.get("groups") or [[rid] for rid in robot_ids]
     if len(gt_world) >= 2 or (len(robot_ids) == 1 and gt_world):
+        est_world = {rid: est_world[rid] for rid in gt_world}  # only what can be judged
         try:
-            team = team_ate({rid: est_world[rid] for rid in gt_world}, gt_world)
+            team = team_ate(est_world, gt_world)
             report["team_ate_rmse_m"] = team.rmse_m
         except EvaluationError:
             team = None
         if out_dir and team is not None:
-            _plot_team(out_dir, {rid: est_world[rid] for rid in gt_world}, gt_world, team)
+            _plot_team(out_dir, est_world, gt_world, team)
     if report["team_ate_rmse_m"] is None and len(robot_ids) == 1:
         report["team_ate_rmse_m"] = report["robots"][0]["ate_rmse_m"]
     report["server_ms_per_keyframe"] = run.server_stats.get("ms_per_keyframe_mean")
