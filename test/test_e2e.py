@@ -28,6 +28,20 @@ def _demo(tmp_path, *args, timeout=1500):
         return json.load(fh), tail, out
 
 
+def _evaluate_again(out):
+    """scripts/evaluate re-derives the report of a demo results folder from run.json + run.bag."""
+    (out / "report.json").unlink()
+    proc = subprocess.run(
+        [os.path.join(REPO, "scripts", "evaluate"), str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    with open(out / "report.json") as fh:
+        return json.load(fh)
+
+
 def test_revisit_merges_by_place_recognition(tmp_path):
     report, log, _ = _demo(tmp_path, "--scenario", "revisit")
     assert report["groups"] == [[1, 2]], log
@@ -89,16 +103,7 @@ def test_no_merge_without_overlap(tmp_path, scenario):
         assert topics[f"/robot_{r}/local_map"]["messages"] >= 1
         assert topics[f"/team_map/robot_{r}/path"]["messages"] >= 1
     if scenario == "disjoint":  # scripts/evaluate re-derives the report from the recorded bag
-        (out / "report.json").unlink()
-        proc = subprocess.run(
-            [os.path.join(REPO, "scripts", "evaluate"), str(out)],
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
-        assert proc.returncode == 0, proc.stdout + proc.stderr
-        with open(out / "report.json") as fh:
-            again = json.load(fh)
+        again = _evaluate_again(out)
         assert again["groups"] == report["groups"] and again["robots"] == report["robots"]
 
 
@@ -131,15 +136,6 @@ def test_demo_runs_on_a_sensor_bag(tmp_path):
     assert report["team_ate_rmse_m"] < 0.03
     with open(out / "run.json") as fh:
         assert json.load(fh)["bag"] == str(bag)
-    (out / "report.json").unlink()
-    proc = subprocess.run(
-        [os.path.join(REPO, "scripts", "evaluate"), str(out)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    with open(out / "report.json") as fh:
-        again = json.load(fh)
+    again = _evaluate_again(out)
     assert again["robots"] == report["robots"] and again["merges"] == report["merges"]
     bag.unlink()  # 1.4 GB

@@ -118,6 +118,22 @@ def load_streams(
     return source
 
 
+def load_run_source(options: dict, progress=None) -> Source:
+    """:func:`load_streams` from a run's options, keyed as ``scripts/demo``'s arguments and its
+    ``run.json`` (scenario, dataset, split, robots, seed, camera; duration for a scenario)."""
+    duration_s = options.get("duration")
+    return load_streams(
+        scenario=options.get("scenario"),
+        dataset=options.get("dataset"),
+        split=options.get("split"),
+        robots=options.get("robots"),
+        seed=options.get("seed") or 0,
+        camera_file=options.get("camera"),
+        progress=progress,
+        world_params={"duration_s": duration_s} if duration_s else None,
+    )
+
+
 @dataclass(frozen=True)
 class ScheduledFrame:
     play_s: float  # sim time at which the frame is published (also its header stamp)

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import CoopSlamError
 from ..geometry import quat_from_se3
-from ..playback import build_schedule, load_streams
+from ..playback import build_schedule, load_run_source
 from .evaluate import evaluate_results, ground_truth_of, read_bag_input, run_data_from_bag
 
 DEFAULT_SCENARIO = "team"
@@ -232,15 +232,7 @@ def run(args: argparse.Namespace) -> int:
                 last[0] = time.monotonic()
                 say(f"      rendering {done}/{total} frames ({100.0 * done / max(total, 1):.0f} %)")
 
-        source = load_streams(
-            scenario=args.scenario,
-            dataset=args.dataset,
-            split=args.split,
-            robots=args.robots,
-            seed=args.seed,
-            camera_file=args.camera,
-            progress=progress,
-        )
+        source = load_run_source(vars(args), progress)
         schedule = build_schedule(source.streams, keep_timing=args.keep_timing)
         robot_ids = [s.robot_id for s in source.streams]
         total = len(schedule)

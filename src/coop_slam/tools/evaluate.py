@@ -601,7 +601,7 @@ def main(argv=None) -> int:
     import sys
 
     from ..errors import CoopSlamError
-    from ..playback import load_streams
+    from ..playback import load_run_source
 
     p = argparse.ArgumentParser(prog="scripts/evaluate", description=main.__doc__.split(":")[1])
     p.add_argument("results", help="results folder of a demo run (holds run.json and run.bag)")
@@ -626,14 +626,7 @@ def main(argv=None) -> int:
                 f"({info.get('scenario') or info.get('dataset')})",
                 flush=True,
             )
-            source = load_streams(
-                scenario=info.get("scenario"),
-                dataset=info.get("dataset"),
-                split=info.get("split"),
-                robots=info.get("robots"),
-                seed=info.get("seed", 0),
-                camera_file=info.get("camera"),
-            )
+            source = load_run_source(info)
             keep_timing = bool(info.get("keep_timing"))
             gts = ground_truth_of(source, keep_timing)
             overlap = (source.meta or {}).get("overlap")

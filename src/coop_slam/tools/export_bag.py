@@ -13,7 +13,7 @@ import sys
 import time
 
 from ..errors import CoopSlamError
-from ..playback import build_schedule, load_streams
+from ..playback import build_schedule, load_run_source
 
 
 class ExportError(CoopSlamError):
@@ -86,15 +86,7 @@ def main(argv=None) -> int:
             print(f"[export_bag] {done}/{total} frames ({100 * done / total:.0f} %)", flush=True)
 
     try:
-        source = load_streams(
-            scenario=args.scenario,
-            dataset=args.dataset,
-            split=args.split,
-            robots=args.robots,
-            seed=args.seed,
-            camera_file=args.camera,
-            world_params={"duration_s": args.duration} if args.duration else None,
-        )
+        source = load_run_source(vars(args))
         n = export_bag(source, args.out, args.keep_timing, args.depth_encoding, progress)
     except CoopSlamError as exc:
         print(f"[export_bag] ERROR: {exc}", file=sys.stderr)
