@@ -21,7 +21,13 @@ import numpy as np
 from ..errors import CoopSlamError
 from ..geometry import quat_from_se3
 from ..playback import build_schedule, load_run_source
-from .evaluate import evaluate_results, ground_truth_of, read_bag_input, run_data_from_bag
+from .evaluate import (
+    RunRecorder,
+    evaluate_results,
+    ground_truth_of,
+    read_bag_input,
+    run_data_from_bag,
+)
 
 DEFAULT_SCENARIO = "team"
 
@@ -132,7 +138,7 @@ class _Monitor:
 
         from coop_slam.msg import FrameStats
 
-        from .evaluate import RunRecorder, _msg_class
+        from .evaluate import _msg_class
 
         rospy.init_node("demo_monitor", anonymous=True, disable_signals=True)
         self.recorder = RunRecorder(robot_ids)
@@ -279,6 +285,7 @@ def run(args: argparse.Namespace) -> int:
         launch_args.append("marker_every_frames:=0")
     bag_path = os.path.join(out, "run.bag")
     launch_args.append(f"record_bag:={bag_path}")
+    launch_args.append(f"record_topics:={' '.join(RunRecorder(robot_ids).topics())}")
     _write_run_info(out, args, robot_ids)
     log_path = os.path.join(out, "roslaunch.log")
     say(f"[2/3] running the system (ROS master {uri}; log {log_path})")
