@@ -118,6 +118,12 @@ def load_streams(
     return source
 
 
+def ground_truth_by_frame(stream: RobotStream) -> dict[int, np.ndarray]:
+    """Frame index -> ground-truth ``T_world_cam`` of a robot's frames (NaN where there is none)."""
+    frames = stream.sequence.frames
+    return dict(zip((f.index for f in frames), stream.sequence.frame_poses()))
+
+
 def load_run_source(options: dict, progress=None) -> Source:
     """:func:`load_streams` from a run's options, keyed as ``scripts/demo``'s arguments and its
     ``run.json`` (scenario, dataset, split, robots, seed, camera; duration for a scenario)."""

@@ -31,6 +31,7 @@ from ..playback import (
     PlaybackError,
     RobotStream,
     build_schedule,
+    ground_truth_by_frame,
     group_simultaneous,
     load_streams,
 )
@@ -122,8 +123,7 @@ class _RobotTopics:
     def __init__(self, stream: RobotStream, depth_encoding: str):
         self.stream = stream
         self.depth_encoding = depth_encoding
-        self.gt_poses = stream.sequence.frame_poses()
-        self.gt_index = {f.index: i for i, f in enumerate(stream.sequence.frames)}
+        self.T_world_cam = ground_truth_by_frame(stream)
         self.pubs = {}
         first = stream.sequence.frames[0]
         for topic, msg in frame_messages(stream, first, 0.0, depth_encoding, np.eye(4)):
@@ -136,7 +136,7 @@ class _RobotTopics:
         return self.acks.has_consumer
 
     def publish(self, play_s: float, frame) -> None:
-        T_world_cam = self.gt_poses[self.gt_index[frame.index]]
+        T_world_cam = self.T_world_cam[frame.index]
         for topic, msg in frame_messages(
             self.stream, frame, play_s, self.depth_encoding, T_world_cam
         ):
@@ -146,22 +146,36 @@ class _RobotTopics:
         return self.acks.wait(play_s, timeout_s)
 
 
-def wait_for_node(node: str, robot_ids, timeout_s: float) -> None:
-    """Block until ``node`` subscribes to every robot's keyframe topic (or ``timeout_s`` passed):
-    a recorder that discovers topics by pattern connects late and would miss the first ones."""
+def wait_for_consumers(color_pubs: dict, cfg: PlayerConfig) -> None:
+    """Before playing: wait (each step at most ``cfg.wait_for_subscribers_s``) until every robot's
+    colour images have a subscriber, then until ``cfg.wait_for_node`` (a bag recorder started
+    alongside) subscribes to every robot's keyframes, so neither misses the first frames."""
     import rosgraph
 
-    if not node:
-        return
-    topics = {f"/robot_{r}/keyframes" for r in robot_ids}
-    master = rosgraph.Master(rospy.get_name())
-    deadline = time.monotonic() + timeout_s
+    deadline = time.monotonic() + cfg.wait_for_subscribers_s
     while time.monotonic() < deadline and not rospy.is_shutdown():
-        subscribers = dict(master.getSystemState()[1])  # topic -> subscribing nodes
-        if all(node in subscribers.get(topic, ()) for topic in topics):
-            return
-        time.sleep(0.2)
-    rospy.logwarn("player: %s did not subscribe to %s in time; playing anyway", node, topics)
+        if all(p.get_num_connections() > 0 for p in color_pubs.values()):
+            break
+        time.sleep(0.1)
+    if cfg.wait_for_node:
+        topics = {f"/robot_{r}/keyframes" for r in color_pubs}
+        master = rosgraph.Master(rospy.get_name())
+        deadline = time.monotonic() + cfg.wait_for_subscribers_s
+        while time.monotonic() < deadline and not rospy.is_shutdown():
+            subscribers = dict(master.getSystemState()[1])  # topic -> subscribing nodes
+            if all(cfg.wait_for_node in subscribers.get(topic, ()) for topic in topics):
+                break
+            time.sleep(0.2)
+        else:
+            rospy.logwarn(
+                "player: %s did not subscribe to %s in time; playing anyway",
+                cfg.wait_for_node,
+                sorted(topics),
+            )
+    time.sleep(0.5)  # let the connections settle so the first frames are not lost
+    for rid, pub in color_pubs.items():
+        if pub.get_num_connections() == 0:
+            rospy.logwarn("player: nobody subscribes to robot_%d's images; playing anyway", rid)
 
 
 class PlayerNode:
@@ -187,18 +201,6 @@ class PlayerNode:
         self.done = rospy.Publisher("~done", Bool, queue_size=1, latch=True)
         self.done.publish(Bool(False))
 
-    def _wait_for_subscribers(self) -> None:
-        deadline = time.monotonic() + self.cfg.wait_for_subscribers_s
-        while time.monotonic() < deadline and not rospy.is_shutdown():
-            if all(t.color.get_num_connections() > 0 for t in self.topics.values()):
-                break
-            time.sleep(0.1)
-        wait_for_node(self.cfg.wait_for_node, list(self.topics), self.cfg.wait_for_subscribers_s)
-        time.sleep(0.5)  # let the connections settle so the first frames are not lost
-        for rid, t in self.topics.items():
-            if t.color.get_num_connections() == 0:
-                rospy.logwarn("player: nobody subscribes to robot_%d's images; playing anyway", rid)
-
     def run(self) -> None:
         cfg = self.cfg
         if not self.schedule:
@@ -207,7 +209,7 @@ class PlayerNode:
         self.clock.publish(
             Clock(clock=rospy.Time.from_sec(max(0.0, self.schedule[0].play_s - 0.1)))
         )
-        self._wait_for_subscribers()
+        wait_for_consumers({rid: t.color for rid, t in self.topics.items()}, self.cfg)
         groups = group_simultaneous(self.schedule)
         total = len(self.schedule)
         rospy.loginfo(
@@ -333,14 +335,8 @@ class BagPlayer:
             publishers[topic] = rospy.Publisher(topic, cls, queue_size=20)
         start = self.bag.get_start_time()
         self.clock.publish(Clock(clock=rospy.Time.from_sec(max(0.0, start - 0.1))))
-        deadline = time.monotonic() + cfg.wait_for_subscribers_s
         colors = {rid: publishers[f"/robot_{rid}/camera/color/image_raw"] for rid in self.acks}
-        while time.monotonic() < deadline and not rospy.is_shutdown():
-            if all(p.get_num_connections() > 0 for p in colors.values()):
-                break
-            time.sleep(0.1)
-        wait_for_node(cfg.wait_for_node, self.robot_ids, cfg.wait_for_subscribers_s)
-        time.sleep(0.5)  # let the connections settle so the first messages are not lost
+        wait_for_consumers(colors, cfg)
         lockstep = {rid for rid, a in self.acks.items() if cfg.lockstep and a.has_consumer}
         for rid in sorted(set(self.acks) - lockstep):
             rospy.logwarn(

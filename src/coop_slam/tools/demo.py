@@ -20,13 +20,13 @@ import numpy as np
 
 from ..errors import CoopSlamError
 from ..geometry import quat_from_se3
-from ..playback import build_schedule, load_run_source
+from ..playback import load_run_source
 from .evaluate import (
     RunRecorder,
     evaluate_results,
-    ground_truth_of,
     read_bag_input,
     run_data_from_bag,
+    run_input_of,
 )
 
 DEFAULT_SCENARIO = "team"
@@ -216,16 +216,16 @@ def run(args: argparse.Namespace) -> int:
     if args.bag:
         say(f"[1/3] reading the bag {args.bag}")
         source, inputs = None, read_bag_input(args.bag)
-        robot_ids, total = inputs.robot_ids, inputs.frames
-        if robot_ids != list(range(1, len(robot_ids) + 1)):
+        if inputs.robot_ids != list(range(1, len(inputs.robot_ids) + 1)):
             # demo.launch starts clients robot_1..robot_N
             raise CoopSlamError(
-                f"--bag: the demo runs robots numbered 1..N, the bag has robots {robot_ids}; "
-                "remap its topics (rosbag filter or roslaunch coop_slam client.launch per robot)"
+                f"--bag: the demo runs robots numbered 1..N, the bag has robots "
+                f"{inputs.robot_ids}; remap its topics (rosbag filter or roslaunch coop_slam "
+                "client.launch per robot)"
             )
-        t0, t1 = inputs.start_s, inputs.end_s
         say(
-            f"      {len(robot_ids)} robots, {total} frames, {t1 - t0:.1f} s, ground truth for "
+            f"      {len(inputs.robot_ids)} robots, {inputs.frames} frames, "
+            f"{inputs.end_s - inputs.start_s:.1f} s, ground truth for "
             f"{sum(len(s) > 0 for s, _ in inputs.gts.values())} robots"
         )
     else:
@@ -239,11 +239,11 @@ def run(args: argparse.Namespace) -> int:
                 say(f"      rendering {done}/{total} frames ({100.0 * done / max(total, 1):.0f} %)")
 
         source = load_run_source(vars(args), progress)
-        schedule = build_schedule(source.streams, keep_timing=args.keep_timing)
-        robot_ids = [s.robot_id for s in source.streams]
-        total = len(schedule)
-        t0, t1 = schedule[0].play_s, schedule[-1].play_s
-        say(f"      {len(robot_ids)} robots, {total} frames, data in {source.folder}")
+        inputs = run_input_of(source, args.keep_timing)
+        say(
+            f"      {len(inputs.robot_ids)} robots, {inputs.frames} frames, data in {source.folder}"
+        )
+    robot_ids, total, t0, t1 = inputs.robot_ids, inputs.frames, inputs.start_s, inputs.end_s
 
     port = _free_port()
     uri = f"http://127.0.0.1:{port}"
@@ -367,11 +367,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         say("      WARNING: no bag was recorded; evaluating what this process received")
     run_data.duration_s = monitor.run.duration_s
-    if source is None:
-        gts, overlap = inputs.gts, None
-    else:
-        gts, overlap = ground_truth_of(source, args.keep_timing), (source.meta or {}).get("overlap")
-    report, json_path, md_path, ply = evaluate_results(out, run_data, gts, overlap)
+    report, json_path, md_path, ply = evaluate_results(out, run_data, inputs.gts, inputs.overlap)
     traj_dir = os.path.join(out, "trajectories")
     say(f"done in {time.monotonic() - t_start:.0f} s")
     say(f"report:       {json_path}")

@@ -200,33 +200,43 @@ def run_data_from_bag(bag_path: str, robot_ids: list[int]) -> RunData:
     return rec.run
 
 
-def ground_truth_of(source, keep_timing: bool = False) -> dict:
-    """Ground truth of every robot of a played source on the playback timeline:
-    robot id -> (stamps, T_world_cam), frames without ground truth left out."""
-    gts = {}
-    for stream in source.streams:
-        sched = build_schedule([stream], keep_timing)
-        poses = stream.sequence.frame_poses()
-        ok = np.all(np.isfinite(poses), axis=(1, 2))
-        stamps = np.array([s.play_s for s in sched])
-        gts[stream.robot_id] = (stamps[ok], poses[ok])
-    return gts
-
-
 @dataclass
-class BagInput:
-    """What a sensor bag (``scripts/demo --bag``) holds for the run and its evaluation."""
+class RunInput:
+    """What a run plays and is judged against, whether from a scenario/dataset or a sensor bag."""
 
     robot_ids: list[int]
     frames: int  # colour images of all robots
-    start_s: float
+    start_s: float  # first and last frame on the playback timeline [s]
     end_s: float
     gts: dict  # robot id -> (stamps, T_world_cam); empty arrays for robots without ground truth
+    overlap: dict | None = None  # synthetic overlap events (merge latency), when known
 
 
-def read_bag_input(bag_path: str) -> BagInput:
-    """Robots (``/robot_<k>/camera/color/image_raw``) and ground truth
-    (``/robot_<k>/ground_truth/pose``, as the player publishes it) of a sensor bag."""
+def run_input_of(source, keep_timing: bool = False) -> RunInput:
+    """The run input of a played scenario or dataset (see :func:`coop_slam.playback.load_streams`):
+    ground truth on the playback timeline, frames without ground truth left out."""
+    schedule = build_schedule(source.streams, keep_timing)
+    gts = {}
+    for stream in source.streams:
+        # A robot's frames keep their order on the timeline.
+        stamps = np.array([s.play_s for s in schedule if s.robot_id == stream.robot_id])
+        poses = stream.sequence.frame_poses()
+        ok = np.all(np.isfinite(poses), axis=(1, 2))
+        gts[stream.robot_id] = (stamps[ok], poses[ok])
+    return RunInput(
+        [s.robot_id for s in source.streams],
+        len(schedule),
+        schedule[0].play_s if schedule else 0.0,
+        schedule[-1].play_s if schedule else 0.0,
+        gts,
+        (source.meta or {}).get("overlap"),
+    )
+
+
+def read_bag_input(bag_path: str) -> RunInput:
+    """The run input of a sensor bag (``scripts/demo --bag``): robots from
+    ``/robot_<k>/camera/color/image_raw``, ground truth from ``/robot_<k>/ground_truth/pose`` (as
+    the player publishes it)."""
     import rosbag
 
     from ..ros.convert import MessageError, pose_from_msg
@@ -266,7 +276,7 @@ def read_bag_input(bag_path: str) -> BagInput:
                 np.asarray(stamps, float)[order],
                 np.asarray(poses, float).reshape(-1, 4, 4)[order],
             )
-        return BagInput(
+        return RunInput(
             robot_ids,
             sum(topics[t].message_count for t in colors),
             bag.get_start_time(),
@@ -290,7 +300,7 @@ def evaluate_run(
     out_dir: str | None = None,
 ) -> dict:
     """The report dict (see coop_slam.report) of a run against ground truth ``gts`` (robot id ->
-    (stamps, T_world_cam) on the playback timeline, e.g. :func:`ground_truth_of`; empty arrays
+    (stamps, T_world_cam) on the playback timeline, as in :class:`RunInput`; empty arrays
     where a robot has none, whose accuracy fields then stay null); writes trajectories and plots
     into ``out_dir``."""
     robot_ids = sorted(gts)
@@ -616,26 +626,16 @@ def main(argv=None) -> int:
         with open(info_path, encoding="utf-8") as fh:
             info = json.load(fh)
         bag = args.bag or os.path.join(args.results, "run.bag")
+        what = info.get("bag") or info.get("scenario") or info.get("dataset")
+        print(f"[evaluate] loading the ground truth ({what})", flush=True)
         if info.get("bag"):  # the run played a sensor bag: ground truth (if any) is in it
-            print(f"[evaluate] reading the ground truth in {info['bag']}", flush=True)
             inputs = read_bag_input(info["bag"])
-            gts, overlap, duration_s = inputs.gts, None, inputs.end_s - inputs.start_s
         else:
-            print(
-                "[evaluate] loading the ground truth "
-                f"({info.get('scenario') or info.get('dataset')})",
-                flush=True,
-            )
-            source = load_run_source(info)
-            keep_timing = bool(info.get("keep_timing"))
-            gts = ground_truth_of(source, keep_timing)
-            overlap = (source.meta or {}).get("overlap")
-            sched = build_schedule(source.streams, keep_timing=keep_timing)
-            duration_s = sched[-1].play_s - sched[0].play_s if sched else 0.0
+            inputs = run_input_of(load_run_source(info), bool(info.get("keep_timing")))
         print(f"[evaluate] reading {bag}", flush=True)
-        run = run_data_from_bag(bag, sorted(gts))
-        run.duration_s = duration_s
-        _, json_path, md_path, ply = evaluate_results(args.results, run, gts, overlap)
+        run = run_data_from_bag(bag, inputs.robot_ids)
+        run.duration_s = inputs.end_s - inputs.start_s
+        _, json_path, md_path, ply = evaluate_results(args.results, run, inputs.gts, inputs.overlap)
     except (CoopSlamError, OSError, ValueError) as exc:
         print(f"[evaluate] ERROR: {exc}", file=sys.stderr)
         return 2

@@ -13,7 +13,7 @@ import sys
 import time
 
 from ..errors import CoopSlamError
-from ..playback import build_schedule, load_run_source
+from ..playback import build_schedule, ground_truth_by_frame, load_run_source
 
 
 class ExportError(CoopSlamError):
@@ -35,10 +35,7 @@ def export_bag(
     if not schedule:
         raise ExportError("nothing to export: the source has no frames")
     streams = {s.robot_id: s for s in source.streams}
-    gt = {s.robot_id: s.sequence.frame_poses() for s in source.streams}
-    position = {
-        s.robot_id: {f.index: i for i, f in enumerate(s.sequence.frames)} for s in source.streams
-    }
+    gt = {s.robot_id: ground_truth_by_frame(s) for s in source.streams}
     parent = os.path.dirname(os.path.abspath(out_path))
     if not os.path.isdir(parent):
         raise ExportError(f"output folder {parent} does not exist")
@@ -46,7 +43,7 @@ def export_bag(
     try:
         with rosbag.Bag(tmp, "w", compression="lz4") as bag:
             for n, item in enumerate(schedule, 1):
-                T_world_cam = gt[item.robot_id][position[item.robot_id][item.frame.index]]
+                T_world_cam = gt[item.robot_id][item.frame.index]
                 stamp = rospy.Time.from_sec(item.play_s)
                 for topic, msg in frame_messages(
                     streams[item.robot_id], item.frame, item.play_s, depth_encoding, T_world_cam
