@@ -66,16 +66,21 @@ def _server_config(tmp_path, **sections) -> str:
     return str(path)
 
 
-@pytest.mark.parametrize("mode", ["marker_sighting", "co_observation"])
+@pytest.mark.parametrize("mode", ["marker_sighting", "co_observation", "operator"])
 def test_rendezvous_merges_by_rendezvous(tmp_path, mode):
-    """Each automatic detection mode alone: marker sightings (the server's co-observation test and
-    place recognition off), or co-observation with no marker cue (clients do not look for markers).
-    The operator trigger goes through the same request path (test_team_server)."""
+    """Each detection mode alone: marker sightings (the server's co-observation test and place
+    recognition off), co-observation with no marker cue (clients do not look for markers), or an
+    operator's call of the server's ~rendezvous service (no markers, no automatic test)."""
     if mode == "marker_sighting":
         cfg = _server_config(
             tmp_path, rendezvous={"auto": False}, place_recognition={"enabled": False}
         )
         extra = []
+    elif mode == "operator":  # the robots see one scene together from 18.6 s into the run
+        cfg = _server_config(
+            tmp_path, rendezvous={"auto": False}, place_recognition={"enabled": False}
+        )
+        extra = ["--no-markers", "--rendezvous", "1,2@20"]
     else:
         cfg = _server_config(tmp_path, place_recognition={"enabled": False})
         extra = ["--no-markers"]
@@ -139,3 +144,15 @@ def test_demo_runs_on_a_sensor_bag(tmp_path):
     again = _evaluate_again(out)
     assert again["robots"] == report["robots"] and again["merges"] == report["merges"]
     bag.unlink()  # 1.4 GB
+
+
+def test_demo_operator_requests_parse_and_bad_ones_are_named():
+    from coop_slam.tools.demo import parse_args
+
+    args = parse_args(
+        ["--scenario", "rendezvous", "--rendezvous", "1,2@20", "--rendezvous", "2,1@3.5"]
+    )
+    assert args.rendezvous == [(1, 2, 20.0), (2, 1, 3.5)]
+    for bad in ("1@20", "1,1@20", "1,2@-1", "1,2@nan", "a,b@1", "1,2"):
+        with pytest.raises(SystemExit):
+            parse_args(["--rendezvous", bad])

@@ -60,15 +60,18 @@ def test_straight_line_falls_back_to_origin_alignment():
 
 
 def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path):
-    """RunRecorder fed from a bag (what scripts/evaluate reads): a malformed pose is skipped."""
+    """RunRecorder fed from a bag (what scripts/evaluate reads): a malformed pose is skipped; a
+    merge's registration error is its cameras' relative pose against the truth, unchanged when
+    local BA moves a matched keyframe after the merge."""
     import rosbag
     import rospy
     from geometry_msgs.msg import PoseStamped
     from nav_msgs.msg import Path
 
+    from coop_slam.keyframe import ACTION_UPDATE
     from coop_slam.msg import MergeEvent
     from coop_slam.ros.convert import keyframe_to_msg, pose_to_msg, transform_to_msg
-    from coop_slam.tools.evaluate import run_data_from_bag
+    from coop_slam.tools.evaluate import _local_merge_error, run_data_from_bag
     from helpers import make_keyframe
 
     bag_path = str(tmp_path / "run.bag")
@@ -82,6 +85,9 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
                 keyframe_to_msg(kf, "robot_2/map"),
                 rospy.Time.from_sec(stamps[k]),
             )
+        kf_a = make_keyframe(robot_id=1, keyframe_id=3, seed=9)
+        kf_a.T_map_cam, kf_a.stamp_s = gt[0], stamps[0]
+        bag.write("/robot_1/keyframes", keyframe_to_msg(kf_a, "robot_1/map"), rospy.Time(1.0))
         path = Path()
         path.header.frame_id = "world"
         for k in range(5):
@@ -97,17 +103,28 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
             keyframe_a=3,
             keyframe_b=4,
             T_mapA_mapB=transform_to_msg(np.eye(4)),
+            T_camA_camB=transform_to_msg(invert(gt[0]) @ gt[3]),
             inliers=50,
             group=[1, 2],
         )
         merge.header.stamp = rospy.Time.from_sec(1.5)
         bag.write("/merge_events", merge, rospy.Time.from_sec(1.5))
+        moved = make_keyframe(robot_id=2, keyframe_id=4, seed=3)
+        moved.T_map_cam, moved.stamp_s = se3(t=[0.05, 0, 0]) @ gt[3], stamps[3]
+        moved.action = ACTION_UPDATE
+        bag.write("/robot_2/keyframes", keyframe_to_msg(moved, "robot_2/map"), rospy.Time(1.6))
     run = run_data_from_bag(bag_path, [1, 2])
+    gts = {1: (stamps, gt), 2: (stamps, gt)}
+    dt, dr = _local_merge_error(run.merges[0], run, gts)
+    assert dt < 1e-6 and dr < 1e-4
+    del gts[1]
+    assert _local_merge_error(run.merges[0], run, gts) is None  # no truth for robot 1
     r = run.robots[2]
-    assert sorted(r.keyframes) == [1, 2, 3, 4, 5] and len(r.kf_bytes) == 5
+    assert sorted(r.keyframes) == [1, 2, 3, 4, 5] and len(r.kf_bytes) == 6  # with the update
+    assert np.allclose(r.keyframes[4][1], moved.T_map_cam)
     assert sorted(r.team_keyframes) == [1, 2, 4, 5]  # the NaN pose is dropped, not stored
     assert run.merges[0]["type"] == "rendezvous" and run.merges[0]["stamp_s"] == 1.5
-    assert len(run.topic_bytes["/robot_2/keyframes"]) == 5
+    assert len(run.topic_bytes["/robot_2/keyframes"]) == 6
     with pytest.raises(EvaluationError, match="bag not found"):
         run_data_from_bag(str(tmp_path / "missing.bag"), [1])
 

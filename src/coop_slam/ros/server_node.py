@@ -286,6 +286,7 @@ class ServerNode:
             keyframe_a=m.keyframe_a,
             keyframe_b=m.keyframe_b,
             T_mapA_mapB=transform_to_msg(m.T_mapA_mapB),
+            T_camA_camB=transform_to_msg(m.T_camA_camB),
             inliers=m.inliers,
             residual_px=m.residual_px,
             group=m.group,

@@ -21,15 +21,26 @@ import numpy as np
 from ..errors import CoopSlamError
 from ..geometry import quat_from_se3
 from ..playback import load_run_source
-from .evaluate import (
-    RunRecorder,
-    evaluate_results,
-    read_bag_input,
-    run_data_from_bag,
-    run_input_of,
-)
+from .evaluate import RunRecorder, evaluate_results, read_bag_input, run_data_from_bag, run_input_of
 
 DEFAULT_SCENARIO = "team"
+
+
+def _operator_request(text: str) -> tuple[int, int, float]:
+    """``A,B@T`` -> (robot A, robot B, seconds into the run)."""
+    try:
+        robots, at = text.split("@")
+        a, b = (int(r) for r in robots.split(","))
+        t_s = float(at)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected A,B@T (two robot ids, seconds into the run), e.g. 1,2@20"
+        ) from None
+    if a == b or min(a, b) < 1 or not np.isfinite(t_s) or t_s < 0:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: needs two different robot ids >= 1 and a time >= 0 s"
+        )
+    return a, b, t_s
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -65,6 +76,15 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--no-markers",
         action="store_true",
         help="clients do not look for other robots' markers (rendezvous without cue)",
+    )
+    p.add_argument(
+        "--rendezvous",
+        action="append",
+        default=[],
+        type=_operator_request,
+        metavar="A,B@T",
+        help="operator trigger: at T seconds into the run, tell the server (its ~rendezvous "
+        "service) that robots A and B are together; repeatable",
     )
     p.add_argument("--out", help="results folder (default: results/<date>-<source>)")
     p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
@@ -194,6 +214,40 @@ class _Monitor:
         self._acks[robot_id].publish(ack)
 
 
+class _Operator:
+    """Plays the person who tells the server that two robots are together (``--rendezvous``):
+    calls the server's ~rendezvous service once the run reaches each request's time. Calls run in
+    threads: lock-step playback must not wait for the server's answer."""
+
+    SERVICE = "/server/rendezvous"
+
+    def __init__(self, requests: list[tuple[int, int, float]], t0: float):
+        self.pending = sorted(requests, key=lambda r: r[2])
+        self.t0 = t0
+
+    def poll(self, sim_s: float) -> None:
+        import threading
+
+        while self.pending and sim_s - self.t0 >= self.pending[0][2]:
+            a, b, t_s = self.pending.pop(0)
+            threading.Thread(target=self._call, args=(a, b, t_s), daemon=True).start()
+
+    def _call(self, a: int, b: int, t_s: float) -> None:
+        import rospy
+
+        from coop_slam.srv import Rendezvous
+
+        try:
+            rospy.wait_for_service(self.SERVICE, timeout=30.0)
+            res = rospy.ServiceProxy(self.SERVICE, Rendezvous)(
+                robot_a=a, robot_b=b, stamp=rospy.Time.from_sec(self.t0 + t_s)
+            )
+            verdict = "merged" if res.accepted else "not merged"
+            say(f"      operator rendezvous {a},{b}@{t_s:g}: {verdict}: {res.message}")
+        except (rospy.ROSException, rospy.ServiceException) as exc:
+            say(f"      operator rendezvous {a},{b}@{t_s:g} failed: {exc}")
+
+
 def _wait_for_master(uri: str, timeout_s: float) -> None:
     import rosgraph
 
@@ -244,6 +298,11 @@ def run(args: argparse.Namespace) -> int:
             f"      {len(inputs.robot_ids)} robots, {inputs.frames} frames, data in {source.folder}"
         )
     robot_ids, total, t0, t1 = inputs.robot_ids, inputs.frames, inputs.start_s, inputs.end_s
+    for a, b, _ in args.rendezvous:
+        if a not in robot_ids or b not in robot_ids:
+            raise CoopSlamError(f"--rendezvous {a},{b}: this run has robots {robot_ids}")
+    if args.rendezvous and args.no_clients:
+        raise CoopSlamError("--rendezvous needs the server: drop --no-clients")
 
     port = _free_port()
     uri = f"http://127.0.0.1:{port}"
@@ -314,6 +373,7 @@ def run(args: argparse.Namespace) -> int:
                 env=env,
                 start_new_session=True,
             )
+        operator = _Operator(args.rendezvous, t0)
         deadline = time.monotonic() + args.timeout
         tty = sys.stdout.isatty()
         last_line = 0.0
@@ -326,6 +386,7 @@ def run(args: argparse.Namespace) -> int:
                 raise CoopSlamError(
                     f"run did not finish within {args.timeout:.0f} s; see {log_path}"
                 )
+            operator.poll(monitor.sim_s)
             got = sum(r.frames for r in monitor.run.robots.values())
             elapsed = min(max(monitor.sim_s - t0, 0.0), t1 - t0)
             line = (

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..datasets import write_tum_trajectory
 from ..evaluation import EvaluationError, ate, merge_error, rpe_rmse, team_ate
-from ..geometry import invert, path_length
+from ..geometry import invert, path_length, transform_error
 from ..playback import COLOR_TOPIC, GROUND_TRUTH_TOPIC, build_schedule
 from ..report import count_wrong_merges, new_report
 
@@ -160,12 +160,12 @@ class RunRecorder:
     def _on_merge(self, msg) -> None:
         from ..ros.convert import transform_from_msg
 
-        # The keyframe poses as the server used them (local BA may move them afterwards).
-        at_merge = {
-            robot: self.run.robots[robot].keyframes.get(kf)
-            for robot, kf in ((msg.robot_a, msg.keyframe_a), (msg.robot_b, msg.keyframe_b))
-            if robot in self.run.robots
-        }
+        # Stamps of the matched keyframes now: a keyframe the client culls later leaves the record.
+        stamps = {}
+        for robot, kf in ((msg.robot_a, msg.keyframe_a), (msg.robot_b, msg.keyframe_b)):
+            known = self.run.robots[robot].keyframes.get(kf) if robot in self.run.robots else None
+            if known is not None:
+                stamps[robot] = known[0]
         self.run.merges.append(
             {
                 "type": msg.type,
@@ -173,9 +173,10 @@ class RunRecorder:
                 "robot_b": msg.robot_b,
                 "keyframe_a": msg.keyframe_a,
                 "keyframe_b": msg.keyframe_b,
-                "keyframes_at_merge": at_merge,
+                "keyframe_stamps": stamps,
                 "stamp_s": msg.header.stamp.to_sec(),
                 "T_mapA_mapB": transform_from_msg(msg.T_mapA_mapB),
+                "T_camA_camB": transform_from_msg(msg.T_camA_camB),
             }
         )
 
@@ -411,31 +412,23 @@ def evaluate_run(
 
 
 def _local_merge_error(m: dict, run: RunData, gts: dict) -> tuple[float, float] | None:
-    """Error of T_mapA_mapB against the truth at the matched keyframes: the map transform that the
-    true relative pose of the two keyframes would have given, with both keyframes' estimated poses.
-    """
-    poses = []
+    """Error of the merge's registration against the truth: the verified relative pose of the
+    matched keyframes' cameras against their true relative pose. Odometry drift does not enter,
+    nor do later local-BA moves of the keyframes (which the map transform was chained through)."""
+    T_world_cams = []
     for robot, kf in ((m["robot_a"], m.get("keyframe_a")), (m["robot_b"], m.get("keyframe_b"))):
-        r = run.robots.get(robot)
-        snapshot = (m.get("keyframes_at_merge") or {}).get(robot)
-        if snapshot is None and r is not None:
-            snapshot = r.keyframes.get(kf)
-        if snapshot is None or robot not in gts:
+        stamp = (m.get("keyframe_stamps") or {}).get(robot)
+        if stamp is None and robot in run.robots and kf in run.robots[robot].keyframes:
+            stamp = run.robots[robot].keyframes[kf][0]
+        if stamp is None or robot not in gts or len(gts[robot][0]) == 0:
             return None
-        stamp, T_map_cam = snapshot
         stamps_gt, poses_gt = gts[robot]
-        if len(stamps_gt) == 0:
-            return None
         i = int(np.argmin(np.abs(stamps_gt - stamp)))
         if abs(stamps_gt[i] - stamp) > 0.02:
             return None
-        poses.append((T_map_cam, poses_gt[i]))
-    (T_mapA_camA, T_world_camA), (T_mapB_camB, T_world_camB) = poses
-    # merge_error(T_est, T_world_mapA, T_world_mapB) with the maps placed so that the keyframes'
-    # estimated poses coincide with their true ones.
-    return merge_error(
-        m["T_mapA_mapB"], T_world_camA @ invert(T_mapA_camA), T_world_camB @ invert(T_mapB_camB)
-    )
+        T_world_cams.append(poses_gt[i])
+    T_world_camA, T_world_camB = T_world_cams
+    return transform_error(m["T_camA_camB"], invert(T_world_camA) @ T_world_camB)
 
 
 def _first_evidence(overlap: dict | None, kind: str, a: int, b: int) -> float | None:
