@@ -39,3 +39,42 @@ def test_empty_image_and_bad_config():
         MarkerDetector().detect(np.zeros((0, 0), np.uint8), np.eye(3))
     with pytest.raises(Exception, match="dictionary"):
         MarkerDetector(MarkerConfig(dictionary="DICT_NOPE"))
+
+
+def test_body_box_covers_the_rendered_body():
+    """The box the odometry ignores after a sighting contains every pixel of the seen body."""
+    from coop_slam.datasets import CameraModel
+    from coop_slam.markers import body_box_cam
+    from coop_slam.synthetic.render import DynamicObject, NoiseConfig
+
+    camera = CameraModel(width=640, height=480, fx=525.0, fy=525.0, cx=319.5, cy=239.5)
+    renderer = Renderer(build_world("ring", 0), camera, NoiseConfig(enabled=False))
+    a = np.radians(160.0)
+    R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    T_world_cam = DEFAULT_T_BASE_CAM
+    bgr, depth = renderer.render(
+        T_world_cam, [DynamicObject(se3(R, [1.6, 0.2, 0.0]), body_model(3))]
+    )
+    _, depth_empty = renderer.render(T_world_cam, [])
+    v, u = np.nonzero(np.abs(depth - depth_empty) > 0.01)  # the body's pixels
+    assert len(u) > 1000
+    config = MarkerConfig(mask_grow_m=0.03)  # the marker pose is good to a few centimetres
+    (sighting,) = [s for s in MarkerDetector(config).detect(bgr, camera.K)][:1]
+    corners = body_box_cam(config, sighting.T_cam_body)
+    assert corners.shape == (32, 3) and np.all(corners[:, 2] > 0)
+    uv = corners[:, :2] / corners[:, 2:] * [camera.fx, camera.fy] + [camera.cx, camera.cy]
+    (u0, v0), (u1, v1) = uv.min(axis=0), uv.max(axis=0)
+    assert np.all((u >= u0) & (u <= u1) & (v >= v0) & (v <= v1))
+    # ... and not much more than the body: the four heading hypotheses of a square body agree.
+    assert (u1 - u0) * (v1 - v0) < 2.0 * (np.ptp(u) + 1) * (np.ptp(v) + 1)
+    with pytest.raises(Exception, match="body_size_m"):
+        MarkerDetector(MarkerConfig(body_size_m=[0.4, 0.4]))
+
+
+def test_client_yaml_markers_section_is_the_defaults():
+    import os
+
+    from coop_slam.config import load_yaml_config
+
+    path = os.path.join(os.path.dirname(__file__), "..", "config", "client.yaml")
+    assert load_yaml_config(MarkerConfig, path, section="markers") == MarkerConfig()

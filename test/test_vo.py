@@ -299,3 +299,33 @@ def test_redkitchen_first_150_frames_accuracy():
     ate = keyframe_ate(run, seq)
     assert ate < 0.03, f"keyframe ATE {ate * 100:.2f} cm"
     assert len(run.keyframes) >= 3
+
+
+def test_ignored_region_drops_its_keypoints_until_it_expires(room_sequence):
+    """Another robot's body (here: a box in front of the camera) gives no keypoints while its
+    region is active; the region expires and is dropped with the map; bad regions are refused."""
+    stamps, frames, gt = room_sequence
+    with RgbdOdometry(sync_config(), helpers_vo.CAMERA) as vo:
+        first = _track_all(vo, stamps[:3], frames[:3])
+        box_cam = np.array(
+            [[x, y, z] for x in (-0.3, 0.3) for y in (-0.3, 0.3) for z in (1.0, 4.0)]
+        )
+        corners_map = transform_points(first[-1].T_map_cam, box_cam)
+        with pytest.raises(VoError, match="finite"):
+            vo.ignore_region(np.full((8, 3), np.nan), stamps[4])
+        with pytest.raises(VoError, match="corners"):
+            vo.ignore_region(np.zeros((8, 2)), stamps[4])
+        vo.ignore_region(corners_map, until_s=stamps[4])
+        masked = _track_all(vo, stamps[3:5], frames[3:5])
+        after = _track_all(vo, stamps[5:6], frames[5:6])
+    with RgbdOdometry(sync_config(), helpers_vo.CAMERA) as ref:
+        plain = _track_all(ref, stamps[:6], frames[:6])
+    assert all(r.ok for r in masked + after)
+    for m, p in zip(masked, plain[3:5]):
+        assert m.n_features < 0.9 * p.n_features
+    assert after[0].n_features == plain[5].n_features
+    vo2 = RgbdOdometry(sync_config(), helpers_vo.CAMERA)
+    vo2.ignore_region(corners_map, until_s=1e9)
+    vo2.reset()
+    assert vo2._ignored == []
+    vo2.close()

@@ -36,6 +36,12 @@ class MarkerConfig:
     T_base_marker: list[float] = field(default_factory=list)
     max_reprojection_px: float = 2.0  # RMS corner error above which a detection is dropped [px]
     min_side_px: float = 20.0  # smaller markers give poses too noisy to use [px]
+    # The robot body: a box (x, y, z) centred on base_link, which is on the floor [m]. Another
+    # robot is a moving object, not a landmark: keypoints on a sighted body are ignored by the
+    # odometry for mask_s seconds, the box grown by mask_grow_m for its motion meanwhile.
+    body_size_m: list[float] = field(default_factory=lambda: [0.4, 0.4, 0.6])
+    mask_s: float = 0.5  # [s]; 0 = keypoints on other robots are used like any other
+    mask_grow_m: float = 0.15  # [m]
 
     def validate(self) -> None:
         require(hasattr(cv2.aruco, self.dictionary), f"unknown ArUco dictionary {self.dictionary}")
@@ -44,6 +50,11 @@ class MarkerConfig:
             len(self.T_base_marker) in (0, 7), "T_base_marker needs 7 numbers (x y z qx qy qz qw)"
         )
         require(self.max_reprojection_px > 0, "max_reprojection_px must be > 0")
+        require(
+            len(self.body_size_m) == 3 and all(v > 0 for v in self.body_size_m),
+            "body_size_m needs 3 sizes > 0 (x y z) [m]",
+        )
+        require(self.mask_s >= 0 and self.mask_grow_m >= 0, "mask_s and mask_grow_m must be >= 0")
 
     def base_marker(self) -> np.ndarray:
         if self.T_base_marker:
@@ -121,3 +132,14 @@ def body_hypotheses(T_cam_body_front: np.ndarray) -> list[np.ndarray]:
         # Seeing face k instead of the front means the body is turned by -k quarter turns.
         out.append(T_cam_body_front @ se3(R_z.T))
     return out
+
+
+def body_box_cam(config: MarkerConfig, T_cam_body_front: np.ndarray) -> np.ndarray:
+    """(32, 3) corners of a sighted robot's body box (grown by ``mask_grow_m``) in the camera
+    frame, for each of the four headings a sighting allows: what the odometry should not take for
+    landmarks."""
+    size_x, size_y, size_z = config.body_size_m
+    grow = config.mask_grow_m
+    hx, hy, top = size_x / 2.0 + grow, size_y / 2.0 + grow, size_z + grow  # it stands on the floor
+    corners = np.array([[x, y, z, 1.0] for x in (-hx, hx) for y in (-hy, hy) for z in (0.0, top)]).T
+    return np.concatenate([(T @ corners)[:3].T for T in body_hypotheses(T_cam_body_front)])

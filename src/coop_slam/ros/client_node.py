@@ -46,20 +46,24 @@ def default_T_base_cam() -> np.ndarray:
     return T
 
 
-def load_vo_config(config_file: str, overrides: dict):
-    """VoConfig from the YAML file (its ``vo`` section or the whole file) and ROS param
-    overrides."""
-    from ..vo.config import VoConfig
+SECTIONS = ("vo", "markers")  # of config/client.yaml
 
+
+def load_client_config(config_file: str, section: str, cls, overrides: dict):
+    """One section of the client YAML (``vo``: VoConfig, ``markers``: MarkerConfig) with the ROS
+    param overrides (~vo, ~markers). A file without sections is the ``vo`` section."""
     values = {}
     if config_file:
         if not os.path.isfile(config_file):
             raise CoopSlamError(f"client config file not found: {config_file}")
         with open(config_file, encoding="utf-8") as fh:
             data = yaml.safe_load(fh) or {}
-        values = dict(data.get("vo", data))
+        if any(k in data for k in SECTIONS):
+            values = dict(data.get(section) or {})
+        elif section == "vo":
+            values = dict(data)
     values.update(overrides)
-    return load_config(VoConfig, values)
+    return load_config(cls, values, prefix=f"{section}.")
 
 
 class ClientNode:
@@ -82,7 +86,11 @@ class ClientNode:
         self.T_base_cam = (
             se3_from_quat(base_cam[:3], base_cam[3:]) if base_cam else default_T_base_cam()
         )
-        self.vo_cfg = load_vo_config(rospy.get_param("~config", ""), rospy.get_param("~vo", {}))
+        from ..markers import MarkerConfig, MarkerDetector
+        from ..vo.config import VoConfig
+
+        config_file = rospy.get_param("~config", "")
+        self.vo_cfg = load_client_config(config_file, "vo", VoConfig, rospy.get_param("~vo", {}))
         self._RgbdOdometry = RgbdOdometry
         self.vo = None
         self.camera = None
@@ -94,11 +102,14 @@ class ClientNode:
         self.kf_poses: dict[int, tuple[float, np.ndarray]] = {}  # id -> (stamp, T_map_cam)
         self.last_cloud_s = -1e9
         self.frames = 0
-        from ..markers import MarkerConfig, MarkerDetector
-
-        # Marker sightings of other robots (rendezvous cue); 0 disables detection.
+        # Marker sightings of other robots (rendezvous cue; their bodies are masked for the
+        # odometry); 0 disables detection.
         self.marker_every = int(rospy.get_param("~marker_every_frames", 5))
-        self.markers = MarkerDetector(load_config(MarkerConfig, rospy.get_param("~markers", {})))
+        self.markers = MarkerDetector(
+            load_client_config(
+                config_file, "markers", MarkerConfig, rospy.get_param("~markers", {})
+            )
+        )
 
         import message_filters
         import tf2_ros
@@ -198,7 +209,7 @@ class ClientNode:
                 if res.ok:
                     self._publish_pose(stamp, self.T_base_cam @ res.T_map_cam)
                 if self.marker_every and self.frames % self.marker_every == 0:
-                    self._detect_markers(stamp, image)
+                    self._detect_markers(stamp, image, res)
                 if stamp.to_sec() - self.last_cloud_s >= self.cloud_period_s:
                     self.last_cloud_s = stamp.to_sec()
                     self._publish_cloud(stamp)
@@ -207,12 +218,18 @@ class ClientNode:
         finally:
             self.pub_stats.publish(stats)
 
-    def _detect_markers(self, stamp, image) -> None:
+    def _detect_markers(self, stamp, image, res) -> None:
         from coop_slam.msg import RobotSighting
 
+        from ..markers import body_box_cam
+
+        cfg = self.markers.config
         for s in self.markers.detect(image, self.camera.K):
             if s.marker_id == self.robot_id or s.marker_id < 1:
                 continue  # our own body, or not a robot id
+            if res.ok and cfg.mask_s > 0:  # a robot is a moving object, not a landmark
+                corners_map = transform_points(res.T_map_cam, body_box_cam(cfg, s.T_cam_body))
+                self.vo.ignore_region(corners_map, stamp.to_sec() + cfg.mask_s)
             msg = RobotSighting(
                 observer_id=self.robot_id,
                 observed_id=s.marker_id,

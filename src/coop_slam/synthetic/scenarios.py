@@ -9,7 +9,8 @@ one clear purpose for evaluating map merging:
 - ``disjoint``: two robots in two different buildings: nothing to merge, ever.
 - ``aliasing``: two buildings with identical posters at the same spots; one robot in each.
 - ``team`` (the demo default, 2-4 robots): a revisit first, then rendezvous.
-- ``multi`` (2-8 robots): longer ring routes in both directions; revisits and a rendezvous.
+- ``multi`` (2-8 robots): a lap or more of the corridor ring each, on two lanes; revisits, own
+  loops and a rendezvous.
 
 Building coordinates (building 0 at the world origin): outer walls x in [0, 12], y in [0, 8];
 corridor centre lines y = 1 (south), y = 7 (north), x = 1 (west), x = 11 (east); room A door at
@@ -394,27 +395,29 @@ def _loop_route(
 
 
 def multi(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenario:
-    """N robots drive the corridor ring, even ids counter-clockwise on the outer lane, odd ids
-    clockwise on the inner lane, evenly spaced; robot 2 instead starts 7 m ahead of robot 1 in the
-    same direction and waits, so robot 1 catches up with it (rendezvous)."""
+    """N robots drive the corridor ring counter-clockwise, even ids on the outer lane, odd ids on
+    the inner lane, evenly spaced; robot 2 instead starts 7 m ahead of robot 1 on the outer lane and
+    waits, so robot 1 catches up with it (rendezvous). Each robot drives a lap or more: it closes
+    its own loop and drives through what the robots ahead of it mapped (revisits). (Robots driving
+    the ring in opposite directions never see one scene from the same side: nothing to merge.)"""
     rng = np.random.default_rng(seed)
-    v = 0.4 + float(rng.uniform(-0.02, 0.02))  # one speed: same-direction robots keep their gaps
-    ccw_ids = [k for k in range(robots) if k % 2 == 0 or k == 1]
-    cw_ids = [k for k in range(robots) if k % 2 == 1 and k != 1]
+    v = 0.4 + float(rng.uniform(-0.02, 0.02))  # one speed: robots keep their gaps
+    outer_ids = [k for k in range(robots) if k % 2 == 0 or k == 1]
+    inner_ids = [k for k in range(robots) if k % 2 == 1 and k != 1]
     outer = _ring_loop(LANE_OFFSET_M, clockwise=False)
-    inner = _ring_loop(-LANE_OFFSET_M, clockwise=True)
+    inner = _ring_loop(-LANE_OFFSET_M, clockwise=False)
     perimeter_outer, perimeter_inner = _perimeter(outer), _perimeter(inner)
     routes: dict[int, Route] = {}
     routes[0] = _loop_route(0.5, outer, v, 0.0, duration_s)
     if robots > 1:
         routes[1] = _loop_route(7.5, outer, v, 8.0, duration_s)
-    others = [k for k in ccw_ids if k > 1]
+    others = [k for k in outer_ids if k > 1]
     for j, k in enumerate(others):
         # Spread over the part of the loop after robot 2, leaving room for robot 1 to catch up.
         s = 7.5 + 5.0 + (perimeter_outer - 7.5 - 9.0) * j / max(1, len(others))
         routes[k] = _loop_route(s, outer, v, 0.0, duration_s)
-    for j, k in enumerate(cw_ids):
-        s = perimeter_inner * (j + 0.5) / len(cw_ids)
+    for j, k in enumerate(inner_ids):
+        s = perimeter_inner * (j + 0.5) / len(inner_ids)
         routes[k] = _loop_route(s, inner, v, 0.0, duration_s)
     return _scenario(
         "multi",

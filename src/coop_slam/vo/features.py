@@ -41,6 +41,19 @@ class FrameFeatures:
     def has_depth(self) -> np.ndarray:
         return self.depths_m > 0
 
+    def subset(self, keep: np.ndarray) -> "FrameFeatures":
+        """The keypoints selected by ``keep`` (boolean mask or indices)."""
+        return FrameFeatures(
+            self.uv_px[keep],
+            self.size_px[keep],
+            self.angle_deg[keep],
+            self.octaves[keep],
+            self.descriptors[keep],
+            self.depths_m[keep],
+            self.points_cam[keep],
+            self.u_right_px[keep],
+        )
+
     def tree(self):
         """KD-tree over uv_px (built on first use, shared by all searches on this frame)."""
         if self._tree is None:

@@ -94,6 +94,7 @@ class RgbdOdometry:
         self._clear_tracking()
         self._last_stamp: float | None = None
         self.frames_processed = 0
+        self._ignored: list[tuple[np.ndarray, float]] = []  # (corners_map (N, 3), until [s])
 
     # --- public API -------------------------------------------------------------------------------
     def track(self, stamp_s: float, image: np.ndarray, depth_m: np.ndarray) -> TrackResult:
@@ -115,7 +116,7 @@ class RgbdOdometry:
             self.reset()
         self._last_stamp = stamp_s
         self.frames_processed += 1
-        feats = self._extractor.extract(gray, depth)
+        feats = self._drop_ignored(stamp_s, self._extractor.extract(gray, depth))
         if self._state == STATE_INITIALIZING:
             result = self._initialize(stamp_s, feats)
         elif self._state == STATE_LOST:
@@ -127,6 +128,36 @@ class RgbdOdometry:
         result.track_ms = (time.perf_counter() - t0) * 1e3
         result.cpu_ms = (time.thread_time() - c0) * 1e3
         return result
+
+    def ignore_region(self, corners_map: np.ndarray, until_s: float) -> None:
+        """Keypoints that fall inside the image of these 3D points (e.g. the corners of another
+        robot's body, in the current map frame [m]) are not used, up to frame time ``until_s``: a
+        moving object tracked as a landmark drags the pose along and leaves false map points."""
+        corners = np.asarray(corners_map, dtype=float)
+        if corners.ndim != 2 or corners.shape[1] != 3 or len(corners) < 2:
+            raise VoError(f"ignore_region: corners must be (N >= 2, 3), got {corners.shape}")
+        if not np.all(np.isfinite(corners)) or not np.isfinite(until_s):
+            raise VoError("ignore_region: corners and until_s must be finite")
+        self._ignored.append((corners, float(until_s)))
+
+    def _drop_ignored(self, stamp_s: float, feats: FrameFeatures) -> FrameFeatures:
+        self._ignored = [(c, t) for c, t in self._ignored if t >= stamp_s]
+        if not self._ignored or not len(feats):
+            return feats
+        # Where the camera will be: the tracker's own constant-velocity prediction.
+        T_cam_map = invert(self._T_map_cam @ self._velocity)
+        keep = np.ones(len(feats), bool)
+        for corners, _ in self._ignored:
+            points_cam = transform_points(T_cam_map, corners)
+            front = points_cam[:, 2] > 0.05
+            if not front.any():
+                continue  # behind the camera
+            uv = points_cam[front, :2] / points_cam[front, 2:] * self.K[[0, 1], [0, 1]]
+            uv += self.K[[0, 1], [2, 2]]
+            (u0, v0), (u1, v1) = uv.min(axis=0), uv.max(axis=0)
+            u, v = feats.uv_px[:, 0], feats.uv_px[:, 1]
+            keep &= ~((u >= u0) & (u <= u1) & (v >= v0) & (v <= v1))
+        return feats if keep.all() else feats.subset(keep)
 
     def keyframes(self) -> list[Keyframe]:
         """Snapshots of the current segment's keyframes, by id (with map_points_xyz filled in)."""
@@ -170,6 +201,7 @@ class RgbdOdometry:
             self._emit(VoEvent(EVENT_NEW_SEGMENT, self.map_segment, message="map reset"))
         self._map = Map(self.map_segment, first_point_id=self._map.points.next_id)
         self._clear_tracking()
+        self._ignored = []  # given in the dropped map's frame
 
     def close(self) -> None:
         """Stop the local-mapping thread and worker process."""
