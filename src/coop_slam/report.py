@@ -124,9 +124,11 @@ def render_markdown(report: dict) -> str:
     if report["merges"]:
         lines += [
             "Errors against ground truth: `trans_err_m`/`rot_err_deg` of the map transform (maps "
-            "placed by their own ATE alignment), `local_*` at the matched keyframes; `latency_s` "
-            "from the first co-observation of one scene (rendezvous) or first revisit (place "
-            "recognition) in the ground truth.",
+            "placed by their own ATE alignment), `local_*` of the registration (the matched "
+            "keyframes' relative pose); `latency_s` from the first co-observation of one scene "
+            "(rendezvous) or first revisit (place recognition) in the ground truth, whose view "
+            "model counts a surface as shared only when seen from similar directions (within "
+            "about 22 deg): a negative latency is a verified merge on a view it does not count.",
             "",
             "| " + " | ".join(MERGE_KEYS) + " |",
             "|" + "---|" * len(MERGE_KEYS),
