@@ -189,7 +189,7 @@ class Recording(Proc):
     """scripts/record_rviz ARGS."""
 
     def __init__(self, args, env):
-        super().__init__([sys.executable, SCRIPT, *args], env)
+        super().__init__([SCRIPT, *args], env)
 
     def finish(self, timeout: float) -> int:
         try:
