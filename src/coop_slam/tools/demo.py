@@ -242,8 +242,7 @@ class _Operator:
             res = rospy.ServiceProxy(self.SERVICE, Rendezvous)(
                 robot_a=a, robot_b=b, stamp=rospy.Time.from_sec(self.t0 + t_s)
             )
-            verdict = "merged" if res.accepted else "not merged"
-            say(f"      operator rendezvous {a},{b}@{t_s:g}: {verdict}: {res.message}")
+            say(f"      operator rendezvous {a},{b}@{t_s:g}: {res.message}")  # says if merged
         except (rospy.ROSException, rospy.ServiceException) as exc:
             say(f"      operator rendezvous {a},{b}@{t_s:g} failed: {exc}")
 
