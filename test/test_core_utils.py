@@ -95,3 +95,13 @@ def test_keyframe_validation_accepts_good_and_names_problems():
     kf.T_map_cam = np.full((4, 4), np.nan)
     with pytest.raises(KeyframeError, match="NaN"):
         kf.validate()
+
+
+def test_throttled_progress_reports_the_first_and_last_call_and_not_every_one():
+    from coop_slam.tools.progress import throttled
+
+    seen = []
+    progress = throttled(lambda done, total: seen.append(done), period_s=3600.0)
+    for i in range(1, 101):
+        progress(i, 100)
+    assert seen == [1, 100]

@@ -17,6 +17,7 @@ import numpy as np
 from ..errors import CoopSlamError
 from ..playback import load_run_source
 from ..vo.intrinsics_check import check_focal, match_pairs
+from .progress import throttled
 
 # A focal length this far off the model's is worth acting on (the check itself is ~1 % precise).
 _ACT_RATIO = 0.03
@@ -37,12 +38,11 @@ def main(argv=None) -> int:
     )
     args = p.parse_args(argv)
     t0 = time.monotonic()
-    last = [0.0]
-
-    def progress(done: int, total: int) -> None:
-        if time.monotonic() - last[0] > 2.0 or done == total:
-            last[0] = time.monotonic()
-            print(f"[check_intrinsics] matching {done}/{total} frame pairs", flush=True)
+    progress = throttled(
+        lambda done, total: print(
+            f"[check_intrinsics] matching {done}/{total} frame pairs", flush=True
+        )
+    )
 
     try:
         seq = load_run_source(vars(args)).streams[0].sequence

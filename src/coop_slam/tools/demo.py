@@ -22,6 +22,7 @@ from ..errors import CoopSlamError
 from ..geometry import quat_from_se3
 from ..playback import load_run_source
 from .evaluate import RunRecorder, evaluate_results, read_bag_input, run_data_from_bag, run_input_of
+from .progress import throttled
 
 DEFAULT_SCENARIO = "team"
 
@@ -284,13 +285,11 @@ def run(args: argparse.Namespace) -> int:
     else:
         what = f"scenario {args.scenario}" if args.scenario else args.dataset
         say(f"[1/3] preparing data ({what})")
-        last = [0.0]
-
-        def progress(done: int, total: int) -> None:
-            if time.monotonic() - last[0] > 2.0 or done == total:
-                last[0] = time.monotonic()
-                say(f"      rendering {done}/{total} frames ({100.0 * done / max(total, 1):.0f} %)")
-
+        progress = throttled(
+            lambda done, total: say(
+                f"      rendering {done}/{total} frames ({100.0 * done / max(total, 1):.0f} %)"
+            )
+        )
         source = load_run_source(vars(args), progress)
         inputs = run_input_of(source, args.keep_timing)
         say(

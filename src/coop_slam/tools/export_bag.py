@@ -14,6 +14,7 @@ import time
 
 from ..errors import CoopSlamError
 from ..playback import build_schedule, ground_truth_by_frame, load_run_source
+from .progress import throttled
 
 
 class ExportError(CoopSlamError):
@@ -75,12 +76,11 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="bag file to write")
     args = p.parse_args(argv)
     t0 = time.monotonic()
-    last = [0.0]
-
-    def progress(done: int, total: int) -> None:
-        if time.monotonic() - last[0] > 2.0 or done == total:
-            last[0] = time.monotonic()
-            print(f"[export_bag] {done}/{total} frames ({100 * done / total:.0f} %)", flush=True)
+    progress = throttled(
+        lambda done, total: print(
+            f"[export_bag] {done}/{total} frames ({100 * done / total:.0f} %)", flush=True
+        )
+    )
 
     try:
         source = load_run_source(vars(args))

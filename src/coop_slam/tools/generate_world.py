@@ -8,6 +8,7 @@ import time
 from ..errors import CoopSlamError
 from ..synthetic.generate import generate
 from ..synthetic.scenarios import DEFAULT_SCENARIO, SCENARIOS
+from .progress import throttled
 
 
 def main(argv=None) -> int:
@@ -28,15 +29,13 @@ def main(argv=None) -> int:
     )
     args = parser.parse_args(argv)
     start = time.monotonic()
-    last = [0.0]
-
-    def progress(done: int, total: int) -> None:
-        now = time.monotonic()
-        if done == total or now - last[0] > 2.0:
-            last[0] = now
-            print(
-                f"rendered {done}/{total} frames ({now - start:.0f} s)", file=sys.stderr, flush=True
-            )
+    progress = throttled(
+        lambda done, total: print(
+            f"rendered {done}/{total} frames ({time.monotonic() - start:.0f} s)",
+            file=sys.stderr,
+            flush=True,
+        )
+    )
 
     try:
         folder = generate(

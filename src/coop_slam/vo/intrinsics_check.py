@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from ..errors import CoopSlamError
-from ..geometry import invert
+from ..geometry import invert, rotation_angle_deg
 
 
 class IntrinsicsCheckError(CoopSlamError):
@@ -53,10 +53,6 @@ class FocalCheck:
         return self.best_focal_px / self.model_focal_px
 
 
-def _rotation_deg(T: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
-
-
 def match_pairs(
     load_gray: Callable[[int], np.ndarray],
     poses_se3: np.ndarray,
@@ -77,7 +73,7 @@ def match_pairs(
         if not (np.isfinite(A).all() and np.isfinite(B).all()):
             continue
         T_b_a = invert(B) @ A
-        if _rotation_deg(T_b_a) >= min_rotation_deg:
+        if rotation_angle_deg(T_b_a[:3, :3]) >= min_rotation_deg:
             usable.append((i, T_b_a))
     if not usable:
         raise IntrinsicsCheckError(
