@@ -2,11 +2,10 @@
 
 The odometry takes the colour intrinsics from the camera model. A data set that publishes only its
 depth camera's intrinsics (7-Scenes: 585 px, where a Kinect colour camera has about 525 px) makes
-every estimated rotation too small and bends the map, and no parameter of the odometry repairs
-that. Under the true motion between two frames, ORB matches satisfy the epipolar constraint only
-with the right intrinsics, so the focal length that minimises their (truncated) Sampson error is
-the one the colour images were taken with. Needs ground truth with rotation in it; principal point
-and aspect ratio are taken from the model.
+the odometry's rotations too small. Under the true motion between two frames, ORB matches satisfy
+the epipolar constraint only with the right intrinsics, so the focal length that minimises their
+(truncated) Sampson error is the one the colour images were taken with. Needs ground truth with
+rotation in it; principal point and aspect ratio are taken from the model.
 """
 
 from __future__ import annotations
