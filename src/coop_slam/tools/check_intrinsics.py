@@ -1,8 +1,8 @@
 """``scripts/check_intrinsics``: which colour focal length fits a sequence's ground-truth motion.
 
 Prints the truncated Sampson error of ORB matches under the true motion for a range of focal
-lengths around the camera model's, the best one, and what to set when it differs (see
-:mod:`coop_slam.vo.intrinsics_check`).
+lengths around the camera model's, the best one, and which client settings apply when it
+differs (see :mod:`coop_slam.vo.intrinsics_check`).
 """
 
 from __future__ import annotations

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ..descriptors import match_ratio
 from ..errors import CoopSlamError
 from ..geometry import invert, rotation_angle_deg
 
@@ -81,19 +82,19 @@ def match_pairs(
         )
     picks = np.unique(np.linspace(0, len(usable) - 1, min(max_pairs, len(usable))).astype(int))
     orb = cv2.ORB_create(2000)
-    matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
     pairs = []
     for k, p in enumerate(picks):
         i, T_b_a = usable[p]
         kp_a, d_a = orb.detectAndCompute(load_gray(i), None)
         kp_b, d_b = orb.detectAndCompute(load_gray(i + gap), None)
         if d_a is not None and d_b is not None:
-            m = [x for x in matcher.match(d_a, d_b) if x.distance <= max_hamming]
+            # Mutual nearest neighbours only; the epipolar test itself needs no ratio test.
+            m = match_ratio(d_a, d_b, ratio=1.0, max_distance=max_hamming, mutual=True)
             if len(m) >= 8:
                 pairs.append(
                     FramePair(
-                        np.array([kp_a[x.queryIdx].pt for x in m]),
-                        np.array([kp_b[x.trainIdx].pt for x in m]),
+                        np.array([kp_a[i].pt for i in m[:, 0]]),
+                        np.array([kp_b[j].pt for j in m[:, 1]]),
                         T_b_a,
                     )
                 )
