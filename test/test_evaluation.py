@@ -2,8 +2,17 @@
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
-from coop_slam.evaluation import EvaluationError, associate, ate, merge_error, rpe_rmse, team_ate
+from coop_slam.evaluation import (
+    EvaluationError,
+    associate,
+    ate,
+    merge_error,
+    noise_split,
+    rpe_rmse,
+    team_ate,
+)
 from coop_slam.geometry import invert, se3, se3_from_quat
 
 
@@ -197,3 +206,29 @@ def test_merge_latency_counts_from_the_first_shared_view_of_its_kind():
     assert _first_evidence(only_revisit, "rendezvous", 1, 2) == 18.6
     assert _first_evidence(overlap, "rendezvous", 1, 3) is None
     assert _first_evidence(None, "rendezvous", 1, 2) is None
+
+
+def test_noise_split_tells_each_trajectory_its_own_error():
+    _, truth = _circle(n=2000, r=2.0)
+    rng = np.random.default_rng(1)
+
+    def perturbed(sigma_m, sigma_rad):
+        out = truth.copy()
+        for k in range(len(out)):
+            rvec = rng.normal(0, sigma_rad, 3)
+            out[k] = out[k] @ se3(Rotation.from_rotvec(rvec).as_matrix(), rng.normal(0, sigma_m, 3))
+        return out
+
+    sigmas = {"a": (0.002, 0.002), "b": (0.003, 0.003), "gt": (0.005, 0.004)}
+    trajs = {n: perturbed(*s) for n, s in sigmas.items()}
+    trajs["b"][100] = np.nan  # a lost frame is left out, not an error
+    split = noise_split(trajs, step=5)
+    assert split.pairs == 2000 - 5 - 2
+    for n, (s_m, s_rad) in sigmas.items():
+        # Relative motion over two independently perturbed poses: sqrt(2) x per pose, 3 axes.
+        assert split.trans_m[n] == pytest.approx(np.sqrt(6) * s_m, rel=0.2)
+        assert split.rot_deg[n] == pytest.approx(np.degrees(np.sqrt(6) * s_rad), rel=0.2)
+    with pytest.raises(EvaluationError, match="exactly 3"):
+        noise_split({"a": truth, "b": truth}, step=5)
+    with pytest.raises(EvaluationError, match="same frames"):
+        noise_split({"a": truth, "b": truth, "c": truth[:-1]}, step=5)

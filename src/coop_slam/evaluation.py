@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import CoopSlamError
-from .geometry import invert, transform_error
+from .geometry import invert, rotation_angle_deg, transform_error
 
 
 class EvaluationError(CoopSlamError):
@@ -148,3 +148,58 @@ def merge_error(
 ) -> tuple[float, float]:
     """(translation [m], rotation [deg]) error of an estimated map-to-map transform."""
     return transform_error(T_mapA_mapB_est, invert(T_world_mapA_gt) @ T_world_mapB_gt)
+
+
+@dataclass
+class NoiseSplit:
+    """Each trajectory's own RMS error of the relative motion over ``step`` frames."""
+
+    step: int
+    pairs: int  # frame pairs (i, i + step) where all trajectories have a pose
+    rot_deg: dict[str, float]
+    trans_m: dict[str, float]
+
+
+def noise_split(trajectories: dict[str, np.ndarray], step: int) -> NoiseSplit:
+    """Three-cornered hat over relative motions: three trajectories (F, 4, 4) of the same frames
+    (NaN where one has no pose), with independent errors, give each one's own error from their three
+    pairwise disagreements: own_a^2 = (d_ab^2 + d_ac^2 - d_bc^2) / 2. Ground truth is no exception,
+    which is the point: it tells how much of an ATE is the reference's. Errors shared by two
+    trajectories are credited to the third (a negative own variance is reported as 0)."""
+    if len(trajectories) != 3:
+        raise EvaluationError(f"noise_split needs exactly 3 trajectories, got {len(trajectories)}")
+    names = list(trajectories)
+    poses = [np.asarray(trajectories[n], float).reshape(-1, 4, 4) for n in names]
+    if len({len(p) for p in poses}) != 1:
+        raise EvaluationError(
+            "noise_split needs trajectories of the same frames, got lengths "
+            + ", ".join(f"{n} {len(p)}" for n, p in zip(names, poses))
+        )
+    if step < 1:
+        raise EvaluationError(f"step must be at least 1 frame, got {step}")
+    finite = np.all([np.isfinite(p).all(axis=(1, 2)) for p in poses], axis=0)
+    i = np.flatnonzero(finite[:-step] & finite[step:]) if len(finite) > step else np.zeros(0, int)
+    if len(i) < 10:
+        raise EvaluationError(
+            f"only {len(i)} frame pairs {step} frames apart have all three poses (need 10)"
+        )
+    rel = [np.linalg.inv(p[i]) @ p[i + step] for p in poses]
+    rot2, trans2 = {}, {}
+    for a, b in ((0, 1), (0, 2), (1, 2)):
+        err = np.linalg.inv(rel[a]) @ rel[b]
+        angles = [rotation_angle_deg(R) for R in err[:, :3, :3]]
+        rot2[a, b] = float(np.mean(np.square(angles)))
+        trans2[a, b] = float(np.mean(np.sum(err[:, :3, 3] ** 2, axis=1)))
+
+    def own(var: dict, k: int) -> float:
+        others = [x for x in range(3) if x != k]
+        d = lambda x, y: var[min(x, y), max(x, y)]  # noqa: E731
+        v = (d(k, others[0]) + d(k, others[1]) - d(*others)) / 2
+        return float(np.sqrt(max(v, 0.0)))
+
+    return NoiseSplit(
+        step=step,
+        pairs=len(i),
+        rot_deg={n: own(rot2, k) for k, n in enumerate(names)},
+        trans_m={n: own(trans2, k) for k, n in enumerate(names)},
+    )
