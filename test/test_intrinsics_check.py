@@ -1,4 +1,5 @@
-"""Colour focal-length check against ground-truth motion (coop_slam.vo.intrinsics_check)."""
+"""Colour focal-length check against ground-truth motion (coop_slam.vo.intrinsics_check) and the
+ground-truth check's reference estimator."""
 
 import os
 
@@ -97,3 +98,36 @@ def test_command_finds_redkitchens_colour_focal_length(capsys):
     best = float(out.split("best fx ")[1].split(" px")[0])
     assert 500 < best < 540
     assert "do not fit" in out
+
+
+def test_depth_icp_odometry_follows_a_rendered_room():
+    """The reference estimator of scripts/check_ground_truth (OpenCV's depth-only ICP)."""
+    from coop_slam.geometry import transform_error
+    from coop_slam.tools.check_ground_truth import depth_icp_odometry
+
+    _, frames, gt = helpers_vo.sequence(n_frames=15, step_m=0.02)
+
+    class Seq:  # the slice of datasets.base.Sequence the estimator reads
+        camera = CAM
+        frames = list(range(15))
+
+        def __len__(self):
+            return 15
+
+        def frame_poses(self):
+            return gt
+
+        def load_depth_m(self, i):
+            return frames[i][1]
+
+    poses = depth_icp_odometry(Seq())
+    assert np.isfinite(poses).all()
+    trans_m, rot_deg = transform_error(poses[-1], gt[-1])  # 24 cm, 4 deg from the start
+    assert trans_m < 0.02 and rot_deg < 1.0
+
+
+def test_ground_truth_check_refuses_a_missing_dataset(tmp_path, capsys):
+    from coop_slam.tools.check_ground_truth import main
+
+    assert main(["--dataset", str(tmp_path / "nothing")]) == 2
+    assert "nothing" in capsys.readouterr().err

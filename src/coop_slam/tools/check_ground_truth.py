@@ -18,10 +18,10 @@ import numpy as np
 
 from ..errors import CoopSlamError
 from ..evaluation import EvaluationError, noise_split
-from ..playback import load_run_source
 from ..vo.config import VoConfig
 from ..vo.evaluate import ate_rmse, run_sequence
 from .progress import throttled
+from .sequence_args import add_sequence_arguments, load_sequence
 
 
 def depth_icp_odometry(seq, progress=None) -> np.ndarray:
@@ -55,10 +55,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(
         prog="scripts/check_ground_truth", description=__doc__.split("\n\n")[0]
     )
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--scenario", help="synthetic scenario (robot 1)")
-    src.add_argument("--dataset", help="TUM RGB-D folder with ground truth")
-    p.add_argument("--camera", help="camera.yaml for a dataset folder without one")
+    add_sequence_arguments(p, "TUM RGB-D folder with ground truth")
     p.add_argument(
         "--steps", default="1,5,15,30", help="frame gaps of the relative motions compared"
     )
@@ -73,7 +70,7 @@ def main(argv=None) -> int:
         )
         return 2
     try:
-        seq = load_run_source(vars(args)).streams[0].sequence
+        seq = load_sequence(args)
         if seq.camera.sensor != "rgbd":
             raise EvaluationError(f"{seq.name} is {seq.camera.sensor}: the ICP needs depth images")
         gt = seq.frame_poses()

@@ -15,9 +15,9 @@ import cv2
 import numpy as np
 
 from ..errors import CoopSlamError
-from ..playback import load_run_source
 from ..vo.intrinsics_check import check_focal, match_pairs
 from .progress import throttled
+from .sequence_args import add_sequence_arguments, load_sequence
 
 # A focal length this far off the model's is worth acting on (the check itself is ~1 % precise).
 _ACT_RATIO = 0.03
@@ -27,10 +27,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(
         prog="scripts/check_intrinsics", description=__doc__.split("\n\n")[0]
     )
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--scenario", help="synthetic scenario (robot 1)")
-    src.add_argument("--dataset", help="TUM RGB-D or KITTI odometry folder with ground truth")
-    p.add_argument("--camera", help="camera.yaml for a dataset folder without one")
+    add_sequence_arguments(p, "TUM RGB-D or KITTI odometry folder with ground truth")
     p.add_argument("--gap", type=int, default=8, help="frames between the two frames of a pair")
     p.add_argument("--pairs", type=int, default=60, help="frame pairs used")
     p.add_argument(
@@ -45,7 +42,7 @@ def main(argv=None) -> int:
     )
 
     try:
-        seq = load_run_source(vars(args)).streams[0].sequence
+        seq = load_sequence(args)
 
         def load_gray(i: int) -> np.ndarray:
             img = seq.load_color(seq.frames[i])
