@@ -19,6 +19,7 @@ from coop_slam.geometry import invert, se3, transform_error, transform_points
 from coop_slam.vo import (
     EVENT_KEYFRAME_NEW,
     EVENT_KEYFRAME_REMOVE,
+    EVENT_KEYFRAME_UPDATE,
     EVENT_NEW_SEGMENT,
     EVENT_WARNING,
     STATE_INITIALIZING,
@@ -31,7 +32,7 @@ from coop_slam.vo import (
     VoError,
 )
 from coop_slam.vo.evaluate import ate_rmse, keyframe_ate, run_sequence
-from coop_slam.vo.local_ba import BaProblem, run_local_ba
+from coop_slam.vo.local_ba import BaProblem, BaResult, run_local_ba
 from coop_slam.vo.pose_opt import optimize_pose
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -329,3 +330,34 @@ def test_ignored_region_drops_its_keypoints_until_it_expires(room_sequence):
     vo2.reset()
     assert vo2._ignored == []
     vo2.close()
+
+
+def test_local_ba_announces_no_update_before_a_keyframes_new(room_sequence):
+    """Threaded, tracking can insert a keyframe that lands in a running BA's window before local
+    mapping announced it: that BA must not send an UPDATE for it (the server would then take the
+    UPDATE as the keyframe and reject its NEW as a duplicate)."""
+    stamps, frames, _ = room_sequence
+    with RgbdOdometry(sync_config(keyframe_ref_ratio=1.0), helpers_vo.CAMERA) as vo:
+        _track_all(vo, stamps[:12], frames[:12])
+        vo.drain_events()
+        vmap, mapper = vo.vo_map, vo._mapper
+        kf_ids = sorted(vmap.keyframes)
+        assert len(kf_ids) >= 3
+        mapper._processed.discard(kf_ids[-1])  # as if tracking had just inserted it
+        nudge = se3(np.eye(3), [0.001, 0.0, 0.0])
+        result = BaResult(
+            segment=vmap.segment,
+            ok=True,
+            kf_ids=np.array(kf_ids),
+            T_map_cam=np.array([vmap.keyframes[k].T_map_cam @ nudge for k in kf_ids]),
+            point_ids=np.zeros(0, np.int64),
+            points_map=np.zeros((0, 3)),
+            outlier_obs=np.zeros(0, bool),
+            obs_kf_ids=np.zeros(0, np.int64),
+            obs_point_ids=np.zeros(0, np.int64),
+        )
+        with vmap.lock:
+            mapper.apply_ba_result(vmap, result)
+        updated = {e.keyframe_id for e in vo.drain_events() if e.kind == EVENT_KEYFRAME_UPDATE}
+        assert updated == set(kf_ids[:-1])
+        assert np.allclose(vmap.keyframes[kf_ids[-1]].T_map_cam, result.T_map_cam[-1])

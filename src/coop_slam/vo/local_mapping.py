@@ -403,8 +403,12 @@ class LocalMapper:
             pid, k = int(result.obs_point_ids[o]), int(result.obs_kf_ids[o])
             if pts.alive[pid] and k in pts.obs[pid]:
                 vmap.erase_observation(pid, k)
+        # A keyframe tracking inserted after this BA's own can sit in its window before local
+        # mapping announced it: its NEW (a snapshot taken later) carries the moved pose, and an
+        # UPDATE first would reach the server as an unknown keyframe, its NEW then as a duplicate.
         for k in moved:
-            self._emit(VoEvent(EVENT_KEYFRAME_UPDATE, vmap.segment, k, vmap.snapshot(k)))
+            if k in self._processed:
+                self._emit(VoEvent(EVENT_KEYFRAME_UPDATE, vmap.segment, k, vmap.snapshot(k)))
 
     # --- keyframe culling -------------------------------------------------------------------------
     def cull_keyframes(self, vmap: Map, kf_id: int) -> list[int]:
