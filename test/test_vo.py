@@ -335,29 +335,37 @@ def test_ignored_region_drops_its_keypoints_until_it_expires(room_sequence):
 def test_local_ba_announces_no_update_before_a_keyframes_new(room_sequence):
     """Threaded, tracking can insert a keyframe that lands in a running BA's window before local
     mapping announced it: that BA must not send an UPDATE for it (the server would then take the
-    UPDATE as the keyframe and reject its NEW as a duplicate)."""
+    UPDATE as the keyframe and reject its NEW as a duplicate). Small moves wait until they add up.
+    """
     stamps, frames, _ = room_sequence
-    with RgbdOdometry(sync_config(keyframe_ref_ratio=1.0), helpers_vo.CAMERA) as vo:
+    cfg = sync_config(keyframe_ref_ratio=1.0, update_min_trans_m=0.002, update_min_rot_deg=0.05)
+    with RgbdOdometry(cfg, helpers_vo.CAMERA) as vo:
         _track_all(vo, stamps[:12], frames[:12])
         vo.drain_events()
         vmap, mapper = vo.vo_map, vo._mapper
         kf_ids = sorted(vmap.keyframes)
         assert len(kf_ids) >= 3
         mapper._processed.discard(kf_ids[-1])  # as if tracking had just inserted it
-        nudge = se3(np.eye(3), [0.001, 0.0, 0.0])
-        result = BaResult(
-            segment=vmap.segment,
-            ok=True,
-            kf_ids=np.array(kf_ids),
-            T_map_cam=np.array([vmap.keyframes[k].T_map_cam @ nudge for k in kf_ids]),
-            point_ids=np.zeros(0, np.int64),
-            points_map=np.zeros((0, 3)),
-            outlier_obs=np.zeros(0, bool),
-            obs_kf_ids=np.zeros(0, np.int64),
-            obs_point_ids=np.zeros(0, np.int64),
-        )
-        with vmap.lock:
-            mapper.apply_ba_result(vmap, result)
-        updated = {e.keyframe_id for e in vo.drain_events() if e.kind == EVENT_KEYFRAME_UPDATE}
-        assert updated == set(kf_ids[:-1])
-        assert np.allclose(vmap.keyframes[kf_ids[-1]].T_map_cam, result.T_map_cam[-1])
+
+        def move_all(step_m):
+            nudge = se3(np.eye(3), [step_m, 0.0, 0.0])
+            result = BaResult(
+                segment=vmap.segment,
+                ok=True,
+                kf_ids=np.array(kf_ids),
+                T_map_cam=np.array([vmap.keyframes[k].T_map_cam @ nudge for k in kf_ids]),
+                point_ids=np.zeros(0, np.int64),
+                points_map=np.zeros((0, 3)),
+                outlier_obs=np.zeros(0, bool),
+                obs_kf_ids=np.zeros(0, np.int64),
+                obs_point_ids=np.zeros(0, np.int64),
+            )
+            with vmap.lock:
+                mapper.apply_ba_result(vmap, result)
+            assert np.allclose(vmap.keyframes[kf_ids[-1]].T_map_cam, result.T_map_cam[-1])
+            return {e.keyframe_id for e in vo.drain_events() if e.kind == EVENT_KEYFRAME_UPDATE}
+
+        assert move_all(0.005) == set(kf_ids[:-1])
+        # Moves below update_min_trans_m (2 mm here) are not sent, until they add up to it.
+        assert move_all(0.0015) == set()
+        assert move_all(0.0015) == set(kf_ids[:-1])

@@ -23,6 +23,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..datasets.base import CameraModel
+from ..geometry import transform_error
 from .config import VoConfig
 from .features import FrameFeatures, level_scales
 from .local_ba import BaProblem, BaResult, BaWorker, run_local_ba
@@ -72,6 +73,7 @@ class LocalMapper:
         self.stats = {"ba_runs": 0, "ba_ms": [], "kf_culled": 0, "points_culled": 0, "fused": 0}
         self._queue: queue.Queue = queue.Queue()
         self._processed: set[int] = set()  # keyframes announced (NEW); only those may be culled
+        self._sent_pose: dict[int, np.ndarray] = {}  # T_map_cam in the last NEW / UPDATE sent
         self._idle = threading.Event()
         self._idle.set()
         self._stop = False
@@ -154,7 +156,7 @@ class LocalMapper:
             self._processed.add(kf_id)
             if kf_id not in vmap.keyframes:
                 return
-            self._emit(VoEvent(EVENT_KEYFRAME_NEW, vmap.segment, kf_id, vmap.snapshot(kf_id)))
+            self._announce(EVENT_KEYFRAME_NEW, vmap, kf_id)
         if run_ba and self.config.ba_enabled:
             with vmap.lock:
                 problem = self.build_ba_problem(vmap, kf_id)
@@ -382,6 +384,7 @@ class LocalMapper:
         )
 
     def apply_ba_result(self, vmap: Map, result: BaResult) -> None:
+        cfg = self.config
         self.stats["ba_runs"] += 1
         self.stats["ba_ms"].append(result.time_ms)
         if not result.ok or result.segment != vmap.segment:
@@ -407,8 +410,16 @@ class LocalMapper:
         # mapping announced it: its NEW (a snapshot taken later) carries the moved pose, and an
         # UPDATE first would reach the server as an unknown keyframe, its NEW then as a duplicate.
         for k in moved:
-            if k in self._processed:
-                self._emit(VoEvent(EVENT_KEYFRAME_UPDATE, vmap.segment, k, vmap.snapshot(k)))
+            sent = self._sent_pose.get(k)
+            if k in self._processed and sent is not None:
+                trans_m, rot_deg = transform_error(vmap.keyframes[k].T_map_cam, sent)
+                if trans_m >= cfg.update_min_trans_m or rot_deg >= cfg.update_min_rot_deg:
+                    self._announce(EVENT_KEYFRAME_UPDATE, vmap, k)
+
+    def _announce(self, kind: str, vmap: Map, kf_id: int) -> None:
+        snapshot = vmap.snapshot(kf_id)
+        self._sent_pose[kf_id] = snapshot.T_map_cam
+        self._emit(VoEvent(kind, vmap.segment, kf_id, snapshot))
 
     # --- keyframe culling -------------------------------------------------------------------------
     def cull_keyframes(self, vmap: Map, kf_id: int) -> list[int]:
@@ -453,6 +464,7 @@ class LocalMapper:
         if redundant <= cfg.kf_cull_redundancy * len(idx):
             return False
         vmap.remove_keyframe(c)
+        self._sent_pose.pop(c, None)
         self.stats["kf_culled"] += 1
         self._emit(VoEvent(EVENT_KEYFRAME_REMOVE, vmap.segment, c, None))
         return True
