@@ -345,7 +345,7 @@ def test_local_ba_announces_no_update_before_a_keyframes_new(room_sequence):
         vmap, mapper = vo.vo_map, vo._mapper
         kf_ids = sorted(vmap.keyframes)
         assert len(kf_ids) >= 3
-        mapper._processed.discard(kf_ids[-1])  # as if tracking had just inserted it
+        mapper._sent_pose.pop(kf_ids[-1])  # as if tracking had just inserted it
 
         def move_all(step_m):
             nudge = se3(np.eye(3), [step_m, 0.0, 0.0])

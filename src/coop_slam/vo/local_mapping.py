@@ -72,8 +72,8 @@ class LocalMapper:
         self._emit = emit
         self.stats = {"ba_runs": 0, "ba_ms": [], "kf_culled": 0, "points_culled": 0, "fused": 0}
         self._queue: queue.Queue = queue.Queue()
-        self._processed: set[int] = set()  # keyframes announced (NEW); only those may be culled
-        self._sent_pose: dict[int, np.ndarray] = {}  # T_map_cam in the last NEW / UPDATE sent
+        # Keyframes announced (NEW; only those may be culled or updated) -> T_map_cam last sent.
+        self._sent_pose: dict[int, np.ndarray] = {}
         self._idle = threading.Event()
         self._idle.set()
         self._stop = False
@@ -153,7 +153,6 @@ class LocalMapper:
         self._process_new_keyframe(vmap, kf_id)
         with vmap.lock:
             self._cull_points(vmap)
-            self._processed.add(kf_id)
             if kf_id not in vmap.keyframes:
                 return
             self._announce(EVENT_KEYFRAME_NEW, vmap, kf_id)
@@ -213,7 +212,7 @@ class LocalMapper:
         for target, pids in targets:
             with vmap.lock:
                 touched |= self._fuse_into(vmap, target, pids)
-        return {p for p in touched if vmap.points.alive[p]}
+        return touched  # may hold points fused away since: update_point_stats skips dead ones
 
     def _fuse_into(self, vmap: Map, target: Keyframe, pids: np.ndarray) -> set[int]:
         """Fuse points ``pids`` into keyframe ``target`` (map lock held)."""
@@ -411,7 +410,7 @@ class LocalMapper:
         # UPDATE first would reach the server as an unknown keyframe, its NEW then as a duplicate.
         for k in moved:
             sent = self._sent_pose.get(k)
-            if k in self._processed and sent is not None:
+            if sent is not None:
                 trans_m, rot_deg = transform_error(vmap.keyframes[k].T_map_cam, sent)
                 if trans_m >= cfg.update_min_trans_m or rot_deg >= cfg.update_min_rot_deg:
                     self._announce(EVENT_KEYFRAME_UPDATE, vmap, k)
@@ -442,7 +441,7 @@ class LocalMapper:
         if (
             c in (vmap.first_keyframe_id, kf_id)
             or c not in vmap.keyframes
-            or c not in self._processed
+            or c not in self._sent_pose
         ):
             return False
         kf = vmap.keyframes[c]
