@@ -58,9 +58,13 @@ def test_unrelated_places_never_merge(world):
     assert merge is None and "not merged" in message
 
 
-def test_co_observation_merges_as_rendezvous(world):
+def _co_observe(world, sighted: bool):
+    """Robots 1 and 2 look at the same scene at the same times; (merges, server)."""
     points, desc, _, vocab = world
     server = TeamServer(_config(robots=[1, 2]), vocab)
+    if sighted:  # a marker sighting before either robot has a keyframe
+        merge, message = server.request_rendezvous(1, 2, stamp_s=-1.0)
+        assert merge is None and "no keyframes" in message
     yaws = np.linspace(1.0, 1.6, 4)
     merges = []
     for kf_a, kf_b in zip(
@@ -68,10 +72,21 @@ def test_co_observation_merges_as_rendezvous(world):
         _keyframes(2, yaws + 0.05, points, desc, offset=(0.3, -0.2), seed=50),
     ):
         merges += server.add_keyframe(kf_a) + server.add_keyframe(kf_b)
+    return merges, server
+
+
+def test_co_observation_merges_as_rendezvous(world):
+    merges, server = _co_observe(world, sighted=False)
     assert len(merges) == 1 and merges[0].type == "rendezvous"
-    assert merges[0].keyframe_b >= 2  # the first verification waits for a second, agreeing one
-    dt, dr = transform_error(merges[0].T_mapA_mapB, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
-    assert dt < 0.02 and dr < 0.5
+    # The first verification waits for a second, agreeing one ...
+    (_, (robot, first_kf)), _ = server._co_observations[(1, 2)][0]
+    assert robot == 2 and merges[0].keyframe_b > first_kf
+    # ... unless a sighting said the robots are together: then the first one merges.
+    cued, _ = _co_observe(world, sighted=True)
+    assert len(cued) == 1 and cued[0].type == "rendezvous" and cued[0].keyframe_b == first_kf
+    for m in merges + cued:
+        dt, dr = transform_error(m.T_mapA_mapB, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
+        assert dt < 0.02 and dr < 0.5
     merge, message = server.request_rendezvous(1, 2)
     assert merge is None and "already merged" in message
     assert server.request_rendezvous(1, 7)[1].startswith("robot 7 is unknown")

@@ -87,6 +87,10 @@ class RendezvousConfig:
     auto_confirmations: int = 2
     confirm_trans_m: float = 0.05
     confirm_rot_deg: float = 2.0
+    # A sighting / operator request says two robots are together, which rules out look-alike
+    # places: for this long after it their co-observations merge on one verification, and a
+    # merge between them by any path is a rendezvous [s].
+    together_s: float = 5.0
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
 
     def validate(self) -> None:
@@ -99,6 +103,7 @@ class RendezvousConfig:
         require(self.auto_confirmations >= 1, "rendezvous.auto_confirmations must be >= 1")
         require(self.confirm_trans_m > 0, "rendezvous.confirm_trans_m must be > 0")
         require(self.confirm_rot_deg > 0, "rendezvous.confirm_rot_deg must be > 0")
+        require(self.together_s >= 0, "rendezvous.together_s must be >= 0")
         self.registration.validate()
 
 
@@ -237,6 +242,7 @@ class TeamServer:
         # Cued requests (marker sighting, operator) not verified yet: the keyframes that show the
         # shared scene often reach the server just after the cue. robot pair -> _OpenRequest
         self._open_requests: dict[tuple[int, int], _OpenRequest] = {}
+        self._seen_together: dict[tuple[int, int], float] = {}  # robot pair -> latest cue [s]
         self._kf_count: dict[int, int] = {}  # keyframes received per robot
         self._last_constraint: dict[int, int] = {}  # robot -> its keyframe count at the last one
         self._need_full = False
@@ -548,11 +554,13 @@ class TeamServer:
                 )
             elif res.accepted:
                 verified_roots.add(root)
-                # Seen at (about) the same time, it is a rendezvous, whichever path verified it.
+                # Seen at (about) the same time or while known to be together, it is a
+                # rendezvous, whichever path verified it.
                 dt = abs(self.keyframes[cand_key].record.stamp_s - rec.stamp_s)
                 kind = (
                     TYPE_RENDEZVOUS
                     if dt <= self.config.rendezvous.window_s
+                    or self._together(cand_key[0], rb, rec.stamp_s)
                     else TYPE_PLACE_RECOGNITION
                 )
                 self._pending[_pair(cand_key[0], rb)] = _Verified(
@@ -691,11 +699,18 @@ class TeamServer:
         for other in self.groups.robots:
             if self.groups.same_group(other, rec.robot_id):
                 continue
+            cued = self._together(other, rec.robot_id, rec.stamp_s)
             for key_a in self._near_in_time(other, rec.stamp_s, cfg.window_s)[:2]:
-                merge = self._verify_rendezvous(key_a, key_b, rec.stamp_s, confirm=True)
+                merge = self._verify_rendezvous(key_a, key_b, rec.stamp_s, confirm=not cued)
                 if merge is not None:
                     return [merge]
         return []
+
+    def _together(self, robot_a: int, robot_b: int, stamp_s: float) -> bool:
+        """Whether a sighting / operator request put the two robots together shortly before
+        (or after: keyframes reach the server late) stamp_s."""
+        cue = self._seen_together.get(_pair(robot_a, robot_b))
+        return cue is not None and abs(stamp_s - cue) <= self.config.rendezvous.together_s
 
     def _confirmed(self, key_a, key_b, res: RelativePoseResult) -> bool:
         """Whether earlier automatic verifications of this robot pair (either direction, other
@@ -796,6 +811,8 @@ class TeamServer:
             if None in latest:
                 return None, "no keyframes yet from one of the robots"
             stamp_s = max(latest)  # now; a robot that stands still falls back to its latest
+        pair = _pair(robot_a, robot_b)
+        self._seen_together[pair] = max(stamp_s, self._seen_together.get(pair, stamp_s))
         keys_a = self._near_in_time(robot_a, stamp_s, cfg.request_window_s, latest_fallback=True)
         keys_b = self._near_in_time(robot_b, stamp_s, cfg.request_window_s, latest_fallback=True)
         if not keys_a or not keys_b:
