@@ -51,6 +51,9 @@ def test_unrelated_places_never_merge(world):
     server = TeamServer(_config(robots=[1, 2]), vocab)
     for kf in kfs_a:
         server.add_keyframe(kf)
+    # A marker sighting says the robots are together (facing each other across an empty room):
+    # co-observations then need no second verification, but still a shared scene.
+    server.request_rendezvous(1, 2, stamp_s=0.0)
     for kf in _keyframes(2, np.linspace(0, 2 * np.pi, 20), other_points, other_desc, seed=7):
         assert server.add_keyframe(kf) == []  # same stamps: co-observation is tried too
     assert server.merges == [] and server.groups.groups() == [[1], [2]]
