@@ -32,7 +32,7 @@ from coop_slam.vo import (
     VoError,
 )
 from coop_slam.vo.evaluate import ate_rmse, keyframe_ate, run_sequence
-from coop_slam.vo.local_ba import BaProblem, BaResult, run_local_ba
+from coop_slam.vo.local_ba import BaProblem, BaResult, planar_prior, run_local_ba
 from coop_slam.vo.pose_opt import optimize_pose
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -145,6 +145,80 @@ def test_local_ba_reduces_error_of_perturbed_map():
     assert pose_after < 0.3 * pose_before and pose_after < 0.01
     assert pts_after < 0.5 * pts_before  # mono points 4 m away stay ~2 cm uncertain
     assert result.outlier_obs.mean() < 0.05
+
+
+UP_CAM = np.array([0.0, -1.0, 0.0])  # floor normal of a level camera (optical frame: y down)
+
+
+def _tilt_height(T_map_cam):
+    """(tilt [deg], height [m]) of a camera pose against the start's level plane (up = -y)."""
+    up = T_map_cam[:3, :3] @ UP_CAM
+    return np.degrees(np.arccos(np.clip(up @ UP_CAM, -1, 1))), float(T_map_cam[:3, 3] @ UP_CAM)
+
+
+def test_planar_prior_informs_only_height_and_tilt():
+    yawed = se3(Rotation.from_euler("y", 30, degrees=True).as_matrix(), [1.0, 0.0, 2.0])
+    T_prior, info = planar_prior(yawed, UP_CAM, np.radians(0.2), 0.01)
+    assert np.allclose(T_prior, yawed)  # level, at start height: its own mean, whatever its heading
+    assert np.linalg.matrix_rank(info, tol=1.0) == 3  # height, roll, pitch
+    # Pitched 0.5 deg about the camera x axis and 3 cm up: chi2 = (0.5/0.2)^2 + (3/1)^2.
+    off = yawed @ se3(Rotation.from_euler("x", 0.5, degrees=True).as_matrix(), [0, 0, 0])
+    off[:3, 3] += 0.03 * UP_CAM
+    T_prior, info = planar_prior(off, UP_CAM, np.radians(0.2), 0.01)
+    assert np.allclose(T_prior, yawed, atol=1e-9)
+    import gtsam
+
+    err = gtsam.Pose3(T_prior).localCoordinates(gtsam.Pose3(off))
+    assert err @ info @ err == pytest.approx(2.5**2 + 3.0**2, rel=1e-3)
+
+
+def test_local_ba_planar_prior_holds_a_weakly_seen_keyframe_level():
+    """A keyframe that sees only a few distant points without depth is barely constrained in
+    pitch and height; a ground robot's planar prior puts it back on the floor plane."""
+    rng = np.random.default_rng(4)
+    poses, points, obs_kf, obs_pt, uv, ur = _ba_scene(rng)
+    last = len(poses) - 1
+    weak = (obs_kf != last) | (obs_pt < 12)  # the last keyframe keeps 12 observations ...
+    ur = np.where(obs_kf == last, np.nan, ur)  # ... without depth
+    tilted = poses.copy()
+    tilted[last] = poses[last] @ se3(
+        Rotation.from_euler("x", 1.0, degrees=True).as_matrix(), [0, 0, 0]
+    )
+    tilted[last][:3, 3] += 0.03 * UP_CAM
+
+    def solve(planar):
+        problem = BaProblem(
+            segment=0,
+            kf_ids=np.arange(1, len(poses) + 1),
+            T_map_cam=tilted,
+            fixed=np.array([True] * last + [False]),
+            point_ids=np.arange(1, len(points) + 1),
+            points_map=points.copy(),
+            obs_kf=obs_kf[weak],
+            obs_pt=obs_pt[weak],
+            obs_kp=obs_pt[weak],
+            obs_uv=uv[weak],
+            obs_u_right=ur[weak],
+            obs_octave=np.full(int(weak.sum()), 4),  # coarse keypoints: 2 px each
+            fx=K[0, 0],
+            fy=K[1, 1],
+            cx=K[0, 2],
+            cy=K[1, 2],
+            baseline_m=0.08,
+            scale_factor=1.2,
+            n_levels=8,
+            iterations=20,
+            planar_up_cam=UP_CAM if planar else None,
+            planar_sigmas=(np.radians(0.05), 0.003),
+        )
+        result = run_local_ba(problem)
+        assert result.ok, result.message
+        return _tilt_height(result.T_map_cam[last])
+
+    tilt_free, height_free = solve(planar=False)
+    tilt, height = solve(planar=True)
+    assert tilt_free > 0.02 and abs(height_free) > 0.002  # BA alone leaves it off the plane
+    assert tilt < 0.25 * tilt_free and abs(height) < 0.25 * abs(height_free)
 
 
 # --- synthetic tracking ---------------------------------------------------------------------------

@@ -91,6 +91,8 @@ class ClientNode:
 
         config_file = rospy.get_param("~config", "")
         self.vo_cfg = load_client_config(config_file, "vo", VoConfig, rospy.get_param("~vo", {}))
+        if self.vo_cfg.planar_motion:  # the floor normal (base z) as the camera sees it
+            self.vo_cfg.planar_up_cam = (self.T_base_cam[:3, :3].T @ [0.0, 0.0, 1.0]).tolist()
         self._RgbdOdometry = RgbdOdometry
         self.vo = None
         self.camera = None

@@ -79,6 +79,14 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="clients do not look for other robots' markers (rendezvous without cue)",
     )
     p.add_argument(
+        "--ground-robots",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the cameras sit on bases driving on a level floor, so local BA keeps them level "
+        "(client vo.planar_motion); default: on for synthetic scenarios (wheeled robots), off "
+        "for datasets and bags",
+    )
+    p.add_argument(
         "--rendezvous",
         action="append",
         default=[],
@@ -340,6 +348,8 @@ def run(args: argparse.Namespace) -> int:
             launch_args.append(f"{flag}:={os.path.abspath(arg)}")
     if args.no_markers:
         launch_args.append("marker_every_frames:=0")
+    ground = args.ground_robots if args.ground_robots is not None else bool(args.scenario)
+    launch_args.append(f"ground_robots:={str(ground).lower()}")
     bag_path = os.path.join(out, "run.bag")
     launch_args.append(f"record_bag:={bag_path}")
     launch_args.append(f"record_topics:={' '.join(RunRecorder(robot_ids).topics())}")

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from ..config import require
 
 
@@ -102,6 +104,15 @@ class VoConfig:
     # 0.05 deg cut the keyframe stream 2.7 -> 1.1 MB/s per robot but cost 0.2-0.3 cm team ATE.
     update_min_trans_m: float = 0.0  # [m]
     update_min_rot_deg: float = 0.0  # [deg]
+    # Ground robot: the camera sits fixed on a base that drives on one level floor, so it keeps
+    # its height and its tilt. Local BA then holds keyframes to that (soft) plane; it removes the
+    # pitch / height drift of views with little 3D structure (facing a wall in a turn). Off for
+    # hand-held, flying or legged cameras.
+    planar_motion: bool = False
+    planar_up_cam: list = field(default_factory=lambda: [0.0, -1.0, 0.0])  # floor normal in the
+    # camera optical frame (level camera: -y); the client node takes it from ~T_base_cam
+    planar_sigma_height_m: float = 0.01  # camera height std about its start height [m]
+    planar_sigma_tilt_deg: float = 0.2  # camera roll / pitch std about its start tilt [deg]
     kf_culling: bool = True
     kf_cull_redundancy: float = 0.9  # fraction of points seen by >= kf_cull_observers other KFs
     kf_cull_observers: int = 3
@@ -154,6 +165,14 @@ class VoConfig:
         require(
             self.ba_window >= 1 and self.ba_iterations >= 1,
             "local BA needs a window and iterations",
+        )
+        require(
+            len(self.planar_up_cam) == 3 and np.linalg.norm(self.planar_up_cam) > 0.5,
+            "vo.planar_up_cam must be a unit 3-vector [x, y, z] in the camera optical frame",
+        )
+        require(
+            self.planar_sigma_height_m > 0 and self.planar_sigma_tilt_deg > 0,
+            "vo.planar_sigma_height_m and vo.planar_sigma_tilt_deg must be > 0",
         )
         require(0 < self.kf_cull_redundancy <= 1.0, "vo.kf_cull_redundancy must be in (0, 1]")
         require(

@@ -57,6 +57,53 @@ class BaProblem:
     # fx * baseline * c at every range, much smaller than a pixel for a Kinect, so depth then
     # constrains the points (correlated (u, u_right) noise: u_right = u - disparity).
     disparity_sigma_px: float | None = None
+    # Ground robot (see VoConfig.planar_motion): the floor normal in the camera frame, and the
+    # (tilt [rad], height [m]) std of the soft prior holding each keyframe at its start height and
+    # tilt. None: no prior.
+    planar_up_cam: np.ndarray | None = None
+    planar_sigmas: tuple[float, float] = (0.0, 0.0)
+
+
+def _level_frame(up_cam: np.ndarray) -> np.ndarray:
+    """T_cam_level: a frame at the camera centre whose z axis is the floor normal ``up_cam``."""
+    z = np.asarray(up_cam, float) / np.linalg.norm(up_cam)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    return T
+
+
+def planar_prior(
+    T_map_cam: np.ndarray, up_cam: np.ndarray, sigma_tilt_rad: float, sigma_height_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Prior of a ground robot's camera: (mean T_map_cam, 6x6 information in GTSAM's Pose3
+    tangent order (rotation, translation) at the camera). The map frame is the segment's first
+    camera pose, so the floor-parallel plane through the camera centre is the level frame at the
+    map origin; the mean keeps the pose's position along the floor and its heading and puts it
+    back on that plane, level. Only height and tilt are informed."""
+    T_cam_level = _level_frame(up_cam)
+    T_level_cam = np.linalg.inv(T_cam_level)
+    # The keyframe's level frame, seen from the start's level frame.
+    T = T_level_cam @ T_map_cam @ T_cam_level
+    yaw = np.arctan2(T[1, 0], T[0, 0])
+    c, s = np.cos(yaw), np.sin(yaw)
+    M = np.eye(4)
+    M[:2, :2] = [[c, -s], [s, c]]
+    M[:2, 3] = T[:2, 3]
+    T_prior = T_cam_level @ M @ T_level_cam
+    free = 1e-6  # heading and position along the floor: (almost) no information
+    info_level = np.diag(
+        [sigma_tilt_rad**-2, sigma_tilt_rad**-2, free, free, free, sigma_height_m**-2]
+    )
+    # A tangent step at the camera, xi_cam, is Ad(T_level_cam) xi_cam at the level frame; with a
+    # pure rotation between them the adjoint is block-diagonal.
+    R = T_level_cam[:3, :3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, 3:] = R
+    return T_prior, A.T @ info_level @ A
 
 
 @dataclass
@@ -144,6 +191,11 @@ def run_local_ba(problem: BaProblem) -> BaResult:
             values.insert(X(k), pose)
             if p.fixed[k]:
                 graph.add(gtsam.PriorFactorPose3(X(k), pose, fixed_noise))
+        if p.planar_up_cam is not None:
+            for k in np.flatnonzero(~np.asarray(p.fixed, bool)):
+                T_prior, info = planar_prior(p.T_map_cam[k], p.planar_up_cam, *p.planar_sigmas)
+                model = gtsam.noiseModel.Gaussian.Information(info)
+                graph.add(gtsam.PriorFactorPose3(X(int(k)), gtsam.Pose3(T_prior), model))
         for j, xyz in enumerate(p.points_map):
             values.insert(L(j), np.asarray(xyz, dtype=float))
         # Observations in front of their camera only: GTSAM's stereo camera throws on cheirality.

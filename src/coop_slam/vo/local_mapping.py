@@ -378,6 +378,8 @@ class LocalMapper:
             iterations=cfg.ba_iterations,
             huber_mono=cfg.ba_huber_mono,
             huber_stereo=cfg.ba_huber_stereo,
+            planar_up_cam=np.asarray(cfg.planar_up_cam, float) if cfg.planar_motion else None,
+            planar_sigmas=(np.radians(cfg.planar_sigma_tilt_deg), cfg.planar_sigma_height_m),
             chi2_mono=cfg.chi2_mono,
             chi2_stereo=cfg.chi2_stereo,
         )
