@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry import invert, se3
+
 
 @dataclass
 class BaProblem:
@@ -70,9 +72,7 @@ def _level_frame(up_cam: np.ndarray) -> np.ndarray:
     helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
     x = np.cross(helper, z)
     x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
-    return T
+    return se3(np.column_stack([x, np.cross(z, x), z]))
 
 
 def planar_prior(
@@ -84,15 +84,13 @@ def planar_prior(
     map origin; the mean keeps the pose's position along the floor and its heading and puts it
     back on that plane, level. Only height and tilt are informed."""
     T_cam_level = _level_frame(up_cam)
-    T_level_cam = np.linalg.inv(T_cam_level)
+    T_level_cam = invert(T_cam_level)
     # The keyframe's level frame, seen from the start's level frame.
     T = T_level_cam @ T_map_cam @ T_cam_level
     yaw = np.arctan2(T[1, 0], T[0, 0])
     c, s = np.cos(yaw), np.sin(yaw)
-    M = np.eye(4)
-    M[:2, :2] = [[c, -s], [s, c]]
-    M[:2, 3] = T[:2, 3]
-    T_prior = T_cam_level @ M @ T_level_cam
+    level = se3(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), [T[0, 3], T[1, 3], 0.0])
+    T_prior = T_cam_level @ level @ T_level_cam
     free = 1e-6  # heading and position along the floor: (almost) no information
     info_level = np.diag(
         [sigma_tilt_rad**-2, sigma_tilt_rad**-2, free, free, free, sigma_height_m**-2]
