@@ -102,26 +102,21 @@ def _ba_scene(rng, n_kf=5, n_pts=300):
     return np.array(poses), points, np.array(obs_kf), np.array(obs_pt), np.array(uv), np.array(ur)
 
 
-def test_local_ba_reduces_error_of_perturbed_map():
-    rng = np.random.default_rng(1)
-    poses, points, obs_kf, obs_pt, uv, ur = _ba_scene(rng)
-    noisy_poses = np.array(
-        [T if k == 0 else T @ _random_pose(rng, 1.0, 0.03) for k, T in enumerate(poses)]
-    )
-    noisy_points = points + rng.normal(0, 0.04, points.shape)
-    problem = BaProblem(
+def _ba_problem(T_map_cam, fixed, points_map, obs_kf, obs_pt, uv, ur, octave, **kw) -> BaProblem:
+    """A local BA problem over _ba_scene's camera and points (20 iterations)."""
+    return BaProblem(
         segment=0,
-        kf_ids=np.arange(1, len(poses) + 1),
-        T_map_cam=noisy_poses,
-        fixed=np.array([True] + [False] * (len(poses) - 1)),
-        point_ids=np.arange(1, len(points) + 1),
-        points_map=noisy_points,
+        kf_ids=np.arange(1, len(T_map_cam) + 1),
+        T_map_cam=T_map_cam,
+        fixed=np.asarray(fixed),
+        point_ids=np.arange(1, len(points_map) + 1),
+        points_map=points_map,
         obs_kf=obs_kf,
         obs_pt=obs_pt,
         obs_kp=obs_pt,
         obs_uv=uv,
         obs_u_right=ur,
-        obs_octave=np.zeros(len(obs_kf), int),
+        obs_octave=octave,
         fx=K[0, 0],
         fy=K[1, 1],
         cx=K[0, 2],
@@ -130,7 +125,20 @@ def test_local_ba_reduces_error_of_perturbed_map():
         scale_factor=1.2,
         n_levels=8,
         iterations=20,
+        **kw,
     )
+
+
+def test_local_ba_reduces_error_of_perturbed_map():
+    rng = np.random.default_rng(1)
+    poses, points, obs_kf, obs_pt, uv, ur = _ba_scene(rng)
+    noisy_poses = np.array(
+        [T if k == 0 else T @ _random_pose(rng, 1.0, 0.03) for k, T in enumerate(poses)]
+    )
+    noisy_points = points + rng.normal(0, 0.04, points.shape)
+    fixed = [True] + [False] * (len(poses) - 1)
+    octave = np.zeros(len(obs_kf), int)
+    problem = _ba_problem(noisy_poses, fixed, noisy_points, obs_kf, obs_pt, uv, ur, octave)
     result = run_local_ba(problem)
     assert result.ok, result.message
     assert result.error_after < 0.5 * result.error_before
@@ -187,27 +195,15 @@ def test_local_ba_planar_prior_holds_a_weakly_seen_keyframe_level():
     tilted[last][:3, 3] += 0.03 * UP_CAM
 
     def solve(planar):
-        problem = BaProblem(
-            segment=0,
-            kf_ids=np.arange(1, len(poses) + 1),
-            T_map_cam=tilted,
-            fixed=np.array([True] * last + [False]),
-            point_ids=np.arange(1, len(points) + 1),
-            points_map=points.copy(),
-            obs_kf=obs_kf[weak],
-            obs_pt=obs_pt[weak],
-            obs_kp=obs_pt[weak],
-            obs_uv=uv[weak],
-            obs_u_right=ur[weak],
-            obs_octave=np.full(int(weak.sum()), 4),  # coarse keypoints: 2 px each
-            fx=K[0, 0],
-            fy=K[1, 1],
-            cx=K[0, 2],
-            cy=K[1, 2],
-            baseline_m=0.08,
-            scale_factor=1.2,
-            n_levels=8,
-            iterations=20,
+        problem = _ba_problem(
+            tilted,
+            [True] * last + [False],
+            points.copy(),
+            obs_kf[weak],
+            obs_pt[weak],
+            uv[weak],
+            ur[weak],
+            np.full(int(weak.sum()), 4),  # coarse keypoints: 2 px each
             planar_up_cam=UP_CAM if planar else None,
             planar_sigmas=(np.radians(0.05), 0.003),
         )
