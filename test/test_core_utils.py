@@ -105,3 +105,15 @@ def test_throttled_progress_reports_the_first_and_last_call_and_not_every_one():
     for i in range(1, 101):
         progress(i, 100)
     assert seen == [1, 100]
+
+
+def test_merge_overrides_changes_keys_not_sections():
+    from coop_slam.config import merge_overrides
+
+    values = {"global_ba": {"iterations": 10, "after_merge": True}, "optimize_every": 5}
+    out = merge_overrides(values, {"global_ba": {"planar_motion": True}, "optimize_every": 2})
+    assert out == {
+        "global_ba": {"iterations": 10, "after_merge": True, "planar_motion": True},
+        "optimize_every": 2,
+    }
+    assert values["global_ba"] == {"iterations": 10, "after_merge": True}  # input untouched

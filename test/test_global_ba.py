@@ -99,3 +99,25 @@ def test_global_ba_refuses_bad_groups():
     records[3].camera = other
     with pytest.raises(GlobalBaError, match="one camera model"):
         global_bundle_adjustment(records, truth, links)
+
+
+def test_planar_global_ba_holds_ground_robots_at_their_height_and_tilt():
+    """Ground robots (global_ba.planar_motion): the robots' planes are the group's xy plane at
+    their camera height, the cameras' floor normal -y; with weak depth, keyframes thrown off in
+    height (5 cm) come back closer to it than without the prior."""
+    from coop_slam.team.global_ba import _planes
+
+    records, truth, links = _team()
+    keys = [(r.robot_id, r.keyframe_id) for r in records]
+    up_cam, T_group_plane = _planes(records, truth, keys)
+    assert np.allclose(up_cam, [0.0, -1.0, 0.0], atol=1e-9)
+    for T_plane in T_group_plane:
+        assert np.allclose(T_plane[:3, 2], [0.0, 0.0, 1.0], atol=1e-9)  # the floor normal
+        assert abs(T_plane[2, 3] - 1.2) < 1e-6  # the cameras' height in the group frame
+    start = _perturbed(truth, (1, 1), seed=4)
+    height_err = {}
+    for planar in (False, True):
+        config = GlobalBaConfig(iterations=20, disparity_sigma_px=0.5, planar_motion=planar)
+        res = global_bundle_adjustment(records, start, links, {(1, 1)}, config)
+        height_err[planar] = np.mean([abs(res.poses[k][2, 3] - truth[k][2, 3]) for k in truth])
+    assert height_err[True] < height_err[False] and height_err[True] < 0.008

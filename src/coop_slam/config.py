@@ -92,6 +92,18 @@ def load_yaml_config(cls: type[C], path: str | os.PathLike, section: str | None 
     return load_config(cls, data)
 
 
+def merge_overrides(values: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict:
+    """``values`` with ``overrides`` on top, section by section: a ROS param ``~global_ba/x``
+    arrives as ``{'global_ba': {'x': ...}}`` and must change that key, not replace the section."""
+    out = dict(values)
+    for key, value in overrides.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = merge_overrides(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
 def require(condition: bool, message: str) -> None:
     """Raise ConfigError(message) unless condition holds (for ``validate`` methods)."""
     if not condition:

@@ -18,7 +18,7 @@ from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 from sensor_msgs.msg import CameraInfo, Image
 
-from ..config import load_config
+from ..config import load_config, merge_overrides
 from ..errors import CoopSlamError
 from ..geometry import invert, se3_from_quat, transform_points
 from ..keyframe import KeyframeRecord
@@ -62,7 +62,7 @@ def load_client_config(config_file: str, section: str, cls, overrides: dict):
             values = dict(data.get(section) or {})
         elif section == "vo":
             values = dict(data)
-    values.update(overrides)
+    values = merge_overrides(values, overrides)
     return load_config(cls, values, prefix=f"{section}.")
 
 

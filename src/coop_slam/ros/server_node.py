@@ -22,7 +22,7 @@ from geometry_msgs.msg import PoseStamped
 from std_msgs.msg import String
 
 from ..bow import Vocabulary
-from ..config import load_config
+from ..config import load_config, merge_overrides
 from ..errors import CoopSlamError
 from ..geometry import invert, se3_from_quat
 from ..team.server import ServerConfig, TeamServer
@@ -45,7 +45,7 @@ def load_server_config(config_file: str, overrides: dict) -> ServerConfig:
             raise CoopSlamError(f"server config file not found: {config_file}")
         with open(config_file, encoding="utf-8") as fh:
             values = dict((yaml.safe_load(fh) or {}).get("server", {}))
-    values.update(overrides)
+    values = merge_overrides(values, overrides)
     return load_config(ServerConfig, values)
 
 

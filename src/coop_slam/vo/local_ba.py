@@ -59,11 +59,13 @@ class BaProblem:
     # fx * baseline * c at every range, much smaller than a pixel for a Kinect, so depth then
     # constrains the points (correlated (u, u_right) noise: u_right = u - disparity).
     disparity_sigma_px: float | None = None
-    # Ground robot (see VoConfig.planar_motion): the floor normal in the camera frame, and the
-    # (tilt [rad], height [m]) std of the soft prior holding each keyframe at its start height and
-    # tilt. None: no prior.
+    # Ground robot (see VoConfig.planar_motion): the floor normal in the camera frame ((3,), or
+    # (K, 3) one per keyframe), and the (tilt [rad], height [m]) std of the soft prior holding each
+    # keyframe at its start height and tilt. None: no prior. planar_T_map_plane (K, 4, 4): each
+    # keyframe's plane (see planar_prior); None: the level frame at the map origin.
     planar_up_cam: np.ndarray | None = None
     planar_sigmas: tuple[float, float] = (0.0, 0.0)
+    planar_T_map_plane: np.ndarray | None = None
 
 
 def _level_frame(up_cam: np.ndarray) -> np.ndarray:
@@ -76,21 +78,27 @@ def _level_frame(up_cam: np.ndarray) -> np.ndarray:
 
 
 def planar_prior(
-    T_map_cam: np.ndarray, up_cam: np.ndarray, sigma_tilt_rad: float, sigma_height_m: float
+    T_map_cam: np.ndarray,
+    up_cam: np.ndarray,
+    sigma_tilt_rad: float,
+    sigma_height_m: float,
+    T_map_plane: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Prior of a ground robot's camera: (mean T_map_cam, 6x6 information in GTSAM's Pose3
-    tangent order (rotation, translation) at the camera). The map frame is the segment's first
-    camera pose, so the floor-parallel plane through the camera centre is the level frame at the
-    map origin; the mean keeps the pose's position along the floor and its heading and puts it
-    back on that plane, level. Only height and tilt are informed."""
+    tangent order (rotation, translation) at the camera). ``T_map_plane`` is the plane the camera
+    centre moves in (its z axis the floor normal); default: the client's map frame is the
+    segment's first camera pose, so that plane is the level frame at the map origin. The mean
+    keeps the pose's position along the floor and its heading and puts it back on that plane,
+    level. Only height and tilt are informed."""
     T_cam_level = _level_frame(up_cam)
     T_level_cam = invert(T_cam_level)
-    # The keyframe's level frame, seen from the start's level frame.
-    T = T_level_cam @ T_map_cam @ T_cam_level
+    T_plane_map = T_level_cam if T_map_plane is None else invert(T_map_plane)
+    # The keyframe's level frame, seen from the plane frame.
+    T = T_plane_map @ T_map_cam @ T_cam_level
     yaw = np.arctan2(T[1, 0], T[0, 0])
     c, s = np.cos(yaw), np.sin(yaw)
     level = se3(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), [T[0, 3], T[1, 3], 0.0])
-    T_prior = T_cam_level @ level @ T_level_cam
+    T_prior = invert(T_plane_map) @ level @ T_level_cam
     free = 1e-6  # heading and position along the floor: (almost) no information
     info_level = np.diag(
         [sigma_tilt_rad**-2, sigma_tilt_rad**-2, free, free, free, sigma_height_m**-2]
@@ -190,8 +198,10 @@ def run_local_ba(problem: BaProblem) -> BaResult:
             if p.fixed[k]:
                 graph.add(gtsam.PriorFactorPose3(X(k), pose, fixed_noise))
         if p.planar_up_cam is not None:
+            up_cam = np.broadcast_to(np.asarray(p.planar_up_cam, float), (len(p.kf_ids), 3))
             for k in np.flatnonzero(~np.asarray(p.fixed, bool)):
-                T_prior, info = planar_prior(p.T_map_cam[k], p.planar_up_cam, *p.planar_sigmas)
+                plane = None if p.planar_T_map_plane is None else p.planar_T_map_plane[k]
+                T_prior, info = planar_prior(p.T_map_cam[k], up_cam[k], *p.planar_sigmas, plane)
                 model = gtsam.noiseModel.Gaussian.Information(info)
                 graph.add(gtsam.PriorFactorPose3(X(int(k)), gtsam.Pose3(T_prior), model))
         for j, xyz in enumerate(p.points_map):
