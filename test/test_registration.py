@@ -378,3 +378,25 @@ def test_real_tum_pairs():
             result = estimate(kf_a, kf_b)
             assert result.accepted, f"{estimate.__name__} {a}-{b}: {result.reason}"
             _assert_close(result.T_a_b, T_gt, trans_m, rot_deg)
+
+
+def test_singular_ba_reports_infinite_sigmas_instead_of_raising():
+    """Marginals fail on a singular problem (covariance inf): the result says 'unknown' (inf), so
+    the server falls back to its default factor noise (seen on RedKitchen with ba_use_depth off:
+    numpy's LinAlgError took the registration down)."""
+    from coop_slam.registration.ba import BaResult
+
+    res = BaResult(
+        T_camA_camB=np.eye(4),
+        points_camA=np.zeros((0, 3)),
+        errors_a_px=np.zeros(0),
+        errors_b_px=np.zeros(0),
+        inliers=np.zeros(0, bool),
+        rms_px=0.0,
+        initial_rms_px=0.0,
+        n_iterations=0,
+        covariance=np.full((6, 6), np.inf),
+    )
+    assert res.sigma_rot_deg == np.inf and res.sigma_trans_m == np.inf
+    res.covariance = np.diag([1e-4] * 3 + [4e-4] * 3)
+    assert np.isclose(res.sigma_rot_deg, np.degrees(0.01)) and np.isclose(res.sigma_trans_m, 0.02)

@@ -49,13 +49,20 @@ class BaResult:
 
     @property
     def sigma_rot_deg(self) -> float:
-        """Largest rotation standard deviation [deg] (worst-constrained axis)."""
-        return float(np.degrees(np.sqrt(np.linalg.eigvalsh(self.covariance[:3, :3]).max())))
+        """Largest rotation standard deviation [deg] (worst-constrained axis); inf if singular."""
+        return float(np.degrees(_worst_sigma(self.covariance[:3, :3])))
 
     @property
     def sigma_trans_m(self) -> float:
-        """Largest translation standard deviation [m] (worst-constrained direction)."""
-        return float(np.sqrt(np.linalg.eigvalsh(self.covariance[3:, 3:]).max()))
+        """Largest translation standard deviation [m] (worst direction); inf if singular."""
+        return _worst_sigma(self.covariance[3:, 3:])
+
+
+def _worst_sigma(cov: np.ndarray) -> float:
+    # A singular problem's covariance is inf, on which eigvalsh raises instead of answering.
+    if not np.all(np.isfinite(cov)):
+        return float("inf")
+    return float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0)))
 
 
 def reprojection_errors_both(T_camA_camB, points_camA, uv_px_a, uv_px_b, K_a, K_b):
