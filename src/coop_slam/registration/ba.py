@@ -62,7 +62,7 @@ def _worst_sigma(cov: np.ndarray) -> float:
     # A singular problem's covariance is inf, on which eigvalsh raises instead of answering.
     if not np.all(np.isfinite(cov)):
         return float("inf")
-    return float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0)))
+    return float(np.sqrt(np.linalg.eigvalsh(cov).max()))
 
 
 def reprojection_errors_both(T_camA_camB, points_camA, uv_px_a, uv_px_b, K_a, K_b):

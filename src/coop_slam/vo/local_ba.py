@@ -92,13 +92,14 @@ def planar_prior(
     level. Only height and tilt are informed."""
     T_cam_level = _level_frame(up_cam)
     T_level_cam = invert(T_cam_level)
-    T_plane_map = T_level_cam if T_map_plane is None else invert(T_map_plane)
+    if T_map_plane is None:
+        T_map_plane = T_cam_level
     # The keyframe's level frame, seen from the plane frame.
-    T = T_plane_map @ T_map_cam @ T_cam_level
+    T = invert(T_map_plane) @ T_map_cam @ T_cam_level
     yaw = np.arctan2(T[1, 0], T[0, 0])
     c, s = np.cos(yaw), np.sin(yaw)
     level = se3(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), [T[0, 3], T[1, 3], 0.0])
-    T_prior = invert(T_plane_map) @ level @ T_level_cam
+    T_prior = T_map_plane @ level @ T_level_cam
     free = 1e-6  # heading and position along the floor: (almost) no information
     info_level = np.diag(
         [sigma_tilt_rad**-2, sigma_tilt_rad**-2, free, free, free, sigma_height_m**-2]
