@@ -189,6 +189,21 @@ def test_constraint_far_from_the_estimate_is_refused(world):
     assert server.constraints == [] and server.rejected_constraints >= 1
 
 
+def test_constraint_needs_min_inliers(world):
+    """The own revisit that closes a loop above adds nothing when its support is too thin."""
+    points, desc, _, vocab = world
+    yaws = np.concatenate(
+        [np.linspace(0, 2 * np.pi, 36, endpoint=False), 2 * np.pi + np.linspace(0, 1.5, 9)]
+    )
+    kfs = _drifting(_keyframes(1, yaws, points, desc, seed=300))
+    cfg = _config(robots=[1])
+    cfg.loops.min_inliers = 100000
+    server = TeamServer(cfg, vocab)
+    for kf in kfs:
+        server.add_keyframe(kf)
+    assert server.constraints == [] and server.verifications > 0
+
+
 def test_three_robots_end_in_one_group(world):
     """Robots 1 and 2 map disjoint halves at different times; robot 3 later crosses both halves and
     links the two groups: every map ends in robot 1's frame at its true place."""
