@@ -32,6 +32,7 @@ from coop_slam.vo import (
     VoError,
 )
 from coop_slam.vo.evaluate import ate_rmse, keyframe_ate, run_sequence
+from coop_slam.vo.features import OrbExtractor
 from coop_slam.vo.local_ba import BaProblem, BaResult, planar_prior, run_local_ba
 from coop_slam.vo.pose_opt import optimize_pose
 
@@ -439,3 +440,33 @@ def test_local_ba_announces_no_update_before_a_keyframes_new(room_sequence):
         # Moves below update_min_trans_m (2 mm here) are not sent, until they add up to it.
         assert move_all(0.0015) == set()
         assert move_all(0.0015) == set(kf_ids[:-1])
+
+
+def test_orb_keypoints_sit_where_the_pyramid_found_them():
+    """A keypoint of pyramid level l is a FAST corner of OpenCV's level-l image; its position is
+    the level-0 point that pixel samples (read off a resized coordinate ramp), not pt = x_l * s."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    gray = cv2.GaussianBlur((rng.random((480, 640)) * 255).astype(np.uint8), (0, 0), 1.5)
+    cfg = VoConfig()
+    feats = OrbExtractor(cfg, helpers_vo.CAMERA).extract(gray, None)
+    h, w = gray.shape
+    ramp_x, ramp_y = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    level_img, level_rx, level_ry = gray, ramp_x, ramp_y
+    fast = cv2.FastFeatureDetector_create(cfg.fast_threshold, True)
+    checked = 0
+    for level in range(cfg.n_levels):
+        if level:
+            s = float(np.float32(cfg.scale_factor) ** level)
+            size = (round(w / s), round(h / s))
+            level_img = cv2.resize(level_img, size, interpolation=cv2.INTER_LINEAR_EXACT)
+            level_rx = cv2.resize(level_rx, size, interpolation=cv2.INTER_LINEAR)
+            level_ry = cv2.resize(level_ry, size, interpolation=cv2.INTER_LINEAR)
+        corners = np.array([k.pt for k in fast.detect(level_img, None)], dtype=int)
+        samples = np.stack([level_rx, level_ry], -1)[corners[:, 1], corners[:, 0]]
+        uv = feats.uv_px[feats.octaves == level]
+        dist = np.linalg.norm(uv[:, None, :] - samples[None, :, :], axis=2).min(axis=1)
+        assert np.all(dist < 1e-3), (level, float(dist.max()))
+        checked += len(uv) if level >= 3 else 0
+    assert checked > 50  # the coarse levels, where the reported pt was off most, were exercised

@@ -19,6 +19,7 @@ import numpy as np
 from ..descriptors import match_ratio
 from ..errors import CoopSlamError
 from ..geometry import invert, rotation_angle_deg
+from .features import orb_level0_uv
 
 
 class IntrinsicsCheckError(CoopSlamError):
@@ -53,6 +54,12 @@ class FocalCheck:
         return self.best_focal_px / self.model_focal_px
 
 
+def _uv(keypoints, orb, shape) -> np.ndarray:
+    pt = np.array([k.pt for k in keypoints]).reshape(-1, 2)
+    octave = np.array([k.octave for k in keypoints], dtype=int)
+    return orb_level0_uv(pt, octave, orb.getScaleFactor(), shape[1], shape[0])
+
+
 def match_pairs(
     load_gray: Callable[[int], np.ndarray],
     poses_se3: np.ndarray,
@@ -85,16 +92,17 @@ def match_pairs(
     pairs = []
     for k, p in enumerate(picks):
         i, T_b_a = usable[p]
-        kp_a, d_a = orb.detectAndCompute(load_gray(i), None)
-        kp_b, d_b = orb.detectAndCompute(load_gray(i + gap), None)
+        gray_a, gray_b = load_gray(i), load_gray(i + gap)
+        kp_a, d_a = orb.detectAndCompute(gray_a, None)
+        kp_b, d_b = orb.detectAndCompute(gray_b, None)
         if d_a is not None and d_b is not None:
             # Mutual nearest neighbours only; the epipolar test itself needs no ratio test.
             m = match_ratio(d_a, d_b, ratio=1.0, max_distance=max_hamming, mutual=True)
             if len(m) >= 8:
                 pairs.append(
                     FramePair(
-                        np.array([kp_a[i].pt for i in m[:, 0]]),
-                        np.array([kp_b[j].pt for j in m[:, 1]]),
+                        _uv([kp_a[i] for i in m[:, 0]], orb, gray_a.shape),
+                        _uv([kp_b[j] for j in m[:, 1]], orb, gray_b.shape),
                         T_b_a,
                     )
                 )
