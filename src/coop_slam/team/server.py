@@ -114,7 +114,7 @@ class LoopClosureConfig:
 
     enabled: bool = True
     min_separation_s: float = 5.0  # a robot's own candidate must be at least this much older [s]
-    min_interval_kf: int = 5  # keyframes of a robot between two constraints it adds
+    min_interval_kf: int = 2  # keyframes of a robot between two constraints it adds
     # A constraint needs as many verified inliers as a merge: registration accepts from 30, and on
     # RedKitchen keyframe pairs one accepted estimate with 35 inliers was 30 cm / 4.4 deg off --
     # within the gate below, whose slack also widens the constraint's robust kernel.
