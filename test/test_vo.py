@@ -443,8 +443,8 @@ def test_local_ba_announces_no_update_before_a_keyframes_new(room_sequence):
 
 
 def test_orb_keypoints_sit_where_the_pyramid_found_them():
-    """A keypoint of pyramid level l is a FAST corner of OpenCV's level-l image; its position is
-    the level-0 point that pixel samples (read off a resized coordinate ramp), not pt = x_l * s."""
+    """A keypoint of pyramid level l is a FAST corner (x_l, y_l) of OpenCV's level-l image, placed
+    at that pixel's centre in level 0, (x_l + 0.5) * s - 0.5, not at OpenCV's pt = x_l * s."""
     import cv2
 
     rng = np.random.default_rng(0)
@@ -452,21 +452,18 @@ def test_orb_keypoints_sit_where_the_pyramid_found_them():
     cfg = VoConfig()
     feats = OrbExtractor(cfg, helpers_vo.CAMERA).extract(gray, None)
     h, w = gray.shape
-    ramp_x, ramp_y = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    level_img, level_rx, level_ry = gray, ramp_x, ramp_y
+    level_img = gray
     fast = cv2.FastFeatureDetector_create(cfg.fast_threshold, True)
     checked = 0
     for level in range(cfg.n_levels):
-        if level:
-            s = float(np.float32(cfg.scale_factor) ** level)
+        s = float(np.float32(cfg.scale_factor) ** level)
+        if level:  # OpenCV's pyramid: a cascade of resizes to its rounded level sizes
             size = (round(w / s), round(h / s))
             level_img = cv2.resize(level_img, size, interpolation=cv2.INTER_LINEAR_EXACT)
-            level_rx = cv2.resize(level_rx, size, interpolation=cv2.INTER_LINEAR)
-            level_ry = cv2.resize(level_ry, size, interpolation=cv2.INTER_LINEAR)
-        corners = np.array([k.pt for k in fast.detect(level_img, None)], dtype=int)
-        samples = np.stack([level_rx, level_ry], -1)[corners[:, 1], corners[:, 0]]
+        corners = np.array([k.pt for k in fast.detect(level_img, None)])
+        expected = (corners + 0.5) * s - 0.5
         uv = feats.uv_px[feats.octaves == level]
-        dist = np.linalg.norm(uv[:, None, :] - samples[None, :, :], axis=2).min(axis=1)
+        dist = np.linalg.norm(uv[:, None, :] - expected[None, :, :], axis=2).min(axis=1)
         assert np.all(dist < 1e-3), (level, float(dist.max()))
         checked += len(uv) if level >= 3 else 0
-    assert checked > 50  # the coarse levels, where the reported pt was off most, were exercised
+    assert checked > 50  # the coarse levels, where pt was off most, were exercised

@@ -54,10 +54,10 @@ class FocalCheck:
         return self.best_focal_px / self.model_focal_px
 
 
-def _uv(keypoints, orb, shape) -> np.ndarray:
+def _uv(keypoints, orb) -> np.ndarray:
     pt = np.array([k.pt for k in keypoints]).reshape(-1, 2)
     octave = np.array([k.octave for k in keypoints], dtype=int)
-    return orb_level0_uv(pt, octave, orb.getScaleFactor(), shape[1], shape[0])
+    return orb_level0_uv(pt, octave, orb.getScaleFactor())
 
 
 def match_pairs(
@@ -92,17 +92,16 @@ def match_pairs(
     pairs = []
     for k, p in enumerate(picks):
         i, T_b_a = usable[p]
-        gray_a, gray_b = load_gray(i), load_gray(i + gap)
-        kp_a, d_a = orb.detectAndCompute(gray_a, None)
-        kp_b, d_b = orb.detectAndCompute(gray_b, None)
+        kp_a, d_a = orb.detectAndCompute(load_gray(i), None)
+        kp_b, d_b = orb.detectAndCompute(load_gray(i + gap), None)
         if d_a is not None and d_b is not None:
             # Mutual nearest neighbours only; the epipolar test itself needs no ratio test.
             m = match_ratio(d_a, d_b, ratio=1.0, max_distance=max_hamming, mutual=True)
             if len(m) >= 8:
                 pairs.append(
                     FramePair(
-                        _uv([kp_a[i] for i in m[:, 0]], orb, gray_a.shape),
-                        _uv([kp_b[j] for j in m[:, 1]], orb, gray_b.shape),
+                        _uv([kp_a[i] for i in m[:, 0]], orb),
+                        _uv([kp_b[j] for j in m[:, 1]], orb),
                         T_b_a,
                     )
                 )
@@ -157,7 +156,10 @@ def check_focal(
         curvature = e0 - 2 * e1 + e2
         if curvature > 0:
             step = scales[k + 1] - scales[k]
-            best = float(scales[k] + 0.5 * step * (e0 - e2) / curvature)
+            refined = float(scales[k] + 0.5 * step * (e0 - e2) / curvature)
+            # The truncated error is not exactly a parabola: keep the grid point if it fits better.
+            if error(refined) <= e1:
+                best = refined
     return FocalCheck(
         focal_px=fx * scales,
         error_px=errors,
