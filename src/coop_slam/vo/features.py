@@ -80,9 +80,8 @@ def orb_level0_uv(pt_px: np.ndarray, octaves: np.ndarray, scale_factor: float) -
     trajectories by 0.25-0.3 % on 2 of the 12 sequences (mean ATE 0.75 cm); why is not
     understood, so the ideal pyramid's mapping is used.
     """
-    pt = np.asarray(pt_px, dtype=float).reshape(-1, 2)
     s = float(scale_factor) ** np.asarray(octaves, dtype=float).reshape(-1, 1)
-    return (pt / s + 0.5) * s - 0.5
+    return np.asarray(pt_px, dtype=float).reshape(-1, 2) + 0.5 * (s - 1.0)
 
 
 def inv_sigma2(config: VoConfig, octaves: np.ndarray) -> np.ndarray:

@@ -150,7 +150,7 @@ def check_focal(
 
     errors = np.array([error(s) for s in scales])
     k = int(np.argmin(errors))
-    best = float(scales[k])
+    best, best_error = float(scales[k]), float(errors[k])
     if 0 < k < len(scales) - 1:
         e0, e1, e2 = errors[k - 1 : k + 2]
         curvature = e0 - 2 * e1 + e2
@@ -158,13 +158,14 @@ def check_focal(
             step = scales[k + 1] - scales[k]
             refined = float(scales[k] + 0.5 * step * (e0 - e2) / curvature)
             # The truncated error is not exactly a parabola: keep the grid point if it fits better.
-            if error(refined) <= e1:
-                best = refined
+            refined_error = error(refined)
+            if refined_error <= e1:
+                best, best_error = refined, refined_error
     return FocalCheck(
         focal_px=fx * scales,
         error_px=errors,
         best_focal_px=fx * best,
-        best_error_px=error(best),
+        best_error_px=best_error,
         model_focal_px=fx,
         model_error_px=error(1.0),
         pairs=len(pairs),
