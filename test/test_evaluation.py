@@ -10,6 +10,7 @@ from coop_slam.evaluation import (
     ate,
     merge_error,
     noise_split,
+    rotation_gain,
     rpe_rmse,
     team_ate,
 )
@@ -232,3 +233,29 @@ def test_noise_split_tells_each_trajectory_its_own_error():
         noise_split({"a": truth, "b": truth}, step=5)
     with pytest.raises(EvaluationError, match="same frames"):
         noise_split({"a": truth, "b": truth, "c": truth[:-1]}, step=5)
+
+
+def test_rotation_gain_finds_rotations_scaled_about_the_image_axes():
+    # A camera turning about all three of its axes; the "estimate" turns 20 % less about x and y
+    # between frames (what a too-long focal length does) and exactly as much about z.
+    rng = np.random.default_rng(2)
+    gain = np.array([0.8, 0.8, 1.0])
+    truth, est = [np.eye(4)], [np.eye(4)]
+    for _ in range(300):
+        w = rng.normal(0, np.radians(1.0), 3)
+        t = rng.normal(0, 0.01, 3)
+        truth.append(truth[-1] @ se3(Rotation.from_rotvec(w).as_matrix(), t))
+        est.append(est[-1] @ se3(Rotation.from_rotvec(gain * w).as_matrix(), t))
+    truth, est = np.array(truth), np.array(est)
+    assert rotation_gain(est, truth, step=1) == pytest.approx(gain, abs=1e-3)
+    assert rotation_gain(truth, truth, step=5) == pytest.approx([1, 1, 1], abs=1e-9)
+    est[10] = np.nan  # a lost frame is left out
+    assert rotation_gain(est, truth, step=1) == pytest.approx(gain, abs=1e-3)
+    # Ground truth that never turns about an axis says nothing about its gain.
+    planar = truth.copy()
+    planar[:, :3, :3] = np.eye(3)
+    assert np.isnan(rotation_gain(planar, planar, step=1)).all()
+    with pytest.raises(EvaluationError, match="same frames"):
+        rotation_gain(est[:-1], truth, step=1)
+    with pytest.raises(EvaluationError, match="at least 1 frame"):
+        rotation_gain(est, truth, step=0)

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .errors import CoopSlamError
 from .geometry import invert, rotation_angle_deg, transform_error
@@ -175,15 +176,7 @@ def noise_split(trajectories: dict[str, np.ndarray], step: int) -> NoiseSplit:
             "noise_split needs trajectories of the same frames, got lengths "
             + ", ".join(f"{n} {len(p)}" for n, p in zip(names, poses))
         )
-    if step < 1:
-        raise EvaluationError(f"step must be at least 1 frame, got {step}")
-    finite = np.all([np.isfinite(p).all(axis=(1, 2)) for p in poses], axis=0)
-    i = np.flatnonzero(finite[:-step] & finite[step:]) if len(finite) > step else np.zeros(0, int)
-    if len(i) < 10:
-        raise EvaluationError(
-            f"only {len(i)} frame pairs {step} frames apart have all three poses (need 10)"
-        )
-    rel = [np.linalg.inv(p[i]) @ p[i + step] for p in poses]
+    i, rel = _relative_motions(poses, step)
     rot2, trans2 = {}, {}
     for a, b in ((0, 1), (0, 2), (1, 2)):
         err = np.linalg.inv(rel[a]) @ rel[b]
@@ -203,3 +196,37 @@ def noise_split(trajectories: dict[str, np.ndarray], step: int) -> NoiseSplit:
         rot_deg={n: own(rot2, k) for k, n in enumerate(names)},
         trans_m={n: own(trans2, k) for k, n in enumerate(names)},
     )
+
+
+def _relative_motions(poses: list[np.ndarray], step: int, min_pairs: int = 10):
+    """Frames i where every trajectory has a pose at i and i + step, and each trajectory's motion
+    ``T_i^-1 T_(i+step)`` there."""
+    if step < 1:
+        raise EvaluationError(f"step must be at least 1 frame, got {step}")
+    finite = np.all([np.isfinite(p).all(axis=(1, 2)) for p in poses], axis=0)
+    i = np.flatnonzero(finite[:-step] & finite[step:]) if len(finite) > step else np.zeros(0, int)
+    if len(i) < min_pairs:
+        raise EvaluationError(
+            f"only {len(i)} frame pairs {step} frames apart have every pose (need {min_pairs})"
+        )
+    return i, [np.linalg.inv(p[i]) @ p[i + step] for p in poses]
+
+
+def rotation_gain(poses_est, poses_gt, step: int, min_rms_deg: float = 0.1) -> np.ndarray:
+    """Per camera axis (x, y, z), the least-squares gain g of an estimate's rotations over
+    ``step`` frames against ground truth's: rotation vectors in the earlier frame's camera axes,
+    est_k = g_k gt_k. 1 is right. A wrong focal length scales x and y, not z (a rotation about
+    the optical axis moves pixels independently of it). NaN for an axis about which ground truth
+    turns less than ``min_rms_deg`` (RMS over the pairs)."""
+    est = np.asarray(poses_est, float).reshape(-1, 4, 4)
+    gt = np.asarray(poses_gt, float).reshape(-1, 4, 4)
+    if len(est) != len(gt):
+        raise EvaluationError(
+            f"rotation_gain needs poses of the same frames, got {len(est)} and {len(gt)}"
+        )
+    _, (rel_est, rel_gt) = _relative_motions([est, gt], step)
+    w_est = Rotation.from_matrix(rel_est[:, :3, :3]).as_rotvec()
+    w_gt = Rotation.from_matrix(rel_gt[:, :3, :3]).as_rotvec()
+    power = np.sum(w_gt**2, axis=0)
+    enough = np.degrees(np.sqrt(power / len(w_gt))) >= min_rms_deg
+    return np.where(enough, np.sum(w_est * w_gt, axis=0) / np.where(enough, power, 1.0), np.nan)

@@ -4,7 +4,10 @@ Runs the client's odometry and a depth-only ICP odometry (OpenCV's ``rgbd.ICPOdo
 estimator that shares nothing with ours but the depth images) over a sequence, and splits the
 three pairwise disagreements of their relative motions into each one's own error (three-cornered
 hat, :func:`coop_slam.evaluation.noise_split`). Where the ground truth's own error is as large as
-the odometry's, an ATE against it measures the reference as much as the odometry.
+the odometry's, an ATE against it measures the reference as much as the odometry. Also prints
+each estimator's rotation gain per camera axis (:func:`coop_slam.evaluation.rotation_gain`):
+x / y gains away from 1 with z at 1 are the mark of a focal length that does not fit the images,
+in both estimators at once, of a reference that turns more or less than the images show.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import cv2
 import numpy as np
 
 from ..errors import CoopSlamError
-from ..evaluation import EvaluationError, noise_split
+from ..evaluation import EvaluationError, noise_split, rotation_gain
 from ..vo.config import VoConfig
 from ..vo.evaluate import ate_rmse, run_sequence
 from .progress import throttled
@@ -86,6 +89,10 @@ def main(argv=None) -> int:
         icp = depth_icp_odometry(seq, say("depth ICP"))
         trajectories = {"odometry": run.poses_se3, "depth ICP": icp, "ground truth": gt}
         splits = [noise_split(trajectories, s) for s in steps]
+        gains = {
+            n: [rotation_gain(trajectories[n], gt, s) for s in steps]
+            for n in ("odometry", "depth ICP")
+        }
     except CoopSlamError as exc:
         print(f"[check_ground_truth] ERROR: {exc}", file=sys.stderr)
         return 2
@@ -100,6 +107,14 @@ def main(argv=None) -> int:
     for sp in splits:
         cells = [f"{sp.rot_deg[n]:8.3f} deg {100 * sp.trans_m[n]:6.2f} cm" for n in trajectories]
         print(f"  {sp.step:>4} {sp.pairs:>6} " + " ".join(f"{c:>22}" for c in cells))
+    print(
+        "  rotation gain against ground truth per camera axis, x / y / z (1 = right; a wrong focal"
+        " length scales x and y only):"
+    )
+    print(f"  {'N':>4} " + " ".join(f"{n:>20}" for n in gains))
+    for k, step in enumerate(steps):
+        cells = [" / ".join(f"{g:.2f}" for g in gains[n][k]) for n in gains]
+        print(f"  {step:>4} " + " ".join(f"{c:>20}" for c in cells))
     return 0
 
 
