@@ -120,3 +120,76 @@ def test_redkitchen_reads():
     assert 0.3 < np.median(depth[depth > 0]) < 5.0
     robots = split_ranges(seq, "0-299,300-599")
     assert [len(r) for r in robots] == [300, 300]
+
+
+def _pattern(xn, yn):
+    """A smooth grey pattern on normalized (undistorted) image coordinates."""
+    return 128.0 + 100.0 * np.sin(9.0 * xn) * np.cos(7.0 * yn)
+
+
+def test_tum_reader_undistorts_images_of_a_camera_with_lens_distortion(tmp_path):
+    import cv2
+
+    from coop_slam.datasets import read_camera_distortion, read_camera_yaml
+
+    shutil.copytree(TINY_TUM, tmp_path / "t")
+    folder = tmp_path / "t"
+    raw = read_camera_yaml(str(folder / "camera.yaml"))
+    coeffs = np.array([0.15, -0.3, 0.002, -0.001, 0.1])
+    with open(folder / "camera.yaml", "a", encoding="utf-8") as fh:
+        fh.write("".join(f"d{i}: {c}\n" for i, c in enumerate(coeffs)))  # TUM's names
+    # Raw images: every raw pixel shows the pattern at its undistorted ray.
+    u, v = np.meshgrid(np.arange(raw.width, dtype=float), np.arange(raw.height, dtype=float))
+    rays = cv2.undistortPoints(np.stack([u, v], -1).reshape(-1, 1, 2), raw.K, coeffs)
+    xn, yn = rays[:, 0, 0].reshape(u.shape), rays[:, 0, 1].reshape(u.shape)
+    seq = read_tum(str(folder))
+    frame = seq.frames[0]
+    grey = np.clip(_pattern(xn, yn), 0, 255).astype(np.uint8)
+    cv2.imwrite(frame.color_path, cv2.merge([grey, grey, grey]))
+    cv2.imwrite(frame.depth_path, np.round(5000 * (1.0 + 0.5 * xn)).astype(np.uint16))
+
+    assert np.allclose(read_camera_distortion(str(folder / "camera.yaml")), coeffs)
+    cam = seq.camera  # pinhole of the undistorted images
+    u2, v2 = np.meshgrid(np.arange(cam.width, dtype=float), np.arange(cam.height, dtype=float))
+    xn2, yn2 = (u2 - cam.cx) / cam.fx, (v2 - cam.cy) / cam.fy
+    color = seq.load_color(frame)[..., 0].astype(float)
+    inner = (slice(3, -3), slice(3, -3))
+    err = np.abs(color - _pattern(xn2, yn2))[inner]
+    assert err.mean() < 2.0, err.mean()
+    # The same image read as if it had no distortion is clearly off: the test can tell.
+    naive = np.abs(grey.astype(float) - _pattern((u - raw.cx) / raw.fx, (v - raw.cy) / raw.fy))
+    assert naive[inner].mean() > 4 * err.mean()
+    depth = seq.load_depth_m(frame)
+    assert np.abs(depth - (1.0 + 0.5 * xn2))[inner].max() < 0.5 * 1.0 / cam.fx + 1e-3
+
+    # Other spellings of the coefficients; bad ones are named.
+    cam_file = tmp_path / "cam.yaml"
+    with open(os.path.join(TINY_TUM, "camera.yaml"), encoding="utf-8") as fh:
+        base = fh.read()
+    cam_file.write_text(base + "distortion: [0.15, -0.3, 0.002, -0.001, 0.1]\n")
+    assert np.allclose(read_camera_distortion(str(cam_file)), coeffs)
+    cam_file.write_text(base + "k1: 0.15\nk2: -0.3\n")
+    assert np.allclose(read_camera_distortion(str(cam_file)), [0.15, -0.3, 0, 0, 0])
+    cam_file.write_text(base + "k1: 0.1\nd0: 0.1\n")
+    with pytest.raises(DatasetError, match="twice"):
+        read_camera_distortion(str(cam_file))
+    cam_file.write_text(base + "distortion: [0.1, 0.2]\n")
+    with pytest.raises(DatasetError, match="4 or 5 numbers"):
+        read_tum(str(folder), camera_file=str(cam_file))
+    assert read_tum(TINY_TUM).undistort is None  # a camera file without distortion: as before
+
+
+def test_tum_benchmark_folders_need_no_camera_file(tmp_path):
+    for n, fx, undistorted in (("1", 517.3, True), ("3", 535.4, False)):
+        folder = tmp_path / f"rgbd_dataset_freiburg{n}_desk"
+        shutil.copytree(TINY_TUM, folder)
+        os.remove(folder / "camera.yaml")
+        seq = read_tum(str(folder))
+        assert (seq.undistort is not None) == undistorted
+        assert seq.camera.width == 640 and seq.camera.depth_scale == 5000.0
+        if undistorted:  # cropped to what the raw image saw: a longer focal length
+            assert seq.camera.fx > fx
+            with pytest.raises(DatasetError, match="80x60, the camera file says 640x480"):
+                seq.load_color(seq.frames[0])
+        else:
+            assert seq.camera.fx == fx

@@ -1,16 +1,27 @@
 """Data sources: readers for TUM RGB-D, KITTI odometry, the synthetic world, and a splitter."""
 
-from .base import CameraModel, DatasetError, Frame, Sequence, read_camera_yaml, write_camera_yaml
+from .base import (
+    CameraModel,
+    DatasetError,
+    Frame,
+    Sequence,
+    Undistortion,
+    read_camera_distortion,
+    read_camera_yaml,
+    write_camera_yaml,
+)
 from .kitti import read_kitti, read_kitti_poses
 from .split import parse_ranges, split_equal, split_ranges
 from .synthetic import SyntheticWorld, read_synthetic
-from .tum import read_tum, read_tum_trajectory, write_tum_trajectory
+from .tum import read_tum, read_tum_trajectory, tum_benchmark_camera, write_tum_trajectory
 
 __all__ = [
     "CameraModel",
     "DatasetError",
     "Frame",
     "Sequence",
+    "Undistortion",
+    "read_camera_distortion",
     "read_camera_yaml",
     "write_camera_yaml",
     "read_kitti",
@@ -22,5 +33,6 @@ __all__ = [
     "read_synthetic",
     "read_tum",
     "read_tum_trajectory",
+    "tum_benchmark_camera",
     "write_tum_trajectory",
 ]

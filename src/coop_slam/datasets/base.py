@@ -77,6 +77,8 @@ class Sequence:
     gt_stamps_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
     gt_poses_se3: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # T_world_cam
     gt_max_dt_s: float = 0.02  # largest stamp difference accepted when associating ground truth
+    # Raw images with lens distortion: loading maps them onto ``camera`` (= undistort.camera).
+    undistort: "Undistortion | None" = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -115,7 +117,8 @@ class Sequence:
     # --- image loading -------------------------------------------------------------------------
     def load_color(self, frame: Frame) -> np.ndarray:
         """Colour image as BGR uint8 (grey images are returned as single-channel uint8)."""
-        return _imread(frame.color_path, cv2.IMREAD_UNCHANGED)
+        img = _imread(frame.color_path, cv2.IMREAD_UNCHANGED)
+        return self.undistort.color(img) if self.undistort is not None else img
 
     def load_right(self, frame: Frame) -> np.ndarray:
         if frame.right_path is None:
@@ -131,6 +134,8 @@ class Sequence:
             raise DatasetError(
                 f"depth image {frame.depth_path} has {raw.shape[2]} channels, expected 1"
             )
+        if self.undistort is not None:
+            raw = self.undistort.depth(raw)
         if raw.dtype == np.uint16:
             return raw.astype(np.float32) / np.float32(self.camera.depth_scale)
         depth = raw.astype(np.float32)
@@ -147,9 +152,7 @@ def _imread(path: str, flags: int) -> np.ndarray:
     return img
 
 
-def read_camera_yaml(path: str, sensor: str = "rgbd") -> CameraModel:
-    """Camera model from a flat YAML file
-    (width, height, fx, fy, cx, cy[, depth_scale, baseline_m])."""
+def _camera_yaml_data(path: str) -> dict:
     import yaml
 
     if not os.path.isfile(path):
@@ -159,6 +162,16 @@ def read_camera_yaml(path: str, sensor: str = "rgbd") -> CameraModel:
             data = yaml.safe_load(fh) or {}
         except yaml.YAMLError as exc:
             raise DatasetError(f"camera file {path} is not valid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise DatasetError(f"camera file {path} must be a mapping of keys to values")
+    return data
+
+
+def read_camera_yaml(path: str, sensor: str = "rgbd") -> CameraModel:
+    """Camera model from a flat YAML file
+    (width, height, fx, fy, cx, cy[, depth_scale, baseline_m]); see also
+    :func:`read_camera_distortion`."""
+    data = _camera_yaml_data(path)
     missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in data]
     if missing:
         raise DatasetError(f"camera file {path} lacks {', '.join(missing)}")
@@ -166,6 +179,88 @@ def read_camera_yaml(path: str, sensor: str = "rgbd") -> CameraModel:
     kwargs = {k: v for k, v in data.items() if k in known}
     kwargs.setdefault("sensor", sensor)
     return CameraModel(**kwargs)
+
+
+# OpenCV's order of the lens distortion coefficients; TUM's calibration tables call them d0..d4.
+DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
+
+
+def read_camera_distortion(path: str) -> np.ndarray:
+    """Lens distortion (k1, k2, p1, p2, k3) of a camera file's raw images: keys k1..k3, TUM's
+    d0..d4 or a list ``distortion: [k1, k2, p1, p2(, k3)]``; zeros when it gives none."""
+    data = _camera_yaml_data(path)
+    coeffs = np.zeros(len(DISTORTION_KEYS))
+    styles = [
+        ("distortion",) if "distortion" in data else (),
+        tuple(k for k in DISTORTION_KEYS if k in data),
+        tuple(f"d{i}" for i in range(5) if f"d{i}" in data),
+    ]
+    given = [keys for keys in styles if keys]
+    if len(given) > 1:
+        raise DatasetError(
+            f"camera file {path} gives the distortion twice ({' and '.join(map(str, given))}): "
+            "use one of 'distortion: [...]', k1..k3 or d0..d4"
+        )
+    try:
+        if "distortion" in data:
+            values = [float(v) for v in data["distortion"]]
+            if len(values) not in (4, 5):
+                raise ValueError(f"{len(values)} values")
+            coeffs[: len(values)] = values
+        else:
+            for i, k in enumerate(DISTORTION_KEYS):
+                coeffs[i] = float(data.get(k, data.get(f"d{i}", 0.0)))
+    except (TypeError, ValueError) as exc:
+        raise DatasetError(
+            f"camera file {path}: distortion must be 4 or 5 numbers (k1 k2 p1 p2 [k3]): {exc}"
+        ) from None
+    if not np.isfinite(coeffs).all():
+        raise DatasetError(f"camera file {path}: distortion coefficients must be finite")
+    return coeffs
+
+
+@dataclass
+class Undistortion:
+    """Maps raw images of a camera with lens distortion onto a pinhole camera (``camera``) that
+    keeps only pixels the raw image saw, so no black border enters feature detection."""
+
+    camera: CameraModel  # pinhole model of the undistorted images
+    map_x: np.ndarray
+    map_y: np.ndarray
+
+    @classmethod
+    def create(cls, raw: CameraModel, coeffs) -> "Undistortion | None":
+        """None when ``coeffs`` are all zero (the images are rectified already)."""
+        coeffs = np.asarray(coeffs, float)
+        if not coeffs.any():
+            return None
+        size = (raw.width, raw.height)
+        K_new, _ = cv2.getOptimalNewCameraMatrix(raw.K, coeffs, size, 0.0, size)
+        if not np.isfinite(K_new).all() or K_new[0, 0] <= 0 or K_new[1, 1] <= 0:
+            raise DatasetError(
+                f"lens distortion {coeffs.tolist()} gives no usable undistorted view"
+            )
+        camera = dataclasses.replace(
+            raw, fx=K_new[0, 0], fy=K_new[1, 1], cx=K_new[0, 2], cy=K_new[1, 2]
+        )
+        map_x, map_y = cv2.initUndistortRectifyMap(raw.K, coeffs, None, K_new, size, cv2.CV_32FC1)
+        return cls(camera, map_x, map_y)
+
+    def color(self, img: np.ndarray) -> np.ndarray:
+        self._check(img)
+        return cv2.remap(img, self.map_x, self.map_y, cv2.INTER_LINEAR)
+
+    def depth(self, depth: np.ndarray) -> np.ndarray:
+        # Nearest: interpolating across a depth edge would invent surfaces between the two.
+        self._check(depth)
+        return cv2.remap(depth, self.map_x, self.map_y, cv2.INTER_NEAREST)
+
+    def _check(self, img: np.ndarray) -> None:
+        if img.shape[:2] != self.map_x.shape:
+            raise DatasetError(
+                f"image is {img.shape[1]}x{img.shape[0]}, the camera file says "
+                f"{self.camera.width}x{self.camera.height}"
+            )
 
 
 def write_camera_yaml(path: str, camera: CameraModel) -> None:

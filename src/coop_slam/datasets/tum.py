@@ -2,17 +2,48 @@
 
 Folder layout: ``rgb.txt`` and ``depth.txt`` (``stamp path`` lines), optional ``groundtruth.txt``
 (``stamp tx ty tz qx qy qz qw``, camera-to-world), and the camera in ``camera.yaml`` beside them.
-Colour and depth are associated by nearest timestamp, as TUM's ``associate.py`` does.
+Colour and depth are associated by nearest timestamp, as TUM's ``associate.py`` does. A camera
+file may give lens distortion (:func:`read_camera_distortion`): images are then undistorted as
+they load. The TUM RGB-D benchmark's own folders (``rgbd_dataset_freiburgN_*``) need no camera
+file: their published calibration is built in.
 """
 
 from __future__ import annotations
 
 import os
+import re
 
 import numpy as np
 
 from ..geometry import quat_from_se3, se3_from_quat
-from .base import CameraModel, DatasetError, Frame, Sequence, read_camera_yaml
+from .base import (
+    CameraModel,
+    DatasetError,
+    Frame,
+    Sequence,
+    Undistortion,
+    read_camera_distortion,
+    read_camera_yaml,
+)
+
+# The TUM RGB-D benchmark's published colour calibration per Kinect (fx, fy, cx, cy, distortion
+# k1 k2 p1 p2 k3, depth units per metre); its depth images are registered to the colour camera.
+# freiburg3's images are undistorted already; freiburg2's depth PNGs hold 5208 units per metre
+# (the scale correction ORB-SLAM2's TUM2 settings carry), the others 5000.
+TUM_BENCHMARK_CAMERAS = {
+    "1": (517.3, 516.5, 318.6, 255.3, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633), 5000.0),
+    "2": (520.9, 521.0, 325.1, 249.7, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172), 5208.0),
+    "3": (535.4, 539.2, 320.1, 247.6, (0.0, 0.0, 0.0, 0.0, 0.0), 5000.0),
+}
+
+
+def tum_benchmark_camera(folder: str) -> tuple[CameraModel, np.ndarray] | None:
+    """(raw camera, distortion) of a TUM benchmark folder (``..._freiburgN_...``), else None."""
+    m = re.search(r"freiburg([123])", os.path.basename(os.path.normpath(folder)))
+    if m is None:
+        return None
+    fx, fy, cx, cy, dist, depth_scale = TUM_BENCHMARK_CAMERAS[m.group(1)]
+    return CameraModel(640, 480, fx, fy, cx, cy, depth_scale=depth_scale), np.array(dist)
 
 
 def _read_list(path: str) -> list[tuple[float, str]]:
@@ -90,18 +121,13 @@ def read_tum(
     name: str | None = None,
     max_dt_s: float = 0.02,
 ) -> Sequence:
-    """Read a TUM RGB-D folder. The camera comes from ``camera``, ``camera_file`` or
-    ``folder/camera.yaml`` (in that order)."""
+    """Read a TUM RGB-D folder. The camera comes from ``camera`` (rectified images),
+    ``camera_file``, ``folder/camera.yaml`` or a TUM benchmark folder's name (in that order)."""
     if not os.path.isdir(folder):
         raise DatasetError(f"dataset folder not found: {folder}")
+    undistort = None
     if camera is None:
-        camera_file = camera_file or os.path.join(folder, "camera.yaml")
-        if not os.path.isfile(camera_file):
-            raise DatasetError(
-                f"no camera intrinsics for {folder}: put a camera.yaml (width, height, fx, fy, cx, "
-                "cy, depth_scale) beside rgb.txt or pass a camera file"
-            )
-        camera = read_camera_yaml(camera_file)
+        camera, undistort = _folder_camera(folder, camera_file)
     rgb = _read_list(os.path.join(folder, "rgb.txt"))
     has_depth = os.path.isfile(os.path.join(folder, "depth.txt"))
     if has_depth:
@@ -138,4 +164,22 @@ def read_tum(
         gt_stamps_s=gt_stamps,
         gt_poses_se3=gt_poses,
         gt_max_dt_s=max_dt_s,
+        undistort=undistort,
     )
+
+
+def _folder_camera(folder: str, camera_file: str | None):
+    """(camera of the loaded images, Undistortion or None) for a TUM folder."""
+    path = camera_file or os.path.join(folder, "camera.yaml")
+    if camera_file or os.path.isfile(path):
+        raw, coeffs = read_camera_yaml(path), read_camera_distortion(path)
+    else:
+        builtin = tum_benchmark_camera(folder)
+        if builtin is None:
+            raise DatasetError(
+                f"no camera intrinsics for {folder}: put a camera.yaml (width, height, fx, fy, cx, "
+                "cy, depth_scale[, k1 k2 p1 p2 k3]) beside rgb.txt or pass a camera file"
+            )
+        raw, coeffs = builtin
+    undistort = Undistortion.create(raw, coeffs)
+    return (undistort.camera if undistort else raw), undistort
