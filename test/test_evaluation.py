@@ -187,6 +187,24 @@ def test_sensor_bag_gives_robots_and_ground_truth_and_evaluates_without_it(tmp_p
         read_bag_input(str(tmp_path / "other.bag"))
 
 
+def test_report_pools_the_single_robot_ates_as_a_perfect_stitching_would_score():
+    pytest.importorskip("rosbag")
+    from coop_slam.tools.evaluate import RobotRun, RunData, evaluate_run
+
+    stamps, gt = _circle(40)
+    rng = np.random.default_rng(3)
+    run, gts, sizes = RunData(), {}, {1: 0.002, 2: 0.01}
+    for rid, sigma in sizes.items():
+        est = gt.copy()
+        est[:, :3, 3] += rng.normal(0, sigma, (40, 3))
+        run.robots[rid] = RobotRun(frames=40, keyframes={k: (stamps[k], est[k]) for k in range(40)})
+        gts[rid] = (stamps, gt)
+    report = evaluate_run(run, gts)
+    e = [r["ate_rmse_m"] for r in report["robots"]]
+    assert report["single_ate_pooled_m"] == pytest.approx(np.sqrt((e[0] ** 2 + e[1] ** 2) / 2))
+    assert report["single_ate_pooled_m"] > np.mean(e)  # the mean of the two weighs them alike
+
+
 def test_merge_latency_counts_from_the_first_shared_view_of_its_kind():
     """Rendezvous latency from the first co-observation, place recognition from the first revisit
     (either direction); a marker sighting without a shared scene is no start."""
