@@ -173,9 +173,15 @@ def test_tum_reader_undistorts_images_of_a_camera_with_lens_distortion(tmp_path)
     cam_file.write_text(base + "k1: 0.1\nd0: 0.1\n")
     with pytest.raises(DatasetError, match="twice"):
         read_camera_distortion(str(cam_file))
-    cam_file.write_text(base + "distortion: [0.1, 0.2]\n")
-    with pytest.raises(DatasetError, match="4 or 5 numbers"):
-        read_tum(str(folder), camera_file=str(cam_file))
+    for bad, match in (
+        ("distortion: [0.1, 0.2]", "list of 4 or 5 numbers"),
+        ("distortion: 0.1 0.2 0.3 0.4", "list of 4 or 5 numbers"),
+        ("k1: true", "k1 must be a number"),
+        ("d2: x", "p1 must be a number"),
+    ):
+        cam_file.write_text(base + bad + "\n")
+        with pytest.raises(DatasetError, match=match):
+            read_tum(str(folder), camera_file=str(cam_file))
     assert read_tum(TINY_TUM).undistort is None  # a camera file without distortion: as before
 
 
@@ -189,7 +195,11 @@ def test_tum_benchmark_folders_need_no_camera_file(tmp_path):
         assert seq.camera.width == 640 and seq.camera.depth_scale == 5000.0
         if undistorted:  # cropped to what the raw image saw: a longer focal length
             assert seq.camera.fx > fx
-            with pytest.raises(DatasetError, match="80x60, the camera file says 640x480"):
+            with pytest.raises(DatasetError, match="is 80x60, but the camera model .* is 640x480"):
                 seq.load_color(seq.frames[0])
         else:
             assert seq.camera.fx == fx
+    # Only the benchmark's own folder names: a renamed or resized copy needs its camera.yaml.
+    shutil.copytree(tmp_path / "rgbd_dataset_freiburg3_desk", tmp_path / "freiburg3_half_size")
+    with pytest.raises(DatasetError, match="camera.yaml"):
+        read_tum(str(tmp_path / "freiburg3_half_size"))

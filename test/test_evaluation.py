@@ -197,12 +197,17 @@ def test_report_pools_the_single_robot_ates_as_a_perfect_stitching_would_score()
     for rid, sigma in sizes.items():
         est = gt.copy()
         est[:, :3, 3] += rng.normal(0, sigma, (40, 3))
-        run.robots[rid] = RobotRun(frames=40, keyframes={k: (stamps[k], est[k]) for k in range(40)})
+        kfs = {k: (stamps[k], est[k]) for k in range(40)}
+        run.robots[rid] = RobotRun(frames=40, keyframes=kfs, team_keyframes=dict(kfs))
         gts[rid] = (stamps, gt)
     report = evaluate_run(run, gts)
     e = [r["ate_rmse_m"] for r in report["robots"]]
     assert report["single_ate_pooled_m"] == pytest.approx(np.sqrt((e[0] ** 2 + e[1] ** 2) / 2))
     assert report["single_ate_pooled_m"] > np.mean(e)  # the mean of the two weighs them alike
+    # Only robots the team ATE covers are pooled: one with no place in world is left out.
+    run.robots[2].team_keyframes = {}
+    report = evaluate_run(run, gts)
+    assert report["single_ate_pooled_m"] is None and report["team_ate_rmse_m"] is None
 
 
 def test_merge_latency_counts_from_the_first_shared_view_of_its_kind():

@@ -225,8 +225,9 @@ def rotation_gain(poses_est, poses_gt, step: int, min_rms_deg: float = 0.1) -> n
             f"rotation_gain needs poses of the same frames, got {len(est)} and {len(gt)}"
         )
     _, (rel_est, rel_gt) = _relative_motions([est, gt], step)
-    w_est = Rotation.from_matrix(rel_est[:, :3, :3]).as_rotvec()
-    w_gt = Rotation.from_matrix(rel_gt[:, :3, :3]).as_rotvec()
-    power = np.sum(w_gt**2, axis=0)
-    enough = np.degrees(np.sqrt(power / len(w_gt))) >= min_rms_deg
-    return np.where(enough, np.sum(w_est * w_gt, axis=0) / np.where(enough, power, 1.0), np.nan)
+    rotvec_est_rad = Rotation.from_matrix(rel_est[:, :3, :3]).as_rotvec()
+    rotvec_gt_rad = Rotation.from_matrix(rel_gt[:, :3, :3]).as_rotvec()
+    power = np.sum(rotvec_gt_rad**2, axis=0)
+    enough = np.degrees(np.sqrt(power / len(rotvec_gt_rad))) >= min_rms_deg
+    gain = np.sum(rotvec_est_rad * rotvec_gt_rad, axis=0) / np.where(enough, power, 1.0)
+    return np.where(enough, gain, np.nan)

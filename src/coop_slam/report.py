@@ -70,8 +70,8 @@ def new_report(robot_ids: list[int]) -> dict:
         "team_ate_rmse_m": None,
         # The robots' own ATEs (each map aligned on its own) pooled over all their keyframes: the
         # team ATE a perfect placement of the clients' maps would reach without removing drift.
-        # Below it, the team map removed drift; a mean of per-robot RMS values sits below it
-        # whenever the robots' errors differ.
+        # Below it, the team map removed drift. (With equal keyframe counts, the mean of the
+        # per-robot RMS values sits below it whenever the robots' errors differ.)
         "single_ate_pooled_m": None,
         "bandwidth": {k: None for k in BANDWIDTH_KEYS},
         "server_ms_per_keyframe": None,

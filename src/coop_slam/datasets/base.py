@@ -118,7 +118,7 @@ class Sequence:
     def load_color(self, frame: Frame) -> np.ndarray:
         """Colour image as BGR uint8 (grey images are returned as single-channel uint8)."""
         img = _imread(frame.color_path, cv2.IMREAD_UNCHANGED)
-        return self.undistort.color(img) if self.undistort is not None else img
+        return self.undistort.color(img, frame.color_path) if self.undistort is not None else img
 
     def load_right(self, frame: Frame) -> np.ndarray:
         if frame.right_path is None:
@@ -135,7 +135,7 @@ class Sequence:
                 f"depth image {frame.depth_path} has {raw.shape[2]} channels, expected 1"
             )
         if self.undistort is not None:
-            raw = self.undistort.depth(raw)
+            raw = self.undistort.depth(raw, frame.depth_path)
         if raw.dtype == np.uint16:
             return raw.astype(np.float32) / np.float32(self.camera.depth_scale)
         depth = raw.astype(np.float32)
@@ -201,19 +201,22 @@ def read_camera_distortion(path: str) -> np.ndarray:
             f"camera file {path} gives the distortion twice ({' and '.join(map(str, given))}): "
             "use one of 'distortion: [...]', k1..k3 or d0..d4"
         )
-    try:
-        if "distortion" in data:
-            values = [float(v) for v in data["distortion"]]
-            if len(values) not in (4, 5):
-                raise ValueError(f"{len(values)} values")
-            coeffs[: len(values)] = values
-        else:
-            for i, k in enumerate(DISTORTION_KEYS):
-                coeffs[i] = float(data.get(k, data.get(f"d{i}", 0.0)))
-    except (TypeError, ValueError) as exc:
-        raise DatasetError(
-            f"camera file {path}: distortion must be 4 or 5 numbers (k1 k2 p1 p2 [k3]): {exc}"
-        ) from None
+    if "distortion" in data:
+        values = data["distortion"]
+        if not isinstance(values, list) or len(values) not in (4, 5):
+            raise DatasetError(
+                f"camera file {path}: distortion must be a YAML list of 4 or 5 numbers "
+                f"[k1, k2, p1, p2(, k3)], got {values!r}"
+            )
+    else:
+        values = [data.get(k, data.get(f"d{i}", 0.0)) for i, k in enumerate(DISTORTION_KEYS)]
+    for i, v in enumerate(values):
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise DatasetError(
+                f"camera file {path}: distortion coefficient {DISTORTION_KEYS[i]} must be a "
+                f"number, got {v!r}"
+            )
+        coeffs[i] = float(v)
     if not np.isfinite(coeffs).all():
         raise DatasetError(f"camera file {path}: distortion coefficients must be finite")
     return coeffs
@@ -246,20 +249,21 @@ class Undistortion:
         map_x, map_y = cv2.initUndistortRectifyMap(raw.K, coeffs, None, K_new, size, cv2.CV_32FC1)
         return cls(camera, map_x, map_y)
 
-    def color(self, img: np.ndarray) -> np.ndarray:
-        self._check(img)
+    def color(self, img: np.ndarray, path: str) -> np.ndarray:
+        self._check(img, path)
         return cv2.remap(img, self.map_x, self.map_y, cv2.INTER_LINEAR)
 
-    def depth(self, depth: np.ndarray) -> np.ndarray:
+    def depth(self, depth: np.ndarray, path: str) -> np.ndarray:
         # Nearest: interpolating across a depth edge would invent surfaces between the two.
-        self._check(depth)
+        self._check(depth, path)
         return cv2.remap(depth, self.map_x, self.map_y, cv2.INTER_NEAREST)
 
-    def _check(self, img: np.ndarray) -> None:
+    def _check(self, img: np.ndarray, path: str) -> None:
         if img.shape[:2] != self.map_x.shape:
             raise DatasetError(
-                f"image is {img.shape[1]}x{img.shape[0]}, the camera file says "
-                f"{self.camera.width}x{self.camera.height}"
+                f"image {path} is {img.shape[1]}x{img.shape[0]}, but the camera model (camera.yaml "
+                f"or a built-in TUM freiburg calibration) is {self.map_x.shape[1]}x"
+                f"{self.map_x.shape[0]}"
             )
 
 

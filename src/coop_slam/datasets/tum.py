@@ -38,8 +38,9 @@ TUM_BENCHMARK_CAMERAS = {
 
 
 def tum_benchmark_camera(folder: str) -> tuple[CameraModel, np.ndarray] | None:
-    """(raw camera, distortion) of a TUM benchmark folder (``..._freiburgN_...``), else None."""
-    m = re.search(r"freiburg([123])", os.path.basename(os.path.normpath(folder)))
+    """(raw camera, distortion) of a TUM benchmark folder (``rgbd_dataset_freiburgN_*``, as the
+    benchmark names them), else None."""
+    m = re.fullmatch(r"rgbd_dataset_freiburg([123])_.+", os.path.basename(os.path.normpath(folder)))
     if m is None:
         return None
     fx, fy, cx, cy, dist, depth_scale = TUM_BENCHMARK_CAMERAS[m.group(1)]
@@ -168,7 +169,7 @@ def read_tum(
     )
 
 
-def _folder_camera(folder: str, camera_file: str | None):
+def _folder_camera(folder: str, camera_file: str | None) -> tuple[CameraModel, Undistortion | None]:
     """(camera of the loaded images, Undistortion or None) for a TUM folder."""
     path = camera_file or os.path.join(folder, "camera.yaml")
     if camera_file or os.path.isfile(path):

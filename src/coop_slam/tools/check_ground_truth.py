@@ -6,8 +6,9 @@ three pairwise disagreements of their relative motions into each one's own error
 hat, :func:`coop_slam.evaluation.noise_split`). Where the ground truth's own error is as large as
 the odometry's, an ATE against it measures the reference as much as the odometry. Also prints
 each estimator's rotation gain per camera axis (:func:`coop_slam.evaluation.rotation_gain`):
-x / y gains away from 1 with z at 1 are the mark of a focal length that does not fit the images,
-in both estimators at once, of a reference that turns more or less than the images show.
+x / y gains away from 1 with z at 1 are the mark of a focal length that does not fit the images;
+the same gains in both estimators point at a reference that turns more or less than the images
+show.
 """
 
 from __future__ import annotations

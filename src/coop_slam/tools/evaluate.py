@@ -311,7 +311,7 @@ def evaluate_run(
     # to ground truth (as for its ATE), so a map's drift is averaged rather than frozen at one
     # frame.
     T_world_map_gt = {}
-    pooled_sq, pooled_n = 0.0, 0  # the robots' own ATEs, pooled
+    own_ate = {}  # robot -> (its own ATE, keyframes it was computed on)
     for entry, rid in zip(report["robots"], robot_ids):
         r = run.robots.get(rid, RobotRun())
         stamps_gt, poses_gt = gts[rid]
@@ -328,8 +328,7 @@ def evaluate_run(
                 res = ate(stamps, poses, stamps_gt, poses_gt)
                 entry["ate_rmse_m"] = res.rmse_m
                 T_world_map_gt[rid] = res.T_gt_est
-                pooled_sq += res.rmse_m**2 * res.count
-                pooled_n += res.count
+                own_ate[rid] = (res.rmse_m, res.count)
             except EvaluationError:
                 pass
             if out_dir:
@@ -403,10 +402,14 @@ def evaluate_run(
             team = None
         if out_dir and team is not None:
             _plot_team(out_dir, est_world, gt_world, team)
-    if pooled_n:
-        report["single_ate_pooled_m"] = float(np.sqrt(pooled_sq / pooled_n))
     if report["team_ate_rmse_m"] is None and len(robot_ids) == 1:
         report["team_ate_rmse_m"] = report["robots"][0]["ate_rmse_m"]
+    if report["team_ate_rmse_m"] is not None:
+        # Pooled over the robots the team ATE covers, so that the two compare like with like.
+        pooled = [own_ate[r] for r in (gt_world or own_ate) if r in own_ate]
+        n = sum(c for _, c in pooled)
+        if n:
+            report["single_ate_pooled_m"] = float(np.sqrt(sum(e**2 * c for e, c in pooled) / n))
     report["server_ms_per_keyframe"] = run.server_stats.get("ms_per_keyframe_mean")
     report["loop_closures"] = run.server_stats.get("loops")
     report["bandwidth"] = _bandwidth(run)
