@@ -170,13 +170,7 @@ def noise_split(trajectories: dict[str, np.ndarray], step: int) -> NoiseSplit:
     if len(trajectories) != 3:
         raise EvaluationError(f"noise_split needs exactly 3 trajectories, got {len(trajectories)}")
     names = list(trajectories)
-    poses = [np.asarray(trajectories[n], float).reshape(-1, 4, 4) for n in names]
-    if len({len(p) for p in poses}) != 1:
-        raise EvaluationError(
-            "noise_split needs trajectories of the same frames, got lengths "
-            + ", ".join(f"{n} {len(p)}" for n, p in zip(names, poses))
-        )
-    i, rel = _relative_motions(poses, step)
+    i, rel = _relative_motions(trajectories, step)
     rot2, trans2 = {}, {}
     for a, b in ((0, 1), (0, 2), (1, 2)):
         err = np.linalg.inv(rel[a]) @ rel[b]
@@ -198,9 +192,15 @@ def noise_split(trajectories: dict[str, np.ndarray], step: int) -> NoiseSplit:
     )
 
 
-def _relative_motions(poses: list[np.ndarray], step: int, min_pairs: int = 10):
-    """Frames i where every trajectory has a pose at i and i + step, and each trajectory's motion
-    ``T_i^-1 T_(i+step)`` there."""
+def _relative_motions(trajectories: dict[str, np.ndarray], step: int, min_pairs: int = 10):
+    """Frames i where every trajectory (name -> (F, 4, 4) poses of the same frames) has a pose at
+    i and i + step, and each trajectory's motion ``T_i^-1 T_(i+step)`` there."""
+    poses = [np.asarray(p, float).reshape(-1, 4, 4) for p in trajectories.values()]
+    if len({len(p) for p in poses}) != 1:
+        raise EvaluationError(
+            "needs trajectories of the same frames, got lengths "
+            + ", ".join(f"{n} {len(p)}" for n, p in zip(trajectories, poses))
+        )
     if step < 1:
         raise EvaluationError(f"step must be at least 1 frame, got {step}")
     finite = np.all([np.isfinite(p).all(axis=(1, 2)) for p in poses], axis=0)
@@ -218,13 +218,9 @@ def rotation_gain(poses_est, poses_gt, step: int, min_rms_deg: float = 0.1) -> n
     est_k = g_k gt_k. 1 is right. A wrong focal length scales x and y, not z (a rotation about
     the optical axis moves pixels independently of it). NaN for an axis about which ground truth
     turns less than ``min_rms_deg`` (RMS over the pairs)."""
-    est = np.asarray(poses_est, float).reshape(-1, 4, 4)
-    gt = np.asarray(poses_gt, float).reshape(-1, 4, 4)
-    if len(est) != len(gt):
-        raise EvaluationError(
-            f"rotation_gain needs poses of the same frames, got {len(est)} and {len(gt)}"
-        )
-    _, (rel_est, rel_gt) = _relative_motions([est, gt], step)
+    _, (rel_est, rel_gt) = _relative_motions(
+        {"estimate": poses_est, "ground truth": poses_gt}, step
+    )
     rotvec_est_rad = Rotation.from_matrix(rel_est[:, :3, :3]).as_rotvec()
     rotvec_gt_rad = Rotation.from_matrix(rel_gt[:, :3, :3]).as_rotvec()
     power = np.sum(rotvec_gt_rad**2, axis=0)

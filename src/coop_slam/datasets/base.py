@@ -78,7 +78,7 @@ class Sequence:
     gt_poses_se3: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # T_world_cam
     gt_max_dt_s: float = 0.02  # largest stamp difference accepted when associating ground truth
     # Raw images with lens distortion: loading maps them onto ``camera`` (= undistort.camera).
-    undistort: "Undistortion | None" = field(default=None, repr=False)
+    undistort: Undistortion | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -171,7 +171,16 @@ def read_camera_yaml(path: str, sensor: str = "rgbd") -> CameraModel:
     """Camera model from a flat YAML file
     (width, height, fx, fy, cx, cy[, depth_scale, baseline_m]); see also
     :func:`read_camera_distortion`."""
+    return _camera_from(_camera_yaml_data(path), path, sensor)
+
+
+def read_camera_file(path: str, sensor: str = "rgbd") -> tuple[CameraModel, np.ndarray]:
+    """(camera model, lens distortion) of one camera file, read once."""
     data = _camera_yaml_data(path)
+    return _camera_from(data, path, sensor), _distortion_from(data, path)
+
+
+def _camera_from(data: dict, path: str, sensor: str) -> CameraModel:
     missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in data]
     if missing:
         raise DatasetError(f"camera file {path} lacks {', '.join(missing)}")
@@ -188,7 +197,10 @@ DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
 def read_camera_distortion(path: str) -> np.ndarray:
     """Lens distortion (k1, k2, p1, p2, k3) of a camera file's raw images: keys k1..k3, TUM's
     d0..d4 or a list ``distortion: [k1, k2, p1, p2(, k3)]``; zeros when it gives none."""
-    data = _camera_yaml_data(path)
+    return _distortion_from(_camera_yaml_data(path), path)
+
+
+def _distortion_from(data: dict, path: str) -> np.ndarray:
     coeffs = np.zeros(len(DISTORTION_KEYS))
     styles = [
         ("distortion",) if "distortion" in data else (),
@@ -232,7 +244,7 @@ class Undistortion:
     map_y: np.ndarray
 
     @classmethod
-    def create(cls, raw: CameraModel, coeffs) -> "Undistortion | None":
+    def create(cls, raw: CameraModel, coeffs) -> Undistortion | None:
         """None when ``coeffs`` are all zero (the images are rectified already)."""
         coeffs = np.asarray(coeffs, float)
         if not coeffs.any():

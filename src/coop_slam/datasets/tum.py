@@ -3,7 +3,7 @@
 Folder layout: ``rgb.txt`` and ``depth.txt`` (``stamp path`` lines), optional ``groundtruth.txt``
 (``stamp tx ty tz qx qy qz qw``, camera-to-world), and the camera in ``camera.yaml`` beside them.
 Colour and depth are associated by nearest timestamp, as TUM's ``associate.py`` does. A camera
-file may give lens distortion (:func:`read_camera_distortion`): images are then undistorted as
+file may give lens distortion (``base.read_camera_distortion``): images are then undistorted as
 they load. The TUM RGB-D benchmark's own folders (``rgbd_dataset_freiburgN_*``) need no camera
 file: their published calibration is built in.
 """
@@ -16,15 +16,7 @@ import re
 import numpy as np
 
 from ..geometry import quat_from_se3, se3_from_quat
-from .base import (
-    CameraModel,
-    DatasetError,
-    Frame,
-    Sequence,
-    Undistortion,
-    read_camera_distortion,
-    read_camera_yaml,
-)
+from .base import CameraModel, DatasetError, Frame, Sequence, Undistortion, read_camera_file
 
 # The TUM RGB-D benchmark's published colour calibration per Kinect (fx, fy, cx, cy, distortion
 # k1 k2 p1 p2 k3, depth units per metre); its depth images are registered to the colour camera.
@@ -173,7 +165,7 @@ def _folder_camera(folder: str, camera_file: str | None) -> tuple[CameraModel, U
     """(camera of the loaded images, Undistortion or None) for a TUM folder."""
     path = camera_file or os.path.join(folder, "camera.yaml")
     if camera_file or os.path.isfile(path):
-        raw, coeffs = read_camera_yaml(path), read_camera_distortion(path)
+        raw, coeffs = read_camera_file(path)
     else:
         builtin = tum_benchmark_camera(folder)
         if builtin is None:
