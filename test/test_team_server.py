@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from coop_slam.errors import ConfigError
 from coop_slam.geometry import invert, transform_error
 from coop_slam.keyframe import KeyframeError
 from coop_slam.team.server import ServerConfig, TeamServer
@@ -61,10 +62,14 @@ def test_unrelated_places_never_merge(world):
     assert merge is None and "not merged" in message
 
 
-def _co_observe(world, sighted: bool):
-    """Robots 1 and 2 look at the same scene at the same times; (merges, server)."""
+def _co_observe(world, sighted: bool, offset=(0.3, -0.2), min_separation_m=None):
+    """Robots 1 and 2 look at the same scene at the same times, robot 2 ``offset`` [m] from
+    robot 1; (merges, server)."""
     points, desc, _, vocab = world
-    server = TeamServer(_config(robots=[1, 2]), vocab)
+    cfg = _config(robots=[1, 2])
+    if min_separation_m is not None:
+        cfg.rendezvous.min_separation_m = min_separation_m
+    server = TeamServer(cfg, vocab)
     if sighted:  # a marker sighting before either robot has a keyframe
         merge, message = server.request_rendezvous(1, 2, stamp_s=-1.0)
         assert merge is None and "no keyframes" in message
@@ -72,7 +77,7 @@ def _co_observe(world, sighted: bool):
     merges = []
     for kf_a, kf_b in zip(
         _keyframes(1, yaws, points, desc, seed=1),
-        _keyframes(2, yaws + 0.05, points, desc, offset=(0.3, -0.2), seed=50),
+        _keyframes(2, yaws + 0.05, points, desc, offset=offset, seed=50),
     ):
         merges += server.add_keyframe(kf_a) + server.add_keyframe(kf_b)
     return merges, server
@@ -93,6 +98,21 @@ def test_co_observation_merges_as_rendezvous(world):
     merge, message = server.request_rendezvous(1, 2)
     assert merge is None and "already merged" in message
     assert server.request_rendezvous(1, 7)[1].startswith("robot 7 is unknown")
+
+
+def test_views_that_put_two_robots_in_one_spot_at_once_are_look_alikes(world):
+    """Two robots cannot stand 5 cm apart: the same view at the same time is a look-alike place
+    (identical posters in two buildings), by co-observation and place recognition alike."""
+    for sighted in (False, True):
+        merges, server = _co_observe(world, sighted, offset=(0.05, 0.0))
+        assert merges == [] and server.groups.groups() == [[1], [2]]
+    # The same views merge when the check is off, so the check is what refused them.
+    merges, _ = _co_observe(world, sighted=False, offset=(0.05, 0.0), min_separation_m=0.0)
+    assert len(merges) == 1
+    cfg = _config(robots=[1, 2])
+    cfg.rendezvous.min_separation_m = -0.1
+    with pytest.raises(ConfigError, match="min_separation_m"):
+        cfg.validate()
 
 
 def test_unknown_robot_and_duplicates_are_rejected(world):

@@ -91,10 +91,18 @@ class RendezvousConfig:
     # places: for this long after it their co-observations merge on one verification, and a
     # merge between them by any path is a rendezvous [s].
     together_s: float = 5.0
+    # Two robots' cameras (their bodies, or the people carrying them) are at least this far apart
+    # at any moment. A verification, rendezvous or place recognition, that puts one robot's camera
+    # closer than this to where the other's was at the same time is a look-alike place: two
+    # buildings with identical posters, driven in step, verify at 0.01-0.14 m, where RedKitchen's
+    # halves played side by side verify at 0.40-0.80 m and the synthetic rendezvous at 1.3 m and
+    # more [m]; 0 = off.
+    min_separation_m: float = 0.25
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
 
     def validate(self) -> None:
         require(self.window_s > 0, "rendezvous.window_s must be > 0")
+        require(self.min_separation_m >= 0, "rendezvous.min_separation_m must be >= 0")
         require(self.request_window_s > 0, "rendezvous.request_window_s must be > 0")
         require(self.sighting_period_s >= 0, "rendezvous.sighting_period_s must be >= 0")
         require(self.merge_min_inliers >= 1, "rendezvous.merge_min_inliers must be >= 1")
@@ -557,7 +565,7 @@ class TeamServer:
                     res.n_inliers,
                     self.config.place_recognition.merge_min_inliers,
                 )
-            elif res.accepted:
+            elif res.accepted and not self._look_alike("place recognition", cand_key, key_b, res):
                 verified_roots.add(root)
                 # Seen at (about) the same time or while known to be together, it is a
                 # rendezvous, whichever path verified it.
@@ -758,6 +766,54 @@ class TeamServer:
             return False
         return True
 
+    def _position_at(self, robot_id: int, map_segment: int, stamp_s: float) -> np.ndarray | None:
+        """Where the robot's camera was at ``stamp_s`` in its map (interpolated between its
+        keyframes); None when it has no keyframes of that map segment around then (0.2 s)."""
+        track = sorted(
+            (s.record.stamp_s, s.record.T_map_cam[:3, 3])
+            for k, s in self.keyframes.items()
+            if k[0] == robot_id and s.record.map_segment == map_segment
+        )
+        if not track:
+            return None
+        stamps = np.array([t for t, _ in track])
+        if not (stamps[0] <= stamp_s <= stamps[-1]) and np.min(np.abs(stamps - stamp_s)) > 0.2:
+            return None
+        positions = np.array([p for _, p in track])
+        return np.array([np.interp(stamp_s, stamps, positions[:, i]) for i in range(3)])
+
+    def _separation_m(self, key_a, key_b, T_a_b: np.ndarray) -> float | None:
+        """If ``T_a_b`` (keyframe b's camera in keyframe a's) held: how close the two robots'
+        cameras came [m], at keyframe b's time and at keyframe a's, as far as the robots'
+        keyframes tell where each was then (None if they tell neither)."""
+        rec_a, rec_b = self.keyframes[key_a].record, self.keyframes[key_b].record
+        gaps = []
+        p_a = self._position_at(key_a[0], rec_a.map_segment, rec_b.stamp_s)
+        if p_a is not None:
+            gaps.append(np.linalg.norm((rec_a.T_map_cam @ T_a_b)[:3, 3] - p_a))
+        p_b = self._position_at(key_b[0], rec_b.map_segment, rec_a.stamp_s)
+        if p_b is not None:
+            gaps.append(np.linalg.norm((rec_b.T_map_cam @ invert(T_a_b))[:3, 3] - p_b))
+        return float(min(gaps)) if gaps else None
+
+    def _look_alike(self, kind: str, key_a, key_b, res: RelativePoseResult) -> bool:
+        """Whether a verified pair would put two robots' cameras closer than their bodies allow
+        (rendezvous.min_separation_m): then the two places only look alike."""
+        limit = self.config.rendezvous.min_separation_m
+        separation_m = self._separation_m(key_a, key_b, res.T_a_b)
+        if separation_m is None or separation_m >= limit:
+            return False
+        log.info(
+            "%s %s - %s: would put the two robots' cameras %.2f m apart at one time (< %.2f m): "
+            "a look-alike place",
+            kind,
+            key_a,
+            key_b,
+            separation_m,
+            limit,
+        )
+        return True
+
     def _verify_rendezvous(
         self, key_a, key_b, stamp_s: float, T_init=None, prior_sigma=None, confirm=False
     ) -> MergeResult | None:
@@ -775,6 +831,8 @@ class TeamServer:
         )
         log.debug("rendezvous %s vs %s (bow %.3f): %s", key_a, key_b, score, res.reason)
         if not res.accepted:
+            return None
+        if self._look_alike("rendezvous", key_a, key_b, res):
             return None
         if res.n_inliers < cfg.merge_min_inliers:
             log.info(
