@@ -94,7 +94,7 @@ class RendezvousConfig:
     # Two robots' cameras (their bodies, or the people carrying them) are at least this far apart
     # at any moment. A verification, rendezvous or place recognition, that puts one robot's camera
     # closer than this to where the other's was at the same time is a look-alike place: two
-    # buildings with identical posters, driven in step, verify at 0.01-0.14 m, where RedKitchen's
+    # buildings with identical posters, driven in step, verify at 0.01-0.20 m, where RedKitchen's
     # halves played side by side verify at 0.40-0.80 m and the synthetic rendezvous at 1.3 m and
     # more [m]; 0 = off.
     min_separation_m: float = 0.25
