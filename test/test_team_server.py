@@ -62,11 +62,12 @@ def test_unrelated_places_never_merge(world):
     assert merge is None and "not merged" in message
 
 
-def _co_observe(world, sighted: bool, offset=(0.3, -0.2), min_separation_m=None):
+def _co_observe(world, sighted: bool, offset=(0.3, -0.2), min_separation_m=None, auto=True):
     """Robots 1 and 2 look at the same scene at the same times, robot 2 ``offset`` [m] from
-    robot 1; (merges, server)."""
+    robot 1; (merges, server). Without ``auto`` only place recognition can join them."""
     points, desc, _, vocab = world
     cfg = _config(robots=[1, 2])
+    cfg.rendezvous.auto = auto
     if min_separation_m is not None:
         cfg.rendezvous.min_separation_m = min_separation_m
     server = TeamServer(cfg, vocab)
@@ -102,17 +103,36 @@ def test_co_observation_merges_as_rendezvous(world):
 
 def test_views_that_put_two_robots_in_one_spot_at_once_are_look_alikes(world):
     """Two robots cannot stand 5 cm apart: the same view at the same time is a look-alike place
-    (identical posters in two buildings), by co-observation and place recognition alike."""
-    for sighted in (False, True):
-        merges, server = _co_observe(world, sighted, offset=(0.05, 0.0))
+    (identical posters in two buildings), whether a marker cue says they are together or not."""
+    for sighted, auto in ((False, True), (True, True), (False, False)):
+        merges, server = _co_observe(world, sighted, offset=(0.05, 0.0), auto=auto)
         assert merges == [] and server.groups.groups() == [[1], [2]]
-    # The same views merge when the check is off, so the check is what refused them.
-    merges, _ = _co_observe(world, sighted=False, offset=(0.05, 0.0), min_separation_m=0.0)
-    assert len(merges) == 1
+        # The same views merge when the check is off, so the check is what refused them.
+        merges, _ = _co_observe(world, sighted, (0.05, 0.0), min_separation_m=0.0, auto=auto)
+        assert len(merges) == 1, (sighted, auto)
     cfg = _config(robots=[1, 2])
     cfg.rendezvous.min_separation_m = -0.1
     with pytest.raises(ConfigError, match="min_separation_m"):
         cfg.validate()
+
+
+def test_robot_position_between_keyframes_is_known_only_across_short_gaps(world):
+    points, desc, _, vocab = world
+    server = TeamServer(_config(robots=[1, 2]), vocab)
+    kfs = _keyframes(1, [0.0, 0.1, 0.2, 0.3], points, desc)  # stamps 0, 1, 2, 3 s
+    kfs[3].stamp_s = 5.0  # then nothing for 3 s
+    twin = _keyframes(1, [0.15], points, desc, kid0=9)[0]
+    twin.stamp_s = 2.0  # two keyframes at one stamp
+    for kf in kfs + [twin]:
+        server.add_keyframe(kf)
+    p0, p1 = (kf.T_map_cam[:3, 3] for kf in kfs[:2])
+    np.testing.assert_allclose(server._position_at(1, 0, 0.25), 0.75 * p0 + 0.25 * p1)
+    np.testing.assert_allclose(server._position_at(1, 0, 1.0), p1)
+    assert server._position_at(1, 0, 2.0) is not None
+    for stamp_s in (-0.5, 3.5, 6.0):  # before the first, in the gap, after the last
+        assert server._position_at(1, 0, stamp_s) is None
+    assert server._position_at(1, 1, 0.5) is None  # no keyframes in that map segment
+    assert server._position_at(2, 0, 0.5) is None  # nor of that robot
 
 
 def test_unknown_robot_and_duplicates_are_rejected(world):

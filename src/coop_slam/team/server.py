@@ -91,18 +91,18 @@ class RendezvousConfig:
     # places: for this long after it their co-observations merge on one verification, and a
     # merge between them by any path is a rendezvous [s].
     together_s: float = 5.0
-    # Two robots' cameras (their bodies, or the people carrying them) are at least this far apart
-    # at any moment. A verification, rendezvous or place recognition, that puts one robot's camera
-    # closer than this to where the other's was at the same time is a look-alike place: two
-    # buildings with identical posters, driven in step, verify at 0.01-0.20 m, where RedKitchen's
-    # halves played side by side verify at 0.40-0.80 m and the synthetic rendezvous at 1.3 m and
-    # more [m]; 0 = off.
-    min_separation_m: float = 0.25
+    # Two robots' cameras are never closer than this at one time: the synthetic robots are 0.4 m
+    # wide, and two people carrying cameras stand at least about this far apart. A verification,
+    # rendezvous or place recognition, of keyframes taken within window_s of each other that puts
+    # one robot's camera closer than this to where the other's was then is a look-alike place:
+    # two buildings with identical posters, driven in step, verify at 0.08-0.23 m; the synthetic
+    # rendezvous at 1.3 m and more. 0 = off, as for one camera's recording split into robots
+    # (scripts/demo --split), which may well be in one spot at one time [m].
+    min_separation_m: float = 0.3
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
 
     def validate(self) -> None:
         require(self.window_s > 0, "rendezvous.window_s must be > 0")
-        require(self.min_separation_m >= 0, "rendezvous.min_separation_m must be >= 0")
         require(self.request_window_s > 0, "rendezvous.request_window_s must be > 0")
         require(self.sighting_period_s >= 0, "rendezvous.sighting_period_s must be >= 0")
         require(self.merge_min_inliers >= 1, "rendezvous.merge_min_inliers must be >= 1")
@@ -112,6 +112,7 @@ class RendezvousConfig:
         require(self.confirm_trans_m > 0, "rendezvous.confirm_trans_m must be > 0")
         require(self.confirm_rot_deg > 0, "rendezvous.confirm_rot_deg must be > 0")
         require(self.together_s >= 0, "rendezvous.together_s must be >= 0")
+        require(self.min_separation_m >= 0, "rendezvous.min_separation_m must be >= 0")
         self.registration.validate()
 
 
@@ -221,6 +222,12 @@ class _Verified:
     key_b: tuple[int, int]
     result: RelativePoseResult
     stamp_s: float
+
+
+# A robot's position between two keyframes is interpolated only across gaps up to this long [s]:
+# a robot's path bends little in a second, so the straight line between them errs by
+# centimetres, well under rendezvous.min_separation_m.
+_TRACK_GAP_S = 1.0
 
 
 def _pair(a: int, b: int) -> tuple[int, int]:
@@ -767,20 +774,28 @@ class TeamServer:
         return True
 
     def _position_at(self, robot_id: int, map_segment: int, stamp_s: float) -> np.ndarray | None:
-        """Where the robot's camera was at ``stamp_s`` in its map (interpolated between its
-        keyframes); None when it has no keyframes of that map segment around then (0.2 s)."""
+        """Where the robot's camera was at ``stamp_s`` in its map: interpolated between its
+        keyframes of that map segment just before and after (each within _TRACK_GAP_S); None when
+        they do not pin it down (a gap, before its first or after its last keyframe)."""
         track = sorted(
-            (s.record.stamp_s, s.record.T_map_cam[:3, 3])
-            for k, s in self.keyframes.items()
-            if k[0] == robot_id and s.record.map_segment == map_segment
+            (
+                (s.record.stamp_s, s.record.T_map_cam[:3, 3])
+                for k, s in self.keyframes.items()
+                if k[0] == robot_id and s.record.map_segment == map_segment
+            ),
+            key=lambda sp: sp[0],
         )
-        if not track:
-            return None
         stamps = np.array([t for t, _ in track])
-        if not (stamps[0] <= stamp_s <= stamps[-1]) and np.min(np.abs(stamps - stamp_s)) > 0.2:
+        after = int(np.searchsorted(stamps, stamp_s))  # first keyframe at or after stamp_s
+        if after < len(stamps) and stamps[after] == stamp_s:
+            return track[after][1]
+        if after == 0 or after == len(stamps):
             return None
-        positions = np.array([p for _, p in track])
-        return np.array([np.interp(stamp_s, stamps, positions[:, i]) for i in range(3)])
+        if stamps[after] - stamp_s > _TRACK_GAP_S or stamp_s - stamps[after - 1] > _TRACK_GAP_S:
+            return None
+        (t0, p0), (t1, p1) = track[after - 1], track[after]
+        w = (stamp_s - t0) / (t1 - t0) if t1 > t0 else 0.0
+        return (1.0 - w) * p0 + w * p1
 
     def _separation_m(self, key_a, key_b, T_a_b: np.ndarray) -> float | None:
         """If ``T_a_b`` (keyframe b's camera in keyframe a's) held: how close the two robots'
@@ -794,14 +809,20 @@ class TeamServer:
         p_b = self._position_at(key_b[0], rec_b.map_segment, rec_a.stamp_s)
         if p_b is not None:
             gaps.append(np.linalg.norm((rec_b.T_map_cam @ invert(T_a_b))[:3, 3] - p_b))
+        gaps = [g for g in gaps if np.isfinite(g)]
         return float(min(gaps)) if gaps else None
 
     def _look_alike(self, kind: str, key_a, key_b, res: RelativePoseResult) -> bool:
-        """Whether a verified pair would put two robots' cameras closer than their bodies allow
-        (rendezvous.min_separation_m): then the two places only look alike."""
-        limit = self.config.rendezvous.min_separation_m
+        """Whether a verified pair of keyframes taken at about the same time (rendezvous
+        window_s) would put two robots' cameras closer than their bodies allow
+        (rendezvous.min_separation_m): then the two places only look alike. Farther apart in
+        time, each robot's drift since the other keyframe would blur the test."""
+        cfg = self.config.rendezvous
+        dt = abs(self.keyframes[key_a].record.stamp_s - self.keyframes[key_b].record.stamp_s)
+        if cfg.min_separation_m <= 0 or key_a[0] == key_b[0] or dt > cfg.window_s:
+            return False
         separation_m = self._separation_m(key_a, key_b, res.T_a_b)
-        if separation_m is None or separation_m >= limit:
+        if separation_m is None or separation_m >= cfg.min_separation_m:
             return False
         log.info(
             "%s %s - %s: would put the two robots' cameras %.2f m apart at one time (< %.2f m): "
@@ -810,7 +831,7 @@ class TeamServer:
             key_a,
             key_b,
             separation_m,
-            limit,
+            cfg.min_separation_m,
         )
         return True
 
