@@ -101,14 +101,20 @@ def test_co_observation_merges_as_rendezvous(world):
     assert server.request_rendezvous(1, 7)[1].startswith("robot 7 is unknown")
 
 
-def test_views_that_put_two_robots_in_one_spot_at_once_are_look_alikes(world):
-    """Two robots cannot stand 5 cm apart: the same view at the same time is a look-alike place
-    (identical posters in two buildings), whether a marker cue says they are together or not."""
+@pytest.mark.parametrize(
+    "offset",
+    [(0.05, 0.0), (0.8 * np.cos(1.3), 0.8 * np.sin(1.3))],
+    ids=["5 cm aside", "0.8 m ahead in view"],
+)
+def test_views_two_robots_cannot_share_at_once_are_look_alikes(world, offset):
+    """Identical posters in two buildings, seen at the same times: as one place, the robots would
+    stand 5 cm apart, or robot 1 would see the wall straight through robot 2. Refused, whether a
+    marker cue says they are together or not, and by place recognition alone."""
     for sighted, auto in ((False, True), (True, True), (False, False)):
-        merges, server = _co_observe(world, sighted, offset=(0.05, 0.0), auto=auto)
-        assert merges == [] and server.groups.groups() == [[1], [2]]
+        merges, server = _co_observe(world, sighted, offset=offset, auto=auto)
+        assert merges == [] and server.groups.groups() == [[1], [2]], (sighted, auto)
         # The same views merge when the check is off, so the check is what refused them.
-        merges, _ = _co_observe(world, sighted, (0.05, 0.0), min_separation_m=0.0, auto=auto)
+        merges, _ = _co_observe(world, sighted, offset, min_separation_m=0.0, auto=auto)
         assert len(merges) == 1, (sighted, auto)
     cfg = _config(robots=[1, 2])
     cfg.rendezvous.min_separation_m = -0.1

@@ -18,7 +18,7 @@ from ..bow import Vocabulary
 from ..bow.database import ConsistencyChecker, ConsistencyConfig, DatabaseConfig, KeyframeDatabase
 from ..config import require
 from ..errors import CoopSlamError
-from ..geometry import invert, transform_error
+from ..geometry import invert, transform_error, transform_points
 from ..keyframe import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE, KeyframeRecord
 from ..registration.keyframe import KeyframeView
 from ..registration.relative_pose import (
@@ -93,11 +93,13 @@ class RendezvousConfig:
     together_s: float = 5.0
     # Two robots' cameras are never closer than this at one time: the synthetic robots are 0.4 m
     # wide, and two people carrying cameras stand at least about this far apart. A verification,
-    # rendezvous or place recognition, of keyframes taken within window_s of each other that puts
-    # one robot's camera closer than this to where the other's was then is a look-alike place:
-    # two buildings with identical posters, driven in step, verify at 0.08-0.23 m; the synthetic
-    # rendezvous at 1.3 m and more. 0 = off, as for one camera's recording split into robots
-    # (scripts/demo --split), which may well be in one spot at one time [m].
+    # rendezvous or place recognition, of keyframes taken within window_s of each other is a
+    # look-alike place if, at the time of a keyframe of either robot in that window, it puts the
+    # other robot's camera closer than this, or where the keyframe sees surfaces straight
+    # through the other robot. Two buildings with identical posters, driven in step, verify
+    # 0.08-0.23 m apart or 0.4-0.6 m ahead in view; the synthetic rendezvous at 1.3 m and more.
+    # 0 = off (both tests), as for one camera's recording split into robots (scripts/demo
+    # --split), which may well be in one spot at one time [m].
     min_separation_m: float = 0.3
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
 
@@ -228,6 +230,35 @@ class _Verified:
 # a robot's path bends little in a second, so the straight line between them errs by
 # centimetres, well under rendezvous.min_separation_m.
 _TRACK_GAP_S = 1.0
+
+
+# What of a robot surely surrounds its camera (housing, mount, body) [m], and how deep its body
+# reaches behind that [m]: a keyframe whose keypoints around where another robot's camera would
+# be (at least _SEE_THROUGH_MIN_KEYPOINTS of them, nearly all) lie farther than that looks
+# straight through the other robot.
+_BODY_RADIUS_M = 0.1
+_BODY_DEPTH_M = 0.3
+_SEE_THROUGH_MIN_KEYPOINTS = 5
+_SEE_THROUGH_FRACTION = 0.8
+
+
+def _sees_through(rec: KeyframeRecord, c_cam: np.ndarray) -> bool:
+    """Whether keyframe ``rec`` sees surfaces behind the point ``c_cam`` (its camera frame)
+    all around it, where another robot's camera would be."""
+    cam = rec.camera
+    if c_cam[2] < 2 * _BODY_RADIUS_M:
+        return False
+    u = cam.fx * c_cam[0] / c_cam[2] + cam.cx
+    v = cam.fy * c_cam[1] / c_cam[2] + cam.cy
+    if not (0 <= u < cam.width and 0 <= v < cam.height):
+        return False
+    radius_px = cam.fx * _BODY_RADIUS_M / c_cam[2]
+    uv = rec.keypoints[:, :2]
+    near = (np.hypot(uv[:, 0] - u, uv[:, 1] - v) <= radius_px) & (rec.depths_m > 0)
+    if near.sum() < _SEE_THROUGH_MIN_KEYPOINTS:
+        return False
+    beyond = rec.depths_m[near] > c_cam[2] + _BODY_DEPTH_M
+    return bool(beyond.mean() >= _SEE_THROUGH_FRACTION)
 
 
 def _pair(a: int, b: int) -> tuple[int, int]:
@@ -797,42 +828,56 @@ class TeamServer:
         w = (stamp_s - t0) / (t1 - t0) if t1 > t0 else 0.0
         return (1.0 - w) * p0 + w * p1
 
-    def _separation_m(self, key_a, key_b, T_a_b: np.ndarray) -> float | None:
-        """If ``T_a_b`` (keyframe b's camera in keyframe a's) held: how close the two robots'
-        cameras came [m], at keyframe b's time and at keyframe a's, as far as the robots'
-        keyframes tell where each was then (None if they tell neither)."""
+    def _physically_impossible(self, key_a, key_b, T_a_b: np.ndarray) -> str | None:
+        """Why ``T_a_b`` (keyframe b's camera in keyframe a's) cannot hold, or None.
+
+        It fixes where each robot's map lies in the other's. Then, at the time of every keyframe
+        of either robot within rendezvous.window_s of the pair (as far as the other robot's
+        keyframes tell where it was then): the two cameras must be min_separation_m apart, and
+        a keyframe cannot see surfaces straight through the other robot's body."""
+        cfg = self.config.rendezvous
         rec_a, rec_b = self.keyframes[key_a].record, self.keyframes[key_b].record
-        gaps = []
-        p_a = self._position_at(key_a[0], rec_a.map_segment, rec_b.stamp_s)
-        if p_a is not None:
-            gaps.append(np.linalg.norm((rec_a.T_map_cam @ T_a_b)[:3, 3] - p_a))
-        p_b = self._position_at(key_b[0], rec_b.map_segment, rec_a.stamp_s)
-        if p_b is not None:
-            gaps.append(np.linalg.norm((rec_b.T_map_cam @ invert(T_a_b))[:3, 3] - p_b))
-        gaps = [g for g in gaps if np.isfinite(g)]
-        return float(min(gaps)) if gaps else None
+        T_mapA_mapB = rec_a.T_map_cam @ T_a_b @ invert(rec_b.T_map_cam)
+        lo = min(rec_a.stamp_s, rec_b.stamp_s) - cfg.window_s
+        hi = max(rec_a.stamp_s, rec_b.stamp_s) + cfg.window_s
+        for viewer, other, T_mapV_mapO in (
+            (rec_a, rec_b, T_mapA_mapB),
+            (rec_b, rec_a, invert(T_mapA_mapB)),
+        ):
+            for key, stored in self.keyframes.items():
+                rec = stored.record
+                if key[0] != viewer.robot_id or rec.map_segment != viewer.map_segment:
+                    continue
+                if not lo <= rec.stamp_s <= hi:
+                    continue
+                p_other = self._position_at(other.robot_id, other.map_segment, rec.stamp_s)
+                if p_other is None:
+                    continue
+                c = transform_points(invert(rec.T_map_cam) @ T_mapV_mapO, p_other[None])[0]
+                if np.linalg.norm(c) < cfg.min_separation_m:
+                    return (
+                        f"robot {other.robot_id}'s camera {np.linalg.norm(c):.2f} m from robot "
+                        f"{viewer.robot_id}'s keyframe {key[1]} at its time"
+                    )
+                if _sees_through(rec, c):
+                    return (
+                        f"robot {viewer.robot_id}'s keyframe {key[1]} sees past where robot "
+                        f"{other.robot_id} would stand, {c[2]:.2f} m ahead"
+                    )
+        return None
 
     def _look_alike(self, kind: str, key_a, key_b, res: RelativePoseResult) -> bool:
         """Whether a verified pair of keyframes taken at about the same time (rendezvous
-        window_s) would put two robots' cameras closer than their bodies allow
-        (rendezvous.min_separation_m): then the two places only look alike. Farther apart in
-        time, each robot's drift since the other keyframe would blur the test."""
+        window_s) is physically impossible (see _physically_impossible): then the two places
+        only look alike. Farther apart in time, each robot's drift would blur the test."""
         cfg = self.config.rendezvous
         dt = abs(self.keyframes[key_a].record.stamp_s - self.keyframes[key_b].record.stamp_s)
         if cfg.min_separation_m <= 0 or key_a[0] == key_b[0] or dt > cfg.window_s:
             return False
-        separation_m = self._separation_m(key_a, key_b, res.T_a_b)
-        if separation_m is None or separation_m >= cfg.min_separation_m:
+        why = self._physically_impossible(key_a, key_b, res.T_a_b)
+        if why is None:
             return False
-        log.info(
-            "%s %s - %s: would put the two robots' cameras %.2f m apart at one time (< %.2f m): "
-            "a look-alike place",
-            kind,
-            key_a,
-            key_b,
-            separation_m,
-            cfg.min_separation_m,
-        )
+        log.info("%s %s - %s: a look-alike place: %s", kind, key_a, key_b, why)
         return True
 
     def _verify_rendezvous(
