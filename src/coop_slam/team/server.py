@@ -20,7 +20,7 @@ from ..config import require
 from ..errors import CoopSlamError
 from ..geometry import invert, transform_error, transform_points
 from ..keyframe import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE, KeyframeRecord
-from ..registration.keyframe import KeyframeView
+from ..registration.keyframe import KeyframeView, project
 from ..registration.relative_pose import (
     RegistrationConfig,
     RelativePoseResult,
@@ -248,8 +248,7 @@ def _sees_through(rec: KeyframeRecord, c_cam: np.ndarray) -> bool:
     cam = rec.camera
     if c_cam[2] < 2 * _BODY_RADIUS_M:
         return False
-    u = cam.fx * c_cam[0] / c_cam[2] + cam.cx
-    v = cam.fy * c_cam[1] / c_cam[2] + cam.cy
+    u, v = project(c_cam[None], cam.K)[0]
     if not (0 <= u < cam.width and 0 <= v < cam.height):
         return False
     radius_px = cam.fx * _BODY_RADIUS_M / c_cam[2]
@@ -259,6 +258,22 @@ def _sees_through(rec: KeyframeRecord, c_cam: np.ndarray) -> bool:
         return False
     beyond = rec.depths_m[near] > c_cam[2] + _BODY_DEPTH_M
     return bool(beyond.mean() >= _SEE_THROUGH_FRACTION)
+
+
+def _interpolate_track(stamps_s: np.ndarray, positions: np.ndarray, stamp_s: float):
+    """Position at ``stamp_s`` on a time-ordered track: its keyframe at that stamp, else the
+    straight line between the keyframes just before and after, when each is within _TRACK_GAP_S;
+    None when they do not pin it down (a gap, before the first or after the last keyframe)."""
+    after = int(np.searchsorted(stamps_s, stamp_s))  # first keyframe at or after stamp_s
+    if after < len(stamps_s) and stamps_s[after] == stamp_s:
+        return positions[after]
+    if after == 0 or after == len(stamps_s):
+        return None
+    t0, t1 = stamps_s[after - 1], stamps_s[after]
+    if t1 - stamp_s > _TRACK_GAP_S or stamp_s - t0 > _TRACK_GAP_S:
+        return None
+    w = (stamp_s - t0) / (t1 - t0)
+    return (1.0 - w) * positions[after - 1] + w * positions[after]
 
 
 def _pair(a: int, b: int) -> tuple[int, int]:
@@ -804,29 +819,24 @@ class TeamServer:
             return False
         return True
 
-    def _position_at(self, robot_id: int, map_segment: int, stamp_s: float) -> np.ndarray | None:
-        """Where the robot's camera was at ``stamp_s`` in its map: interpolated between its
-        keyframes of that map segment just before and after (each within _TRACK_GAP_S); None when
-        they do not pin it down (a gap, before its first or after its last keyframe)."""
+    def _track(self, robot_id: int, map_segment: int) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps_s (K,), camera positions (K, 3) in its map) of a robot's keyframes of one map
+        segment, in time order."""
         track = sorted(
             (
                 (s.record.stamp_s, s.record.T_map_cam[:3, 3])
                 for k, s in self.keyframes.items()
                 if k[0] == robot_id and s.record.map_segment == map_segment
             ),
-            key=lambda sp: sp[0],
+            key=lambda sp: sp[0],  # stamps only: equal stamps must not compare the arrays
         )
-        stamps = np.array([t for t, _ in track])
-        after = int(np.searchsorted(stamps, stamp_s))  # first keyframe at or after stamp_s
-        if after < len(stamps) and stamps[after] == stamp_s:
-            return track[after][1]
-        if after == 0 or after == len(stamps):
-            return None
-        if stamps[after] - stamp_s > _TRACK_GAP_S or stamp_s - stamps[after - 1] > _TRACK_GAP_S:
-            return None
-        (t0, p0), (t1, p1) = track[after - 1], track[after]
-        w = (stamp_s - t0) / (t1 - t0) if t1 > t0 else 0.0
-        return (1.0 - w) * p0 + w * p1
+        if not track:
+            return np.zeros(0), np.zeros((0, 3))
+        return np.array([t for t, _ in track]), np.array([p for _, p in track])
+
+    def _position_at(self, robot_id: int, map_segment: int, stamp_s: float) -> np.ndarray | None:
+        """Where the robot's camera was at ``stamp_s`` in its map (see _interpolate_track)."""
+        return _interpolate_track(*self._track(robot_id, map_segment), stamp_s)
 
     def _physically_impossible(self, key_a, key_b, T_a_b: np.ndarray) -> str | None:
         """Why ``T_a_b`` (keyframe b's camera in keyframe a's) cannot hold, or None.
@@ -844,13 +854,14 @@ class TeamServer:
             (rec_a, rec_b, T_mapA_mapB),
             (rec_b, rec_a, invert(T_mapA_mapB)),
         ):
+            other_track = self._track(other.robot_id, other.map_segment)
             for key, stored in self.keyframes.items():
                 rec = stored.record
                 if key[0] != viewer.robot_id or rec.map_segment != viewer.map_segment:
                     continue
                 if not lo <= rec.stamp_s <= hi:
                     continue
-                p_other = self._position_at(other.robot_id, other.map_segment, rec.stamp_s)
+                p_other = _interpolate_track(*other_track, rec.stamp_s)
                 if p_other is None:
                     continue
                 c = transform_points(invert(rec.T_map_cam) @ T_mapV_mapO, p_other[None])[0]
