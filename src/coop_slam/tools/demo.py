@@ -123,8 +123,11 @@ def parse_args(argv=None) -> argparse.Namespace:
 REPO = os.path.normpath(os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", ".."))
 
 
-def _write_run_info(out: str, args: argparse.Namespace, robot_ids: list[int]) -> None:
-    """What ``scripts/evaluate`` needs to find the ground truth of this run again."""
+def _write_run_info(
+    out: str, args: argparse.Namespace, robot_ids: list[int], ground: bool, base_cam: list
+) -> None:
+    """What ``scripts/evaluate`` needs to find the ground truth of this run again, and
+    ``scripts/replay`` the server's launch settings."""
     import json
 
     info = {
@@ -137,6 +140,8 @@ def _write_run_info(out: str, args: argparse.Namespace, robot_ids: list[int]) ->
         "keep_timing": args.keep_timing,
         "bag": os.path.abspath(args.bag) if args.bag else None,
         "robot_ids": robot_ids,
+        "ground_robots": ground,
+        "T_base_cam": base_cam,  # [x y z qx qy qz qw], [] = the launch file's default
     }
     with open(os.path.join(out, "run.json"), "w", encoding="utf-8") as fh:
         json.dump(info, fh, indent=2)
@@ -336,9 +341,11 @@ def run(args: argparse.Namespace) -> int:
             launch_args.append(f"camera_file:={os.path.abspath(args.camera)}")
     if args.rate is not None:
         launch_args += ["lockstep:=false", f"rate:={args.rate}"]
+    base_cam = []
     if source is not None and "T_base_cam" in (source.meta or {}):
         t, q = quat_from_se3(np.asarray(source.meta["T_base_cam"], float))
-        launch_args.append(f"T_base_cam:=[{', '.join(f'{v:.6f}' for v in (*t, *q))}]")
+        base_cam = [round(float(v), 6) for v in (*t, *q)]
+        launch_args.append(f"T_base_cam:=[{', '.join(f'{v:.6f}' for v in base_cam)}]")
     if args.no_clients:
         launch_args += ["clients:=false", "server:=false"]
     for flag, arg in (("server_config", args.server_config), ("client_config", args.client_config)):
@@ -353,7 +360,7 @@ def run(args: argparse.Namespace) -> int:
     bag_path = os.path.join(out, "run.bag")
     launch_args.append(f"record_bag:={bag_path}")
     launch_args.append(f"record_topics:={' '.join(RunRecorder(robot_ids).topics())}")
-    _write_run_info(out, args, robot_ids)
+    _write_run_info(out, args, robot_ids, ground, base_cam)
     log_path = os.path.join(out, "roslaunch.log")
     say(f"[2/3] running the system (ROS master {uri}; log {log_path})")
     recorder = None

@@ -1,0 +1,178 @@
+"""``scripts/replay RESULTS``: feed a recorded run's keyframes and marker sightings through the
+server core again, without ROS nodes, and print what the server decides.
+
+The server core is deterministic: the same recorded input gives the same merges, links and
+optimized poses. That makes a recorded run a regression check for any change to the server (a
+refactor must replay identically) and a quick way to try server parameters on real runs
+(``--server-config``). Operator requests (``--rendezvous``) are not in the bag and are not replayed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+from ..errors import CoopSlamError
+
+
+def _server_config(path: str, info: dict, overrides: dict):
+    """The server configuration the demo ran with: the YAML, as server.launch adjusts it."""
+    from ..config import merge_overrides
+    from ..ros.server_node import load_server_config
+
+    launch = {}
+    if info.get("ground_robots"):
+        launch["global_ba"] = {"planar_motion": True}
+    if info.get("split"):
+        launch["rendezvous"] = {"min_separation_m": 0.0}
+    launch["robots"] = list(info["robot_ids"])
+    return load_server_config(path, merge_overrides(launch, overrides))
+
+
+def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None = None) -> dict:
+    """Replay the bag through a fresh server core; returns the summary (see :func:`summary`)."""
+    import rosbag
+
+    from ..bow import Vocabulary
+    from ..bow.training import ensure_default_vocabulary
+    from ..geometry import invert, se3_from_quat
+    from ..ros.convert import MessageError, keyframe_from_msg, pose_from_msg
+    from ..team.server import TeamServer
+
+    cfg = _server_config(config_path, info, overrides or {})
+    server = TeamServer(cfg, Vocabulary.load(ensure_default_vocabulary()))
+    base_cam = info.get("T_base_cam") or []
+    T_body_cam = invert(se3_from_quat(base_cam[:3], base_cam[3:])) if base_cam else None
+    topics = [f"/robot_{r}/keyframes" for r in cfg.robots] + ["/robot_sightings"]
+    last_sighting: dict = {}
+    rejected = 0
+    with rosbag.Bag(bag_path) as bag:
+        for topic, msg, _ in bag.read_messages(topics=topics):
+            if topic == "/robot_sightings":
+                pair, now = (msg.observer_id, msg.observed_id), msg.header.stamp.to_sec()
+                if now - last_sighting.get(pair, -1e9) < cfg.rendezvous.sighting_period_s:
+                    continue
+                last_sighting[pair] = now
+                try:
+                    T_cam_body = pose_from_msg(msg.T_cam_body, "T_cam_body")
+                except MessageError:
+                    rejected += 1
+                    continue
+                server.request_rendezvous(
+                    msg.observer_id,
+                    msg.observed_id,
+                    now,
+                    T_cam_body if T_body_cam is not None else None,
+                    T_body_cam,
+                )
+                continue
+            try:
+                server.add_keyframe(keyframe_from_msg(msg, known_robots=server.known_robots))
+            except CoopSlamError:
+                rejected += 1
+    return summary(server, rejected)
+
+
+def summary(server, rejected: int = 0) -> dict:
+    """What the server decided: merges, constraints, groups and every keyframe's final position
+    in its group frame (rounded to 0.1 mm)."""
+    out = {
+        "merges": [
+            {
+                "type": m.type,
+                "robots": [m.robot_a, m.robot_b],
+                "keyframes": [m.keyframe_a, m.keyframe_b],
+                "inliers": m.inliers,
+                "stamp_s": round(m.stamp_s, 3),
+            }
+            for m in server.merges
+        ],
+        "constraints": [
+            {"type": c.type, "a": list(c.key_a), "b": list(c.key_b), "inliers": c.inliers}
+            for c in server.constraints
+        ],
+        "refused_constraints": server.rejected_constraints,
+        "verifications": server.verifications,
+        "groups": server.groups.groups(),
+        "rejected": rejected,
+        "keyframes": len(server.keyframes),
+        "positions_mm": {},
+    }
+    for robot in sorted({r for r, _ in server.keyframes}):
+        poses = server.optimized_keyframes(robot)
+        out["positions_mm"][str(robot)] = {
+            str(k): [round(float(v) * 1e3, 1) for v in T[:3, 3]] for k, T in poses.items()
+        }
+    return out
+
+
+def compare(a: dict, b: dict, tol_mm: float = 0.5) -> list[str]:
+    """Differences between two replay summaries (positions within ``tol_mm`` count as equal)."""
+    diffs = []
+    for key in ("merges", "constraints", "refused_constraints", "groups", "keyframes"):
+        if a.get(key) != b.get(key):
+            diffs.append(f"{key}: {a.get(key)} != {b.get(key)}")
+    worst = 0.0
+    for robot, poses in a.get("positions_mm", {}).items():
+        other = b.get("positions_mm", {}).get(robot, {})
+        for k, p in poses.items():
+            if k not in other:
+                diffs.append(f"robot {robot} keyframe {k} missing")
+                continue
+            worst = max(worst, float(np.max(np.abs(np.subtract(p, other[k])))))
+    if worst > tol_mm:
+        diffs.append(f"keyframe positions differ by up to {worst:.2f} mm")
+    return diffs
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="scripts/replay", description=__doc__.split("\n\n")[0])
+    p.add_argument("results", help="results folder of a demo run (run.json and run.bag)")
+    p.add_argument("--server-config", help="server YAML (default: config/server.yaml)")
+    p.add_argument("--out", help="write the summary as JSON here")
+    p.add_argument("--compare", help="a summary JSON written before: print the differences")
+    args = p.parse_args(argv)
+    repo = os.path.normpath(
+        os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", "..")
+    )
+    config = args.server_config or os.path.join(repo, "config", "server.yaml")
+    try:
+        with open(os.path.join(args.results, "run.json"), encoding="utf-8") as fh:
+            info = json.load(fh)
+        bag = os.path.join(args.results, "run.bag")
+        if not os.path.isfile(bag):
+            raise CoopSlamError(f"{bag} not found: the run was not recorded")
+        result = replay(bag, info, config)
+    except (CoopSlamError, OSError, ValueError) as exc:
+        print(f"[replay] ERROR: {exc}", file=sys.stderr)
+        return 2
+    for m in result["merges"]:
+        print(
+            f"[replay] merge {m['type']}: robots {m['robots']} keyframes {m['keyframes']} "
+            f"({m['inliers']} inliers) at {m['stamp_s']:.2f} s"
+        )
+    print(
+        f"[replay] {len(result['constraints'])} constraints "
+        f"({sum(c['type'] == 'loop' for c in result['constraints'])} loops), "
+        f"{result['refused_constraints']} refused, {result['verifications']} verifications, "
+        f"groups {result['groups']}, {result['keyframes']} keyframes, {result['rejected']} rejected"
+    )
+    if args.out:
+        with open(args.out, "w", encoding="utf-8") as fh:
+            json.dump(result, fh, indent=1)
+    if args.compare:
+        with open(args.compare, encoding="utf-8") as fh:
+            diffs = compare(json.load(fh), result)
+        print("[replay] same as " + args.compare if not diffs else "[replay] DIFFERS:")
+        for d in diffs:
+            print("   " + d)
+        return 1 if diffs else 0
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
