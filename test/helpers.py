@@ -3,17 +3,27 @@
 from __future__ import annotations
 
 import os
+import time
 
 import cv2
 import numpy as np
 
 from coop_slam.datasets import CameraModel
 from coop_slam.geometry import se3_from_quat
-from coop_slam.keyframe import KeyframeRecord
+from coop_slam.keyframe_record import KeyframeRecord
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 REDKITCHEN = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "redkitchen_0000_0599"))
 TINY_TUM = os.path.join(REPO, "test", "fixtures", "tiny_tum")
+
+
+def wait_until(condition, timeout_s: float, what: str) -> None:
+    """Wait for ``condition()`` (rostests: what another node publishes); fail naming ``what``."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+        time.sleep(0.05)
 
 
 def camera(width=640, height=480, f=525.0) -> CameraModel:

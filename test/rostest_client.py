@@ -1,8 +1,9 @@
 #!/usr/bin/env python3
 """rostest node: the client publishes keyframes, pose, TF (map -> odom -> base_link -> camera),
 path and local cloud with the right frames while the player plays a short synthetic sequence."""
+import os
+import sys
 import threading
-import time
 import unittest
 
 import numpy as np
@@ -14,8 +15,10 @@ from nav_msgs.msg import Path
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Bool
 
-from coop_slam.msg import FrameStats, KeyFrame
-from coop_slam.ros.convert import cloud_from_msg, keyframe_from_msg
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from coop_slam.msg import FrameStats, KeyFrame  # noqa: E402
+from coop_slam.ros.convert import cloud_from_msg, keyframe_from_msg  # noqa: E402
+from helpers import wait_until  # noqa: E402
 
 
 class ClientOutputsTest(unittest.TestCase):
@@ -42,7 +45,15 @@ class ClientOutputsTest(unittest.TestCase):
         buf = tf2_ros.Buffer()
         tf2_ros.TransformListener(buf)
         self.assertTrue(done.wait(500.0), "player did not finish")
-        time.sleep(2.0)  # wall time: sim time stands still once the player is done
+        # In lock-step every frame was acknowledged before the player finished; the last
+        # messages may still be on their way to this node.
+        wait_until(
+            lambda: got["path"] is not None
+            and got["cloud"] is not None
+            and buf.can_transform("robot_1/map", "robot_1/camera_optical", rospy.Time(0)),
+            30.0,
+            "the client's path, cloud and TF",
+        )
         self.assertGreaterEqual(len(got["stats"]), 100, "the client acknowledged too few frames")
         self.assertTrue(all(s.robot_id == 1 for s in got["stats"]))
         self.assertGreaterEqual(sum(s.tracking_ok for s in got["stats"]), 0.9 * len(got["stats"]))

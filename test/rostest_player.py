@@ -1,6 +1,8 @@
 #!/usr/bin/env python3
 """rostest node: consumes both robots' streams slowly, acknowledges each frame, and checks that the
 player waits for it (lock-step), stamps frames in sim time and publishes camera info and depth."""
+import os
+import sys
 import threading
 import time
 import unittest
@@ -10,7 +12,9 @@ import rostest
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Bool
 
-from coop_slam.msg import FrameStats
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from coop_slam.msg import FrameStats  # noqa: E402
+from helpers import wait_until  # noqa: E402
 
 
 class PlayerLockstepTest(unittest.TestCase):
@@ -56,7 +60,13 @@ class PlayerLockstepTest(unittest.TestCase):
         done = threading.Event()
         subs.append(rospy.Subscriber("/player/done", Bool, lambda m: m.data and done.set()))
         self.assertTrue(done.wait(90.0), "player did not finish")
-        time.sleep(0.5)
+        # Lock-step: every frame was acknowledged, so it reached this node; camera infos and
+        # depth images travel beside it and may arrive a moment later.
+        wait_until(
+            lambda: min(infos.values()) >= 6 and min(depth.values()) >= 6,
+            10.0,
+            "6 camera infos and depth images per robot",
+        )
         for k in (1, 2):
             stamps = [s for s, _, _ in got[k]]
             self.assertEqual(len(stamps), 6, f"robot_{k} frames: {stamps}")

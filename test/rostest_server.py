@@ -15,6 +15,7 @@ import rospy
 import rostest
 import tf2_ros
 from nav_msgs.msg import Path
+from rosgraph_msgs.msg import Log
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
@@ -28,13 +29,13 @@ from coop_slam.ros.convert import (  # noqa: E402
     pose_from_msg,
     transform_from_msg,
 )
-from helpers import TEAM_T_WORLD_MAP, cylinder_world, team_keyframes  # noqa: E402
+from helpers import TEAM_T_WORLD_MAP, cylinder_world, team_keyframes, wait_until  # noqa: E402
 
 
 class ServerTeamMapTest(unittest.TestCase):
     def test_team_map_after_merge(self):
         rospy.init_node("server_test")
-        got = {}
+        got, rosout = {}, []
         event = {k: threading.Event() for k in ("merge", "cloud", "markers", "corr", "path")}
 
         def keep(name, ready=lambda m: True):
@@ -64,15 +65,18 @@ class ServerTeamMapTest(unittest.TestCase):
                 keep("path", lambda m: m.header.frame_id == "world" and len(m.poses) == 8),
             ),
             rospy.Subscriber("/server/stats", String, keep("stats")),
+            rospy.Subscriber("/rosout", Log, lambda m: rosout.append(m.msg)),
         ]
         buf = tf2_ros.Buffer()
         tf2_ros.TransformListener(buf)
         pubs = {
             r: rospy.Publisher(f"/robot_{r}/keyframes", KeyFrame, queue_size=100) for r in (1, 2)
         }
-        deadline = time.time() + 60
-        while any(p.get_num_connections() == 0 for p in pubs.values()) and time.time() < deadline:
-            time.sleep(0.1)
+        wait_until(
+            lambda: all(p.get_num_connections() > 0 for p in pubs.values()),
+            60.0,
+            "the server to subscribe to /robot_1/keyframes and /robot_2/keyframes",
+        )
         points, desc = cylinder_world(seed=3)
         kfs = team_keyframes(1, np.linspace(0, 2 * np.pi, 36, endpoint=False), points, desc)
         kfs += team_keyframes(
@@ -108,6 +112,12 @@ class ServerTeamMapTest(unittest.TestCase):
 
         xyz = transform_points(TEAM_T_WORLD_MAP[1], cloud_from_msg(got["cloud"]))
         self.assertLess(np.median(np.abs(np.linalg.norm(xyz[:, :2], axis=1) - 5.0)), 0.05)
+        # Why the server merged is logged by the core, and a user must see it (console, rqt).
+        wait_until(
+            lambda: any("merged robot 2 into robot 1's map" in m for m in rosout),
+            30.0,
+            "the core's merge message on /rosout",
+        )
         labels = [m.text for m in got["markers"].markers if m.ns == "labels"]
         self.assertIn("robot_2", labels)
         # Global bundle adjustment on request.
@@ -128,9 +138,12 @@ class ServerTeamMapTest(unittest.TestCase):
         res = rendezvous(robot_a=1, robot_b=9, stamp=rospy.Time(0))
         self.assertFalse(res.accepted)
         self.assertIn("robot 9 is unknown", res.message)
-        time.sleep(1.0)
+        wait_until(
+            lambda: json.loads(got["stats"].data)["rejected"] >= 1,
+            30.0,
+            "/server/stats to count the rejected keyframe",
+        )
         stats = json.loads(got["stats"].data)
-        self.assertGreaterEqual(stats["rejected"], 1)
         self.assertEqual(stats["groups"], [[1, 2]])
 
 

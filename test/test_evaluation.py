@@ -6,7 +6,6 @@ from scipy.spatial.transform import Rotation
 
 from coop_slam.evaluation import (
     EvaluationError,
-    associate,
     ate,
     merge_error,
     noise_split,
@@ -15,6 +14,7 @@ from coop_slam.evaluation import (
     team_ate,
 )
 from coop_slam.geometry import invert, se3, se3_from_quat
+from coop_slam.timestamps import associate
 
 
 def _circle(n=50, r=2.0):
@@ -53,9 +53,19 @@ def test_team_ate_uses_one_alignment():
     assert team_ate(est, gts).rmse_m > 0.2
 
 
-def test_associate_and_merge_error():
-    i, j = associate([1.0, 2.0, 3.5], [0.99, 2.01, 3.0])
+def test_associate_pairs_nearest_stamps_within_the_tolerance():
+    i, j = associate([1.0, 2.0, 3.5], [0.99, 2.01, 3.0], 0.02)
     assert list(i) == [0, 1] and list(j) == [0, 1]
+    # An unsorted reference; a tie goes to the earlier reference stamp.
+    i, j = associate([2.0, 1.0], [3.0, 1.5, 0.99, 2.5], 0.6)
+    assert list(i) == [0, 1] and list(j) == [1, 2]
+    # One to one: a reference stamp serves its first query only (TUM colour/depth pairs).
+    i, j = associate([1.0, 1.01, 2.0], [1.005, 2.0], 0.02, one_to_one=True)
+    assert list(i) == [0, 2] and list(j) == [0, 1]
+    assert [len(a) for a in associate([], [1.0], 0.1)] == [0, 0]
+
+
+def test_merge_error():
     A = se3_from_quat([1, 0, 0], [0, 0, 0, 1])
     B = se3_from_quat([0, 1, 0], [0, 0, 0.1, 1])
     dt, dr = merge_error(invert(A) @ B, A, B)
@@ -72,16 +82,18 @@ def test_straight_line_falls_back_to_origin_alignment():
 def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path):
     """RunRecorder fed from a bag (what scripts/evaluate reads): a malformed pose is skipped; a
     merge's registration error is its cameras' relative pose against the truth, unchanged when
-    local BA moves a matched keyframe after the merge."""
+    local BA moves a matched keyframe after the merge, and known when the client culled a matched
+    keyframe before the merge event arrived."""
     import rosbag
     import rospy
     from geometry_msgs.msg import PoseStamped
     from nav_msgs.msg import Path
 
-    from coop_slam.keyframe import ACTION_UPDATE
+    from coop_slam.evaluation.run_report import _local_merge_error
+    from coop_slam.keyframe_record import ACTION_REMOVE, ACTION_UPDATE
     from coop_slam.msg import MergeEvent
     from coop_slam.ros.convert import keyframe_to_msg, pose_to_msg, transform_to_msg
-    from coop_slam.tools.evaluate import _local_merge_error, run_data_from_bag
+    from coop_slam.ros.run_recorder import run_data_from_bag
     from helpers import make_keyframe
 
     bag_path = str(tmp_path / "run.bag")
@@ -98,6 +110,9 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
         kf_a = make_keyframe(robot_id=1, keyframe_id=3, seed=9)
         kf_a.T_map_cam, kf_a.stamp_s = gt[0], stamps[0]
         bag.write("/robot_1/keyframes", keyframe_to_msg(kf_a, "robot_1/map"), rospy.Time(1.0))
+        culled = make_keyframe(robot_id=1, keyframe_id=3, seed=9)
+        culled.action, culled.stamp_s = ACTION_REMOVE, 0.0
+        bag.write("/robot_1/keyframes", keyframe_to_msg(culled, "robot_1/map"), rospy.Time(1.2))
         path = Path()
         path.header.frame_id = "world"
         for k in range(5):
@@ -127,6 +142,7 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
     gts = {1: (stamps, gt), 2: (stamps, gt)}
     dt, dr = _local_merge_error(run.merges[0], run, gts)
     assert dt < 1e-6 and dr < 1e-4
+    assert 3 not in run.robots[1].keyframes  # culled before the merge event came
     del gts[1]
     assert _local_merge_error(run.merges[0], run, gts) is None  # no truth for robot 1
     r = run.robots[2]
@@ -148,8 +164,9 @@ def test_sensor_bag_gives_robots_and_ground_truth_and_evaluates_without_it(tmp_p
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import Image
 
+    from coop_slam.evaluation.run_report import RobotRun, RunData, evaluate_run
     from coop_slam.ros.convert import pose_to_msg
-    from coop_slam.tools.evaluate import RobotRun, RunData, evaluate_run, read_bag_input
+    from coop_slam.ros.run_recorder import read_bag_input
 
     bag_path = str(tmp_path / "sensors.bag")
     stamps, gt = _circle(6)
@@ -189,7 +206,7 @@ def test_sensor_bag_gives_robots_and_ground_truth_and_evaluates_without_it(tmp_p
 
 def test_report_pools_the_single_robot_ates_as_a_perfect_stitching_would_score():
     pytest.importorskip("rosbag")
-    from coop_slam.tools.evaluate import RobotRun, RunData, evaluate_run
+    from coop_slam.evaluation.run_report import RobotRun, RunData, evaluate_run
 
     stamps, gt = _circle(40)
     rng = np.random.default_rng(3)
@@ -213,7 +230,7 @@ def test_report_pools_the_single_robot_ates_as_a_perfect_stitching_would_score()
 def test_merge_latency_counts_from_the_first_shared_view_of_its_kind():
     """Rendezvous latency from the first co-observation, place recognition from the first revisit
     (either direction); a marker sighting without a shared scene is no start."""
-    from coop_slam.tools.evaluate import _first_evidence
+    from coop_slam.evaluation.run_report import _first_evidence
 
     overlap = {
         "rendezvous": [{"robots": [2, 1], "stamp_s": 19.6}],

@@ -73,11 +73,11 @@ def test_global_ba_result_survives_the_next_pose_graph_optimization():
     graph.add_merge(1, 6, 2, 1, invert(truth[(1, 6)]) @ truth[(2, 1)])
     graph.optimize_full()
     res = global_bundle_adjustment(
-        records, {k: graph.T_world_cam(*k) for k in truth}, links, {(1, 1)}, EXACT_DEPTH
+        records, {k: graph.T_group_cam(*k) for k in truth}, links, {(1, 1)}, EXACT_DEPTH
     )
     graph.adopt_estimates(res.poses)
     graph.optimize_full()
-    after = [transform_error(graph.T_world_cam(*k), truth[k])[0] for k in truth]
+    after = [transform_error(graph.T_group_cam(*k), truth[k])[0] for k in truth]
     assert np.mean(after) < 0.015
 
 

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from coop_slam.errors import ConfigError
 from coop_slam.geometry import invert, se3, transform_error
 from coop_slam.markers import MarkerConfig, MarkerDetector, MarkerError, body_hypotheses
 from coop_slam.synthetic.render import Renderer
@@ -37,7 +38,7 @@ def test_marker_pose_of_a_rendered_body(yaw_deg):
 def test_empty_image_and_bad_config():
     with pytest.raises(MarkerError, match="empty"):
         MarkerDetector().detect(np.zeros((0, 0), np.uint8), np.eye(3))
-    with pytest.raises(Exception, match="dictionary"):
+    with pytest.raises(ConfigError, match="dictionary"):
         MarkerDetector(MarkerConfig(dictionary="DICT_NOPE"))
 
 
@@ -67,7 +68,7 @@ def test_body_box_covers_the_rendered_body():
     assert np.all((u >= u0) & (u <= u1) & (v >= v0) & (v <= v1))
     # ... and not much more than the body: the four heading hypotheses of a square body agree.
     assert (u1 - u0) * (v1 - v0) < 2.0 * (np.ptp(u) + 1) * (np.ptp(v) + 1)
-    with pytest.raises(Exception, match="body_size_m"):
+    with pytest.raises(ConfigError, match="body_size_m"):
         MarkerDetector(MarkerConfig(body_size_m=[0.4, 0.4]))
 
 

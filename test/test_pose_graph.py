@@ -36,7 +36,7 @@ def wrong_measurement(team):
 def ate_m(graph, team):
     stamps = np.arange(N_KF, dtype=float)
     est = {
-        r: (stamps, np.array([graph.T_world_cam(r, k + 1) for k in range(N_KF)]))
+        r: (stamps, np.array([graph.T_group_cam(r, k + 1) for k in range(N_KF)]))
         for r in team.T_map_cam
     }
     gt = {r: (stamps, team.T_world_cam_gt[r]) for r in team.T_map_cam}
@@ -74,12 +74,12 @@ def test_world_is_the_smallest_robot_map(team):
     graph = build_graph(team)
     graph.optimize_full()
     # Robot 1's first keyframe is the gauge: it stays at the client's pose (its map origin).
-    np.testing.assert_allclose(graph.T_world_cam(1, 1), team.T_map_cam[1][0], atol=1e-3)
+    np.testing.assert_allclose(graph.T_group_cam(1, 1), team.T_map_cam[1][0], atol=1e-3)
     for r in (1, 2, 3):
         last = graph.keyframe_ids(r)[-1]
         np.testing.assert_allclose(
-            graph.T_world_map(r) @ team.T_map_cam[r][last - 1],
-            graph.T_world_cam(r, last),
+            graph.T_group_map(r) @ team.T_map_cam[r][last - 1],
+            graph.T_group_cam(r, last),
             atol=1e-9,
         )
 
@@ -107,7 +107,7 @@ def test_incremental_matches_full(team):
     full.optimize_full()
     for r in team.T_map_cam:
         for k in range(1, N_KF + 1):
-            dt, dr = transform_error(inc.T_world_cam(r, k), full.T_world_cam(r, k))
+            dt, dr = transform_error(inc.T_group_cam(r, k), full.T_group_cam(r, k))
             assert dt < 0.02 and dr < 0.5, (r, k, dt, dr)
     assert ate_m(inc, team) < 0.05
 
@@ -124,12 +124,12 @@ def test_remove_keyframe_relinks_chain_and_moves_constraints(team):
     assert all((rb, j) not in (a, b) for _, a, b in graph.edges())
     assert ((ra, i), (rb, j - 1)) in {(a, b) for _, a, b in graph.edges(KIND_MERGE)}
     assert graph.components() == [[1, 2, 3]]
-    before = graph.T_world_cam(1, 2)
+    before = graph.T_group_cam(1, 2)
     graph.optimize_full()
-    dt, dr = transform_error(graph.T_world_cam(1, 2), before)
+    dt, dr = transform_error(graph.T_group_cam(1, 2), before)
     assert dt < 0.01 and dr < 0.2  # the gauge moved to keyframe 2 without moving the world
     with pytest.raises(PoseGraphError):
-        graph.T_world_cam(3, 30)
+        graph.T_group_cam(3, 30)
 
 
 def test_update_keyframe_rebuilds_odometry():
@@ -142,7 +142,7 @@ def test_update_keyframe_rebuilds_odometry():
     n_edges = len(graph.edges())
     stats = graph.optimize_incremental()
     assert stats.mode == "incremental" and len(graph.edges()) == n_edges
-    np.testing.assert_allclose(graph.T_world_cam(2, 5)[:3, 3], [4.5, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(graph.T_group_cam(2, 5)[:3, 3], [4.5, 0, 0], atol=1e-6)
 
 
 def test_out_of_order_keyframe_splits_odometry_edge():
@@ -164,25 +164,25 @@ def test_unmerged_groups_keep_their_own_frames():
         graph.add_keyframe(2, k, se3(t=[0, k, 0]))
     graph.optimize_full()
     assert graph.components() == [[1], [2]]
-    np.testing.assert_allclose(graph.T_world_map(2), T_world_map2, atol=1e-6)
-    np.testing.assert_allclose(graph.T_world_map(1), np.eye(4), atol=1e-6)
+    np.testing.assert_allclose(graph.T_group_map(2), T_world_map2, atol=1e-6)
+    np.testing.assert_allclose(graph.T_group_map(1), np.eye(4), atol=1e-6)
     # A merge moves robot 2's group into robot 1's frame so the constraint holds.
     T_cam1_cam2 = se3(t=[0, 0, 1])
     graph.add_merge(1, 3, 2, 1, T_cam1_cam2)
     stats = graph.optimize_incremental()  # falls back to a full optimisation
     assert stats.mode == "full" and graph.components() == [[1, 2]]
     np.testing.assert_allclose(
-        invert(graph.T_world_cam(1, 3)) @ graph.T_world_cam(2, 1), T_cam1_cam2, atol=1e-6
+        invert(graph.T_group_cam(1, 3)) @ graph.T_group_cam(2, 1), T_cam1_cam2, atol=1e-6
     )
 
 
 def test_umeyama_map_anchor_fits_all_keyframes_best(team):
     def mean_residual_m(graph, r):
-        T_world_map = graph.T_world_map(r)
+        T_world_map = graph.T_group_map(r)
         return np.mean(
             [
                 np.linalg.norm(
-                    (T_world_map @ team.T_map_cam[r][k - 1])[:3, 3] - graph.T_world_cam(r, k)[:3, 3]
+                    (T_world_map @ team.T_map_cam[r][k - 1])[:3, 3] - graph.T_group_cam(r, k)[:3, 3]
                 )
                 for k in range(1, N_KF + 1)
             ]
@@ -201,11 +201,11 @@ def test_unknown_keys_and_bad_input_raise(team):
     graph.add_keyframe(1, 2, se3(t=[1, 0, 0]))
     graph.add_keyframe(2, 1, np.eye(4))
     with pytest.raises(PoseGraphError):
-        graph.T_world_cam(1, 9)
+        graph.T_group_cam(1, 9)
     with pytest.raises(PoseGraphError):
         graph.keyframe_poses(7)
     with pytest.raises(PoseGraphError):
-        graph.T_world_map(7)
+        graph.T_group_map(7)
     with pytest.raises(PoseGraphError):
         graph.add_keyframe(1, 1, np.eye(4))
     with pytest.raises(PoseGraphError):

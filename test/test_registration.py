@@ -32,7 +32,7 @@ from coop_slam.registration import (
     two_view_ba,
     umeyama,
 )
-from coop_slam.registration.keyframe import project
+from coop_slam.registration.camera import project
 
 K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
 WIDTH, HEIGHT = 640, 480

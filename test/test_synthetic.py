@@ -171,8 +171,16 @@ def test_orb_finds_many_well_spread_keypoints(ring):
             ), f"{traj.name} frame {k}: keypoints in only {len(cells)}/16 cells"
 
 
-def test_bench_render_reports_fps():
-    assert bench_render(frames=5, camera=SMALL_CAMERA) > 0
+def test_bench_render_leaves_opencv_threads_as_it_found_them():
+    """The render benchmark measures one core (cv2.setNumThreads(1)); the rest of the process
+    must get its threads back."""
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(2)
+    try:
+        bench_render(frames=2, camera=SMALL_CAMERA)
+        assert cv2.getNumThreads() == 2
+    finally:
+        cv2.setNumThreads(threads)
 
 
 # --- scenarios and overlap ---------------------------------------------------------------------

@@ -41,5 +41,5 @@ def test_groups_grow_and_root_is_smallest_id():
         g.merge(1, 2, rel(1, 2))
     with pytest.raises(GroupError, match="unknown"):
         g.root(9)
-    with pytest.raises(Exception, match="NaN"):
+    with pytest.raises(GroupError, match="NaN"):
         MergeGroups([1, 2]).merge(1, 2, np.full((4, 4), np.nan))

@@ -5,11 +5,21 @@ import pytest
 
 from coop_slam.errors import ConfigError
 from coop_slam.geometry import invert, transform_error
-from coop_slam.keyframe import KeyframeError
-from coop_slam.team.server import ServerConfig, TeamServer
-from helpers import TEAM_T_WORLD_MAP as T_WORLD_MAP
-from helpers import cylinder_world, looking_out_pose, team_vocabulary
-from helpers import team_keyframes as _keyframes
+from coop_slam.keyframe_record import KeyframeError
+from coop_slam.team.config import ServerConfig
+from coop_slam.team.keyframe_store import track
+from coop_slam.team.plausibility import interpolate_track
+from coop_slam.team.server import TeamServer
+from helpers import (
+    TEAM_T_WORLD_MAP,
+    cylinder_world,
+    looking_out_pose,
+    team_keyframes,
+    team_vocabulary,
+)
+
+T_WORLD_MAP = TEAM_T_WORLD_MAP
+_keyframes = team_keyframes
 
 
 def _config(robots):
@@ -40,7 +50,7 @@ def test_revisit_merges_with_the_true_transform(world):
     dt, dr = transform_error(m.T_mapA_mapB, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
     assert dt < 0.02 and dr < 0.5
     assert server.groups.groups() == [[1, 2]]
-    T, merged = server.T_world_map(2)
+    T, merged = server.T_group_map(2), server.in_world(2)
     # Later keyframes of B add in-group constraints, so the optimized map moves a little.
     assert merged and transform_error(T, m.T_mapA_mapB)[0] < 0.01
     assert server.constraints and all(c.type == "place_recognition" for c in server.constraints)
@@ -88,7 +98,7 @@ def test_co_observation_merges_as_rendezvous(world):
     merges, server = _co_observe(world, sighted=False)
     assert len(merges) == 1 and merges[0].type == "rendezvous"
     # The first verification waits for a second, agreeing one ...
-    (_, (robot, first_kf)), _ = server._co_observations[(1, 2)][0]
+    (_, (robot, first_kf)), _ = server.rendezvous._co_observations[(1, 2)][0]
     assert robot == 2 and merges[0].keyframe_b > first_kf
     # ... unless a sighting said the robots are together: then the first one merges.
     cued, _ = _co_observe(world, sighted=True)
@@ -132,13 +142,17 @@ def test_robot_position_between_keyframes_is_known_only_across_short_gaps(world)
     for kf in kfs + [twin]:
         server.add_keyframe(kf)
     p0, p1 = (kf.T_map_cam[:3, 3] for kf in kfs[:2])
-    np.testing.assert_allclose(server._position_at(1, 0, 0.25), 0.75 * p0 + 0.25 * p1)
-    np.testing.assert_allclose(server._position_at(1, 0, 1.0), p1)
-    assert server._position_at(1, 0, 2.0) is not None
+
+    def position_at(robot, segment, stamp_s):
+        return interpolate_track(*track(server.store.segment_records(robot, segment)), stamp_s)
+
+    np.testing.assert_allclose(position_at(1, 0, 0.25), 0.75 * p0 + 0.25 * p1)
+    np.testing.assert_allclose(position_at(1, 0, 1.0), p1)
+    assert position_at(1, 0, 2.0) is not None
     for stamp_s in (-0.5, 3.5, 6.0):  # before the first, in the gap, after the last
-        assert server._position_at(1, 0, stamp_s) is None
-    assert server._position_at(1, 1, 0.5) is None  # no keyframes in that map segment
-    assert server._position_at(2, 0, 0.5) is None  # nor of that robot
+        assert position_at(1, 0, stamp_s) is None
+    assert position_at(1, 1, 0.5) is None  # no keyframes in that map segment
+    assert position_at(2, 0, 0.5) is None  # nor of that robot
 
 
 def test_unknown_robot_and_duplicates_are_rejected(world):
@@ -149,7 +163,7 @@ def test_unknown_robot_and_duplicates_are_rejected(world):
     with pytest.raises(KeyframeError, match="unknown"):
         server.add_keyframe(bad)
     server.add_keyframe(kfs_a[0])
-    assert len(server.keyframes) == 1
+    assert len(server.store) == 1
 
 
 def test_merge_optimizes_the_team_and_stitches_one_cloud(world):
@@ -162,7 +176,7 @@ def test_merge_optimizes_the_team_and_stitches_one_cloud(world):
     ):
         server.add_keyframe(kf)
     assert server.groups.groups() == [[1, 2]] and server.optimize_ms
-    T, merged = server.T_world_map(2)
+    T, merged = server.T_group_map(2), server.in_world(2)
     dt, dr = transform_error(T, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
     assert merged and dt < 0.02 and dr < 0.5
     corrected = server.corrected_keyframes(2)
@@ -275,7 +289,7 @@ def test_three_robots_end_in_one_group(world):
     assert server.groups.groups() == [[1, 2, 3]]
     assert [(m.robot_a, m.robot_b) for m in server.merges] == [(1, 3), (2, 3)]
     for r in (2, 3):
-        T, merged = server.T_world_map(r)
+        T, merged = server.T_group_map(r), server.in_world(r)
         dt, dr = transform_error(T, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[r])
         assert merged and dt < 0.03 and dr < 1.0
 
@@ -298,7 +312,7 @@ def test_rendezvous_with_a_robot_that_stands_still(world):
     merge, message = server.request_rendezvous(2, 1)
     assert merge is not None, message
     assert server.groups.groups() == [[1, 2]] and server.merges[0].type == "rendezvous"
-    T, _ = server.T_world_map(2)
+    T = server.T_group_map(2)
     dt, dr = transform_error(T, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
     assert dt < 0.02 and dr < 0.5
 
@@ -323,7 +337,7 @@ def test_cued_request_is_retried_on_the_next_keyframes(world, late):
     t_next = 1.0 + cfg.rendezvous.request_window_s + (1.0 if late else -0.5)
     (turned,) = _keyframes(2, [1.3], points, desc, kid0=2, offset=(0.3, -0.2), seed=51, t0=t_next)
     merges = server.add_keyframe(turned)
-    assert server._open_requests == {}
+    assert not server.rendezvous.has_open_requests
     if late:
         assert merges == [] and server.groups.groups() == [[1], [2]]
         return

@@ -76,20 +76,39 @@ def load_config(cls: type[C], values: Mapping[str, Any] | None = None, prefix: s
     return obj
 
 
-def load_yaml_config(cls: type[C], path: str | os.PathLike, section: str | None = None) -> C:
-    """Load ``cls`` from a YAML file (optionally one top-level section of it)."""
-    try:
-        with open(path, encoding="utf-8") as fh:
-            data = yaml.safe_load(fh) or {}
-    except FileNotFoundError:
-        raise ConfigError(f"config file not found: {path}") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"config file {path} is not valid YAML: {exc}") from None
-    if section is not None:
-        data = data.get(section, {}) or {}
+def load_yaml_config(
+    cls: type[C],
+    path: str | os.PathLike | None,
+    section: str | None = None,
+    overrides: Mapping[str, Any] | None = None,
+) -> C:
+    """Load ``cls`` from a YAML file (optionally one top-level section of it), with ``overrides``
+    (e.g. a node's ROS private params) on top key by key (:func:`merge_overrides`). No ``path``:
+    the defaults with the overrides. The one loader of every config file: nodes and tools alike."""
+    data: Any = {}
+    if path:
+        try:
+            with open(path, encoding="utf-8") as fh:
+                data = yaml.safe_load(fh) or {}
+        except FileNotFoundError:
+            raise ConfigError(f"config file not found: {path}") from None
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"config file {path} is not valid YAML: {exc}") from None
+        if not isinstance(data, Mapping):
+            raise ConfigError(f"config file {path}: expected a mapping at the top level")
+        if section is not None:
+            if section not in data:
+                stray = sorted(set(data) & {f.name for f in dataclasses.fields(cls)})
+                if stray:
+                    raise ConfigError(
+                        f"config file {path}: {', '.join(stray)} belong to section '{section}'; "
+                        f"put them under '{section}:'"
+                    )
+            data = data.get(section) or {}
     if not isinstance(data, Mapping):
         raise ConfigError(f"config file {path}: expected a mapping at '{section or 'top level'}'")
-    return load_config(cls, data)
+    values = merge_overrides(data, overrides or {})
+    return load_config(cls, values, prefix=f"{section}." if section else "")
 
 
 def merge_overrides(values: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict:

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from ..errors import CoopSlamError
+from ..timestamps import associate
 
 SENSORS = ("rgbd", "stereo", "mono")
 
@@ -90,20 +91,8 @@ class Sequence:
     def frame_poses(self) -> np.ndarray:
         """Ground-truth ``T_world_cam`` for every frame (nearest stamp; NaN where none is close)."""
         out = np.full((len(self.frames), 4, 4), np.nan)
-        if len(self.gt_stamps_s) == 0 or not self.frames:
-            return out
-        stamps = self.stamps_s
-        idx = np.clip(np.searchsorted(self.gt_stamps_s, stamps), 1, len(self.gt_stamps_s) - 1)
-        if len(self.gt_stamps_s) == 1:
-            idx = np.zeros(len(stamps), dtype=int)
-        else:
-            left = idx - 1
-            closer_left = np.abs(self.gt_stamps_s[left] - stamps) <= np.abs(
-                self.gt_stamps_s[idx] - stamps
-            )
-            idx = np.where(closer_left, left, idx)
-        ok = np.abs(self.gt_stamps_s[idx] - stamps) <= self.gt_max_dt_s
-        out[ok] = self.gt_poses_se3[idx[ok]]
+        i_frame, i_gt = associate(self.stamps_s, self.gt_stamps_s, self.gt_max_dt_s)
+        out[i_frame] = self.gt_poses_se3[i_gt]
         return out
 
     def slice(self, start: int, stop: int, name: str | None = None) -> "Sequence":

@@ -16,6 +16,7 @@ import re
 import numpy as np
 
 from ..geometry import quat_from_se3, se3_from_quat
+from ..timestamps import associate
 from .base import CameraModel, DatasetError, Frame, Sequence, Undistortion, read_camera_file
 
 # The TUM RGB-D benchmark's published colour calibration per Kinect (fx, fy, cx, cy, distortion
@@ -92,21 +93,6 @@ def write_tum_trajectory(path: str, stamps_s, poses_se3) -> None:
             fh.write(f"{stamp:.6f} " + " ".join(f"{v:.7f}" for v in (*t, *q)) + "\n")
 
 
-def _associate(a: list[tuple[float, str]], b: list[tuple[float, str]], max_dt: float):
-    """Pairs (ia, ib) of nearest stamps within max_dt, each entry used once (greedy by time gap)."""
-    if not a or not b:
-        return []
-    tb = np.array([s for s, _ in b])
-    pairs = []
-    used = set()
-    for ia, (ta, _) in enumerate(a):
-        ib = int(np.argmin(np.abs(tb - ta)))
-        if abs(tb[ib] - ta) <= max_dt and ib not in used:
-            used.add(ib)
-            pairs.append((ia, ib))
-    return pairs
-
-
 def read_tum(
     folder: str,
     camera: CameraModel | None = None,
@@ -125,7 +111,9 @@ def read_tum(
     has_depth = os.path.isfile(os.path.join(folder, "depth.txt"))
     if has_depth:
         depth = _read_list(os.path.join(folder, "depth.txt"))
-        pairs = _associate(rgb, depth, max_dt_s)
+        pairs = list(
+            zip(*associate([t for t, _ in rgb], [t for t, _ in depth], max_dt_s, one_to_one=True))
+        )
         if not pairs:
             raise DatasetError(f"{folder}: no colour/depth pair within {max_dt_s} s of each other")
         frames = [

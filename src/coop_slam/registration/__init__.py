@@ -6,8 +6,9 @@ Transforms follow ``T_a_b`` = maps points from frame b into frame a; ``T_a_b`` o
 """
 
 from .ba import BaResult, two_view_ba
+from .camera import RegistrationError, backproject
 from .icp import IcpResult, icp_descriptor
-from .keyframe import KeyframeView, RegistrationError, backproject, point_sigma_m, sample_depth
+from .keyframe_view import KeyframeView, point_sigma_m, sample_depth
 from .matching import match_descriptors
 from .pnp import PnpResult, pnp_ransac
 from .ransac import RansacResult, ransac_rigid

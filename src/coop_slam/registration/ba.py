@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import GeometryError
 from ..geometry import check_se3, invert, transform_points
-from .keyframe import RegistrationError, check_intrinsics, check_points, project, ray_norms
+from .camera import RegistrationError, check_intrinsics, check_points, project, ray_norms
 
 # Plain integer keys (not gtsam.symbol): insertProjectionFactors takes point keys as float64, which
 # cannot hold symbol keys exactly.

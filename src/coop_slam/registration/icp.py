@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 from ..descriptors import as_descriptors, hamming_rows
 from ..errors import GeometryError
 from ..geometry import check_se3, invert, rotation_angle_deg, transform_points
-from .keyframe import RegistrationError, check_points
+from .camera import RegistrationError, check_points
 from .umeyama import umeyama_batch
 
 

@@ -13,7 +13,7 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 
 from ..descriptors import as_descriptors, hamming_rows, match_ratio
-from .keyframe import RegistrationError
+from .camera import RegistrationError
 
 
 def _unique_pairs(pairs: np.ndarray, desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:

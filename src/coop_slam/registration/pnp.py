@@ -13,18 +13,20 @@ import cv2
 import numpy as np
 
 from ..geometry import invert, se3, transform_points
-from .keyframe import RegistrationError, check_intrinsics, check_points, project
+from .camera import RegistrationError, check_intrinsics, check_points, project
 
 PNP_METHODS = {"ap3p": cv2.SOLVEPNP_AP3P, "epnp": cv2.SOLVEPNP_EPNP}
 
 
 @dataclass
 class PnpResult:
-    """``T_camA_camB`` is None when RANSAC found no pose."""
+    """``T_camA_camB`` (and its inverse ``T_camB_camA``, as the solver found it) are None when
+    RANSAC found no pose."""
 
     T_camA_camB: np.ndarray | None
     inliers: np.ndarray  # (N,) bool
-    errors_px: np.ndarray  # (N,) reprojection error in B (inf behind the camera)
+    errors_px: np.ndarray  # (N,) reprojection error in B (inf behind the camera); None unrefined
+    T_camB_camA: np.ndarray | None = None
 
     @property
     def n_inliers(self) -> int:
@@ -47,8 +49,13 @@ def pnp_ransac(
     confidence: float = 0.999,
     method: str = "ap3p",
     min_inliers: int = 6,
+    refine: bool = True,
 ) -> PnpResult:
-    """Pose of camera B in camera A from (N, 3) points of A and their (N, 2) pixels in B."""
+    """Pose of camera B in camera A from (N, 3) points of A and their (N, 2) pixels in B.
+
+    With ``refine`` the RANSAC pose is refined (Levenberg-Marquardt on its inliers) and the
+    inliers recomputed; without, RANSAC's pose and inliers are returned as they are, for a caller
+    that refines with its own model (the odometry's pose optimization)."""
     points_camA = check_points(points_camA, "points_camA")
     uv_px_b = np.asarray(uv_px_b, dtype=float)
     if uv_px_b.shape != (len(points_camA), 2) or not np.all(np.isfinite(uv_px_b)):
@@ -62,23 +69,31 @@ def pnp_ransac(
     none = PnpResult(None, np.zeros(n, dtype=bool), np.full(n, np.inf))
     if n < max(min_inliers, 4):  # AP3P needs 4 points (3 + 1 to disambiguate), EPnP 4 too
         return none
-    ok, rvec, tvec, idx = cv2.solvePnPRansac(
-        points_camA,
-        uv_px_b,
-        K_b,
-        None,
-        iterationsCount=int(max_iterations),
-        reprojectionError=float(reprojection_px),
-        confidence=float(confidence),
-        flags=PNP_METHODS[method],
-    )
+    try:
+        ok, rvec, tvec, idx = cv2.solvePnPRansac(
+            points_camA,
+            uv_px_b,
+            K_b,
+            None,
+            iterationsCount=int(max_iterations),
+            reprojectionError=float(reprojection_px),
+            confidence=float(confidence),
+            flags=PNP_METHODS[method],
+        )
+    except cv2.error:  # degenerate input (e.g. all points on a line)
+        return none
     if not ok or idx is None or len(idx) < max(min_inliers, 4):
         return none
     idx = idx.ravel()
+    if not refine:
+        T_camB_camA = se3(cv2.Rodrigues(rvec)[0], tvec.ravel())
+        inliers = np.zeros(n, dtype=bool)
+        inliers[idx] = True
+        return PnpResult(invert(T_camB_camA), inliers, None, T_camB_camA)
     rvec, tvec = cv2.solvePnPRefineLM(points_camA[idx], uv_px_b[idx], K_b, None, rvec, tvec)
     T_camB_camA = se3(cv2.Rodrigues(rvec)[0], tvec.ravel())
     errors = reprojection_errors(T_camB_camA, points_camA, uv_px_b, K_b)
     inliers = errors < reprojection_px
     if inliers.sum() < max(min_inliers, 4):
         return PnpResult(None, inliers, errors)
-    return PnpResult(invert(T_camB_camA), inliers, errors)
+    return PnpResult(invert(T_camB_camA), inliers, errors, T_camB_camA)

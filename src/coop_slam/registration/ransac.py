@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import transform_points
-from .keyframe import RegistrationError, check_points
+from .camera import RegistrationError, check_points
 from .umeyama import umeyama_batch
 
 

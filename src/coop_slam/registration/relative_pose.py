@@ -24,8 +24,9 @@ from ..config import require
 from ..errors import GeometryError
 from ..geometry import check_se3, transform_points
 from .ba import BaResult, two_view_ba
+from .camera import RegistrationError
 from .icp import icp_descriptor
-from .keyframe import KeyframeView, RegistrationError, point_sigma_m
+from .keyframe_view import KeyframeView, point_sigma_m
 from .matching import match_descriptors
 from .pnp import PNP_METHODS, pnp_ransac
 from .ransac import ransac_rigid

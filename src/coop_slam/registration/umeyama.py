@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .keyframe import RegistrationError
+from .camera import RegistrationError
 
 
 def umeyama_batch(

@@ -1,27 +1,26 @@
 """Client node: RGB-D visual odometry on one robot, publishing keyframes, pose, TF, path and cloud.
 
-Frames (REP-105): ``robot_k/map`` -> ``robot_k/odom`` -> ``robot_k/base_link`` ->
-``robot_k/camera_optical``. The odometry's own map frame is the first camera frame; this node
-re-expresses everything in ``robot_k/map``, defined as the robot body at start (z up), so maps are
-upright in RViz. ``map -> odom`` is identity until the server sends a correction.
+Robot k's topics live under ``/robot_k`` and its frames are ``robot_k/...``, whatever namespace
+the node is started in: the server finds a robot by its id alone. Frames (REP-105):
+``robot_k/map`` -> ``robot_k/odom`` -> ``robot_k/base_link`` -> ``robot_k/camera_optical``. The
+odometry's own map frame is the first camera frame; this node re-expresses everything in
+``robot_k/map``, defined as the robot body at start (z up), so maps are upright in RViz.
+``map -> odom`` is identity until the server sends a correction.
 """
 
 from __future__ import annotations
 
-import os
 import threading
 
 import numpy as np
 import rospy
-import yaml
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 from sensor_msgs.msg import CameraInfo, Image
 
-from ..config import load_config, merge_overrides
+from ..config import load_yaml_config
 from ..errors import CoopSlamError
 from ..geometry import invert, se3_from_quat, transform_points
-from ..keyframe import KeyframeRecord
 from .convert import (
     MessageError,
     camera_from_info,
@@ -34,6 +33,7 @@ from .convert import (
     transform_from_msg,
     transform_stamped,
 )
+from .log_bridge import forward_core_logs
 from .validation import RejectCounter
 
 # Optical frame (z forward, x right, y down) in a body frame (x forward, y left, z up).
@@ -46,26 +46,6 @@ def default_T_base_cam() -> np.ndarray:
     return T
 
 
-SECTIONS = ("vo", "markers")  # of config/client.yaml
-
-
-def load_client_config(config_file: str, section: str, cls, overrides: dict):
-    """One section of the client YAML (``vo``: VoConfig, ``markers``: MarkerConfig) with the ROS
-    param overrides (~vo, ~markers). A file without sections is the ``vo`` section."""
-    values = {}
-    if config_file:
-        if not os.path.isfile(config_file):
-            raise CoopSlamError(f"client config file not found: {config_file}")
-        with open(config_file, encoding="utf-8") as fh:
-            data = yaml.safe_load(fh) or {}
-        if any(k in data for k in SECTIONS):
-            values = dict(data.get(section) or {})
-        elif section == "vo":
-            values = dict(data)
-    values = merge_overrides(values, overrides)
-    return load_config(cls, values, prefix=f"{section}.")
-
-
 class ClientNode:
     def __init__(self):
         from coop_slam.msg import FrameStats, KeyFrame, MapCorrection  # noqa: F401
@@ -75,7 +55,8 @@ class ClientNode:
         self.robot_id = int(rospy.get_param("~robot_id"))
         if self.robot_id < 1:
             raise CoopSlamError(f"~robot_id must be >= 1, got {self.robot_id}")
-        self.name = rospy.get_param("~robot_name", f"robot_{self.robot_id}")
+        self.name = f"robot_{self.robot_id}"
+        ns = f"/{self.name}"
         self.map_frame = f"{self.name}/map"
         self.odom_frame = f"{self.name}/odom"
         self.base_frame = f"{self.name}/base_link"
@@ -90,7 +71,7 @@ class ClientNode:
         from ..vo.config import VoConfig
 
         config_file = rospy.get_param("~config", "")
-        self.vo_cfg = load_client_config(config_file, "vo", VoConfig, rospy.get_param("~vo", {}))
+        self.vo_cfg = load_yaml_config(VoConfig, config_file, "vo", rospy.get_param("~vo", {}))
         if self.vo_cfg.planar_motion:  # the floor normal (base z) as the camera sees it
             self.vo_cfg.planar_up_cam = (self.T_base_cam[:3, :3].T @ [0.0, 0.0, 1.0]).tolist()
         self._RgbdOdometry = RgbdOdometry
@@ -108,9 +89,7 @@ class ClientNode:
         # odometry); 0 disables detection.
         self.marker_every = int(rospy.get_param("~marker_every_frames", 5))
         self.markers = MarkerDetector(
-            load_client_config(
-                config_file, "markers", MarkerConfig, rospy.get_param("~markers", {})
-            )
+            load_yaml_config(MarkerConfig, config_file, "markers", rospy.get_param("~markers", {}))
         )
 
         import message_filters
@@ -121,33 +100,34 @@ class ClientNode:
         self.static_tf.sendTransform(
             transform_stamped(self.T_base_cam, self.base_frame, self.cam_frame, rospy.Time(0))
         )
-        # Relative names: the launch file puts the node in the robot's namespace (/robot_k/...).
-        self.pub_kf = rospy.Publisher("keyframes", KeyFrame, queue_size=200)
-        self.pub_pose = rospy.Publisher("pose", PoseStamped, queue_size=10)
-        self.pub_path = rospy.Publisher("path", Path, queue_size=1, latch=True)
+        self.pub_kf = rospy.Publisher(f"{ns}/keyframes", KeyFrame, queue_size=200)
+        self.pub_pose = rospy.Publisher(f"{ns}/pose", PoseStamped, queue_size=10)
+        self.pub_path = rospy.Publisher(f"{ns}/path", Path, queue_size=1, latch=True)
         from sensor_msgs.msg import PointCloud2
 
-        self.pub_cloud = rospy.Publisher("local_map", PointCloud2, queue_size=1, latch=True)
-        self.pub_stats = rospy.Publisher("frame_stats", FrameStats, queue_size=50)
+        self.pub_cloud = rospy.Publisher(f"{ns}/local_map", PointCloud2, queue_size=1, latch=True)
+        self.pub_stats = rospy.Publisher(f"{ns}/frame_stats", FrameStats, queue_size=50)
         from coop_slam.msg import RobotSighting
 
         self.pub_sighting = rospy.Publisher("/robot_sightings", RobotSighting, queue_size=10)
         self.sub_info = rospy.Subscriber(
-            "camera/color/camera_info", CameraInfo, self._on_info, queue_size=5
+            f"{ns}/camera/color/camera_info", CameraInfo, self._on_info, queue_size=5
         )
         color = message_filters.Subscriber(
-            "camera/color/image_raw", Image, queue_size=5, buff_size=2**24
+            f"{ns}/camera/color/image_raw", Image, queue_size=5, buff_size=2**24
         )
         depth = message_filters.Subscriber(
-            "camera/depth/image_raw", Image, queue_size=5, buff_size=2**24
+            f"{ns}/camera/depth/image_raw", Image, queue_size=5, buff_size=2**24
         )
         self.sync = message_filters.TimeSynchronizer([color, depth], 10)
         self.sync.registerCallback(self._on_frame)
         self.sub_corr = rospy.Subscriber(
-            "correction", MapCorrection, self._on_correction, queue_size=5
+            f"{ns}/correction", MapCorrection, self._on_correction, queue_size=5
         )
         rospy.loginfo(
-            "client %s: waiting for %s", self.name, rospy.resolve_name("camera/color/image_raw")
+            "client %s: waiting for %s",
+            self.name,
+            rospy.resolve_name(f"{ns}/camera/color/image_raw"),
         )
 
     # --- callbacks --------------------------------------------------------------------------------
@@ -267,33 +247,9 @@ class ClientNode:
                 self.T_map_odom = T_map_cam_opt @ invert(T_odom_cam)
 
     # --- publishing -------------------------------------------------------------------------------
-    def _record(self, kf, action: int) -> KeyframeRecord:
-        T_map_cam = self.T_base_cam @ kf.T_map_cam
-        pts = (
-            transform_points(self.T_base_cam, kf.map_points_xyz)
-            if len(kf.map_points_xyz)
-            else np.zeros((0, 3))
-        )
-        return KeyframeRecord(
-            robot_id=self.robot_id,
-            keyframe_id=int(kf.keyframe_id),
-            stamp_s=float(kf.stamp_s),
-            camera=self.camera,
-            T_map_cam=T_map_cam,
-            keypoints=np.column_stack([kf.uv_px, kf.size_px, kf.angle_deg]).astype(np.float32),
-            octaves=kf.octaves,
-            descriptors=kf.descriptors,
-            depths_m=kf.depths_m,
-            map_point_ids=kf.map_point_ids,
-            map_points=pts.astype(np.float32),
-            covisible_ids=kf.covisible_ids,
-            covisible_weights=kf.covisible_weights,
-            map_segment=int(kf.map_segment),
-            action=action,
-        )
-
     def _publish_events(self) -> None:
-        from ..keyframe import ACTION_REMOVE
+        from ..keyframe_record import ACTION_REMOVE
+        from ..vo.outbox import event_record
         from ..vo.types import EVENT_NEW_SEGMENT, EVENT_WARNING, KEYFRAME_ACTIONS
 
         changed = False
@@ -309,20 +265,10 @@ class ClientNode:
                 )
                 self.segment = ev.map_segment
             elif ev.kind in KEYFRAME_ACTIONS:
-                action = KEYFRAME_ACTIONS[ev.kind]
-                if action == ACTION_REMOVE:
+                rec = event_record(ev, self.robot_id, self.camera, self.T_base_cam)
+                if rec.action == ACTION_REMOVE:
                     self.kf_poses.pop(ev.keyframe_id, None)
-                    rec = KeyframeRecord(
-                        robot_id=self.robot_id,
-                        keyframe_id=ev.keyframe_id,
-                        stamp_s=0.0,
-                        camera=self.camera,
-                        T_map_cam=np.eye(4),
-                        map_segment=ev.map_segment,
-                        action=action,
-                    )
                 else:
-                    rec = self._record(ev.keyframe, action)
                     self.kf_poses[rec.keyframe_id] = (rec.stamp_s, rec.T_map_cam)
                 self.pub_kf.publish(keyframe_to_msg(rec, self.map_frame))
                 changed = True
@@ -380,6 +326,7 @@ class ClientNode:
 
 def main() -> None:
     rospy.init_node("client")
+    forward_core_logs(f"client {rospy.get_param('~robot_id', '?')}")
     try:
         node = ClientNode()
     except CoopSlamError as exc:

@@ -14,7 +14,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from ..datasets.base import CameraModel, DatasetError
 from ..errors import CoopSlamError
 from ..geometry import GeometryError, quat_from_se3, se3_from_quat
-from ..keyframe import KeyframeError, KeyframeRecord, camera_from_fields
+from ..keyframe_record import KeyframeError, KeyframeRecord, camera_from_fields
 
 _SENSORS = ("rgbd", "stereo", "mono")
 
@@ -324,6 +324,17 @@ def cloud_from_msg(msg) -> np.ndarray:
     return np.stack(
         [raw[:, offsets[k] : offsets[k] + 4].copy().view(np.float32)[:, 0] for k in "xyz"], axis=1
     )
+
+
+def cloud_colours_from_msg(msg) -> np.ndarray:
+    """(N, 3) uint8 red, green, blue of a PointCloud2's packed ``rgb`` field (zeros without one)."""
+    n = msg.width * msg.height
+    offsets = {f.name: f.offset for f in msg.fields}
+    if "rgb" not in offsets or n == 0 or len(msg.data) < n * msg.point_step:
+        return np.zeros((n, 3), np.uint8)
+    raw = np.frombuffer(msg.data, np.uint8, count=n * msg.point_step).reshape(n, msg.point_step)
+    packed = raw[:, offsets["rgb"] : offsets["rgb"] + 4].copy().view(np.uint32)[:, 0]
+    return np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], 1).astype(np.uint8)
 
 
 def transform_stamped(T: np.ndarray, parent: str, child: str, stamp):

@@ -15,17 +15,21 @@ import json
 import os
 import queue
 import threading
+from concurrent.futures import Future
+from dataclasses import dataclass
 
+import numpy as np
 import rospy
-import yaml
 from geometry_msgs.msg import PoseStamped
 from std_msgs.msg import String
 
 from ..bow import Vocabulary
-from ..config import load_config, merge_overrides
+from ..config import load_yaml_config
 from ..errors import CoopSlamError
 from ..geometry import invert, se3_from_quat
-from ..team.server import ServerConfig, TeamServer
+from ..keyframe_record import KeyframeRecord
+from ..team.config import ServerConfig
+from ..team.server import TeamServer
 from .convert import (
     MessageError,
     cloud_to_msg,
@@ -35,18 +39,32 @@ from .convert import (
     transform_stamped,
     transform_to_msg,
 )
+from .log_bridge import forward_core_logs
 from .validation import RejectCounter
 
+# Work for the worker thread, which alone changes the team map. A request that waits for its
+# answer (a service call) carries a Future the worker completes.
 
-def load_server_config(config_file: str, overrides: dict) -> ServerConfig:
-    values = {}
-    if config_file:
-        if not os.path.isfile(config_file):
-            raise CoopSlamError(f"server config file not found: {config_file}")
-        with open(config_file, encoding="utf-8") as fh:
-            values = dict((yaml.safe_load(fh) or {}).get("server", {}))
-    values = merge_overrides(values, overrides)
-    return load_config(ServerConfig, values)
+
+@dataclass
+class _KeyframeJob:
+    record: KeyframeRecord
+
+
+@dataclass
+class _RendezvousJob:
+    robot_a: int
+    robot_b: int
+    stamp_s: float | None  # None: now (the robots' latest keyframes)
+    T_camA_bodyB: np.ndarray | None = None  # marker sighting: robot b's body in a's camera
+    sighting: bool = False  # a marker sighting (rate-limited) rather than an operator request
+    reply: Future | None = None  # (merge or None, message)
+
+
+@dataclass
+class _GlobalBaJob:
+    robot_id: int | None
+    reply: Future  # (GlobalBaResult or None, message)
 
 
 class ServerNode:
@@ -57,7 +75,9 @@ class ServerNode:
 
         node_params = ("config", "vocabulary", "T_base_cam", "cloud_period_s")
         overrides = {k: v for k, v in rospy.get_param("~", {}).items() if k not in node_params}
-        self.cfg = load_server_config(rospy.get_param("~config", ""), overrides)
+        self.cfg = load_yaml_config(
+            ServerConfig, rospy.get_param("~config", ""), "server", overrides
+        )
         vocab_path = rospy.get_param("~vocabulary", "")
         if not vocab_path:
             from ..bow.training import default_vocabulary_path
@@ -129,7 +149,6 @@ class ServerNode:
 
         base_cam = rospy.get_param("~T_base_cam", [])  # the robots' camera mounting, 7 numbers
         self.T_base_cam = se3_from_quat(base_cam[:3], base_cam[3:]) if base_cam else None
-        self._last_sighting: dict[tuple[int, int], float] = {}
         self.subs.append(
             rospy.Subscriber("/robot_sightings", RobotSighting, self._on_sighting, queue_size=20)
         )
@@ -155,7 +174,7 @@ class ServerNode:
                 topic, f"keyframe of robot {rec.robot_id} on robot {topic_robot}'s topic"
             )
             return
-        self.queue.put(rec)
+        self.queue.put(_KeyframeJob(rec))
 
     def _on_sighting(self, msg) -> None:
         """A marker sighting asks for a rendezvous check (at most once per pair and period)."""
@@ -173,36 +192,39 @@ class ServerNode:
         except MessageError as exc:
             self.rejects.reject("/robot_sightings", str(exc))
             return
-        pair, now = (msg.observer_id, msg.observed_id), msg.header.stamp.to_sec()
-        if now - self._last_sighting.get(pair, -1e9) < self.cfg.rendezvous.sighting_period_s:
-            return
-        self._last_sighting[pair] = now
-        self.queue.put(("rendezvous", msg.observer_id, msg.observed_id, now, T_cam_body, None))
+        self.queue.put(
+            _RendezvousJob(
+                msg.observer_id, msg.observed_id, msg.header.stamp.to_sec(), T_cam_body, True
+            )
+        )
 
     def _on_rendezvous(self, req):
         from coop_slam.srv import RendezvousResponse
 
-        done = threading.Event()
+        reply: Future = Future()
         stamp = req.stamp.to_sec() or None
-        self.queue.put(("rendezvous", req.robot_a, req.robot_b, stamp, None, done))
-        if not done.wait(60.0):
+        self.queue.put(_RendezvousJob(req.robot_a, req.robot_b, stamp, reply=reply))
+        try:
+            merge, message = reply.result(timeout=60.0)
+        except TimeoutError:
             return RendezvousResponse(accepted=False, message="server busy: request timed out")
-        return RendezvousResponse(accepted=done.merge is not None, message=done.message)
+        return RendezvousResponse(accepted=merge is not None, message=message)
 
     def _on_global_ba(self, req):
         """Runs in the worker thread like keyframes, so the team map has one writer."""
         from coop_slam.srv import GlobalBundleAdjustmentResponse
 
-        done = threading.Event()
-        self.queue.put(("global_ba", req.robot_id or None, done))
-        if not done.wait(600.0):
+        reply: Future = Future()
+        self.queue.put(_GlobalBaJob(req.robot_id or None, reply))
+        try:
+            r, message = reply.result(timeout=600.0)
+        except TimeoutError:
             return GlobalBundleAdjustmentResponse(success=False, message="server busy: timed out")
-        r = done.result
         if r is None:
-            return GlobalBundleAdjustmentResponse(success=False, message=done.message)
+            return GlobalBundleAdjustmentResponse(success=False, message=message)
         return GlobalBundleAdjustmentResponse(
             success=True,
-            message=done.message,
+            message=message,
             keyframes=r.keyframes,
             points=r.points,
             observations=r.observations,
@@ -211,32 +233,40 @@ class ServerNode:
             time_s=r.time_ms / 1e3,
         )
 
-    def _global_ba(self, robot_id, done) -> None:
+    def _global_ba(self, job: _GlobalBaJob) -> None:
         from ..team.global_ba import GlobalBaError
 
         try:
-            done.result = self.server.global_bundle_adjustment(robot_id)
-            done.message = (
-                f"{done.result.keyframes} keyframes, {done.result.points} points: "
-                f"reprojection RMS {done.result.rms_before:.2f} -> "
-                f"{done.result.rms_after:.2f} px"
+            r = self.server.global_bundle_adjustment(job.robot_id)
+            result = r, (
+                f"{r.keyframes} keyframes, {r.points} points: "
+                f"reprojection RMS {r.rms_before:.2f} -> {r.rms_after:.2f} px"
             )
         except GlobalBaError as exc:
-            done.result, done.message = None, str(exc)
-        rospy.loginfo("server: global BA: %s", done.message)
-        done.set()
+            result = None, str(exc)
+        rospy.loginfo("server: global BA: %s", result[1])
+        job.reply.set_result(result)
 
-    def _rendezvous(self, robot_a, robot_b, stamp, T_camA_bodyB, done) -> list:
+    def _rendezvous(self, job: _RendezvousJob) -> list | None:
+        """The merges a request made; None for a sighting that is not a request."""
         T_body_cam = None if self.T_base_cam is None else invert(self.T_base_cam)
-        merge, message = self.server.request_rendezvous(
-            robot_a, robot_b, stamp, T_camA_bodyB if T_body_cam is not None else None, T_body_cam
-        )
+        T_camA_bodyB = job.T_camA_bodyB if T_body_cam is not None else None
+        if job.sighting:
+            outcome = self.server.sighting(
+                job.robot_a, job.robot_b, job.stamp_s, T_camA_bodyB, T_body_cam
+            )
+            if outcome is None:
+                return None  # within rendezvous.sighting_period_s of the pair's last request
+            merge, message = outcome
+        else:
+            merge, message = self.server.request_rendezvous(
+                job.robot_a, job.robot_b, job.stamp_s, T_camA_bodyB, T_body_cam
+            )
         rospy.loginfo(
-            "server: rendezvous request robot_%d / robot_%d: %s", robot_a, robot_b, message
+            "server: rendezvous request robot_%d / robot_%d: %s", job.robot_a, job.robot_b, message
         )
-        if done is not None:
-            done.merge, done.message = merge, message
-            done.set()
+        if job.reply is not None:
+            job.reply.set_result((merge, message))
         return [merge] if merge is not None else []
 
     def _work(self) -> None:
@@ -250,17 +280,19 @@ class ServerNode:
                     self._publish_map(stamp)
                     self._publish_stats()
                 continue
-            if isinstance(item, tuple) and item[0] == "global_ba":
-                self._global_ba(*item[1:])
-                merges, stamp = [], rospy.Time.now()
+            if isinstance(item, _GlobalBaJob):
+                self._global_ba(item)
+                stamp = rospy.Time.now()
                 self._publish_tf(stamp)
                 self._publish_map(stamp)
                 continue
-            if isinstance(item, tuple):
-                merges = self._rendezvous(*item[1:])
-                stamp = rospy.Time.from_sec(item[3] or 0.0)
+            if isinstance(item, _RendezvousJob):
+                merges = self._rendezvous(item)
+                if merges is None:
+                    continue
+                stamp = rospy.Time.from_sec(item.stamp_s or 0.0)
             else:
-                rec = item
+                rec = item.record
                 try:
                     merges = self.server.add_keyframe(rec)
                 except CoopSlamError as exc:
@@ -269,7 +301,7 @@ class ServerNode:
                 stamp = rospy.Time.from_sec(rec.stamp_s)
             for m in merges:
                 self._publish_merge(m)
-            if merges or self.server._since_optimize == 0:  # the team map just moved
+            if merges or self.server.map_moved:
                 self._publish_tf(stamp)
             self._map_dirty, self._last_stamp_s = True, stamp.to_sec()
             if merges or stamp.to_sec() - self._last_cloud_s >= self.cloud_period_s:
@@ -307,7 +339,7 @@ class ServerNode:
     def _publish_tf(self, stamp) -> None:
         transforms = []
         for r in self.cfg.robots:
-            T, merged = self.server.T_world_map(r)
+            T, merged = self.server.T_group_map(r), self.server.in_world(r)
             if merged:
                 transforms.append(transform_stamped(T, "world", f"robot_{r}/map", stamp))
             corrected = self.server.corrected_keyframes(r)
@@ -338,13 +370,13 @@ class ServerNode:
             poses = self.server.optimized_keyframes(r)
             if not poses:
                 continue
-            merged = self.server.T_world_map(r)[1]
+            merged = self.server.in_world(r)
             path = self._Path()
             path.header.stamp = stamp
             path.header.frame_id = "world" if merged else f"robot_{self.server.groups.root(r)}/map"
             for kf, T in poses.items():
                 ps = PoseStamped(pose=pose_to_msg(T))
-                ps.header.stamp = rospy.Time.from_sec(self.server.keyframes[(r, kf)].record.stamp_s)
+                ps.header.stamp = rospy.Time.from_sec(self.server.store.stamp((r, kf)))
                 ps.header.frame_id = path.header.frame_id
                 ps.header.seq = kf  # the keyframe id
                 path.poses.append(ps)
@@ -368,7 +400,7 @@ class ServerNode:
             line = marker("paths", robot, Marker.LINE_STRIP, (*c, 1.0), 0.04)
             line.points = [Point(*p) for p in pos]
             markers.markers.append(line)
-            merged = self.server.T_world_map(robot)[1]
+            merged = self.server.in_world(robot)
             label = marker("labels", robot, Marker.TEXT_VIEW_FACING, (1.0, 1.0, 1.0, 1.0), 0.4)
             label.text = f"robot_{robot}" + ("" if merged else " (unmerged)")
             label.pose.position = Point(pos[-1][0], pos[-1][1], pos[-1][2] + 0.6)
@@ -405,6 +437,7 @@ class ServerNode:
 
 def main() -> None:
     rospy.init_node("server")
+    forward_core_logs("server")
     try:
         node = ServerNode()
     except CoopSlamError as exc:

@@ -47,14 +47,14 @@ def robot_colours(robot_ids) -> np.ndarray:
 
 
 def gather_map_points(
-    records, T_world_map, per_keyframe: bool = False
+    records, T_view_map, per_keyframe: bool = False
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(points_world (N, 3), robot_ids (N,), point_ids (N,)) from keyframe records, each robot's
-    map points moved to world by ``T_world_map(robot_id)`` (a callable or a dict); with
+    """(points (N, 3), robot_ids (N,), point_ids (N,)) from keyframe records, each robot's map
+    points moved into the frame shown by ``T_view_map(robot_id)`` (a callable or a dict); with
     ``per_keyframe`` the callable takes the record instead, so a pose graph that bent a robot's
     trajectory moves each keyframe's points with its own keyframe. A map point seen by several
     keyframes of a robot appears once, at its position in the latest of them."""
-    lookup = T_world_map if callable(T_world_map) else T_world_map.__getitem__
+    lookup = T_view_map if callable(T_view_map) else T_view_map.__getitem__
     chunks, robots, ids, order = [], [], [], []
     for rec in records:
         pid = rec.map_point_ids[rec.map_point_ids != 0].astype(np.int64)
@@ -122,7 +122,7 @@ def _mutual_cross_robot_pairs(points: np.ndarray, robots: np.ndarray, radius_m: 
 
 
 def fuse_points(
-    points_world, robot_ids, point_ids, matches=None, radius_m: float = 0.02
+    points_team, robot_ids, point_ids, matches=None, radius_m: float = 0.02
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fuse a team cloud -> (points (M, 3), point_ids (M,), robot_ids (M,)).
 
@@ -133,7 +133,7 @@ def fuse_points(
     point id of its member with the smallest robot id. Points of one robot are never merged with
     each other (its SLAM already keeps them distinct).
     """
-    points = np.asarray(points_world, dtype=float).reshape(-1, 3)
+    points = np.asarray(points_team, dtype=float).reshape(-1, 3)
     robots = np.asarray(robot_ids).reshape(-1)
     ids = np.asarray(point_ids).reshape(-1)
     n = len(points)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import CoopSlamError
+from ..errors import CoopSlamError, GeometryError
 from ..geometry import check_se3, invert
 
 
@@ -79,7 +79,10 @@ class MergeGroups:
 
         Merging robots already in one group is refused (that is a loop closure, not a merge).
         """
-        T_mapA_mapB = check_se3(T_mapA_mapB, "T_mapA_mapB")
+        try:
+            T_mapA_mapB = check_se3(T_mapA_mapB, "T_mapA_mapB")
+        except GeometryError as exc:
+            raise GroupError(f"merge of robots {a} and {b}: {exc}") from None
         ra, rb = self.root(a), self.root(b)
         if ra == rb:
             raise GroupError(f"robots {a} and {b} are already in one group")
@@ -96,4 +99,7 @@ class MergeGroups:
     def set_T_root_map(self, robot_id: int, T_root_map: np.ndarray) -> None:
         """Replace a robot's transform after global optimization (group membership unchanged)."""
         self._check(robot_id)
-        self._T_root_map[robot_id] = check_se3(T_root_map, f"T_root_map of robot {robot_id}")
+        try:
+            self._T_root_map[robot_id] = check_se3(T_root_map, f"T_root_map of robot {robot_id}")
+        except GeometryError as exc:
+            raise GroupError(str(exc)) from None

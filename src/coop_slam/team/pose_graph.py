@@ -2,7 +2,7 @@
 
 Parameterisation
 ----------------
-One variable per keyframe, ``X = T_world_cam``: the camera pose in its *group frame*. A group is a
+One variable per keyframe, ``X = T_group_cam``: the camera pose in its *group frame*. A group is a
 connected component of the graph (robots joined by merge factors); its frame is the map frame of
 its smallest robot id, matching :mod:`coop_slam.team.groups`, so the component holding robot 1 is
 ``world``. Variable keys are ``gtsam.Symbol(chr(ord('a') + robot_id), keyframe_id)``, so all robots
@@ -19,7 +19,7 @@ as in GTSAM's Pose3 tangent space):
   a robust kernel (Cauchy by default) so one wrong constraint cannot wreck the map.
 - gauge priors: one stiff prior per connected component, on the first keyframe of its smallest
   robot, at that keyframe's estimate when the prior was created (for a component's first keyframe
-  that is ``T_world_map_hint @ T_map_cam``, i.e. the client's own pose for a group root).
+  that is ``T_group_map_hint @ T_map_cam``, i.e. the client's own pose for a group root).
 
 Optimisation: :meth:`TeamPoseGraph.optimize_incremental` feeds new factors to iSAM2 as keyframes
 arrive; :meth:`TeamPoseGraph.optimize_full` runs batch Levenberg-Marquardt (after a merge or loop
@@ -43,7 +43,7 @@ from scipy.sparse.csgraph import connected_components
 from ..config import require
 from ..errors import CoopSlamError, GeometryError
 from ..geometry import check_se3, invert
-from ..registration.keyframe import RegistrationError
+from ..registration.camera import RegistrationError
 from ..registration.umeyama import umeyama
 
 log = logging.getLogger(__name__)
@@ -81,7 +81,7 @@ class PoseGraphConfig:
     # On the whitened 6-D residual norm: an inlier's norm is about sqrt(6) = 2.4.
     robust_k: float = 3.0
     prior_sigma: float = 1e-4  # gauge prior [rad and m]
-    map_anchor: str = "latest"  # how T_world_map is read off the optimised poses: latest | umeyama
+    map_anchor: str = "latest"  # how T_group_map is read off the optimised poses: latest | umeyama
     lm_max_iterations: int = 100
     lm_relative_error_tol: float = 1e-5
     isam_relinearize_threshold: float = 0.01
@@ -149,7 +149,7 @@ class _Factor:
     kind: str
     key_i: Key
     key_j: Key | None  # None for a prior
-    T_meas: np.ndarray  # T_cami_camj (between) or T_world_cam (prior)
+    T_meas: np.ndarray  # T_cami_camj (between) or T_group_cam (prior)
     sigmas: tuple[float, float]  # (rotation rad, translation m)
     label: str = ""
     robust_k: float | None = None  # per-factor kernel width (whitened); None: the config's
@@ -185,9 +185,9 @@ class TeamPoseGraph:
         self._kernel = self._make_kernel(cfg.robust_k)
         self._client: dict[Key, np.ndarray] = {}  # T_map_cam as the client last sent it
         self._refined: dict[Key, np.ndarray] = {}  # pose from global BA, until the client moves it
-        self._values: dict[Key, np.ndarray] = {}  # current estimate T_world_cam
+        self._values: dict[Key, np.ndarray] = {}  # current estimate T_group_cam
         self._chain: dict[int, list[int]] = {}  # robot -> sorted keyframe ids
-        self._map_hint: dict[int, np.ndarray] = {}  # T_world_map for a robot's first keyframe
+        self._map_hint: dict[int, np.ndarray] = {}  # T_group_map for a robot's first keyframe
         self._factors: dict[int, _Factor] = {}
         self._by_key: dict[Key, set[int]] = {}
         self._priors: dict[Key, int] = {}  # anchor keyframe -> prior factor id
@@ -290,18 +290,18 @@ class TeamPoseGraph:
         ]
 
     # --- keyframes --------------------------------------------------------------------------------
-    def set_map_transform(self, robot_id: int, T_world_map: np.ndarray) -> None:
+    def set_map_transform(self, robot_id: int, T_group_map: np.ndarray) -> None:
         """Where a robot's map sits in its group frame, used for the initial estimate of the robot's
         first keyframe. Later keyframes chain from the robot's existing estimates, which already
         live in the graph's frame; merges align groups themselves (see :meth:`add_merge`)."""
-        self._map_hint[int(robot_id)] = self._pose(T_world_map, f"T_world_map of robot {robot_id}")
+        self._map_hint[int(robot_id)] = self._pose(T_group_map, f"T_group_map of robot {robot_id}")
 
     def add_keyframe(
         self,
         robot_id: int,
         keyframe_id: int,
         T_map_cam: np.ndarray,
-        T_world_map: np.ndarray | None = None,
+        T_group_map: np.ndarray | None = None,
         covisible_ids=(),
     ) -> None:
         """Add a keyframe with its client pose; links it by odometry to its neighbours in id order
@@ -319,8 +319,8 @@ class TeamPoseGraph:
                 "pose graph (use update_keyframe)"
             )
         T_map_cam = self._pose(T_map_cam, f"pose of keyframe {keyframe_id} of robot {robot_id}")
-        if T_world_map is not None:
-            self.set_map_transform(robot_id, T_world_map)
+        if T_group_map is not None:
+            self.set_map_transform(robot_id, T_group_map)
         chain = self._chain.setdefault(robot_id, [])
         pos = bisect.bisect_left(chain, keyframe_id)
         prev = (robot_id, chain[pos - 1]) if pos > 0 else None
@@ -627,16 +627,16 @@ class TeamPoseGraph:
         self._check_robot(robot_id)
         return list(self._chain.get(robot_id, []))
 
-    def T_world_cam(self, robot_id: int, keyframe_id: int) -> np.ndarray:
+    def T_group_cam(self, robot_id: int, keyframe_id: int) -> np.ndarray:
         """Current estimate of a keyframe's pose in its group frame."""
         return self._values[self._check_key(robot_id, keyframe_id)].copy()
 
     def keyframe_poses(self, robot_id: int) -> dict[int, np.ndarray]:
-        """keyframe id -> T_world_cam for one robot."""
+        """keyframe id -> T_group_cam for one robot."""
         self._check_robot(robot_id)
         return {k: self._values[(robot_id, k)].copy() for k in self._chain.get(robot_id, [])}
 
-    def T_world_map(self, robot_id: int) -> np.ndarray:
+    def T_group_map(self, robot_id: int) -> np.ndarray:
         """A robot's map frame in its group frame, i.e. the map->odom style correction its client
         applies. ``map_anchor='latest'`` (default) anchors it at the robot's latest keyframe, where
         the robot is now, so its corrected current pose is the optimised one; ``'umeyama'`` is the
@@ -649,9 +649,9 @@ class TeamPoseGraph:
         if self.config.map_anchor == "umeyama" and len(chain) >= 3:
             keys = [(robot_id, k) for k in chain]
             points_map = np.array([self._client[k][:3, 3] for k in keys])
-            points_world = np.array([self._values[k][:3, 3] for k in keys])
+            points_group = np.array([self._values[k][:3, 3] for k in keys])
             try:
-                return umeyama(points_map, points_world)[0]
+                return umeyama(points_map, points_group)[0]
             except RegistrationError:
                 pass
         last = (robot_id, chain[-1])

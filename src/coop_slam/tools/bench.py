@@ -87,29 +87,10 @@ def bench_vo() -> Iterator[Figure]:
             yield (f"vo_{name}_keyframe_msg_bytes_mean", size, "bytes")
 
 
-def _record(kf, robot_id: int, camera):
-    """The KeyframeRecord a client would send for one of its keyframes."""
-    from ..keyframe import KeyframeRecord
-
-    return KeyframeRecord(
-        robot_id=robot_id,
-        keyframe_id=int(kf.keyframe_id),
-        stamp_s=float(kf.stamp_s),
-        camera=camera,
-        T_map_cam=kf.T_map_cam,
-        keypoints=kf.keypoints_flat().reshape(-1, 4),
-        octaves=kf.octaves,
-        descriptors=kf.descriptors,
-        depths_m=kf.depths_m,
-        map_point_ids=kf.map_point_ids,
-        map_points=kf.map_points_xyz,
-        covisible_ids=kf.covisible_ids,
-        covisible_weights=kf.covisible_weights,
-    )
-
-
 def _keyframe_msg_bytes(keyframes, camera):
     import io
+
+    from ..vo.outbox import keyframe_record
 
     try:
         from ..ros.convert import keyframe_to_msg
@@ -117,7 +98,7 @@ def _keyframe_msg_bytes(keyframes, camera):
         return None
     sizes = []
     for kf in keyframes:
-        rec = _record(kf, 1, camera)
+        rec = keyframe_record(kf, 1, camera)
         buf = io.BytesIO()
         keyframe_to_msg(rec, "robot_1/map").serialize(buf)
         sizes.append(buf.tell())
@@ -136,7 +117,9 @@ def bench_server() -> Iterator[Figure]:
 
     from ..bow import Vocabulary
     from ..bow.training import ensure_default_vocabulary
-    from ..team.server import ServerConfig, TeamServer
+    from ..team.config import ServerConfig
+    from ..team.server import TeamServer
+    from ..vo.outbox import keyframe_record
 
     if not _VO_RUNS:
         list(bench_vo())
@@ -146,7 +129,7 @@ def bench_server() -> Iterator[Figure]:
     for robot_id, name in enumerate(halves, 1):
         run, seq = _VO_RUNS[name]
         for kf in run.keyframes:
-            records.append(_record(kf, robot_id, seq.camera))
+            records.append(keyframe_record(kf, robot_id, seq.camera))
     records.sort(key=lambda r: r.stamp_s)
     t0 = time.perf_counter()
     for rec in records:

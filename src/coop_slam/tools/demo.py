@@ -19,9 +19,9 @@ import time
 import numpy as np
 
 from ..errors import CoopSlamError
+from ..evaluation.run_report import evaluate_results, run_input_of
 from ..geometry import quat_from_se3
 from ..playback import load_run_source
-from .evaluate import RunRecorder, evaluate_results, read_bag_input, run_data_from_bag, run_input_of
 from .progress import throttled
 
 DEFAULT_SCENARIO = "team"
@@ -141,10 +141,33 @@ def _write_run_info(
         "bag": os.path.abspath(args.bag) if args.bag else None,
         "robot_ids": robot_ids,
         "ground_robots": ground,
+        "commit": _commit(),
         "T_base_cam": base_cam,  # [x y z qx qy qz qw], [] = the launch file's default
     }
     with open(os.path.join(out, "run.json"), "w", encoding="utf-8") as fh:
         json.dump(info, fh, indent=2)
+
+
+def _commit() -> str | None:
+    """The code's git commit (with ``+`` when the working tree has changes), when known."""
+    try:
+        head = subprocess.run(
+            ["git", "-C", REPO, "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
+        dirty = subprocess.run(
+            ["git", "-C", REPO, "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if head.returncode != 0:
+        return None
+    return head.stdout.strip() + ("+" if dirty.stdout.strip() else "")
 
 
 def _free_port() -> int:
@@ -172,7 +195,7 @@ class _Monitor:
 
         from coop_slam.msg import FrameStats
 
-        from .evaluate import _msg_class
+        from ..ros.run_recorder import RunRecorder, message_class
 
         rospy.init_node("demo_monitor", anonymous=True, disable_signals=True)
         self.recorder = RunRecorder(robot_ids)
@@ -188,7 +211,7 @@ class _Monitor:
                     topic,
                     rospy.AnyMsg,
                     self._on_any,
-                    (topic, _msg_class(type_name)),
+                    (topic, message_class(type_name)),
                     queue_size=500,
                     buff_size=2**25,
                 )
@@ -273,6 +296,8 @@ def _wait_for_master(uri: str, timeout_s: float) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..ros.run_recorder import RunRecorder, read_bag_input, run_data_from_bag
+
     name = args.scenario or os.path.basename(os.path.normpath(args.dataset or args.bag or "run"))
     out = os.path.abspath(
         args.out or os.path.join("results", f"{datetime.datetime.now():%Y%m%d-%H%M%S}-{name}")

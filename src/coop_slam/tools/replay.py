@@ -21,8 +21,8 @@ from ..errors import CoopSlamError
 
 def _server_config(path: str, info: dict, overrides: dict):
     """The server configuration the demo ran with: the YAML, as server.launch adjusts it."""
-    from ..config import merge_overrides
-    from ..ros.server_node import load_server_config
+    from ..config import load_yaml_config, merge_overrides
+    from ..team.config import ServerConfig
 
     launch = {}
     if info.get("ground_robots"):
@@ -30,7 +30,7 @@ def _server_config(path: str, info: dict, overrides: dict):
     if info.get("split"):
         launch["rendezvous"] = {"min_separation_m": 0.0}
     launch["robots"] = list(info["robot_ids"])
-    return load_server_config(path, merge_overrides(launch, overrides))
+    return load_yaml_config(ServerConfig, path, "server", merge_overrides(launch, overrides))
 
 
 def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None = None) -> dict:
@@ -48,24 +48,19 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
     base_cam = info.get("T_base_cam") or []
     T_body_cam = invert(se3_from_quat(base_cam[:3], base_cam[3:])) if base_cam else None
     topics = [f"/robot_{r}/keyframes" for r in cfg.robots] + ["/robot_sightings"]
-    last_sighting: dict = {}
     rejected = 0
     with rosbag.Bag(bag_path) as bag:
         for topic, msg, _ in bag.read_messages(topics=topics):
             if topic == "/robot_sightings":
-                pair, now = (msg.observer_id, msg.observed_id), msg.header.stamp.to_sec()
-                if now - last_sighting.get(pair, -1e9) < cfg.rendezvous.sighting_period_s:
-                    continue
-                last_sighting[pair] = now
                 try:
                     T_cam_body = pose_from_msg(msg.T_cam_body, "T_cam_body")
                 except MessageError:
                     rejected += 1
                     continue
-                server.request_rendezvous(
+                server.sighting(
                     msg.observer_id,
                     msg.observed_id,
-                    now,
+                    msg.header.stamp.to_sec(),
                     T_cam_body if T_body_cam is not None else None,
                     T_body_cam,
                 )
@@ -99,10 +94,10 @@ def summary(server, rejected: int = 0) -> dict:
         "verifications": server.verifications,
         "groups": server.groups.groups(),
         "rejected": rejected,
-        "keyframes": len(server.keyframes),
+        "keyframes": len(server.store),
         "positions_mm": {},
     }
-    for robot in sorted({r for r, _ in server.keyframes}):
+    for robot in server.store.robots():
         poses = server.optimized_keyframes(robot)
         out["positions_mm"][str(robot)] = {
             str(k): [round(float(v) * 1e3, 1) for v in T[:3, 3]] for k, T in poses.items()

@@ -4,7 +4,7 @@ Entry point: :class:`RgbdOdometry` (``track`` per frame, keyframes / map points 
 """
 
 from .config import VoConfig
-from .map import Keyframe
+from .map import MapKeyframe
 from .pipeline import RgbdOdometry
 from .types import (
     EVENT_KEYFRAME_NEW,
@@ -35,7 +35,7 @@ __all__ = [
     "STATE_NEW_SEGMENT",
     "STATE_OK",
     "STATE_RELOCALIZED",
-    "Keyframe",
+    "MapKeyframe",
     "RgbdOdometry",
     "TrackResult",
     "VoConfig",

@@ -16,8 +16,9 @@ import numpy as np
 
 from ..datasets.base import Sequence
 from ..evaluation import ate
+from ..timestamps import associate
 from .config import VoConfig
-from .map import Keyframe
+from .map import MapKeyframe
 from .pipeline import RgbdOdometry
 from .types import EVENT_KEYFRAME_NEW, EVENT_KEYFRAME_REMOVE, STATE_LOST
 
@@ -34,7 +35,7 @@ class VoRun:
     segments: np.ndarray  # (F,) map segment of each frame
     track_ms: np.ndarray  # (F,) wall time of track()
     cpu_ms: np.ndarray  # (F,) CPU time of the tracking thread in track()
-    keyframes: list[Keyframe]  # final keyframes of the last segment (after local BA and culling)
+    keyframes: list[MapKeyframe]  # final keyframes of the last segment (after local BA and culling)
     keyframes_created: int
     keyframes_removed: int
     wall_s: float
@@ -148,15 +149,10 @@ def ate_rmse(stamps_s, poses_est, poses_gt) -> float:
 
 def ground_truth_at(seq: Sequence, stamps_s) -> np.ndarray:
     """Ground-truth T_world_cam of ``seq`` at the given frame stamps (NaN where there is none)."""
-    gt = seq.frame_poses()
-    frame_stamps = seq.stamps_s
-    idx = np.clip(np.searchsorted(frame_stamps, stamps_s), 0, len(frame_stamps) - 1)
-    left = np.clip(idx - 1, 0, len(frame_stamps) - 1)
-    idx = np.where(
-        np.abs(frame_stamps[left] - stamps_s) < np.abs(frame_stamps[idx] - stamps_s), left, idx
-    )
-    out = gt[idx]
-    out[np.abs(frame_stamps[idx] - stamps_s) > 1e-6] = np.nan
+    stamps_s = np.asarray(stamps_s, float)
+    out = np.full((len(stamps_s), 4, 4), np.nan)
+    i_query, i_frame = associate(stamps_s, seq.stamps_s, 1e-6)
+    out[i_query] = seq.frame_poses()[i_frame]
     return out
 
 

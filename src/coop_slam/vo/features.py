@@ -1,4 +1,6 @@
-"""ORB features of one RGB-D frame, spread over the image and the scale pyramid, with depth.
+"""ORB features of one frame, spread over the image and the scale pyramid; and the frame's
+features as tracking uses them (:class:`FrameFeatures`: keypoints with what the sensor measured
+about each, see :mod:`.sensor`).
 
 OpenCV's ORB keeps the keypoints with the best Harris score, which clusters them on strongly
 textured regions. As ORB-SLAM does with its quadtree, we detect more candidates than needed and keep
@@ -18,6 +20,20 @@ import numpy as np
 
 from ..datasets.base import CameraModel
 from .config import VoConfig
+
+
+@dataclass
+class OrbKeypoints:
+    """ORB keypoints of one image (level-0 pixel coordinates) and their descriptors."""
+
+    uv_px: np.ndarray  # (N, 2) float64
+    size_px: np.ndarray  # (N,) float32
+    angle_deg: np.ndarray  # (N,) float32, -1 = none
+    octaves: np.ndarray  # (N,) uint8 pyramid level
+    descriptors: np.ndarray  # (N, 32) uint8
+
+    def __len__(self) -> int:
+        return len(self.uv_px)
 
 
 @dataclass
@@ -105,9 +121,8 @@ class OrbExtractor:
             nfeatures=config.n_detect, fastThreshold=config.fast_threshold, **common
         )
         self._scales = level_scales(config)
-        self._bf = camera.fx * config.virtual_baseline_m
 
-    def extract(self, gray: np.ndarray, depth_m: np.ndarray | None) -> FrameFeatures:
+    def extract(self, gray: np.ndarray) -> OrbKeypoints:
         kps = self._orb.detect(gray, None)
         if not kps:
             return self._empty()
@@ -120,7 +135,13 @@ class OrbExtractor:
             -1, 5
         )
         attrs[:, :2] = orb_level0_uv(attrs[:, :2], attrs[:, 4], self.config.scale_factor)
-        return self._with_depth(attrs[:, :2], attrs[:, 2:], desc, depth_m)
+        return OrbKeypoints(
+            uv_px=attrs[:, :2],
+            size_px=attrs[:, 2].astype(np.float32),
+            angle_deg=attrs[:, 3].astype(np.float32),
+            octaves=np.clip(attrs[:, 4], 0, self.config.n_levels - 1).astype(np.uint8),
+            descriptors=np.ascontiguousarray(desc, dtype=np.uint8),
+        )
 
     def _bucket(self, attrs: np.ndarray) -> np.ndarray:
         """Indices of up to n_features keypoints: best per (level, cell) first, then
@@ -143,87 +164,12 @@ class OrbExtractor:
         rank[order] = np.arange(n) - group_start
         return np.sort(np.lexsort((-response, rank))[: cfg.n_features])
 
-    def _with_depth(self, uv, attrs, desc, depth_m) -> FrameFeatures:
-        cfg, cam = self.config, self.camera
-        n = len(uv)
-        depth = np.zeros(n, np.float32)
-        if depth_m is not None and n:
-            depth = self._lookup_depth(uv, depth_m)
-            depth[~np.isfinite(depth) | (depth < cfg.min_depth_m) | (depth > cfg.max_depth_m)] = 0.0
-        z = np.where(depth > 0, depth, np.nan).astype(np.float64)
-        points_cam = np.stack(
-            [(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z], axis=1
-        )
-        return FrameFeatures(
-            uv_px=uv,
-            size_px=attrs[:, 0].astype(np.float32),
-            angle_deg=attrs[:, 1].astype(np.float32),
-            octaves=np.clip(attrs[:, 2], 0, cfg.n_levels - 1).astype(np.uint8),
-            descriptors=np.ascontiguousarray(desc, dtype=np.uint8),
-            depths_m=depth,
-            points_cam=points_cam,
-            # Far depth is too noisy for the stereo-like term: those keypoints count as monocular.
-            u_right_px=np.where(depth <= cfg.close_depth_m, uv[:, 0] - self._bf / z, np.nan),
-        )
-
-    def _lookup_depth(self, uv: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
-        """Depth along the colour optical axis at colour pixels uv (0 = none).
-
-        Registered depth: the pixel itself. Unregistered: the depth pixel seeing the same point
-        depends on that point's depth (parallax of the colour/depth baseline), so iterate: guess z,
-        project the colour ray point into the depth camera, read the depth there, repeat; keypoints
-        whose depth does not settle (they sit on a depth edge) get none.
-        """
-        cfg, cam = self.config, self.camera
-        h, w = depth_m.shape
-
-        def read(u, v):
-            ui = np.clip(np.rint(u).astype(int), 0, w - 1)
-            vi = np.clip(np.rint(v).astype(int), 0, h - 1)
-            inside = (u > -0.5) & (u < w - 0.5) & (v > -0.5) & (v < h - 0.5)
-            z = depth_m[vi, ui].astype(np.float64)
-            return np.where(inside & np.isfinite(z), z, 0.0)
-
-        if cfg.depth_registered:
-            z = read(uv[:, 0], uv[:, 1])
-            r = cfg.depth_edge_px
-            if r > 0:
-                # Corners often sit on depth edges, where a slightly misregistered or noisy depth
-                # image gives the other surface's depth: no depth unless the neighbourhood agrees.
-                offsets = ((-r, 0), (r, 0), (0, -r), (0, r), (-r, -r), (r, r), (-r, r), (r, -r))
-                ring = np.stack([read(uv[:, 0] + du, uv[:, 1] + dv) for du, dv in offsets], 1)
-                spread = np.abs(ring - z[:, None]).max(1)
-                z = np.where((ring > 0).all(1) & (spread <= cfg.depth_edge_ratio * z), z, 0.0)
-            return z.astype(np.float32)
-        tx, ty, tz = (float(v) for v in cfg.depth_in_color_m)
-        xn = (uv[:, 0] - cam.cx) / cam.fx
-        yn = (uv[:, 1] - cam.cy) / cam.fy
-        valid = depth_m[depth_m > 0]
-        z = np.full(len(uv), float(np.median(valid)) if valid.size else 2.0)
-        z_prev = z
-        for _ in range(3):
-            zd = np.maximum(z - tz, 1e-3)
-            u_d = cfg.depth_fx * (z * xn - tx) / zd + cfg.depth_cx
-            v_d = cfg.depth_fy * (z * yn - ty) / zd + cfg.depth_cy
-            z_read = read(u_d, v_d)
-            z_prev, z = z, np.where(z_read > 0, z_read + tz, 0.0)
-            if not (z > 0).any():
-                break
-            z = np.where(
-                z > 0, z, z_prev
-            )  # keep iterating from the last guess where there was a hole
-        settled = (z_read > 0) & (np.abs(z - z_prev) <= 0.02 * z)
-        return np.where(settled, z, 0.0).astype(np.float32)
-
     @staticmethod
-    def _empty() -> FrameFeatures:
-        return FrameFeatures(
+    def _empty() -> OrbKeypoints:
+        return OrbKeypoints(
             uv_px=np.zeros((0, 2)),
             size_px=np.zeros(0, np.float32),
             angle_deg=np.zeros(0, np.float32),
             octaves=np.zeros(0, np.uint8),
             descriptors=np.zeros((0, 32), np.uint8),
-            depths_m=np.zeros(0, np.float32),
-            points_cam=np.zeros((0, 3)),
-            u_right_px=np.zeros(0),
         )

@@ -22,23 +22,21 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..datasets.base import CameraModel
 from ..geometry import transform_error
 from .config import VoConfig
 from .features import FrameFeatures, level_scales
 from .local_ba import BaProblem, BaResult, BaWorker, run_local_ba
-from .map import Keyframe, Map
+from .map import Map, MapKeyframe
 from .matching import project_points, search_by_projection
+from .sensor import RgbdSensor
 from .types import EVENT_KEYFRAME_NEW, EVENT_KEYFRAME_REMOVE, EVENT_KEYFRAME_UPDATE, VoEvent
 
 log = logging.getLogger(__name__)
 
 
-def keyframe_features(kf: Keyframe, bf: float, close_depth_m: float) -> FrameFeatures:
+def keyframe_features(kf: MapKeyframe, sensor: RgbdSensor) -> FrameFeatures:
     """The keyframe's keypoints as FrameFeatures (cached on the keyframe for its KD-tree)."""
     if kf.features is None:
-        close = (kf.depths_m > 0) & (kf.depths_m <= close_depth_m)
-        z = np.where(close, kf.depths_m, np.nan).astype(float)
         kf.features = FrameFeatures(
             uv_px=kf.uv_px.astype(float),
             size_px=kf.size_px,
@@ -47,7 +45,7 @@ def keyframe_features(kf: Keyframe, bf: float, close_depth_m: float) -> FrameFea
             descriptors=kf.descriptors,
             depths_m=kf.depths_m,
             points_cam=np.full((len(kf), 3), np.nan),
-            u_right_px=kf.uv_px[:, 0] - bf / z,
+            u_right_px=sensor.u_right(kf.uv_px[:, 0], kf.depths_m.astype(float)),
         )
     return kf.features
 
@@ -59,14 +57,15 @@ class LocalMapper:
     def __init__(
         self,
         config: VoConfig,
-        camera: CameraModel,
+        sensor: RgbdSensor,
         get_map: Callable[[], Map],
         emit: Callable[[VoEvent], None],
     ):
         self.config = config
-        self.camera = camera
+        self.sensor = sensor
+        self.camera = camera = sensor.camera
         self.K = camera.K
-        self.bf = camera.fx * config.virtual_baseline_m
+        self.bf = sensor.bf
         self.scales = level_scales(config)
         self._get_map = get_map
         self._emit = emit
@@ -194,7 +193,7 @@ class LocalMapper:
             if kf_id in vmap.keyframes:
                 vmap.update_covisibility(kf_id)
 
-    def _fuse(self, vmap: Map, kf: Keyframe, neighbours: list[int]) -> set[int]:
+    def _fuse(self, vmap: Map, kf: MapKeyframe, neighbours: list[int]) -> set[int]:
         """Project points between the keyframe and its neighbours; merge duplicates, add
         observations."""
         touched: set[int] = set()
@@ -214,7 +213,7 @@ class LocalMapper:
                 touched |= self._fuse_into(vmap, target, pids)
         return touched  # may hold points fused away since: update_point_stats skips dead ones
 
-    def _fuse_into(self, vmap: Map, target: Keyframe, pids: np.ndarray) -> set[int]:
+    def _fuse_into(self, vmap: Map, target: MapKeyframe, pids: np.ndarray) -> set[int]:
         """Fuse points ``pids`` into keyframe ``target`` (map lock held)."""
         pts = vmap.points
         touched: set[int] = set()
@@ -224,7 +223,7 @@ class LocalMapper:
         pids = pids[~np.isin(pids, target.map_point_ids)]
         if len(pids) == 0:
             return touched
-        feats = keyframe_features(target, self.bf, self.config.close_depth_m)
+        feats = keyframe_features(target, self.sensor)
         proj = project_points(
             np.linalg.inv(target.T_map_cam),
             pts.xyz[pids],
@@ -331,9 +330,7 @@ class LocalMapper:
             kf = vmap.keyframes[k]
             idx = obs_kp[sel]
             uv[sel] = kf.uv_px[idx]
-            d = kf.depths_m[idx].astype(float)
-            close = (d > 0) & (d <= cfg.close_depth_m)
-            ur[sel] = np.where(close, kf.uv_px[idx, 0] - self.bf / np.where(close, d, 1.0), np.nan)
+            ur[sel] = self.sensor.u_right(kf.uv_px[idx, 0], kf.depths_m[idx].astype(float))
             octave[sel] = kf.octaves[idx]
         # Keep points the problem constrains: >= 2 observations in it, at least one with depth. A
         # point seen once without depth (its creator outside the problem) leaves the linear system

@@ -22,8 +22,10 @@ from ..descriptors import hamming_rows
 
 
 @dataclass
-class Keyframe:
-    """One keyframe; the fields mirror ``msg/KeyFrame.msg`` (N keypoints, M observed map points)."""
+class MapKeyframe:
+    """A keyframe of the client's own map (its pose, keypoints and observed map points); what it
+    sends the server is a :class:`coop_slam.keyframe_record.KeyframeRecord` made from it
+    (:mod:`.outbox`). N keypoints, M observed map points."""
 
     keyframe_id: int
     stamp_s: float
@@ -123,7 +125,7 @@ class Map:
 
     def __init__(self, segment: int, first_point_id: int = 1):
         self.segment = segment
-        self.keyframes: dict[int, Keyframe] = {}
+        self.keyframes: dict[int, MapKeyframe] = {}
         self.points = MapPoints()
         self.points.next_id = first_point_id
         self.first_keyframe_id = 0
@@ -131,7 +133,7 @@ class Map:
         self.lock = threading.RLock()
 
     # --- keyframes ------------------------------------------------------------------------------
-    def add_keyframe(self, kf: Keyframe) -> None:
+    def add_keyframe(self, kf: MapKeyframe) -> None:
         if not self.keyframes:
             self.first_keyframe_id = kf.keyframe_id
         self.keyframes[kf.keyframe_id] = kf
@@ -321,7 +323,7 @@ class Map:
         pts.angle[pids[has]] = angles[np.arange(n), best][has]
 
     # --- snapshots and checks ---------------------------------------------------------------------
-    def snapshot(self, kf_id: int) -> Keyframe:
+    def snapshot(self, kf_id: int) -> MapKeyframe:
         """Deep copy of a keyframe with ``map_points_xyz`` filled in (for events)."""
         kf = self.keyframes[kf_id]
         ids = kf.map_point_ids

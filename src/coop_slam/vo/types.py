@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import CoopSlamError
-from .map import Keyframe
+from .map import MapKeyframe
 
 
 class VoError(CoopSlamError):
@@ -53,6 +53,6 @@ class VoEvent:
     kind: str  # one of EVENT_*
     map_segment: int
     keyframe_id: int = 0
-    keyframe: Keyframe | None = None  # snapshot for NEW / UPDATE (None for REMOVE)
+    keyframe: MapKeyframe | None = None  # snapshot for NEW / UPDATE (None for REMOVE)
     message: str = ""
     extra: dict = field(default_factory=dict)

@@ -11,8 +11,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .errors import CoopSlamError
-from .geometry import invert, rotation_angle_deg, transform_error
+from ..errors import CoopSlamError
+from ..geometry import invert, rotation_angle_deg, transform_error
+from ..timestamps import associate
 
 
 class EvaluationError(CoopSlamError):
@@ -26,24 +27,6 @@ class AteResult:
     max_m: float
     count: int  # associated poses
     T_gt_est: np.ndarray  # alignment applied to the estimate
-
-
-def associate(stamps_est, stamps_gt, max_dt_s: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
-    """Index pairs (i_est, i_gt) of nearest stamps within ``max_dt_s``."""
-    stamps_est = np.asarray(stamps_est, float)
-    stamps_gt = np.asarray(stamps_gt, float)
-    if len(stamps_est) == 0 or len(stamps_gt) == 0:
-        return np.zeros(0, int), np.zeros(0, int)
-    order = np.argsort(stamps_gt)
-    sg = stamps_gt[order]
-    idx = np.clip(np.searchsorted(sg, stamps_est), 1, max(len(sg) - 1, 1))
-    if len(sg) == 1:
-        idx = np.zeros(len(stamps_est), int)
-    else:
-        left = idx - 1
-        idx = np.where(np.abs(sg[left] - stamps_est) <= np.abs(sg[idx] - stamps_est), left, idx)
-    ok = np.abs(sg[idx] - stamps_est) <= max_dt_s
-    return np.nonzero(ok)[0], order[idx[ok]]
 
 
 def _traj(poses, stamps):

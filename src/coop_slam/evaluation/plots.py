@@ -1,0 +1,93 @@
+"""Pictures of a run: top views of the robots' trajectories against ground truth, each robot
+aligned on its own and the team with one alignment; and the stitched team cloud as a PLY file.
+Pure over arrays: matplotlib (Agg) draws, nothing is shown."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from .metrics import EvaluationError, ate
+
+
+def save_top_view(path: str, title: str, curves) -> None:
+    """x-y top view of trajectories: ``curves`` are (poses (N, 4, 4), colour index, label, is
+    estimate); ground truth dashed, estimates with keyframe dots."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 6))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for poses, k, label, estimate in curves:
+        style = dict(marker="o", ms=2) if estimate else dict(linestyle="--", alpha=0.5)
+        ax.plot(
+            poses[:, 0, 3], poses[:, 1, 3], color=colours[k % len(colours)], label=label, **style
+        )
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_trajectories(out_dir: str, keyframes: dict, gts: dict) -> None:
+    """``trajectories.png``: top view of every robot's keyframes (robot id -> (stamps, poses) in
+    its map) aligned to its ground truth (robot id -> (stamps, T_world_cam)), and the ground
+    truth; without ground truth, the keyframes in their own map frames."""
+    curves = []
+    for k, rid in enumerate(sorted(gts)):
+        stamps_gt, poses_gt = gts[rid]
+        stamps, poses = keyframes.get(rid, (np.zeros(0), np.zeros((0, 4, 4))))
+        if len(stamps_gt) == 0:
+            if len(stamps):
+                curves.append((poses, k, f"robot_{rid} keyframes (own map)", True))
+            continue
+        curves.append((poses_gt, k, f"robot_{rid} ground truth", False))
+        if len(stamps) >= 3:
+            try:
+                res = ate(stamps, poses, stamps_gt, poses_gt)
+            except EvaluationError:
+                continue
+            aligned = np.einsum("ij,njk->nik", res.T_gt_est, poses)
+            curves.append(
+                (aligned, k, f"robot_{rid} keyframes (ATE {100 * res.rmse_m:.1f} cm)", True)
+            )
+    save_top_view(
+        os.path.join(out_dir, "trajectories.png"),
+        "trajectories (each robot aligned to its ground truth)",
+        curves,
+    )
+
+
+def plot_team(out_dir: str, est_world: dict, gt_world: dict, team) -> None:
+    """``team_trajectories.png``: top view of every robot's keyframes in world (one alignment,
+    ``team.T_gt_est``, for the team) and ground truth."""
+    curves = []
+    for k, rid in enumerate(sorted(est_world)):
+        curves.append((gt_world[rid][1], k, f"robot_{rid} ground truth", False))
+        aligned = np.einsum("ij,njk->nik", team.T_gt_est, est_world[rid][1])
+        curves.append((aligned, k, f"robot_{rid} keyframes in world", True))
+    save_top_view(
+        os.path.join(out_dir, "team_trajectories.png"),
+        f"team map: one alignment for all robots (team ATE {100 * team.rmse_m:.1f} cm)",
+        curves,
+    )
+
+
+def write_ply(path: str, points: np.ndarray, rgb: np.ndarray) -> None:
+    """ASCII PLY (x, y, z, red, green, blue) of points (N, 3) [m] with colours (N, 3) uint8."""
+    points = np.asarray(points, float).reshape(-1, 3)
+    rgb = np.asarray(rgb, np.uint8).reshape(-1, 3)
+    with open(path, "w", encoding="ascii") as fh:
+        fh.write(
+            f"ply\nformat ascii 1.0\nelement vertex {len(points)}\nproperty float x\n"
+            "property float y\nproperty float z\nproperty uchar red\nproperty uchar green\n"
+            "property uchar blue\nend_header\n"
+        )
+        np.savetxt(fh, np.column_stack([points, rgb]), fmt="%.4f %.4f %.4f %d %d %d")

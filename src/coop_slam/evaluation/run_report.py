@@ -1,0 +1,310 @@
+"""The report of a run, pure over what was recorded (:class:`RunData`) and the ground truth
+(:class:`RunInput`): per-robot and team ATE/RPE (evo), merge errors and latencies, bandwidth per
+topic and robot, timing; trajectory files, plots and the team map PLY in the results folder.
+
+What a run published is recorded by :mod:`coop_slam.ros.run_recorder`.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..datasets import write_tum_trajectory
+from ..geometry import invert, path_length, transform_error
+from ..playback import build_schedule
+from .metrics import EvaluationError, ate, merge_error, rpe_rmse, team_ate
+from .plots import plot_team, plot_trajectories, write_ply
+from .report import count_wrong_merges, new_report, write_report
+
+
+@dataclass
+class RobotRun:
+    frames: int = 0
+    lost_frames: int = 0
+    track_ms: list = field(default_factory=list)
+    keyframes: dict = field(default_factory=dict)  # id -> (stamp_s, T_map_cam), latest version
+    first_keyframe: tuple | None = None  # (stamp_s, T_map_cam) as first published
+    # id -> stamp_s of every keyframe ever published, culled ones included: a merge may rest on
+    # a keyframe the client culls while the merge is on its way
+    keyframe_stamps: dict = field(default_factory=dict)
+    kf_bytes: list = field(default_factory=list)  # (sim stamp_s, bytes) per KeyFrame message
+    T_world_map: np.ndarray | None = None  # latest correction, when merged
+    # server's optimized keyframe poses in world (latest /team_map/robot_k/path, when merged):
+    # id -> (stamp_s, T_world_cam)
+    team_keyframes: dict = field(default_factory=dict)
+
+
+@dataclass
+class RunData:
+    robots: dict = field(default_factory=dict)  # robot id -> RobotRun
+    merges: list = field(
+        default_factory=list
+    )  # dicts: type, robot_a, robot_b, stamp_s, T_mapA_mapB
+    server_stats: dict = field(default_factory=dict)
+    duration_s: float = 0.0  # sim time from first to last frame
+    topic_bytes: dict = field(default_factory=dict)  # topic -> [(sim t_s, bytes)] per message
+    team_cloud: tuple | None = None  # latest /team_map/cloud: (points (N, 3), rgb (N, 3) uint8)
+
+
+@dataclass
+class RunInput:
+    """What a run plays and is judged against, whether from a scenario/dataset or a sensor bag."""
+
+    robot_ids: list[int]
+    frames: int  # colour images of all robots
+    start_s: float  # first and last frame on the playback timeline [s]
+    end_s: float
+    gts: dict  # robot id -> (stamps, T_world_cam); empty arrays for robots without ground truth
+    overlap: dict | None = None  # synthetic overlap events (merge latency), when known
+
+
+def run_input_of(source, keep_timing: bool = False) -> RunInput:
+    """The run input of a played scenario or dataset (see :func:`coop_slam.playback.load_streams`):
+    ground truth on the playback timeline, frames without ground truth left out."""
+    schedule = build_schedule(source.streams, keep_timing)
+    gts = {}
+    for stream in source.streams:
+        # A robot's frames keep their order on the timeline.
+        stamps = np.array([s.play_s for s in schedule if s.robot_id == stream.robot_id])
+        poses = stream.sequence.frame_poses()
+        ok = np.all(np.isfinite(poses), axis=(1, 2))
+        gts[stream.robot_id] = (stamps[ok], poses[ok])
+    return RunInput(
+        [s.robot_id for s in source.streams],
+        len(schedule),
+        schedule[0].play_s if schedule else 0.0,
+        schedule[-1].play_s if schedule else 0.0,
+        gts,
+        (source.meta or {}).get("overlap"),
+    )
+
+
+def _kf_arrays(run: RobotRun):
+    ids = sorted(run.keyframes)
+    return (
+        np.array([run.keyframes[k][0] for k in ids]),
+        np.array([run.keyframes[k][1] for k in ids]).reshape(-1, 4, 4),
+    )
+
+
+def evaluate_run(
+    run: RunData,
+    gts: dict,
+    overlap: dict | None = None,
+    out_dir: str | None = None,
+) -> dict:
+    """The report dict (see coop_slam.report) of a run against ground truth ``gts`` (robot id ->
+    (stamps, T_world_cam) on the playback timeline, as in :class:`RunInput`; empty arrays
+    where a robot has none, whose accuracy fields then stay null); writes trajectories and plots
+    into ``out_dir``."""
+    robot_ids = sorted(gts)
+    report = new_report(robot_ids)
+    est_world, gt_world = {}, {}
+    # Ground-truth pose of each robot's map frame: the SE(3) alignment of its keyframe trajectory
+    # to ground truth (as for its ATE), so a map's drift is averaged rather than frozen at one
+    # frame.
+    T_world_map_gt = {}
+    own_ate = {}  # robot -> (its own ATE, keyframes it was computed on)
+    for entry, rid in zip(report["robots"], robot_ids):
+        r = run.robots.get(rid, RobotRun())
+        stamps_gt, poses_gt = gts[rid]
+        entry["frames"] = r.frames
+        entry["path_length_m"] = path_length(poses_gt) if len(poses_gt) else None
+        entry["keyframes"] = len(r.keyframes)
+        entry["tracking_lost"] = r.lost_frames
+        if r.track_ms:
+            entry["track_ms_mean"] = float(np.mean(r.track_ms))
+            entry["track_ms_p95"] = float(np.percentile(r.track_ms, 95))
+        if r.keyframes:
+            stamps, poses = _kf_arrays(r)
+            try:
+                res = ate(stamps, poses, stamps_gt, poses_gt)
+                entry["ate_rmse_m"] = res.rmse_m
+                T_world_map_gt[rid] = res.T_gt_est
+                own_ate[rid] = (res.rmse_m, res.count)
+            except EvaluationError:
+                pass
+            if out_dir:
+                write_tum_trajectory(
+                    os.path.join(out_dir, "trajectories", f"robot_{rid}_keyframes.txt"),
+                    stamps,
+                    poses,
+                )
+            try:
+                entry["rpe_rmse_m"] = rpe_rmse(stamps, poses, stamps_gt, poses_gt)
+            except EvaluationError:
+                pass
+            if r.team_keyframes:  # the server's optimized poses, in world
+                ids = sorted(r.team_keyframes)
+                est_world[rid] = (
+                    np.array([r.team_keyframes[k][0] for k in ids]),
+                    np.array([r.team_keyframes[k][1] for k in ids]),
+                )
+            elif r.T_world_map is not None:  # client poses moved by the latest correction
+                est_world[rid] = (stamps, np.einsum("ij,njk->nik", r.T_world_map, poses))
+            if rid in est_world and len(stamps_gt):
+                gt_world[rid] = (stamps_gt, poses_gt)
+                if out_dir:
+                    write_tum_trajectory(
+                        os.path.join(out_dir, "trajectories", f"robot_{rid}_world.txt"),
+                        *est_world[rid],
+                    )
+        if out_dir and len(stamps_gt):
+            write_tum_trajectory(
+                os.path.join(out_dir, "trajectories", f"robot_{rid}_groundtruth.txt"),
+                stamps_gt,
+                poses_gt,
+            )
+    # Merges: transform error against ground truth and latency from the first moment ground truth
+    # allowed a merge of that kind.
+    for m in run.merges:
+        a, b = m["robot_a"], m["robot_b"]
+        entry = {
+            "type": m["type"],
+            "robots": [a, b],
+            "stamp": m["stamp_s"],
+            "trans_err_m": None,
+            "rot_err_deg": None,
+            "latency_s": None,
+        }
+        if a in T_world_map_gt and b in T_world_map_gt:
+            entry["trans_err_m"], entry["rot_err_deg"] = merge_error(
+                m["T_mapA_mapB"], T_world_map_gt[a], T_world_map_gt[b]
+            )
+        local = _local_merge_error(m, run, gts)
+        entry["local_trans_err_m"], entry["local_rot_err_deg"] = local if local else (None, None)
+        first = _first_evidence(overlap, m["type"], a, b)
+        if first is not None:
+            entry["latency_s"] = m["stamp_s"] - first
+        report["merges"].append(entry)
+    # A wrong merge is a wrong registration: judged at the matched keyframes, where odometry drift
+    # (which only the team optimization can remove) does not enter.
+    report["wrong_merges"] = count_wrong_merges(
+        [
+            {"trans_err_m": m["local_trans_err_m"], "rot_err_deg": m["local_rot_err_deg"]}
+            for m in report["merges"]
+        ]
+    )
+    report["groups"] = run.server_stats.get("groups") or [[rid] for rid in robot_ids]
+    if len(gt_world) >= 2 or (len(robot_ids) == 1 and gt_world):
+        est_world = {rid: est_world[rid] for rid in gt_world}  # only what can be judged
+        try:
+            team = team_ate(est_world, gt_world)
+            report["team_ate_rmse_m"] = team.rmse_m
+        except EvaluationError:
+            team = None
+        if out_dir and team is not None:
+            plot_team(out_dir, est_world, gt_world, team)
+    if report["team_ate_rmse_m"] is None and len(robot_ids) == 1:
+        report["team_ate_rmse_m"] = report["robots"][0]["ate_rmse_m"]
+    if report["team_ate_rmse_m"] is not None:
+        # Pooled over the robots the team ATE covers, so that the two compare like with like.
+        pooled = [own_ate[r] for r in (gt_world or own_ate) if r in own_ate]
+        n = sum(c for _, c in pooled)
+        if n:
+            report["single_ate_pooled_m"] = float(np.sqrt(sum(e**2 * c for e, c in pooled) / n))
+    report["server_ms_per_keyframe"] = run.server_stats.get("ms_per_keyframe_mean")
+    report["loop_closures"] = run.server_stats.get("loops")
+    report["bandwidth"] = _bandwidth(run)
+    report["topics"] = _topic_bandwidth(run)
+    if out_dir:
+        plot_trajectories(
+            out_dir, {rid: _kf_arrays(r) for rid, r in run.robots.items() if r.keyframes}, gts
+        )
+    return report
+
+
+def _local_merge_error(m: dict, run: RunData, gts: dict) -> tuple[float, float] | None:
+    """Error of the merge's registration against the truth: the verified relative pose of the
+    matched keyframes' cameras against their true relative pose. Odometry drift does not enter,
+    nor do later local-BA moves of the keyframes (which the map transform was chained through)."""
+    T_world_cams = []
+    for robot, kf in ((m["robot_a"], m.get("keyframe_a")), (m["robot_b"], m.get("keyframe_b"))):
+        stamp = (m.get("keyframe_stamps") or {}).get(robot)
+        if stamp is None and robot in run.robots:
+            stamp = run.robots[robot].keyframe_stamps.get(kf)
+        if stamp is None or robot not in gts or len(gts[robot][0]) == 0:
+            return None
+        stamps_gt, poses_gt = gts[robot]
+        i = int(np.argmin(np.abs(stamps_gt - stamp)))
+        if abs(stamps_gt[i] - stamp) > 0.02:
+            return None
+        T_world_cams.append(poses_gt[i])
+    T_world_camA, T_world_camB = T_world_cams
+    return transform_error(m["T_camA_camB"], invert(T_world_camA) @ T_world_camB)
+
+
+def _first_evidence(overlap: dict | None, kind: str, a: int, b: int) -> float | None:
+    """When ground truth first allowed a merge of this kind between robots a and b: the first
+    co-observation of one scene for a rendezvous, the first revisit (either robot seeing what the
+    other saw earlier) for place recognition, the other kind when that never happened. Marker
+    sightings alone do not count: without a shared scene no merge is possible (nor wanted)."""
+    if not overlap:
+        return None
+    from ..synthetic.overlap import OverlapEvents
+
+    events = OverlapEvents.from_dict(overlap)
+    revisits = [t for t in (events.revisit_time(a, b), events.revisit_time(b, a)) if t is not None]
+    revisit = min(revisits) if revisits else None
+    together = events.rendezvous_time(a, b)
+    first, second = (together, revisit) if kind == "rendezvous" else (revisit, together)
+    return first if first is not None else second
+
+
+def _bandwidth(run: RunData) -> dict:
+    per_robot, peaks, total = [], [], 0
+    for r in run.robots.values():
+        if not r.kf_bytes:
+            continue
+        t = np.array([s for s, _ in r.kf_bytes])
+        b = np.array([n for _, n in r.kf_bytes], float)
+        total += b.sum()
+        per_robot.append(b.sum() / max(run.duration_s, 1e-9) / 1e3)
+        bins = np.floor(t - t.min()).astype(int)
+        peaks.append(np.bincount(bins, weights=b).max() / 1e3)  # busiest second of sim time
+    if not per_robot:
+        return {
+            "per_robot_kBps": None,
+            "peak_kBps": None,
+            "total_MB": None,
+            "keyframe_bytes_mean": None,
+        }
+    sizes = [n for r in run.robots.values() for _, n in r.kf_bytes]
+    return {
+        "per_robot_kBps": float(np.mean(per_robot)),
+        "peak_kBps": float(max(peaks)),
+        "total_MB": float(total / 1e6),
+        "keyframe_bytes_mean": float(np.mean(sizes)),
+    }
+
+
+def _topic_bandwidth(run: RunData) -> dict:
+    """topic -> messages, mean and peak (busiest second of sim time) kB/s, total MB."""
+    out = {}
+    for topic, entries in sorted(run.topic_bytes.items()):
+        t = np.array([s for s, _ in entries])
+        b = np.array([n for _, n in entries], float)
+        peak = np.bincount(np.floor(t - t.min()).astype(int), weights=b).max() / 1e3
+        out[topic] = {
+            "messages": len(b),
+            "mean_kBps": float(b.sum() / max(run.duration_s, 1e-9) / 1e3),
+            "peak_kBps": float(peak),
+            "total_MB": float(b.sum() / 1e6),
+        }
+    return out
+
+
+def evaluate_results(out_dir: str, run: RunData, gts: dict, overlap: dict | None = None):
+    """Report, trajectories, plots and the team map PLY of one run into ``out_dir`` (arguments as
+    for :func:`evaluate_run`); returns (report, report.json path, report.md path, PLY path or
+    None)."""
+    report = evaluate_run(run, gts, overlap, out_dir)
+    ply = None
+    if run.team_cloud is not None:
+        ply = os.path.join(out_dir, "team_map.ply")
+        write_ply(ply, *run.team_cloud)
+    json_path, md_path = write_report(out_dir, report)
+    return report, json_path, md_path, ply

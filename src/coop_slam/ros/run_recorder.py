@@ -1,0 +1,227 @@
+"""Recording a run: what the system publishes (keyframes, frame stats, merges, corrections,
+optimized team paths, the team cloud, message sizes) into :class:`RunData`, live (the demo's
+monitor) or from the bag the demo records; and the ground truth of a sensor bag.
+
+The same :meth:`RunRecorder.feed` serves live and bag input, so a report re-derived from the bag
+(``scripts/evaluate``) equals the live one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+
+import numpy as np
+
+from ..evaluation import EvaluationError
+from ..evaluation.run_report import RobotRun, RunData, RunInput
+from ..keyframe_record import ACTION_REMOVE
+from ..playback import COLOR_TOPIC, GROUND_TRUTH_TOPIC
+from .convert import (
+    MessageError,
+    cloud_colours_from_msg,
+    cloud_from_msg,
+    pose_from_msg,
+    transform_from_msg,
+)
+
+ROBOT_TOPICS = {  # relative to /robot_k; the message type of each
+    "keyframes": "coop_slam/KeyFrame",
+    "frame_stats": "coop_slam/FrameStats",
+    "correction": "coop_slam/MapCorrection",
+    "pose": "geometry_msgs/PoseStamped",
+    "path": "nav_msgs/Path",
+    "local_map": "sensor_msgs/PointCloud2",
+}
+TEAM_TOPICS = {
+    "/merge_events": "coop_slam/MergeEvent",
+    "/server/stats": "std_msgs/String",
+    "/team_map/cloud": "sensor_msgs/PointCloud2",
+    "/team_map/markers": "visualization_msgs/MarkerArray",
+    "/robot_sightings": "coop_slam/RobotSighting",
+    "/player/done": "std_msgs/Bool",
+}
+
+
+def message_class(type_name: str):
+    """The generated class of a message type name (``pkg/Name``)."""
+    import importlib
+
+    pkg, name = type_name.split("/")
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+class RunRecorder:
+    """Builds :class:`RunData` from what the system publishes: :meth:`feed` takes one message with
+    the sim time it was seen at and its serialized size; the same code serves live and bag input."""
+
+    def __init__(self, robot_ids: list[int]):
+        self.run = RunData(robots={int(r): RobotRun() for r in robot_ids})
+        self.lock = threading.Lock()
+        self.done = False  # the player said it has played everything
+
+    def topics(self) -> dict[str, str]:
+        """Topic -> message type of everything recorded (the demo's rosbag takes the same list)."""
+        out = {f"/robot_{r}/{t}": ty for r in self.run.robots for t, ty in ROBOT_TOPICS.items()}
+        out.update({f"/team_map/robot_{r}/path": "nav_msgs/Path" for r in self.run.robots})
+        out.update(TEAM_TOPICS)
+        return out
+
+    def feed(self, topic: str, msg, t_s: float, nbytes: int) -> None:
+        with self.lock:
+            self.run.topic_bytes.setdefault(topic, []).append((float(t_s), int(nbytes)))
+            parts = topic.strip("/").split("/")
+            if topic == "/team_map/cloud":
+                self._on_cloud(msg)
+            elif topic == "/merge_events":
+                self._on_merge(msg)
+            elif topic == "/server/stats":
+                self.run.server_stats = json.loads(msg.data)
+            elif topic == "/player/done":
+                self.done = self.done or bool(msg.data)
+            elif len(parts) == 3 and parts[0] == "team_map" and parts[2] == "path":
+                self._on_team_path(msg, int(parts[1].split("_")[1]))
+            elif len(parts) == 2 and parts[0].startswith("robot_"):
+                robot_id = int(parts[0].split("_")[1])
+                handler = getattr(self, f"_on_{parts[1]}", None)
+                if robot_id in self.run.robots and handler is not None:
+                    handler(msg, self.run.robots[robot_id], t_s, nbytes)
+
+    def _on_frame_stats(self, msg, r: RobotRun, t_s, nbytes) -> None:
+        r.frames += 1
+        if msg.track_ms > 0:
+            r.track_ms.append(float(msg.track_ms))
+        if not msg.tracking_ok and r.first_keyframe is not None:
+            r.lost_frames += 1
+
+    def _on_cloud(self, msg) -> None:
+        try:
+            self.run.team_cloud = (cloud_from_msg(msg), cloud_colours_from_msg(msg))
+        except MessageError:
+            pass  # a malformed cloud is no cloud: the last good one stays
+
+    def _on_keyframes(self, msg, r: RobotRun, t_s, nbytes) -> None:
+        r.kf_bytes.append((float(t_s), int(nbytes)))
+        if msg.action == ACTION_REMOVE:
+            r.keyframes.pop(msg.keyframe_id, None)
+            return
+        try:
+            T = pose_from_msg(msg.pose)
+        except MessageError:
+            return
+        stamp = msg.header.stamp.to_sec()
+        r.keyframes[msg.keyframe_id] = (stamp, T)
+        r.keyframe_stamps[msg.keyframe_id] = stamp
+        if r.first_keyframe is None:
+            r.first_keyframe = (stamp, T)
+
+    def _on_correction(self, msg, r: RobotRun, t_s, nbytes) -> None:
+        r.T_world_map = transform_from_msg(msg.T_world_map) if msg.merged else None
+
+    def _on_team_path(self, msg, robot_id: int) -> None:
+        r = self.run.robots.get(robot_id)
+        if r is None:
+            return
+        if msg.header.frame_id != "world":
+            r.team_keyframes = {}
+            return
+        poses = {}
+        for ps in msg.poses:
+            try:
+                poses[ps.header.seq] = (ps.header.stamp.to_sec(), pose_from_msg(ps.pose))
+            except MessageError:
+                continue
+        r.team_keyframes = poses
+
+    def _on_merge(self, msg) -> None:
+        # Stamps of the matched keyframes, culled ones included (the client may cull a keyframe
+        # while the merge that rests on it is on its way).
+        stamps = {}
+        for robot, kf in ((msg.robot_a, msg.keyframe_a), (msg.robot_b, msg.keyframe_b)):
+            known = self.run.robots[robot].keyframe_stamps if robot in self.run.robots else {}
+            if kf in known:
+                stamps[robot] = known[kf]
+        self.run.merges.append(
+            {
+                "type": msg.type,
+                "robot_a": msg.robot_a,
+                "robot_b": msg.robot_b,
+                "keyframe_a": msg.keyframe_a,
+                "keyframe_b": msg.keyframe_b,
+                "keyframe_stamps": stamps,
+                "stamp_s": msg.header.stamp.to_sec(),
+                "T_mapA_mapB": transform_from_msg(msg.T_mapA_mapB),
+                "T_camA_camB": transform_from_msg(msg.T_camA_camB),
+            }
+        )
+
+
+def run_data_from_bag(bag_path: str, robot_ids: list[int]) -> RunData:
+    """Replay a recorded run through :class:`RunRecorder` (bag time is the sim time)."""
+    import rosbag
+
+    if not os.path.isfile(bag_path):
+        raise EvaluationError(f"bag not found: {bag_path}")
+    rec = RunRecorder(robot_ids)
+    topics = rec.topics()
+    try:
+        bag = rosbag.Bag(bag_path)
+    except (rosbag.ROSBagException, OSError) as exc:
+        raise EvaluationError(f"cannot read bag {bag_path}: {exc}") from exc
+    with bag:
+        for topic, raw, t in bag.read_messages(topics=list(topics), raw=True):
+            msg = message_class(topics[topic])()
+            msg.deserialize(raw[1])
+            rec.feed(topic, msg, t.to_sec(), len(raw[1]))
+    return rec.run
+
+
+def read_bag_input(bag_path: str) -> RunInput:
+    """The run input of a sensor bag (``scripts/demo --bag``): robots from
+    ``/robot_<k>/camera/color/image_raw``, ground truth from ``/robot_<k>/ground_truth/pose`` (as
+    the player publishes it)."""
+    import rosbag
+
+    if not os.path.isfile(bag_path):
+        raise EvaluationError(f"bag not found: {bag_path}")
+    try:
+        bag = rosbag.Bag(bag_path)
+    except (rosbag.ROSBagException, OSError) as exc:
+        raise EvaluationError(f"cannot read bag {bag_path}: {exc}") from exc
+    with bag:
+        topics = bag.get_type_and_topic_info().topics
+        colors = {t: int(m.group(1)) for t in topics if (m := COLOR_TOPIC.match(t))}
+        if not colors:
+            raise EvaluationError(
+                f"bag {bag_path} has no robot camera topics (/robot_<k>/camera/color/image_raw); "
+                f"it has: {', '.join(sorted(topics)) or 'nothing'}"
+            )
+        robot_ids = sorted(colors.values())
+        gt_topics = {t: int(m.group(1)) for t in topics if (m := GROUND_TRUTH_TOPIC.match(t))}
+        samples = {rid: ([], []) for rid in robot_ids}
+        if gt_topics:
+            for topic, msg, _ in bag.read_messages(topics=list(gt_topics)):
+                rid = gt_topics[topic]
+                if rid not in samples:
+                    continue
+                try:
+                    T = pose_from_msg(msg.pose, f"{topic} pose")
+                except MessageError:
+                    continue  # a NaN ground-truth sample is no sample
+                samples[rid][0].append(msg.header.stamp.to_sec())
+                samples[rid][1].append(T)
+        gts = {}
+        for rid, (stamps, poses) in samples.items():
+            order = np.argsort(stamps)
+            gts[rid] = (
+                np.asarray(stamps, float)[order],
+                np.asarray(poses, float).reshape(-1, 4, 4)[order],
+            )
+        return RunInput(
+            robot_ids,
+            sum(topics[t].message_count for t in colors),
+            bag.get_start_time(),
+            bag.get_end_time(),
+            gts,
+        )

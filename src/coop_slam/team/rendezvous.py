@@ -1,0 +1,250 @@
+"""Rendezvous on the server: two robots seeing one scene at the same time. The path from a cue to a
+verified match, before :mod:`.stitching` makes it a merge:
+
+- **Co-observation** (automatic, no cue): each new keyframe against the other unmerged robots'
+  keyframes taken at about the same time, pre-filtered by BoW similarity, verified 3D-3D (feature
+  matching, RANSAC, ICP, two-view BA). Identical textures in two places pass any two-view check, so
+  it needs ``auto_confirmations`` verifications from different keyframes agreeing on the map
+  transform -- unless the pair is *together*.
+- **Requests**: a marker sighting (``T_cam_body`` of the sighted robot gives an initial guess and
+  a weak prior) or the operator (``/server/rendezvous``) says two robots are together. The
+  keyframes around the cue are verified at once; a request that finds no overlap stays open for
+  ``request_window_s`` and is retried with the robots' next keyframes.
+- **Together**: after a cue the pair counts as together for ``together_s``: its co-observations
+  merge on one verification (the cue rules out look-alike places), and a merge between them by any
+  path is a rendezvous.
+
+Every verification also passes the look-alike check (:mod:`.plausibility`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry import invert, transform_error
+from ..keyframe_record import KeyframeRecord
+from ..registration.relative_pose import RelativePoseResult, estimate_3d3d
+from .config import RendezvousConfig
+from .groups import MergeGroups, chain_map_transform
+from .keyframe_store import Key, KeyframeStore
+from .plausibility import is_look_alike
+from .results import TYPE_RENDEZVOUS, Verified, robot_pair
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class _OpenRequest:
+    robot_a: int
+    robot_b: int
+    stamp_s: float
+    T_init: np.ndarray | None  # camera A -> camera B from the marker, when there is one
+
+
+class Rendezvous:
+    def __init__(self, config: RendezvousConfig, store: KeyframeStore, groups: MergeGroups):
+        self.config = config
+        self.store = store
+        self.groups = groups
+        self.verifications = 0
+        # Cued requests (marker sighting, operator) not verified yet: the keyframes that show the
+        # shared scene often reach the server just after the cue. robot pair -> _OpenRequest
+        self._open_requests: dict[tuple[int, int], _OpenRequest] = {}
+        self._seen_together: dict[tuple[int, int], float] = {}  # robot pair -> latest cue [s]
+        # (low robot, high robot) -> [((key_low, key_high), T_mapLow_mapHigh)] of automatic
+        # co-observations, for their confirmation
+        self._co_observations: dict[tuple[int, int], list] = {}
+        self._last_sighting: dict[tuple[int, int], float] = {}  # (observer, observed) -> [s]
+
+    # --- cues -------------------------------------------------------------------------------------
+    def sighting_due(self, observer: int, observed: int, stamp_s: float) -> bool:
+        """Whether a marker sighting becomes a request: at most once per observer/observed pair
+        and ``sighting_period_s`` (each request costs up to ``max_pairs`` verifications)."""
+        pair = (observer, observed)
+        if stamp_s - self._last_sighting.get(pair, -1e9) < self.config.sighting_period_s:
+            return False
+        self._last_sighting[pair] = stamp_s
+        return True
+
+    def together(self, robot_a: int, robot_b: int, stamp_s: float) -> bool:
+        """Whether a sighting / operator request put the two robots together shortly before
+        (or after: keyframes reach the server late) stamp_s."""
+        cue = self._seen_together.get(robot_pair(robot_a, robot_b))
+        return cue is not None and abs(stamp_s - cue) <= self.config.together_s
+
+    def kind_of(self, v: Verified) -> str:
+        """A match seen at (about) the same time or while the robots are known to be together is
+        a rendezvous, whichever path verified it; else it keeps its kind."""
+        dt = abs(self.store.stamp(v.key_a) - v.stamp_s)
+        if dt <= self.config.window_s or self.together(v.key_a[0], v.key_b[0], v.stamp_s):
+            return TYPE_RENDEZVOUS
+        return v.kind
+
+    # --- automatic co-observation -----------------------------------------------------------------
+    def co_observation(self, rec: KeyframeRecord) -> Verified | None:
+        """The new keyframe against other unmerged robots' keyframes taken at (about) the same
+        time; the first verified match."""
+        key_b = (rec.robot_id, rec.keyframe_id)
+        for other in self.groups.robots:
+            if self.groups.same_group(other, rec.robot_id):
+                continue
+            cued = self.together(other, rec.robot_id, rec.stamp_s)
+            for key_a in self.store.near_in_time(other, rec.stamp_s, self.config.window_s)[:2]:
+                v = self._verify(key_a, key_b, rec.stamp_s, confirm=not cued)
+                if v is not None:
+                    return v
+        return None
+
+    def _confirmed(self, key_a, key_b, res: RelativePoseResult) -> bool:
+        """Whether earlier automatic verifications of this robot pair (either direction, other
+        keyframes) agree with this one on the map transform; this one is remembered either way."""
+        cfg = self.config
+        T = chain_map_transform(
+            self.store.record(key_a).T_map_cam, res.T_a_b, self.store.record(key_b).T_map_cam
+        )
+        if key_a[0] > key_b[0]:  # one direction per pair: T_mapLow_mapHigh
+            T, key_a, key_b = invert(T), key_b, key_a
+        hits = self._co_observations.setdefault((key_a[0], key_b[0]), [])
+        tolerance = (cfg.confirm_trans_m, cfg.confirm_rot_deg)
+        agreeing = {
+            keys
+            for keys, T_prev in hits
+            if key_a not in keys
+            and key_b not in keys
+            and all(e <= tol for e, tol in zip(transform_error(T, T_prev), tolerance))
+        }
+        hits.append(((key_a, key_b), T))
+        if len(agreeing) + 1 < cfg.auto_confirmations:
+            log.info(
+                "co-observation %s - %s verified (%d inliers); waiting for %d more agreeing",
+                key_a,
+                key_b,
+                res.n_inliers,
+                cfg.auto_confirmations - 1 - len(agreeing),
+            )
+            return False
+        return True
+
+    def _verify(
+        self, key_a: Key, key_b: Key, stamp_s: float, T_init=None, prior_sigma=None, confirm=False
+    ) -> Verified | None:
+        """3D-3D verification of one keyframe pair, with every acceptance rule of a merge."""
+        cfg = self.config
+        score = self.store.vocabulary.score(self.store.bow(key_a), self.store.bow(key_b))
+        if score < cfg.min_bow_score and T_init is None:
+            return None
+        self.verifications += 1
+        res = estimate_3d3d(
+            self.store.view(key_a),
+            self.store.view(key_b),
+            cfg.registration,
+            T_init=T_init,
+            prior_sigma=prior_sigma,
+        )
+        log.debug("rendezvous %s vs %s (bow %.3f): %s", key_a, key_b, score, res.reason)
+        if not res.accepted:
+            return None
+        if is_look_alike(self.store, cfg, "rendezvous", key_a, key_b, res.T_a_b):
+            return None
+        if res.n_inliers < cfg.merge_min_inliers:
+            log.info(
+                "rendezvous %s - %s: %d inliers, fewer than a merge needs (%d)",
+                key_a,
+                key_b,
+                res.n_inliers,
+                cfg.merge_min_inliers,
+            )
+            return None
+        if confirm and not self._confirmed(key_a, key_b, res):
+            return None
+        return Verified(TYPE_RENDEZVOUS, key_a, key_b, res, stamp_s)
+
+    # --- cued requests ----------------------------------------------------------------------------
+    def request(
+        self,
+        robot_a: int,
+        robot_b: int,
+        stamp_s: float | None = None,
+        T_init: np.ndarray | None = None,
+    ) -> tuple[Verified | None, str]:
+        """Robots a and b are together at stamp_s (default: now, their latest keyframes).
+        ``T_init`` (camera A -> camera B, from a marker) is only an initial guess and a weak
+        prior. Returns (the verified match or None, why not). The robots must be known and not in
+        one group (the server checks)."""
+        cfg = self.config
+        if stamp_s is None:
+            latest = [self.store.latest_stamp(r) for r in (robot_a, robot_b)]
+            if None in latest:
+                return None, "no keyframes yet from one of the robots"
+            stamp_s = max(latest)  # now; a robot that stands still falls back to its latest
+        pair = robot_pair(robot_a, robot_b)
+        self._seen_together[pair] = max(stamp_s, self._seen_together.get(pair, stamp_s))
+        near = self.store.near_in_time
+        keys_a = near(robot_a, stamp_s, cfg.request_window_s, latest_fallback=True)
+        keys_b = near(robot_b, stamp_s, cfg.request_window_s, latest_fallback=True)
+        if not keys_a or not keys_b:
+            return (
+                None,
+                f"no keyframes of both robots within {cfg.request_window_s} s of {stamp_s:.2f} s",
+            )
+        request = _OpenRequest(robot_a, robot_b, stamp_s, T_init)
+        v = self._verify_request(request, keys_a[:3], keys_b[:3], cfg.max_pairs)
+        if v is not None:
+            return v, ""
+        self._open_requests[pair] = request
+        return None, (
+            f"no verified overlap between robots {robot_a} and {robot_b} around "
+            f"{stamp_s:.2f} s yet: not merged (a marker sighting alone is not enough); "
+            f"keyframes up to {stamp_s + cfg.request_window_s:.2f} s will be tried as they arrive"
+        )
+
+    def _verify_request(self, request: _OpenRequest, keys_a, keys_b, max_pairs: int):
+        """Verify keyframe pairs of a cued request, closest in time first; the match or None."""
+        stamp = self.store.stamp
+        pairs = sorted(
+            ((ka, kb) for ka in keys_a for kb in keys_b),
+            key=lambda p: abs(stamp(p[0]) - stamp(p[1])),
+        )
+        prior = (np.radians(10.0), 0.2) if request.T_init is not None else None
+        for key_a, key_b in pairs[:max_pairs]:
+            # The merge happens when both the cue and the keyframes exist.
+            stamp_s = max(request.stamp_s, stamp(key_a), stamp(key_b))
+            v = self._verify(key_a, key_b, stamp_s, request.T_init, prior)
+            if v is not None:
+                return v
+        return None
+
+    def retry_requests(self, rec: KeyframeRecord) -> Verified | None:
+        """A new keyframe taken within the window of an open cued request of its robot is
+        verified against the other robot's keyframes nearest the cue; requests whose window has
+        passed (or whose robots merged meanwhile) are closed."""
+        window = self.config.request_window_s
+        for pair, request in list(self._open_requests.items()):
+            if self.groups.same_group(request.robot_a, request.robot_b) or (
+                rec.robot_id in pair and rec.stamp_s > request.stamp_s + window
+            ):
+                del self._open_requests[pair]
+                continue
+            if rec.robot_id not in pair or abs(rec.stamp_s - request.stamp_s) > window:
+                continue
+            key_new = (rec.robot_id, rec.keyframe_id)
+            other = request.robot_b if rec.robot_id == request.robot_a else request.robot_a
+            keys_other = self.store.near_in_time(
+                other, request.stamp_s, window, latest_fallback=True
+            )
+            if rec.robot_id == request.robot_a:
+                v = self._verify_request(request, [key_new], keys_other[:2], 2)
+            else:
+                v = self._verify_request(request, keys_other[:2], [key_new], 2)
+            if v is not None:
+                del self._open_requests[pair]
+                log.info("rendezvous request %s / %s: merged on a later keyframe", *pair)
+                return v
+        return None
+
+    @property
+    def has_open_requests(self) -> bool:
+        return bool(self._open_requests)

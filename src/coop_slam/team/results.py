@@ -1,0 +1,62 @@
+"""What the server's stitching produces: verified matches, merges between groups and constraints
+inside a group. Plain data, shared by the stages that make and consume them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..registration.relative_pose import RelativePoseResult
+
+TYPE_PLACE_RECOGNITION = "place_recognition"
+TYPE_RENDEZVOUS = "rendezvous"
+TYPE_LOOP = "loop"
+
+Key = tuple[int, int]  # (robot_id, keyframe_id)
+
+
+@dataclass
+class Verified:
+    """A geometrically verified match of two keyframes (``result.T_a_b``: b's camera in a's),
+    not yet a merge or a constraint. ``kind`` is what found it (a TYPE_*)."""
+
+    kind: str
+    key_a: Key
+    key_b: Key
+    result: RelativePoseResult
+    stamp_s: float  # when the match became possible (the later keyframe or cue)
+
+
+@dataclass
+class MergeResult:
+    type: str
+    robot_a: int  # reference robot (its group's frame is kept)
+    robot_b: int
+    keyframe_a: int
+    keyframe_b: int
+    stamp_s: float  # stamp of the keyframe that triggered the merge
+    T_mapA_mapB: np.ndarray
+    T_camA_camB: np.ndarray
+    inliers: int
+    residual_px: float
+    group: list[int]
+
+
+@dataclass
+class ConstraintResult:
+    """A verified constraint inside one group: a loop closure (same robot) or a further link
+    between two merged robots."""
+
+    type: str
+    key_a: Key
+    key_b: Key
+    stamp_s: float
+    T_camA_camB: np.ndarray
+    inliers: int
+    residual_px: float
+
+
+def robot_pair(a: int, b: int) -> tuple[int, int]:
+    """A robot pair as the key of pair tables (match counts, pending merges, cues)."""
+    return (min(a, b), max(a, b))

@@ -1,0 +1,85 @@
+"""What the team map looks like on screen: the stitched cloud, the optimized keyframe paths and the
+merge / constraint edges, in the frame RViz shows (``world``).
+
+Merged groups are drawn in their group frame; groups not merged with the world group (the one
+holding the team's smallest robot id) are shifted along x, so unmerged maps do not overlap.
+Pure functions: the server hands in the keyframes and how to place them.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from ..geometry import invert
+from ..keyframe_record import KeyframeRecord
+from .fusion import fuse_points, gather_map_points, robot_colours, voxel_downsample
+from .groups import MergeGroups
+from .results import ConstraintResult, MergeResult
+
+Key = tuple[int, int]
+PoseOf = Callable[[int, int], np.ndarray]  # (robot, keyframe) -> T_group_cam
+
+
+def view_offsets(groups: MergeGroups, world_root: int, offset_m: float) -> dict[int, np.ndarray]:
+    """robot -> ``T_view_group``: the shift of its group on screen (identity for the world
+    group, ``offset_m`` along x per further group, in order of their root robot)."""
+    roots = sorted({groups.root(r) for r in groups.robots} - {world_root})
+    order = [world_root] + roots
+    offsets = {}
+    for robot in groups.robots:
+        offsets[robot] = np.eye(4)
+        offsets[robot][0, 3] = order.index(groups.root(robot)) * offset_m
+    return offsets
+
+
+def team_paths_and_edges(
+    keys: list[Key],
+    offsets: dict[int, np.ndarray],
+    T_group_cam: PoseOf,
+    merges: list[MergeResult],
+    constraints: list[ConstraintResult],
+) -> tuple[dict[int, np.ndarray], list[tuple[str, np.ndarray, np.ndarray]]]:
+    """Keyframe positions per robot (K, 3), by keyframe id, and the merge / constraint edges
+    (type, position a, position b) between stored keyframes, in the view frame."""
+
+    def position(key):
+        return (offsets[key[0]] @ T_group_cam(*key))[:3, 3]
+
+    stored = set(keys)
+    paths = {}
+    for robot in sorted({r for r, _ in keys}):
+        ids = sorted(k for r, k in keys if r == robot)
+        paths[robot] = np.array([position((robot, k)) for k in ids])
+    links = [(m.type, (m.robot_a, m.keyframe_a), (m.robot_b, m.keyframe_b)) for m in merges]
+    links += [(c.type, c.key_a, c.key_b) for c in constraints]
+    edges = [
+        (kind, position(ka), position(kb))
+        for kind, ka, kb in links
+        if ka in stored and kb in stored
+    ]
+    return paths, edges
+
+
+def team_cloud(
+    records: list[KeyframeRecord],
+    offsets: dict[int, np.ndarray],
+    T_group_cam: PoseOf,
+    fuse_radius_m: float,
+    voxel_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stitched cloud: points (N, 3) in the view frame, rgb (N, 3) uint8 per robot, robot ids
+    (N,). Each keyframe's points move with its optimized pose, duplicates of overlapping maps are
+    fused, the result voxel-downsampled."""
+    if not records:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int64)
+
+    def T_view_map_of(rec):
+        T = T_group_cam(rec.robot_id, rec.keyframe_id)
+        return offsets[rec.robot_id] @ T @ invert(rec.T_map_cam)
+
+    points, robots, ids = gather_map_points(records, T_view_map_of, per_keyframe=True)
+    points, ids, robots = fuse_points(points, robots, ids, radius_m=fuse_radius_m)
+    points, robots = voxel_downsample(points, robots, voxel_m)
+    return points, robot_colours(robots), robots
