@@ -65,8 +65,8 @@ class ServerTeamMapTest(unittest.TestCase):
                 keep("path", lambda m: m.header.frame_id == "world" and len(m.poses) == 8),
             ),
             rospy.Subscriber("/server/stats", String, keep("stats")),
-            rospy.Subscriber("/rosout", Log, lambda m: rosout.append(m.msg)),
         ]
+        subs.append(rospy.Subscriber("/rosout", Log, lambda m: rosout.append(m.msg)))
         buf = tf2_ros.Buffer()
         tf2_ros.TransformListener(buf)
         pubs = {
@@ -77,6 +77,19 @@ class ServerTeamMapTest(unittest.TestCase):
             60.0,
             "the server to subscribe to /robot_1/keyframes and /robot_2/keyframes",
         )
+        # The server's /rosout reaches this node before anything it logs matters: a request it
+        # refuses (robot 9 is unknown) is logged and must arrive.
+        from coop_slam.srv import Rendezvous
+
+        rospy.wait_for_service("/server/rendezvous", 30.0)
+        rendezvous = rospy.ServiceProxy("/server/rendezvous", Rendezvous)
+        for _ in range(150):
+            if any("robot_9" in m for m in rosout):
+                break
+            self.assertFalse(rendezvous(robot_a=1, robot_b=9, stamp=rospy.Time(0)).accepted)
+            time.sleep(0.2)
+        else:
+            self.fail("the server's log lines never reached /rosout")
         points, desc = cylinder_world(seed=3)
         kfs = team_keyframes(1, np.linspace(0, 2 * np.pi, 36, endpoint=False), points, desc)
         kfs += team_keyframes(
@@ -129,9 +142,6 @@ class ServerTeamMapTest(unittest.TestCase):
         self.assertEqual(res.keyframes, 44)
         self.assertLessEqual(res.error_after, res.error_before + 1e-6)
         # Operator trigger (service): refused with a reason for merged or unknown robots.
-        from coop_slam.srv import Rendezvous
-
-        rendezvous = rospy.ServiceProxy("/server/rendezvous", Rendezvous)
         res = rendezvous(robot_a=1, robot_b=2, stamp=rospy.Time(0))
         self.assertFalse(res.accepted)
         self.assertIn("already merged", res.message)

@@ -29,6 +29,7 @@ from ..errors import CoopSlamError
 from ..geometry import invert, se3_from_quat
 from ..keyframe_record import KeyframeRecord
 from ..team.config import ServerConfig
+from ..team.results import TYPE_LOOP
 from ..team.server import TeamServer
 from .convert import (
     MessageError,
@@ -242,9 +243,9 @@ class ServerNode:
                 f"{r.keyframes} keyframes, {r.points} points: "
                 f"reprojection RMS {r.rms_before:.2f} -> {r.rms_after:.2f} px"
             )
-        except GlobalBaError as exc:
+        except GlobalBaError as exc:  # the core logged a run; a refusal is logged here
             result = None, str(exc)
-        rospy.loginfo("server: global BA: %s", result[1])
+            rospy.logwarn("server: global BA: %s", exc)
         job.reply.set_result(result)
 
     def _rendezvous(self, job: _RendezvousJob) -> list | None:
@@ -280,35 +281,52 @@ class ServerNode:
                     self._publish_map(stamp)
                     self._publish_stats()
                 continue
-            if isinstance(item, _GlobalBaJob):
-                self._global_ba(item)
-                stamp = rospy.Time.now()
-                self._publish_tf(stamp)
-                self._publish_map(stamp)
-                continue
-            if isinstance(item, _RendezvousJob):
-                merges = self._rendezvous(item)
-                if merges is None:
-                    continue
-                stamp = rospy.Time.from_sec(item.stamp_s or 0.0)
-            else:
-                rec = item.record
-                try:
-                    merges = self.server.add_keyframe(rec)
-                except CoopSlamError as exc:
-                    self.rejects.reject(f"/robot_{rec.robot_id}/keyframes", str(exc))
-                    continue
-                stamp = rospy.Time.from_sec(rec.stamp_s)
-            for m in merges:
-                self._publish_merge(m)
-            if merges or self.server.map_moved:
-                self._publish_tf(stamp)
-            self._map_dirty, self._last_stamp_s = True, stamp.to_sec()
-            if merges or stamp.to_sec() - self._last_cloud_s >= self.cloud_period_s:
-                self._last_cloud_s = stamp.to_sec()
-                self._publish_map(stamp)
-            if len(self.server.keyframe_ms) % 10 == 0 or merges:
-                self._publish_stats()
+            try:
+                self._do(item)
+            except Exception as exc:  # noqa: BLE001 -- the worker is the server: it must live on
+                rospy.logerr(
+                    "server: %s failed (%s: %s); the server carries on",
+                    type(item).__name__.strip("_"),
+                    type(exc).__name__,
+                    exc,
+                )
+                reply = getattr(item, "reply", None)
+                if reply is not None and not reply.done():
+                    reply.set_result((None, f"server error: {type(exc).__name__}: {exc}"))
+
+    def _do(self, item) -> None:
+        """One job of the worker: a keyframe, a rendezvous request or sighting, a global BA."""
+        if isinstance(item, _GlobalBaJob):
+            self._global_ba(item)
+            stamp = rospy.Time.from_sec(self._last_stamp_s)
+            self._publish_tf(stamp)
+            self._publish_map(stamp)
+            return
+        if isinstance(item, _RendezvousJob):
+            merges = self._rendezvous(item)
+            if merges is None:
+                return
+            stamp_s = merges[0].stamp_s if merges else (item.stamp_s or self._last_stamp_s)
+        else:
+            rec = item.record
+            try:
+                merges = self.server.add_keyframe(rec)
+            except CoopSlamError as exc:
+                self.rejects.reject(f"/robot_{rec.robot_id}/keyframes", str(exc))
+                return
+            stamp_s = rec.stamp_s
+        stamp_s = max(stamp_s, self._last_stamp_s)  # a late cue must not move the map back in time
+        stamp = rospy.Time.from_sec(stamp_s)
+        for m in merges:
+            self._publish_merge(m)
+        if merges or self.server.map_moved:
+            self._publish_tf(stamp)
+        self._map_dirty, self._last_stamp_s = True, stamp_s
+        if merges or stamp_s - self._last_cloud_s >= self.cloud_period_s:
+            self._last_cloud_s = stamp_s
+            self._publish_map(stamp)
+        if len(self.server.keyframe_ms) % 10 == 0 or merges:
+            self._publish_stats()
 
     def _publish_merge(self, m) -> None:
         msg = self._MergeEvent(
@@ -325,16 +343,7 @@ class ServerNode:
         )
         msg.header.stamp = rospy.Time.from_sec(m.stamp_s)
         msg.header.frame_id = "world"
-        self.pub_merge.publish(msg)
-        rospy.loginfo(
-            "server: %s merge robot_%d -> robot_%d (%d inliers, %.2f px), group %s",
-            m.type,
-            m.robot_b,
-            m.robot_a,
-            m.inliers,
-            m.residual_px,
-            m.group,
-        )
+        self.pub_merge.publish(msg)  # the core logged the merge
 
     def _publish_tf(self, stamp) -> None:
         transforms = []
@@ -408,7 +417,7 @@ class ServerNode:
         colours = {
             "place_recognition": (1.0, 0.9, 0.1, 1.0),
             "rendezvous": (1.0, 0.2, 1.0, 1.0),
-            "loop": (0.2, 1.0, 1.0, 1.0),
+            TYPE_LOOP: (0.2, 1.0, 1.0, 1.0),
         }
         for k, (kind, pa, pb) in enumerate(edges):
             edge = marker("merges", k, Marker.LINE_LIST, colours.get(kind, (1, 1, 1, 1)), 0.06)
@@ -425,8 +434,8 @@ class ServerNode:
             "optimize_ms_mean": sum(opt) / len(opt) if opt else None,
             "merges": len(self.server.merges),
             "groups": self.server.groups.groups(),
-            "loops": sum(c.type == "loop" for c in self.server.constraints),
-            "links": sum(c.type != "loop" for c in self.server.constraints),
+            "loops": sum(c.type == TYPE_LOOP for c in self.server.constraints),
+            "links": sum(c.type != TYPE_LOOP for c in self.server.constraints),
             "refused_constraints": self.server.rejected_constraints,
             "global_ba_runs": len(self.server.global_ba_runs),
             "verifications": self.server.verifications,

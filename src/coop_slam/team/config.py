@@ -1,6 +1,6 @@
 """Configuration of the server (section ``server`` of ``config/server.yaml``): one dataclass per
 stage -- place recognition, rendezvous, constraints inside a group, global BA, pose graph -- and
-:class:`ServerConfig` holding them. Loaded by :func:`coop_slam.config.load_section`.
+:class:`ServerConfig` holding them. Loaded by :func:`coop_slam.config.load_yaml_config`.
 """
 
 from __future__ import annotations

@@ -241,7 +241,7 @@ class Rendezvous:
                 v = self._verify_request(request, keys_other[:2], [key_new], 2)
             if v is not None:
                 del self._open_requests[pair]
-                log.info("rendezvous request %s / %s: merged on a later keyframe", *pair)
+                log.info("rendezvous request %s / %s: verified on a later keyframe", *pair)
                 return v
         return None
 

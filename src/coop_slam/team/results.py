@@ -8,10 +8,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..registration.relative_pose import RelativePoseResult
+from .pose_graph import KIND_LOOP
+
+TYPE_LOOP = KIND_LOOP  # a robot's own loop closure (a loop factor in the pose graph)
 
 TYPE_PLACE_RECOGNITION = "place_recognition"
 TYPE_RENDEZVOUS = "rendezvous"
-TYPE_LOOP = "loop"
 
 Key = tuple[int, int]  # (robot_id, keyframe_id)
 

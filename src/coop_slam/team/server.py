@@ -192,6 +192,7 @@ class TeamServer:
         """Operator trigger or marker sighting: robots a and b are together (at stamp_s, default
         their latest keyframes). A marker pose, when given, is only an initial guess and a weak
         prior; the merge still needs verified feature correspondences. Returns (merge, message)."""
+        self.map_moved = False
         for r in (robot_a, robot_b):
             if r not in self.known_robots:
                 return (
@@ -206,7 +207,6 @@ class TeamServer:
         if T_camA_bodyB is not None and T_bodyB_camB is not None:
             # The sighting is at the marker's image time; keyframes are close to it in time.
             T_init = T_camA_bodyB @ T_bodyB_camB
-        self.map_moved = False
         v, why = self.rendezvous.request(robot_a, robot_b, stamp_s, T_init)
         merges = self._merge_verified([v])
         if not merges:
