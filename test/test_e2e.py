@@ -58,6 +58,30 @@ def test_revisit_merges_by_place_recognition(tmp_path):
         assert robot["ate_rmse_m"] < 0.005 * robot["path_length_m"]
 
 
+def test_a_stereo_and_an_rgbd_robot_build_one_map(tmp_path):
+    """A mixed team on the rendezvous world: robot 1 carries a stereo camera (rectified pair, ROS
+    stereo topics), robot 2 an RGB-D camera; their maps merge, each tracks within 0.5 % of its
+    path, and robot 1's keyframes say they come from a stereo camera with its baseline."""
+    import rosbag
+
+    from coop_slam.datasets.base import SENSORS
+    from coop_slam.playback import SYNTHETIC_STEREO_BASELINE_M
+
+    report, log, out = _demo(tmp_path, "--scenario", "rendezvous", "--sensors", "stereo,rgbd")
+    assert report["groups"] == [[1, 2]], log
+    assert report["wrong_merges"] == 0
+    for robot in report["robots"]:
+        assert robot["ate_rmse_m"] < 0.005 * robot["path_length_m"], robot
+    cameras = {}
+    with rosbag.Bag(str(out / "run.bag")) as bag:
+        for topic, msg, _ in bag.read_messages(topics=["/robot_1/keyframes", "/robot_2/keyframes"]):
+            cameras[topic] = (msg.camera.sensor_type, msg.camera.baseline_m)
+    stereo, rgbd = cameras["/robot_1/keyframes"], cameras["/robot_2/keyframes"]
+    assert stereo[0] == SENSORS.index("stereo")
+    assert abs(stereo[1] - SYNTHETIC_STEREO_BASELINE_M) < 1e-6
+    assert rgbd[0] == SENSORS.index("rgbd")
+
+
 def _server_config(tmp_path, **sections) -> str:
     import yaml
 

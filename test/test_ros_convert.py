@@ -96,3 +96,30 @@ def test_pose_conversion_and_reject_counter():
     counter.reject("/a", "bad")
     counter.reject("/b", "worse")
     assert counter.counts["/a"] == 2 and counter.total == 3
+
+
+def test_stereo_camera_from_the_ros_stereo_camera_infos():
+    """The baseline comes from the right camera's projection matrix (P[3] = -fx * b); a swapped
+    pair, a left info on the right topic or sizes that disagree are named."""
+    import dataclasses
+
+    from coop_slam.ros.convert import camera_info_to_msg, stereo_camera_from_infos
+    from helpers import camera
+
+    stereo = dataclasses.replace(camera(), sensor="stereo", baseline_m=0.12)
+    left = _wire(camera_info_to_msg(stereo))
+    right = _wire(camera_info_to_msg(stereo, right=True))
+    got = stereo_camera_from_infos(left, right)
+    assert got.sensor == "stereo" and got.baseline_m == pytest.approx(0.12)
+    assert (got.width, got.height, got.fx, got.cx) == (640, 480, stereo.fx, stereo.cx)
+    with pytest.raises(MessageError, match="left and right swapped"):
+        stereo_camera_from_infos(right, left)  # the "right" info is the left camera's
+    flipped = _wire(camera_info_to_msg(stereo, right=True))
+    flipped.P = list(flipped.P[:3]) + [-flipped.P[3]] + list(flipped.P[4:])
+    with pytest.raises(MessageError, match="baseline -0.1200 m"):
+        stereo_camera_from_infos(left, flipped)
+    small = _wire(
+        camera_info_to_msg(dataclasses.replace(stereo, width=320, height=240), right=True)
+    )
+    with pytest.raises(MessageError, match="differ in size"):
+        stereo_camera_from_infos(left, small)

@@ -26,7 +26,7 @@ from coop_slam.vo import (
     STATE_NEW_SEGMENT,
     STATE_OK,
     STATE_RELOCALIZED,
-    RgbdOdometry,
+    VisualOdometry,
     VoConfig,
     VoError,
 )
@@ -224,7 +224,7 @@ def _track_all(vo, stamps, frames):
 
 def test_tracks_synthetic_room(room_sequence):
     stamps, frames, gt = room_sequence
-    with RgbdOdometry(sync_config(), helpers_vo.CAMERA) as vo:
+    with VisualOdometry(sync_config(), helpers_vo.CAMERA) as vo:
         results = _track_all(vo, stamps, frames)
         events = vo.drain_events()
         kfs = vo.keyframes()
@@ -251,7 +251,7 @@ def test_keyframe_culling_keeps_map_consistent(room_sequence):
     stamps, frames, _ = room_sequence
     # A keyframe at (almost) every frame makes most keyframes redundant, so culling has work to do.
     cfg = sync_config(keyframe_ref_ratio=1.0, keyframe_min_inliers=5)
-    with RgbdOdometry(cfg, helpers_vo.CAMERA) as vo:
+    with VisualOdometry(cfg, helpers_vo.CAMERA) as vo:
         results = _track_all(vo, stamps[:30], frames[:30])
         events = vo.drain_events()
         vmap = vo.vo_map
@@ -269,7 +269,7 @@ def test_keyframe_culling_keeps_map_consistent(room_sequence):
 
 def test_threaded_mapping_tracks_and_stops(room_sequence):
     stamps, frames, gt = room_sequence
-    with RgbdOdometry(VoConfig(threaded=True), helpers_vo.CAMERA) as vo:
+    with VisualOdometry(VoConfig(threaded=True), helpers_vo.CAMERA) as vo:
         results = _track_all(vo, stamps[:25], frames[:25])
         vo.flush()
         assert vo.vo_map.check_consistency() == []
@@ -282,7 +282,7 @@ def test_relocalizes_after_blackout_and_starts_segment_when_lost_long(room_seque
     stamps, frames, _ = room_sequence
     black = np.zeros_like(frames[0][0])
     no_depth = np.zeros_like(frames[0][1])
-    with RgbdOdometry(sync_config(max_lost_frames=4), helpers_vo.CAMERA) as vo:
+    with VisualOdometry(sync_config(max_lost_frames=4), helpers_vo.CAMERA) as vo:
         for s, (img, d) in zip(stamps[:10], frames[:10]):
             assert vo.track(s, img, d).ok
         last = vo.track(stamps[10], black, no_depth)
@@ -305,7 +305,7 @@ def test_relocalizes_after_blackout_and_starts_segment_when_lost_long(room_seque
 def test_bad_input_raises_vo_error_or_returns_not_ok(room_sequence):
     _stamps, frames, _ = room_sequence
     img, depth = frames[0]
-    with RgbdOdometry(sync_config(), helpers_vo.CAMERA) as vo:
+    with VisualOdometry(sync_config(), helpers_vo.CAMERA) as vo:
         with pytest.raises(VoError, match="empty image"):
             vo.track(1.0, np.zeros((0, 0, 3), np.uint8), depth)
         with pytest.raises(VoError, match="camera model"):
@@ -331,7 +331,7 @@ def test_bad_input_raises_vo_error_or_returns_not_ok(room_sequence):
 
 def test_backwards_timestamp_resets_with_warning(room_sequence):
     stamps, frames, _ = room_sequence
-    with RgbdOdometry(sync_config(), helpers_vo.CAMERA) as vo:
+    with VisualOdometry(sync_config(), helpers_vo.CAMERA) as vo:
         for s, (img, d) in zip(stamps[:3], frames[:3]):
             assert vo.track(s, img, d).ok
         vo.drain_events()
@@ -373,7 +373,7 @@ def test_ignored_region_drops_its_keypoints_until_it_expires(room_sequence):
     """Another robot's body (here: a box in front of the camera) gives no keypoints while its
     region is active; the region expires and is dropped with the map; bad regions are refused."""
     stamps, frames, gt = room_sequence
-    with RgbdOdometry(sync_config(), helpers_vo.CAMERA) as vo:
+    with VisualOdometry(sync_config(), helpers_vo.CAMERA) as vo:
         first = _track_all(vo, stamps[:3], frames[:3])
         box_cam = np.array(
             [[x, y, z] for x in (-0.3, 0.3) for y in (-0.3, 0.3) for z in (1.0, 4.0)]
@@ -386,13 +386,13 @@ def test_ignored_region_drops_its_keypoints_until_it_expires(room_sequence):
         vo.ignore_region(corners_map, until_s=stamps[4])
         masked = _track_all(vo, stamps[3:5], frames[3:5])
         after = _track_all(vo, stamps[5:6], frames[5:6])
-    with RgbdOdometry(sync_config(), helpers_vo.CAMERA) as ref:
+    with VisualOdometry(sync_config(), helpers_vo.CAMERA) as ref:
         plain = _track_all(ref, stamps[:6], frames[:6])
     assert all(r.ok for r in masked + after)
     for m, p in zip(masked, plain[3:5]):
         assert m.n_features < 0.9 * p.n_features
     assert after[0].n_features == plain[5].n_features
-    vo2 = RgbdOdometry(sync_config(), helpers_vo.CAMERA)
+    vo2 = VisualOdometry(sync_config(), helpers_vo.CAMERA)
     vo2.ignore_region(corners_map, until_s=1e9)
     vo2.reset()
     assert vo2._ignored == []
@@ -406,7 +406,7 @@ def test_local_ba_announces_no_update_before_a_keyframes_new(room_sequence):
     """
     stamps, frames, _ = room_sequence
     cfg = sync_config(keyframe_ref_ratio=1.0, update_min_trans_m=0.002, update_min_rot_deg=0.05)
-    with RgbdOdometry(cfg, helpers_vo.CAMERA) as vo:
+    with VisualOdometry(cfg, helpers_vo.CAMERA) as vo:
         _track_all(vo, stamps[:12], frames[:12])
         vo.drain_events()
         vmap, mapper = vo.vo_map, vo._mapper

@@ -8,6 +8,7 @@ playback timeline (robots start together unless the original timing is kept).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 from dataclasses import dataclass, field
@@ -18,7 +19,9 @@ from .datasets import (
     DatasetError,
     Frame,
     Sequence,
+    is_euroc,
     parse_ranges,
+    read_euroc,
     read_kitti,
     read_tum,
     split_equal,
@@ -27,9 +30,12 @@ from .datasets import (
 from .errors import CoopSlamError
 
 PLAYBACK_T0_S = 1.0  # first sim time when robots start together (ROS time 0 means "unset")
+# The stereo baseline of synthetic robots playing stereo cameras (a ZED's) [m].
+SYNTHETIC_STEREO_BASELINE_M = 0.12
+PLAYABLE_SENSORS = ("rgbd", "stereo")
 # A robot's streams as the player publishes them (and a sensor bag must hold them): the colour
-# image tells which robots there are; ground truth is optional.
-COLOR_TOPIC = re.compile(r"^/robot_(\d+)/camera/color/image_raw$")
+# (RGB-D) or left (stereo) image tells which robots there are; ground truth is optional.
+COLOR_TOPIC = re.compile(r"^/robot_(\d+)/camera/(?:color/image_raw|left/image_rect)$")
 GROUND_TRUTH_TOPIC = re.compile(r"^/robot_(\d+)/ground_truth/pose$")
 
 
@@ -56,9 +62,49 @@ class Source:
     meta: dict = field(default_factory=dict)  # synthetic world metadata (overlap events, ...)
 
 
+def image_topic(robot_id: int, sensor: str) -> str:
+    """The topic of a robot's main image: colour of an RGB-D camera, left of a stereo pair."""
+    if sensor == "stereo":
+        return f"/robot_{robot_id}/camera/left/image_rect"
+    return f"/robot_{robot_id}/camera/color/image_raw"
+
+
+def parse_sensors(text: str | None, n_robots: int | None = None) -> list[str] | None:
+    """``rgbd,stereo,stereo`` (one per robot, or one for all) -> list; None for none given."""
+    if not text:
+        return None
+    sensors = [s.strip() for s in text.split(",")]
+    unknown = sorted(set(sensors) - set(PLAYABLE_SENSORS))
+    if unknown:
+        raise PlaybackError(
+            f"unknown sensor(s) {', '.join(unknown)}; use {', '.join(PLAYABLE_SENSORS)}"
+        )
+    if n_robots is not None and len(sensors) not in (1, n_robots):
+        raise PlaybackError(
+            f"{len(sensors)} sensors given for {n_robots} robots (one, or one each)"
+        )
+    return sensors
+
+
+def _with_sensor(stream: RobotStream, sensor: str) -> RobotStream:
+    """The stream played as ``sensor``, when its data has what that sensor needs."""
+    seq = stream.sequence
+    if sensor == seq.camera.sensor:
+        return stream
+    frame = seq.frames[0]
+    if sensor == "stereo" and (frame.right_path is None or seq.camera.baseline_m <= 0):
+        raise PlaybackError(f"{stream.name}: its data has no right images to play a stereo camera")
+    if sensor == "rgbd" and frame.depth_path is None:
+        raise PlaybackError(f"{stream.name}: its data has no depth images to play an RGB-D camera")
+    camera = dataclasses.replace(seq.camera, sensor=sensor)
+    return dataclasses.replace(stream, sequence=dataclasses.replace(seq, camera=camera))
+
+
 def _read_dataset(folder: str, camera_file: str | None) -> Sequence:
     if os.path.isfile(os.path.join(folder, "calib.txt")):
         return read_kitti(folder)
+    if is_euroc(folder):
+        return read_euroc(folder)
     return read_tum(folder, camera_file=camera_file)
 
 
@@ -72,8 +118,12 @@ def load_streams(
     start_offsets_s: list[float] | None = None,
     progress=None,
     world_params: dict | None = None,
+    sensors: list[str] | None = None,
 ) -> Source:
-    """Resolve a scenario name or a dataset folder into robot streams (see module doc)."""
+    """Resolve a scenario name or a dataset folder into robot streams (see module doc).
+    ``sensors`` (one for all robots, or one each) plays robots as RGB-D or stereo cameras where
+    their data allows (a synthetic world is rendered with right images when one is stereo);
+    None: as the data is."""
     if (scenario is None) == (dataset is None):
         raise PlaybackError("give exactly one of a synthetic scenario or a dataset folder")
     if scenario is not None:
@@ -83,6 +133,8 @@ def load_streams(
         params = dict(world_params or {})
         if robots is not None:
             params["robots"] = robots
+        if sensors and "stereo" in sensors:
+            params.setdefault("stereo_baseline_m", SYNTHETIC_STEREO_BASELINE_M)
         folder = generate(scenario, seed=seed, progress=progress, **params)
         world = read_synthetic(folder)
         seqs = [world.sequences[k] for k in sorted(world.sequences)]
@@ -106,6 +158,13 @@ def load_streams(
             parts = split_equal(seq, robots or 1)
         streams = [RobotStream(robot_id=k + 1, sequence=s) for k, s in enumerate(parts)]
         source = Source("dataset", streams, dataset)
+    if sensors:
+        if len(sensors) not in (1, len(source.streams)):
+            raise PlaybackError(
+                f"{len(sensors)} sensors given for {len(source.streams)} robots (one, or one each)"
+            )
+        each = sensors * len(source.streams) if len(sensors) == 1 else sensors
+        source.streams = [_with_sensor(s, k) for s, k in zip(source.streams, each)]
     if start_offsets_s:
         if len(start_offsets_s) != len(source.streams):
             raise PlaybackError(
@@ -137,6 +196,7 @@ def load_run_source(options: dict, progress=None) -> Source:
         camera_file=options.get("camera"),
         progress=progress,
         world_params={"duration_s": duration_s} if duration_s else None,
+        sensors=parse_sensors(options.get("sensors")),
     )
 
 

@@ -9,6 +9,7 @@ from .base import (
     read_camera_yaml,
     write_camera_yaml,
 )
+from .euroc import is_euroc, read_euroc
 from .kitti import read_kitti, read_kitti_poses
 from .split import parse_ranges, split_equal, split_ranges
 from .synthetic import SyntheticWorld, read_synthetic
@@ -22,6 +23,8 @@ __all__ = [
     "read_camera_distortion",
     "read_camera_yaml",
     "write_camera_yaml",
+    "is_euroc",
+    "read_euroc",
     "read_kitti",
     "read_kitti_poses",
     "parse_ranges",

@@ -80,6 +80,9 @@ class Sequence:
     gt_max_dt_s: float = 0.02  # largest stamp difference accepted when associating ground truth
     # Raw images with lens distortion: loading maps them onto ``camera`` (= undistort.camera).
     undistort: Undistortion | None = field(default=None, repr=False)
+    # A raw stereo pair: loading rectifies left and right images onto ``camera``
+    # (a coop_slam.datasets.euroc.StereoRectification).
+    rectify: object | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -107,12 +110,22 @@ class Sequence:
     def load_color(self, frame: Frame) -> np.ndarray:
         """Colour image as BGR uint8 (grey images are returned as single-channel uint8)."""
         img = _imread(frame.color_path, cv2.IMREAD_UNCHANGED)
+        if self.rectify is not None:
+            return self.rectify.left(img)
         return self.undistort.color(img, frame.color_path) if self.undistort is not None else img
 
     def load_right(self, frame: Frame) -> np.ndarray:
         if frame.right_path is None:
             raise DatasetError(f"{self.name}: frame {frame.index} has no right image (not stereo)")
-        return _imread(frame.right_path, cv2.IMREAD_UNCHANGED)
+        img = _imread(frame.right_path, cv2.IMREAD_UNCHANGED)
+        return self.rectify.right(img) if self.rectify is not None else img
+
+    def load_frame(self, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+        """(image, second) as the odometry takes a frame: the second image is the depth [m] of
+        an RGB-D camera, the right image of a stereo pair."""
+        if self.camera.sensor == "stereo":
+            return self.load_color(frame), self.load_right(frame)
+        return self.load_color(frame), self.load_depth_m(frame)
 
     def load_depth_m(self, frame: Frame) -> np.ndarray:
         """Depth in metres as float32, 0 where there is no measurement."""

@@ -10,6 +10,7 @@ file: their published calibration is built in.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 
@@ -132,6 +133,17 @@ def read_tum(
             Frame(index=k, stamp_s=s, color_path=os.path.join(folder, p))
             for k, (s, p) in enumerate(rgb)
         ]
+    right_list = os.path.join(folder, "right.txt")
+    if os.path.isfile(right_list):  # a coop_slam synthetic world's right camera (rectified pair)
+        right = _read_list(right_list)
+        i_frame, i_right = associate([f.stamp_s for f in frames], [t for t, _ in right], max_dt_s)
+        if len(i_frame) != len(frames) or camera.baseline_m <= 0:
+            raise DatasetError(
+                f"{folder}: right.txt needs one right image per frame and camera.yaml a "
+                "baseline_m > 0"
+            )
+        for k, j in zip(i_frame, i_right):
+            frames[k] = dataclasses.replace(frames[k], right_path=os.path.join(folder, right[j][1]))
     gt_path = os.path.join(folder, "groundtruth.txt")
     gt_stamps, gt_poses = (
         read_tum_trajectory(gt_path)

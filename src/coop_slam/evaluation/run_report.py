@@ -59,6 +59,7 @@ class RunInput:
     end_s: float
     gts: dict  # robot id -> (stamps, T_world_cam); empty arrays for robots without ground truth
     overlap: dict | None = None  # synthetic overlap events (merge latency), when known
+    sensors: list[str] | None = None  # each robot's camera (rgbd, stereo), in robot_ids order
 
 
 def run_input_of(source, keep_timing: bool = False) -> RunInput:
@@ -79,6 +80,7 @@ def run_input_of(source, keep_timing: bool = False) -> RunInput:
         schedule[-1].play_s if schedule else 0.0,
         gts,
         (source.meta or {}).get("overlap"),
+        [s.sequence.camera.sensor for s in source.streams],
     )
 
 
@@ -96,7 +98,7 @@ def evaluate_run(
     overlap: dict | None = None,
     out_dir: str | None = None,
 ) -> dict:
-    """The report dict (see coop_slam.report) of a run against ground truth ``gts`` (robot id ->
+    """The report dict (see :mod:`.report`) of a run against ground truth ``gts`` (robot id ->
     (stamps, T_world_cam) on the playback timeline, as in :class:`RunInput`; empty arrays
     where a robot has none, whose accuracy fields then stay null); writes trajectories and plots
     into ``out_dir``."""

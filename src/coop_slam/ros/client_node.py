@@ -1,7 +1,14 @@
-"""Client node: RGB-D visual odometry on one robot, publishing keyframes, pose, TF, path and cloud.
+"""Client node: visual odometry on one robot's RGB-D or stereo camera, publishing keyframes, pose,
+TF, path and cloud.
 
-Robot k's topics live under ``/robot_k`` and its frames are ``robot_k/...``, whatever namespace
-the node is started in: the server finds a robot by its id alone. Frames (REP-105):
+Inputs (``~sensor``): ``rgbd`` -- ``camera/color/image_raw``, ``camera/depth/image_raw`` (registered
+to colour) and ``camera/color/camera_info``; ``stereo`` -- the ROS stereo conventions of a
+rectified pair, ``camera/left/image_rect``, ``camera/right/image_rect``,
+``camera/left/camera_info``, ``camera/right/camera_info`` (the baseline from the right camera's
+projection matrix). Colour or grey images.
+
+Robot k's topics live under ``/robot_k`` and its frames are ``robot_k/...``, whatever namespace the
+node is started in: the server finds a robot by its id alone. Frames (REP-105):
 ``robot_k/map`` -> ``robot_k/odom`` -> ``robot_k/base_link`` -> ``robot_k/camera_optical``. The
 odometry's own map frame is the first camera frame; this node re-expresses everything in
 ``robot_k/map``, defined as the robot body at start (z up), so maps are upright in RViz.
@@ -10,7 +17,9 @@ odometry's own map frame is the first camera frame; this node re-expresses every
 
 from __future__ import annotations
 
+import collections
 import threading
+import time
 
 import numpy as np
 import rospy
@@ -30,6 +39,7 @@ from .convert import (
     keyframe_to_msg,
     pose_from_msg,
     pose_to_msg,
+    stereo_camera_from_infos,
     transform_from_msg,
     transform_stamped,
 )
@@ -38,6 +48,28 @@ from .validation import RejectCounter
 
 # Optical frame (z forward, x right, y down) in a body frame (x forward, y left, z up).
 R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+SENSORS = ("rgbd", "stereo")
+
+
+def _input_topics(ns: str, sensor: str) -> dict:
+    """The camera topics a client of ``sensor`` subscribes to: its main image, the second image
+    (depth, or right of a pair) and the camera infos."""
+    if sensor == "stereo":
+        return {
+            "image": f"{ns}/camera/left/image_rect",
+            "second": f"{ns}/camera/right/image_rect",
+            "infos": {
+                "left": f"{ns}/camera/left/camera_info",
+                "right": f"{ns}/camera/right/camera_info",
+            },
+        }
+    return {
+        "image": f"{ns}/camera/color/image_raw",
+        "second": f"{ns}/camera/depth/image_raw",
+        "infos": {"color": f"{ns}/camera/color/camera_info"},
+    }
 
 
 def default_T_base_cam() -> np.ndarray:
@@ -50,13 +82,16 @@ class ClientNode:
     def __init__(self):
         from coop_slam.msg import FrameStats, KeyFrame, MapCorrection  # noqa: F401
 
-        from ..vo.pipeline import RgbdOdometry
+        from ..vo.pipeline import VisualOdometry
 
         self.robot_id = int(rospy.get_param("~robot_id"))
         if self.robot_id < 1:
             raise CoopSlamError(f"~robot_id must be >= 1, got {self.robot_id}")
         self.name = f"robot_{self.robot_id}"
         ns = f"/{self.name}"
+        self.sensor = rospy.get_param("~sensor", "rgbd")
+        if self.sensor not in SENSORS:
+            raise CoopSlamError(f"~sensor must be one of {', '.join(SENSORS)}, got '{self.sensor}'")
         self.map_frame = f"{self.name}/map"
         self.odom_frame = f"{self.name}/odom"
         self.base_frame = f"{self.name}/base_link"
@@ -74,7 +109,7 @@ class ClientNode:
         self.vo_cfg = load_yaml_config(VoConfig, config_file, "vo", rospy.get_param("~vo", {}))
         if self.vo_cfg.planar_motion:  # the floor normal (base z) as the camera sees it
             self.vo_cfg.planar_up_cam = (self.T_base_cam[:3, :3].T @ [0.0, 0.0, 1.0]).tolist()
-        self._RgbdOdometry = RgbdOdometry
+        self._VisualOdometry = VisualOdometry
         self.vo = None
         self.camera = None
         self.lock = threading.Lock()
@@ -110,32 +145,60 @@ class ClientNode:
         from coop_slam.msg import RobotSighting
 
         self.pub_sighting = rospy.Publisher("/robot_sightings", RobotSighting, queue_size=10)
-        self.sub_info = rospy.Subscriber(
-            f"{ns}/camera/color/camera_info", CameraInfo, self._on_info, queue_size=5
+        self.topics = _input_topics(ns, self.sensor)
+        self.infos: dict[str, CameraInfo] = {}
+        self.subs_info = [
+            rospy.Subscriber(topic, CameraInfo, self._on_info, which, queue_size=5)
+            for which, topic in self.topics["infos"].items()
+        ]
+        # A stream whose partner never comes (no depth / right images) would stall lock-step
+        # playback and leave the user guessing: watch both streams alone as well (rospy
+        # deserializes a topic once for all of a node's subscribers).
+        self._watch_lock = threading.Lock()
+        self._unpaired: list = []  # (wall time, stamp) of main images not yet in a pair
+        # Stamps of the latest pairs: the lone image's callback may run after its pair's.
+        self._paired: collections.deque = collections.deque(maxlen=64)
+        self._last_second_wall = -1e9  # wall time of the last second image [s]
+        image = message_filters.Subscriber(
+            self.topics["image"], Image, queue_size=5, buff_size=2**24
         )
-        color = message_filters.Subscriber(
-            f"{ns}/camera/color/image_raw", Image, queue_size=5, buff_size=2**24
+        second = message_filters.Subscriber(
+            self.topics["second"], Image, queue_size=5, buff_size=2**24
         )
-        depth = message_filters.Subscriber(
-            f"{ns}/camera/depth/image_raw", Image, queue_size=5, buff_size=2**24
-        )
-        self.sync = message_filters.TimeSynchronizer([color, depth], 10)
+        self.sync = message_filters.TimeSynchronizer([image, second], 10)
         self.sync.registerCallback(self._on_frame)
+        self.sub_image_watch = rospy.Subscriber(
+            self.topics["image"], Image, self._on_image_alone, queue_size=5, buff_size=2**24
+        )
+        self.sub_second_watch = rospy.Subscriber(
+            self.topics["second"], Image, self._on_second_alone, queue_size=5, buff_size=2**24
+        )
+        self._watch = threading.Thread(target=self._watch_pairs, daemon=True)
+        self._watch.start()
         self.sub_corr = rospy.Subscriber(
             f"{ns}/correction", MapCorrection, self._on_correction, queue_size=5
         )
         rospy.loginfo(
-            "client %s: waiting for %s",
+            "client %s (%s): waiting for %s and %s",
             self.name,
-            rospy.resolve_name(f"{ns}/camera/color/image_raw"),
+            self.sensor,
+            rospy.resolve_name(self.topics["image"]),
+            rospy.resolve_name(self.topics["second"]),
         )
 
     # --- callbacks --------------------------------------------------------------------------------
-    def _on_info(self, msg: CameraInfo) -> None:
+    def _on_info(self, msg: CameraInfo, which: str) -> None:
+        topic = self.topics["infos"][which]
+        self.infos[which] = msg
         try:
-            cam = camera_from_info(msg, sensor="rgbd", depth_scale=self.depth_scale)
+            if self.sensor == "stereo":
+                if "left" not in self.infos or "right" not in self.infos:
+                    return
+                cam = stereo_camera_from_infos(self.infos["left"], self.infos["right"])
+            else:
+                cam = camera_from_info(msg, sensor="rgbd", depth_scale=self.depth_scale)
         except MessageError as exc:
-            self.rejects.reject("camera_info", str(exc))
+            self.rejects.reject(topic, str(exc))
             return
         with self.lock:
             if self.camera is not None and cam != self.camera:
@@ -160,30 +223,73 @@ class ClientNode:
             self.vo.close()
             self.vo = None
 
-    def _on_frame(self, color_msg: Image, depth_msg: Image) -> None:
+    def _on_image_alone(self, msg: Image) -> None:
+        with self._watch_lock:
+            if msg.header.stamp not in self._paired:
+                self._unpaired.append((time.monotonic(), msg.header.stamp))
+
+    def _on_second_alone(self, msg: Image) -> None:
+        self._last_second_wall = time.monotonic()
+
+    def _watch_pairs(self) -> None:
+        """Main images older than 3 s while the second stream (depth / right) has been silent for
+        3 s: say which topic is silent, and acknowledge those frames (not tracked) so lock-step
+        playback goes on. (Images left over while the second stream flows were dropped by a busy
+        client, or are still queued: not a fault of the input.)"""
         from coop_slam.msg import FrameStats
 
-        stamp = color_msg.header.stamp
+        while not rospy.is_shutdown():
+            time.sleep(1.0)
+            now = time.monotonic()
+            with self._watch_lock:
+                old = [s for t, s in self._unpaired if now - t > 3.0]
+                if now - self._last_second_wall < 3.0:
+                    continue
+                self._unpaired = [(t, s) for t, s in self._unpaired if now - t <= 3.0]
+            if not old:
+                continue
+            what = "depth" if self.sensor == "rgbd" else "right"
+            self.rejects.reject(
+                self.topics["image"],
+                f"{len(old)} image(s) without a {what} image of the same stamp on "
+                f"{rospy.resolve_name(self.topics['second'])} within 3 s: is it published?",
+            )
+            for stamp in old:
+                stats = FrameStats(robot_id=self.robot_id, tracking_ok=False)
+                stats.header.stamp = stamp
+                self.pub_stats.publish(stats)
+
+    def _on_frame(self, image_msg: Image, second_msg: Image) -> None:
+        from coop_slam.msg import FrameStats
+
+        stamp = image_msg.header.stamp
         stats = FrameStats(robot_id=self.robot_id, tracking_ok=False)
         stats.header.stamp = stamp
+        with self._watch_lock:
+            self._unpaired = [(t, s) for t, s in self._unpaired if s != stamp]
+            self._paired.append(stamp)
         try:
             with self.lock:
                 if self.camera is None:
-                    raise MessageError("no camera_info received yet")
-                image = image_from_msg(color_msg)
-                depth = depth_from_msg(depth_msg, self.depth_scale)
+                    missing = [t for w, t in self.topics["infos"].items() if w not in self.infos]
+                    raise MessageError(f"no camera_info received yet on {', '.join(missing)}")
+                image = image_from_msg(image_msg)
+                if self.sensor == "stereo":
+                    second, what = image_from_msg(second_msg), "right image"
+                else:
+                    second, what = depth_from_msg(second_msg, self.depth_scale), "depth"
                 if (
                     image.shape[:2] != (self.camera.height, self.camera.width)
-                    or depth.shape != image.shape[:2]
+                    or second.shape[:2] != image.shape[:2]
                 ):
                     raise MessageError(
-                        f"image {image.shape[1]}x{image.shape[0]} / depth "
-                        f"{depth.shape[1]}x{depth.shape[0]} do not match camera_info "
+                        f"image {image.shape[1]}x{image.shape[0]} / {what} "
+                        f"{second.shape[1]}x{second.shape[0]} do not match camera_info "
                         f"{self.camera.width}x{self.camera.height}"
                     )
                 if self.vo is None:
-                    self.vo = self._RgbdOdometry(self.vo_cfg, self.camera)
-                res = self.vo.track(stamp.to_sec(), image, depth)
+                    self.vo = self._VisualOdometry(self.vo_cfg, self.camera)
+                res = self.vo.track(stamp.to_sec(), image, second)
                 self.frames += 1
                 stats.track_ms, stats.tracking_ok = res.track_ms, bool(res.ok)
                 stats.keyframes = len(self.kf_poses)
@@ -196,7 +302,7 @@ class ClientNode:
                     self.last_cloud_s = stamp.to_sec()
                     self._publish_cloud(stamp)
         except CoopSlamError as exc:
-            self.rejects.reject("camera/color/image_raw", str(exc))
+            self.rejects.reject(self.topics["image"], str(exc))
         finally:
             self.pub_stats.publish(stats)
 

@@ -11,12 +11,10 @@ import rospy
 from geometry_msgs.msg import Pose, Transform
 from sensor_msgs.msg import CameraInfo, Image
 
-from ..datasets.base import CameraModel, DatasetError
+from ..datasets.base import SENSORS, CameraModel, DatasetError
 from ..errors import CoopSlamError
 from ..geometry import GeometryError, quat_from_se3, se3_from_quat
 from ..keyframe_record import KeyframeError, KeyframeRecord, camera_from_fields
-
-_SENSORS = ("rgbd", "stereo", "mono")
 
 
 class MessageError(CoopSlamError):
@@ -136,7 +134,10 @@ def depth_from_msg(msg: Image, depth_scale: float = 1000.0) -> np.ndarray:
 
 
 # --- camera ---------------------------------------------------------------------------------------
-def camera_info_to_msg(camera: CameraModel, stamp=None, frame_id: str = "") -> CameraInfo:
+def camera_info_to_msg(
+    camera: CameraModel, stamp=None, frame_id: str = "", right: bool = False
+) -> CameraInfo:
+    """The rectified camera; ``right``: the right camera of a stereo pair (P[3] = -fx * b)."""
     msg = CameraInfo()
     if stamp is not None:
         msg.header.stamp = stamp
@@ -146,9 +147,30 @@ def camera_info_to_msg(camera: CameraModel, stamp=None, frame_id: str = "") -> C
     msg.D = [0.0] * 5
     msg.K = [camera.fx, 0.0, camera.cx, 0.0, camera.fy, camera.cy, 0.0, 0.0, 1.0]
     msg.R = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
-    # For the right camera of a stereo pair, P[3] = -fx * baseline (ROS convention).
-    msg.P = [camera.fx, 0.0, camera.cx, 0.0, 0.0, camera.fy, camera.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+    Tx = -camera.fx * camera.baseline_m if right else 0.0  # ROS convention for the right camera
+    msg.P = [camera.fx, 0.0, camera.cx, Tx, 0.0, camera.fy, camera.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
     return msg
+
+
+def stereo_camera_from_infos(left: CameraInfo, right: CameraInfo) -> CameraModel:
+    """The stereo camera of a rectified pair's camera infos: the left camera's intrinsics, the
+    baseline from the right camera's projection matrix (P[3] = -fx * baseline)."""
+    P = list(right.P)
+    if len(P) != 12 or not np.all(np.isfinite(P)) or P[0] <= 0:
+        raise MessageError("right camera_info P must hold 12 finite numbers with fx > 0")
+    if (left.width, left.height) != (right.width, right.height):
+        raise MessageError(
+            f"left and right camera_info differ in size: {left.width}x{left.height} and "
+            f"{right.width}x{right.height}"
+        )
+    baseline_m = -P[3] / P[0]
+    if baseline_m <= 0:
+        raise MessageError(
+            f"right camera_info gives baseline {baseline_m:.4f} m (P[3] = {P[3]:.3f}); a "
+            "rectified right camera has P[3] = -fx * baseline < 0: are left and right swapped, "
+            "or is it the left camera's info?"
+        )
+    return camera_from_info(left, sensor="stereo", baseline_m=baseline_m)
 
 
 def camera_from_info(
@@ -187,7 +209,7 @@ def keyframe_to_msg(kf: KeyframeRecord, frame_id: str):
     msg.action = kf.action
     cam = kf.camera
     msg.camera = CameraModelMsg(
-        sensor_type=_SENSORS.index(cam.sensor),
+        sensor_type=SENSORS.index(cam.sensor),
         width=cam.width,
         height=cam.height,
         fx=cam.fx,
@@ -218,7 +240,7 @@ def _bytes(field) -> np.ndarray:
 def keyframe_from_msg(msg, known_robots: set[int] | None = None) -> KeyframeRecord:
     """Validated :class:`KeyframeRecord` from a KeyFrame message; raises MessageError."""
     try:
-        if msg.camera.sensor_type >= len(_SENSORS):
+        if msg.camera.sensor_type >= len(SENSORS):
             raise KeyframeError(f"camera sensor_type {msg.camera.sensor_type} unknown")
         cam = camera_from_fields(
             width=msg.camera.width,
@@ -227,7 +249,7 @@ def keyframe_from_msg(msg, known_robots: set[int] | None = None) -> KeyframeReco
             fy=msg.camera.fy,
             cx=msg.camera.cx,
             cy=msg.camera.cy,
-            sensor=_SENSORS[msg.camera.sensor_type],
+            sensor=SENSORS[msg.camera.sensor_type],
             baseline_m=msg.camera.baseline_m,
         )
         keypoints = np.asarray(msg.keypoints, np.float32)

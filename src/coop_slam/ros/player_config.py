@@ -19,6 +19,9 @@ class PlayerConfig:
     seed: int = 0  # synthetic world seed
     duration_s: float = 0.0  # synthetic world length [s]; 0 = the scenario's own
     camera_file: str = ""  # camera.yaml for a TUM folder without one
+    sensors: str = (
+        ""  # per robot "rgbd" / "stereo", comma-separated, or one for all; "" = the data's
+    )
     keep_timing: bool = False  # play split segments at their original times instead of together
     start_offsets_s: list[float] = field(default_factory=list)  # per-robot start delay [s]
     lockstep: bool = True  # wait for each consumer's frame_stats before the next frame

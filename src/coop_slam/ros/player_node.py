@@ -1,9 +1,11 @@
 """Dataset player node: publishes robots' camera streams, ground truth and /clock.
 
-Per robot k (``robot_k``): ``camera/color/image_raw`` (bgr8, or mono8),
+Per robot k (``robot_k``), an RGB-D camera: ``camera/color/image_raw`` (bgr8, or mono8),
 ``camera/color/camera_info``, ``camera/depth/image_raw`` (32FC1 metres or 16UC1 millimetres,
-registered to colour), for stereo ``camera/right/image_raw``, and ``ground_truth/pose`` (camera
-optical frame in ``gt_world``).
+registered to colour); a stereo camera (ROS stereo conventions, rectified):
+``camera/left/image_rect``, ``camera/right/image_rect``, ``camera/left/camera_info``,
+``camera/right/camera_info`` (baseline in its projection matrix); and ``ground_truth/pose``
+(camera optical frame in ``gt_world``).
 
 Timing never uses rospy's clock (this node *drives* /clock). In lock-step mode the next frames are
 published only after every consuming client acknowledged the previous ones on
@@ -33,7 +35,9 @@ from ..playback import (
     build_schedule,
     ground_truth_by_frame,
     group_simultaneous,
+    image_topic,
     load_streams,
+    parse_sensors,
 )
 from .convert import camera_info_to_msg, image_to_msg, pose_to_msg
 from .player_config import PlayerConfig
@@ -48,8 +52,8 @@ def frame_messages(
 ):
     """The messages of one robot's frame at ``play_s``, in publishing order: [(topic, msg)].
 
-    Camera info, depth (or right image), then colour: clients synchronise on colour, so the rest
-    is there when it arrives; ground truth ``T_world_cam`` (camera optical frame in ``gt_world``),
+    Camera info, depth (or the right image), then colour (left): clients keep the camera info and
+    synchronise the images; ground truth ``T_world_cam`` (camera optical frame in ``gt_world``),
     when given and finite, last.
     """
     seq = stream.sequence
@@ -58,6 +62,19 @@ def frame_messages(
     stamp = rospy.Time.from_sec(play_s)
     color = seq.load_color(frame)
     enc = "bgr8" if color.ndim == 3 else "mono8"
+    if seq.camera.sensor == "stereo":
+        right = seq.load_right(frame)
+        right_frame = f"{stream.name}/camera_right_optical"
+        out = [
+            (f"{ns}/camera/left/camera_info", camera_info_to_msg(seq.camera, stamp, optical_frame)),
+            (
+                f"{ns}/camera/right/camera_info",
+                camera_info_to_msg(seq.camera, stamp, right_frame, right=True),
+            ),
+            (f"{ns}/camera/right/image_rect", image_to_msg(right, enc, stamp, right_frame)),
+            (f"{ns}/camera/left/image_rect", image_to_msg(color, enc, stamp, optical_frame)),
+        ]
+        return out + _ground_truth(ns, stamp, T_world_cam)
     out = [(f"{ns}/camera/color/camera_info", camera_info_to_msg(seq.camera, stamp, optical_frame))]
     if seq.camera.sensor == "rgbd":
         depth_m = seq.load_depth_m(frame)
@@ -71,20 +88,16 @@ def frame_messages(
                 image_to_msg(depth_img, depth_encoding, stamp, optical_frame),
             )
         )
-    if seq.camera.sensor == "stereo":
-        right = seq.load_right(frame)
-        out.append(
-            (
-                f"{ns}/camera/right/image_raw",
-                image_to_msg(right, enc, stamp, f"{stream.name}/camera_right_optical"),
-            )
-        )
     out.append((f"{ns}/camera/color/image_raw", image_to_msg(color, enc, stamp, optical_frame)))
-    if T_world_cam is not None and np.all(np.isfinite(T_world_cam)):
-        msg = PoseStamped(pose=pose_to_msg(T_world_cam))
-        msg.header.stamp, msg.header.frame_id = stamp, "gt_world"
-        out.append((f"{ns}/ground_truth/pose", msg))
-    return out
+    return out + _ground_truth(ns, stamp, T_world_cam)
+
+
+def _ground_truth(ns: str, stamp, T_world_cam) -> list:
+    if T_world_cam is None or not np.all(np.isfinite(T_world_cam)):
+        return []
+    msg = PoseStamped(pose=pose_to_msg(T_world_cam))
+    msg.header.stamp, msg.header.frame_id = stamp, "gt_world"
+    return [(f"{ns}/ground_truth/pose", msg)]
 
 
 class _Acks:
@@ -128,7 +141,7 @@ class _RobotTopics:
         first = stream.sequence.frames[0]
         for topic, msg in frame_messages(stream, first, 0.0, depth_encoding, np.eye(4)):
             self.pubs[topic] = rospy.Publisher(topic, type(msg), queue_size=20)
-        self.color = self.pubs[f"/{stream.name}/camera/color/image_raw"]
+        self.color = self.pubs[image_topic(stream.robot_id, stream.sequence.camera.sensor)]
         self.acks = _Acks(stream.name)
 
     @property
@@ -191,6 +204,7 @@ class PlayerNode:
             camera_file=cfg.camera_file or None,
             start_offsets_s=offsets,
             world_params={"duration_s": cfg.duration_s} if cfg.duration_s > 0 else None,
+            sensors=parse_sensors(cfg.sensors),
             progress=lambda done, total: rospy.loginfo_throttle(
                 5.0, "player: generating world %d/%d frames", done, total
             ),
@@ -315,7 +329,8 @@ class BagPlayer:
         )
         if not self.robot_ids:
             raise PlaybackError(
-                f"bag {cfg.bag} has no robot camera topics (/robot_<k>/camera/color/image_raw); "
+                f"bag {cfg.bag} has no robot camera topics (/robot_<k>/camera/color/image_raw "
+                "or /robot_<k>/camera/left/image_rect); "
                 f"it has: {', '.join(sorted(self.pubs)) or 'nothing'}"
             )
         self.acks = {rid: _Acks(f"robot_{rid}") for rid in self.robot_ids}
@@ -335,7 +350,10 @@ class BagPlayer:
             publishers[topic] = rospy.Publisher(topic, cls, queue_size=20)
         start = self.bag.get_start_time()
         self.clock.publish(Clock(clock=rospy.Time.from_sec(max(0.0, start - 0.1))))
-        colors = {rid: publishers[f"/robot_{rid}/camera/color/image_raw"] for rid in self.acks}
+        colors = {}  # robot id -> its main image's publisher (colour, or left of a pair)
+        for topic, pub in publishers.items():
+            if m := COLOR_TOPIC.match(topic):
+                colors[int(m.group(1))] = pub
         wait_for_consumers(colors, cfg)
         lockstep = {rid for rid, a in self.acks.items() if cfg.lockstep and a.has_consumer}
         for rid in sorted(set(self.acks) - lockstep):

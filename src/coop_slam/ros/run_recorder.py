@@ -218,10 +218,12 @@ def read_bag_input(bag_path: str) -> RunInput:
                 np.asarray(stamps, float)[order],
                 np.asarray(poses, float).reshape(-1, 4, 4)[order],
             )
+        stereo = {rid for t, rid in colors.items() if t.endswith("/left/image_rect")}
         return RunInput(
             robot_ids,
             sum(topics[t].message_count for t in colors),
             bag.get_start_time(),
             bag.get_end_time(),
             gts,
+            sensors=["stereo" if rid in stereo else "rgbd" for rid in robot_ids],
         )

@@ -5,7 +5,9 @@ Layout of the output folder::
     world.yaml            scenario, seed, parameters, robots, T_base_cam, markers, overlap events
     robot_<id>/           TUM RGB-D: rgb/*.jpg, depth/*.png (16 bit, 5000 per metre), rgb.txt,
                           depth.txt, groundtruth.txt (T_world_cam of the optical frame in the shared
-                          world frame), groundtruth_base.txt (T_world_base), camera.yaml
+                          world frame), groundtruth_base.txt (T_world_base), camera.yaml; with a
+                          stereo baseline also right/*.jpg and right.txt (the right camera of a
+                          rectified pair, ``camera.baseline_m`` along the optical x axis)
     .complete             written last: the folder is whole
 
 Outputs are cached under ``${COOP_SLAM_CACHE:-~/.cache/coop_slam}/worlds/<scenario>-<hash>``, the
@@ -16,6 +18,7 @@ half a world.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import multiprocessing
@@ -32,6 +35,7 @@ import yaml
 
 from ..datasets import CameraModel, write_camera_yaml, write_tum_trajectory
 from ..errors import CoopSlamError
+from ..geometry import se3
 from .overlap import OverlapConfig, compute_overlap
 from .render import DEFAULT_CAMERA, DynamicObject, NoiseConfig, Renderer
 from .scenarios import Scenario, make_scenario
@@ -55,7 +59,7 @@ def cache_root() -> str:
 
 
 def _params(scenario: Scenario, noise: bool, camera: CameraModel) -> dict:
-    return {
+    params = {  # the camera's baseline_m > 0 (a right camera) gives another world
         "scenario": scenario.name,
         "seed": scenario.seed,
         "robots": len(scenario.trajectories),
@@ -69,6 +73,7 @@ def _params(scenario: Scenario, noise: bool, camera: CameraModel) -> dict:
         "routes_sha1": _routes_digest(scenario),
         "layout": scenario.layout,
     }
+    return params
 
 
 def _routes_digest(scenario: Scenario) -> str:
@@ -92,7 +97,7 @@ def is_complete(folder: str) -> bool:
 def _frame_name(stamp_s: float, kind: str = "depth") -> str:
     # Colour as high-quality JPEG, like real RGB-D recordings: 5x smaller and faster to write than
     # PNG of a noisy image; depth stays lossless 16-bit PNG.
-    return f"{stamp_s:.6f}.{'jpg' if kind == 'rgb' else 'png'}"
+    return f"{stamp_s:.6f}.{'png' if kind == 'depth' else 'jpg'}"
 
 
 def _frame_seed(seed: int, robot_id: int, frame: int) -> int:
@@ -144,9 +149,8 @@ def _render_frames(scenario, noise, camera, out_dir, robot_id, frames) -> int:
             for rid, t in trajs.items()
             if rid != robot_id
         ]
-        bgr, depth = renderer.render(
-            T_world_cam, others, noise_seed=_frame_seed(scenario.seed, robot_id, k)
-        )
+        seed = _frame_seed(scenario.seed, robot_id, k)
+        bgr, depth = renderer.render(T_world_cam, others, noise_seed=seed)
         raw = np.round(depth * scale)
         raw[raw > 65535] = 0  # out of the 16-bit range: no measurement rather than a wrong one
         name = _frame_name(me.stamps_s[k])
@@ -157,11 +161,17 @@ def _render_frames(scenario, noise, camera, out_dir, robot_id, frames) -> int:
             raise GenerateError(f"cannot write {os.path.join(folder, 'rgb', rgb_name)}")
         if not cv2.imwrite(os.path.join(folder, "depth", name), raw.astype(np.uint16), png):
             raise GenerateError(f"cannot write {os.path.join(folder, 'depth', name)}")
+        if camera.baseline_m > 0:
+            T_cam_right = se3(t=[camera.baseline_m, 0.0, 0.0])
+            right, _ = renderer.render(T_world_cam @ T_cam_right, others, noise_seed=seed + 1)
+            path = os.path.join(folder, "right", rgb_name)
+            if not cv2.imwrite(path, right, [cv2.IMWRITE_JPEG_QUALITY, 95]):
+                raise GenerateError(f"cannot write {path}")
     return len(frames)
 
 
-def _write_lists(folder: str, stamps_s) -> None:
-    for kind in ("rgb", "depth"):
+def _write_lists(folder: str, stamps_s, stereo: bool) -> None:
+    for kind in ("rgb", "depth", "right") if stereo else ("rgb", "depth"):
         with open(os.path.join(folder, f"{kind}.txt"), "w", encoding="utf-8") as fh:
             fh.write(f"# {kind} images of a coop_slam synthetic world\n# timestamp filename\n")
             fh.writelines(f"{s:.6f} {kind}/{_frame_name(s, kind)}\n" for s in stamps_s)
@@ -241,6 +251,7 @@ def generate(
     workers: int = 1,
     camera: CameraModel = DEFAULT_CAMERA,
     overlap_config: OverlapConfig | None = None,
+    stereo_baseline_m: float = 0.0,
 ) -> str:
     """Render ``scenario`` and return its folder (cached: a complete folder is not rendered again).
 
@@ -248,7 +259,12 @@ def generate(
     total_frames)`` is called as frames are written. ``workers`` > 1 renders in that many
     processes (one core each; started with 'spawn', so a calling script needs the usual
     ``if __name__ == "__main__":`` guard). Output is identical whatever ``workers`` is.
+    ``stereo_baseline_m`` > 0 also renders each robot's right camera of a stereo pair.
     """
+    if stereo_baseline_m < 0 or not np.isfinite(stereo_baseline_m):
+        raise GenerateError(f"stereo baseline {stereo_baseline_m} m must be >= 0")
+    if stereo_baseline_m > 0:
+        camera = dataclasses.replace(camera, baseline_m=float(stereo_baseline_m))
     sc = make_scenario(scenario, seed=seed, robots=robots, duration_s=duration_s, rate_hz=rate_hz)
     params = _params(sc, noise, camera)
     phash = params_hash(params)
@@ -291,7 +307,9 @@ def _generate_into(tmp, sc: Scenario, params, noise, camera, ocfg, progress, wor
         folder = os.path.join(tmp, t.name)
         os.makedirs(os.path.join(folder, "rgb"))
         os.makedirs(os.path.join(folder, "depth"))
-        _write_lists(folder, t.stamps_s)
+        if camera.baseline_m > 0:
+            os.makedirs(os.path.join(folder, "right"))
+        _write_lists(folder, t.stamps_s, camera.baseline_m > 0)
         write_tum_trajectory(
             os.path.join(folder, "groundtruth.txt"), t.stamps_s, t.poses_se3 @ sc.T_base_cam
         )

@@ -16,7 +16,10 @@ Figure = tuple[str, float, str]
 _REPO = os.path.normpath(
     os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", "..")
 )
-REDKITCHEN = os.path.normpath(os.path.join(_REPO, "..", "shared", "data", "redkitchen_0000_0599"))
+SHARED = os.path.normpath(os.path.join(_REPO, "..", "shared", "data"))
+REDKITCHEN = os.path.join(SHARED, "redkitchen_0000_0599")
+KITTI = os.path.join(SHARED, "kitti_clip_straight", "sequences", "00")
+EUROC = os.path.join(SHARED, "euroc_v101_static95")
 CONFIG_DIR = os.path.join(_REPO, "config")
 
 
@@ -38,19 +41,32 @@ def bench_bow() -> Iterator[Figure]:
 
 
 def _vo_runs():
-    """(name, sequence, ground robot) of the odometry benchmarks: a synthetic (wheeled) robot, and
-    RedKitchen (hand-held; whole, and as two robots) when the shared data is present."""
-    from ..datasets import read_tum, split_ranges
+    """(name, sequence, ground robot) of the odometry benchmarks: a synthetic (wheeled) robot with
+    an RGB-D and with a stereo camera, RedKitchen (hand-held RGB-D; whole, and as two robots), the
+    KITTI clip (stereo, 1226x370 at 10 Hz) and the EuRoC clip (stereo, 752x480 at 20 Hz) when the
+    shared data is present."""
+    import dataclasses
+
+    from ..datasets import read_euroc, read_kitti, read_tum, split_ranges
     from ..datasets.synthetic import read_synthetic
+    from ..playback import SYNTHETIC_STEREO_BASELINE_M
     from ..synthetic.generate import generate
 
     world = read_synthetic(generate("revisit"))
     yield "revisit_robot_1", world.sequences[1], True
+    stereo = read_synthetic(generate("revisit", stereo_baseline_m=SYNTHETIC_STEREO_BASELINE_M))
+    seq = stereo.sequences[1]
+    camera = dataclasses.replace(seq.camera, sensor="stereo")
+    yield "stereo_revisit_robot_1", dataclasses.replace(seq, camera=camera), True
     if os.path.isdir(REDKITCHEN):
         seq = read_tum(REDKITCHEN)
         yield "redkitchen", seq, False
         for part in split_ranges(seq, "0-299,300-599"):
             yield f"redkitchen_{part.name.rsplit('_', 1)[1]}", part, False
+    if os.path.isdir(KITTI):
+        yield "stereo_kitti_clip", read_kitti(KITTI), False
+    if os.path.isdir(EUROC):
+        yield "stereo_euroc_static", read_euroc(EUROC), False
 
 
 def bench_vo() -> Iterator[Figure]:

@@ -51,6 +51,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     src.add_argument("--dataset", help="TUM RGB-D or KITTI odometry folder")
     src.add_argument("--bag", help="rosbag file to replay")
     p.add_argument("--robots", type=int, default=None, help="number of robots")
+    p.add_argument(
+        "--sensors",
+        help="each robot's camera, comma-separated, or one for all: rgbd, stereo (e.g. "
+        "rgbd,stereo,stereo); default: RGB-D for synthetic worlds, what a dataset or bag has",
+    )
     p.add_argument("--split", help="inclusive frame ranges, one robot each: 0-299,300-599")
     p.add_argument(
         "--keep-timing",
@@ -115,8 +120,15 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error("--rate must be > 0")
     if args.split and not args.dataset:
         p.error("--split needs --dataset")
-    if args.bag and (args.robots is not None or args.keep_timing or args.camera):
-        p.error("--bag: robots, timing and camera come from the bag")
+    if args.bag and (args.robots is not None or args.keep_timing or args.camera or args.sensors):
+        p.error("--bag: robots, timing, camera and sensors come from the bag")
+    if args.sensors:
+        from ..playback import PlaybackError, parse_sensors
+
+        try:
+            parse_sensors(args.sensors, args.robots)
+        except PlaybackError as exc:
+            p.error(f"--sensors: {exc}")
     return args
 
 
@@ -140,6 +152,7 @@ def _write_run_info(
         "keep_timing": args.keep_timing,
         "bag": os.path.abspath(args.bag) if args.bag else None,
         "robot_ids": robot_ids,
+        "sensors": args.sensors,
         "ground_robots": ground,
         "commit": _commit(),
         "T_base_cam": base_cam,  # [x y z qx qy qz qw], [] = the launch file's default
@@ -188,13 +201,14 @@ class _Monitor:
     still advances.
     """
 
-    def __init__(self, robot_ids: list[int], ack: bool):
+    def __init__(self, robot_ids: list[int], ack: bool, sensors: list[str]):
         import rospy
         from rosgraph_msgs.msg import Clock
         from sensor_msgs.msg import Image
 
         from coop_slam.msg import FrameStats
 
+        from ..playback import image_topic
         from ..ros.run_recorder import RunRecorder, message_class
 
         rospy.init_node("demo_monitor", anonymous=True, disable_signals=True)
@@ -220,7 +234,7 @@ class _Monitor:
         for r in robot_ids if ack else ():
             self._subs.append(
                 rospy.Subscriber(
-                    f"/robot_{r}/camera/color/image_raw",
+                    image_topic(r, sensors[robot_ids.index(r)]),
                     Image,
                     self._on_image,
                     r,
@@ -334,6 +348,9 @@ def run(args: argparse.Namespace) -> int:
             f"      {len(inputs.robot_ids)} robots, {inputs.frames} frames, data in {source.folder}"
         )
     robot_ids, total, t0, t1 = inputs.robot_ids, inputs.frames, inputs.start_s, inputs.end_s
+    sensors = inputs.sensors or ["rgbd"] * len(robot_ids)
+    if len(set(sensors)) > 1 or sensors[0] != "rgbd":
+        say(f"      cameras: {', '.join(f'robot_{r} {s}' for r, s in zip(robot_ids, sensors))}")
     for a, b, _ in args.rendezvous:
         if a not in robot_ids or b not in robot_ids:
             raise CoopSlamError(f"--rendezvous {a},{b}: this run has robots {robot_ids}")
@@ -351,6 +368,7 @@ def run(args: argparse.Namespace) -> int:
     os.environ.update(ROS_MASTER_URI=uri, ROS_HOSTNAME="127.0.0.1")
     launch_args = [
         f"robots:={len(robot_ids)}",
+        f"sensors:={','.join(sensors)}",
         f"seed:={args.seed}",
         f"keep_timing:={str(args.keep_timing).lower()}",
     ]
@@ -399,7 +417,7 @@ def run(args: argparse.Namespace) -> int:
         )
     try:
         _wait_for_master(uri, 30.0)
-        monitor = _Monitor(robot_ids, ack=args.no_clients)
+        monitor = _Monitor(robot_ids, ack=args.no_clients, sensors=sensors)
         if args.record:
             recorder = subprocess.Popen(
                 [

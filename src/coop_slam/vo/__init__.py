@@ -1,11 +1,11 @@
 """Client visual odometry: ORB-SLAM-style RGB-D tracking and local mapping (pure core, no rospy).
 
-Entry point: :class:`RgbdOdometry` (``track`` per frame, keyframes / map points / events out).
+Entry point: :class:`VisualOdometry` (``track`` per frame, keyframes / map points / events out).
 """
 
 from .config import VoConfig
 from .map import MapKeyframe
-from .pipeline import RgbdOdometry
+from .pipeline import VisualOdometry
 from .types import (
     EVENT_KEYFRAME_NEW,
     EVENT_KEYFRAME_REMOVE,
@@ -36,7 +36,7 @@ __all__ = [
     "STATE_OK",
     "STATE_RELOCALIZED",
     "MapKeyframe",
-    "RgbdOdometry",
+    "VisualOdometry",
     "TrackResult",
     "VoConfig",
     "VoError",

@@ -32,8 +32,17 @@ class VoConfig:
     # sigma already makes the depth uncertainty grow with z^2, so no hard cut is needed for RGB-D
     virtual_baseline_m: float = 0.08  # baseline of the virtual stereo pair built from depth [m]
 
+    # --- stereo (rectified pairs; ORB-SLAM2's stereo matching) ----------------------------------
+    stereo_max_descriptor_distance: int = 75  # Hamming gate of a left/right match [bits]
+    stereo_row_tolerance_px: float = 2.0  # rows of a match differ by at most this x level scale
+    stereo_patch_radius_px: int = 5  # SAD patch radius of the subpixel refinement [level px]
+    stereo_search_px: int = 5  # columns searched either side of the descriptor match [level px]
+    # Points farther than this many baselines are used without depth: their disparity is a few
+    # pixels and its error dominates (ORB-SLAM2's 40).
+    stereo_close_baselines: float = 40.0
+
     # --- colour / depth calibration ---------------------------------------------------------------
-    # Colour intrinsics overriding the camera model given to RgbdOdometry (0 = use the model) [px].
+    # Colour intrinsics overriding the camera model given to the odometry (0 = use the model) [px].
     color_fx: float = 0.0
     color_fy: float = 0.0
     color_cx: float = 0.0
@@ -60,10 +69,10 @@ class VoConfig:
     pose_rounds: int = 4  # rounds of (optimize, reclassify outliers)
     chi2_mono: float = 5.991  # 95 % outlier gate, 2 dof (u, v) [whitened px^2]
     chi2_stereo: float = 7.815  # 95 % outlier gate, 3 dof (u, v, u_right) [whitened px^2]
-    max_frame_motion_m: float = 0.3  # larger jump between consecutive frames = failure [m]
-    max_frame_rotation_deg: float = (
-        30.0  # larger rotation between consecutive frames = failure [deg]
-    )
+    # A pose that moved faster than this since the previous frame is a tracking failure: no
+    # robot (hand-held, wheeled, a car on KITTI at 12 m/s) moves that fast.
+    max_speed_m_s: float = 40.0  # [m/s]
+    max_turn_rate_deg_s: float = 900.0  # [deg/s]
 
     # --- PnP / relocalization ---------------------------------------------------------------------
     pnp_ratio: float = 0.8  # Lowe ratio for brute-force descriptor matching
@@ -142,6 +151,14 @@ class VoConfig:
         require(self.grid_cell_px >= 8, "vo.grid_cell_px must be >= 8")
         require(0 < self.min_depth_m < self.max_depth_m, "need 0 < vo.min_depth_m < vo.max_depth_m")
         require(self.virtual_baseline_m > 0, "vo.virtual_baseline_m must be positive")
+        require(
+            0 < self.stereo_max_descriptor_distance <= 256,
+            "vo.stereo_max_descriptor_distance must be in 1..256",
+        )
+        require(self.stereo_row_tolerance_px > 0, "vo.stereo_row_tolerance_px must be > 0")
+        require(self.stereo_patch_radius_px >= 1, "vo.stereo_patch_radius_px must be >= 1")
+        require(self.stereo_search_px >= 1, "vo.stereo_search_px must be >= 1")
+        require(self.stereo_close_baselines > 0, "vo.stereo_close_baselines must be > 0")
         require(len(self.depth_in_color_m) == 3, "vo.depth_in_color_m must be [x, y, z] in metres")
         depth_intr = (self.depth_fx, self.depth_fy, self.depth_cx, self.depth_cy)
         require(
@@ -162,6 +179,10 @@ class VoConfig:
         )
         require(0 < self.keyframe_ref_ratio <= 1.0, "vo.keyframe_ref_ratio must be in (0, 1]")
         require(self.max_lost_frames >= 0, "vo.max_lost_frames must be >= 0")
+        require(
+            self.max_speed_m_s > 0 and self.max_turn_rate_deg_s > 0,
+            "vo.max_speed_m_s and vo.max_turn_rate_deg_s must be > 0",
+        )
         require(
             self.ba_window >= 1 and self.ba_iterations >= 1,
             "local BA needs a window and iterations",

@@ -1,6 +1,6 @@
 """Run the visual odometry over a dataset sequence and score it (shared by tests, bench and demo).
 
-``run_sequence`` feeds every frame to :class:`RgbdOdometry` (as fast as possible, or paced at
+``run_sequence`` feeds every frame to :class:`VisualOdometry` (as fast as possible, or paced at
 ``rate_hz`` like a live camera), waits for local mapping to finish and returns per-frame poses and
 timings plus the final keyframes. ``ate_rmse`` is the absolute trajectory error after an SE(3)
 Umeyama alignment (no scale), computed with evo.
@@ -19,7 +19,7 @@ from ..evaluation import ate
 from ..timestamps import associate
 from .config import VoConfig
 from .map import MapKeyframe
-from .pipeline import RgbdOdometry
+from .pipeline import VisualOdometry
 from .types import EVENT_KEYFRAME_NEW, EVENT_KEYFRAME_REMOVE, STATE_LOST
 
 
@@ -74,7 +74,7 @@ def run_sequence(
 ) -> VoRun:
     """Track every frame of ``seq``; ``progress(i, n, result)`` is called after each frame."""
     config = config or VoConfig()
-    vo = RgbdOdometry(config, seq.camera)
+    vo = VisualOdometry(config, seq.camera)
     n = len(seq)
     stamps = seq.stamps_s
     poses = np.full((n, 4, 4), np.nan)
@@ -84,14 +84,13 @@ def run_sequence(
     t_start = time.perf_counter()
     try:
         for i, frame in enumerate(seq.frames):
-            color = seq.load_color(frame)
-            depth = seq.load_depth_m(frame)
+            image, second = seq.load_frame(frame)
             if rate_hz:
                 # Pace like a live camera: frame i is available at t_start + i / rate.
                 wait = t_start + i / rate_hz - time.perf_counter()
                 if wait > 0:
                     time.sleep(wait)
-            res = vo.track(frame.stamp_s, color, depth)
+            res = vo.track(frame.stamp_s, image, second)
             states.append(res.state)
             segments[i] = res.map_segment
             track_ms[i] = res.track_ms

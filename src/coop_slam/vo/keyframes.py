@@ -33,9 +33,11 @@ class KeyframePolicy:
         frames_since_kf: int,
         frames_processed: int,
         mapping_free: bool,
+        close_depth_m: float,
     ) -> bool:
         """Whether the tracked frame becomes a keyframe. ``mapping_free``: local mapping is idle
-        or has few keyframes queued (RGB-D inserts even while mapping is busy)."""
+        or has few keyframes queued (RGB-D and stereo insert even while mapping is busy);
+        ``close_depth_m``: the sensor's depth of reliable points."""
         cfg = self.config
         if frames_since_kf + 1 < cfg.keyframe_min_frames:
             return False
@@ -55,7 +57,7 @@ class KeyframePolicy:
                     n_ref = sum(1 for p in pids if len(obs.get(p, ())) >= min_obs)
                     self._n_ref_cache = (key, n_ref)
         d = feats.depths_m
-        close = (d > 0) & (d <= cfg.close_depth_m)
+        close = (d > 0) & (d <= close_depth_m)
         tracked_mask = np.zeros(len(feats), bool)
         tracked_mask[tracked.kp_idx] = True
         n_tracked_close = int((close & tracked_mask).sum())

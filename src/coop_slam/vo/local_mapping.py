@@ -28,13 +28,13 @@ from .features import FrameFeatures, level_scales
 from .local_ba import BaProblem, BaResult, BaWorker, run_local_ba
 from .map import Map, MapKeyframe
 from .matching import project_points, search_by_projection
-from .sensor import RgbdSensor
+from .sensor import RgbdSensor, StereoSensor
 from .types import EVENT_KEYFRAME_NEW, EVENT_KEYFRAME_REMOVE, EVENT_KEYFRAME_UPDATE, VoEvent
 
 log = logging.getLogger(__name__)
 
 
-def keyframe_features(kf: MapKeyframe, sensor: RgbdSensor) -> FrameFeatures:
+def keyframe_features(kf: MapKeyframe, sensor: RgbdSensor | StereoSensor) -> FrameFeatures:
     """The keyframe's keypoints as FrameFeatures (cached on the keyframe for its KD-tree)."""
     if kf.features is None:
         kf.features = FrameFeatures(
@@ -57,7 +57,7 @@ class LocalMapper:
     def __init__(
         self,
         config: VoConfig,
-        sensor: RgbdSensor,
+        sensor: RgbdSensor | StereoSensor,
         get_map: Callable[[], Map],
         emit: Callable[[VoEvent], None],
     ):
@@ -369,7 +369,7 @@ class LocalMapper:
             fy=self.camera.fy,
             cx=self.camera.cx,
             cy=self.camera.cy,
-            baseline_m=cfg.virtual_baseline_m,
+            baseline_m=self.sensor.baseline_m,
             scale_factor=cfg.scale_factor,
             n_levels=cfg.n_levels,
             iterations=cfg.ba_iterations,
@@ -445,7 +445,7 @@ class LocalMapper:
             return False
         kf = vmap.keyframes[c]
         d = kf.depths_m
-        idx = np.flatnonzero((kf.map_point_ids > 0) & (d > 0) & (d <= cfg.close_depth_m))
+        idx = np.flatnonzero((kf.map_point_ids > 0) & (d > 0) & (d <= self.sensor.close_depth_m))
         if len(idx) == 0:
             return False
         row, other, oidx = vmap.observation_table(kf.map_point_ids[idx])

@@ -6,7 +6,7 @@ operations. Each point also has a small ``{keyframe_id: keypoint_index}`` dict o
 keyframe's ``map_point_ids`` is the inverse relation. ``check_consistency`` verifies that the two
 agree (no dangling references), which local mapping and keyframe culling must preserve.
 
-The map is not thread-safe by itself: the owner (``RgbdOdometry``) holds ``Map.lock`` around every
+The map is not thread-safe by itself: the owner (``VisualOdometry``) holds ``Map.lock`` around every
 access from the tracking thread and the local-mapping thread.
 """
 

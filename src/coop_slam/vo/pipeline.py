@@ -1,7 +1,8 @@
-"""ORB-SLAM-style RGB-D visual odometry of one client (pure core, no rospy): the tracking state
-machine. Each stage is a module of its own.
+"""ORB-SLAM-style visual odometry of one client's RGB-D or stereo camera (pure core, no rospy): the
+tracking state machine. Each stage is a module of its own.
 
-``RgbdOdometry.track(stamp_s, image, depth_m)`` runs, per frame:
+``VisualOdometry.track(stamp_s, image, second)`` (``second``: the depth image of an RGB-D camera,
+the right image of a stereo pair) runs, per frame:
 
 1. the input checks and what the sensor measures per keypoint (:mod:`.sensor`) on grid-bucketed
    ORB features (:mod:`.features`);
@@ -37,7 +38,7 @@ from .keyframes import KeyframePolicy, add_keyframe
 from .local_mapping import LocalMapper
 from .map import Map, MapKeyframe
 from .relocalization import Relocalizer, pnp_against_keyframe
-from .sensor import RgbdSensor
+from .sensor import make_sensor
 from .tracking import LocalMapTracker, Tracked
 from .types import (
     EVENT_NEW_SEGMENT,
@@ -55,13 +56,13 @@ from .types import (
 log = logging.getLogger(__name__)
 
 
-class RgbdOdometry:
+class VisualOdometry:
     """Visual odometry of one RGB-D camera (see module docstring). Not thread-safe: call ``track``
     from one thread; ``drain_events`` may be called from another."""
 
     def __init__(self, config: VoConfig | None = None, camera: CameraModel | None = None):
         if camera is None:
-            raise VoError("RgbdOdometry needs the camera model (intrinsics and image size)")
+            raise VoError("VisualOdometry needs the camera model (intrinsics and image size)")
         self.config = config or VoConfig()
         self.config.validate()
         # The colour camera the keypoints come from (KeyFrame.camera should carry this one).
@@ -69,7 +70,7 @@ class RgbdOdometry:
         self.K = camera.K
         self.scales = level_scales(self.config)
         self._extractor = OrbExtractor(self.config, camera)
-        self._sensor = RgbdSensor(self.config, camera)
+        self._sensor = make_sensor(self.config, camera)
         self._tracker = LocalMapTracker(self.config, self._sensor, self.scales)
         self._relocalizer = Relocalizer(self.config, self._sensor, self._tracker)
         self._keyframe_policy = KeyframePolicy(self.config)
@@ -85,7 +86,7 @@ class RgbdOdometry:
         self._ignored: list[tuple[np.ndarray, float]] = []  # (corners_map (N, 3), until [s])
 
     # --- public API -------------------------------------------------------------------------------
-    def track(self, stamp_s: float, image: np.ndarray, depth_m: np.ndarray) -> TrackResult:
+    def track(self, stamp_s: float, image: np.ndarray, second: np.ndarray) -> TrackResult:
         """Track one frame. Raises VoError on malformed input; a frame it cannot use is a lost
         result."""
         t0 = time.perf_counter()
@@ -96,7 +97,7 @@ class RgbdOdometry:
             stamp_ok = False
         if not stamp_ok:
             raise VoError(f"timestamp {stamp_s!r} is not a finite number of seconds")
-        gray, depth = self._sensor.check_input(image, depth_m)
+        gray, second = self._sensor.check_input(image, second)
         stamp_s = float(stamp_s)
         if self._last_stamp is not None and stamp_s == self._last_stamp:
             raise VoError(f"duplicate timestamp {stamp_s:.6f} s: frame ignored")
@@ -105,12 +106,16 @@ class RgbdOdometry:
                 f"timestamp {stamp_s:.6f} s is not after the previous "
                 f"{self._last_stamp:.6f} s: map reset"
             )
-            log.warning(msg)
             self._emit(VoEvent(EVENT_WARNING, self.map_segment, message=msg))
             self.reset()
+        self._frame_dt_s = stamp_s - self._last_stamp if self._last_stamp is not None else 0.0
         self._last_stamp = stamp_s
         self.frames_processed += 1
-        feats = self._sensor.features(self._extractor.extract(gray), depth)
+        feats = self._sensor.features(self._extractor.extract(gray), gray, second)
+        warning = getattr(self._sensor, "warning", None)
+        if warning:
+            self._sensor.warning = None
+            self._emit(VoEvent(EVENT_WARNING, self.map_segment, message=warning))
         feats = self._drop_ignored(stamp_s, feats)
         if self._state == STATE_INITIALIZING:
             result = self._initialize(stamp_s, feats)
@@ -304,6 +309,7 @@ class RgbdOdometry:
             self._frames_since_kf,
             self.frames_processed,
             self._mapper.idle or self._mapper.pending < 3,
+            self._sensor.close_depth_m,
         ):
             kf_id = self._insert_keyframe(
                 stamp_s, feats, tracked.T_map_cam, tracked.kp_idx, tracked.point_ids
@@ -332,11 +338,7 @@ class RgbdOdometry:
             )
         self._lost_count += 1
         if self._lost_count > cfg.max_lost_frames:
-            log.warning(
-                "lost for %d frames: starting map segment %d",
-                self._lost_count,
-                self.map_segment + 1,
-            )
+            # reset() announces the new segment (EVENT_NEW_SEGMENT); the node logs it.
             self.reset()
             result = self._initialize(stamp_s, feats, STATE_NEW_SEGMENT)
             if not result.ok:
@@ -353,13 +355,15 @@ class RgbdOdometry:
             self._ref_kf_id = tracked.ref_kf_id
 
     def _plausible(self, T_map_cam: np.ndarray) -> bool:
-        """Reject jumps no camera makes between frames (a wrong PnP or a bad local minimum)."""
+        """Reject jumps no camera makes since the previous frame (a wrong PnP or a bad local
+        minimum): faster than ``max_speed_m_s`` or ``max_turn_rate_deg_s``."""
         if self._state in (STATE_LOST, STATE_INITIALIZING):
             return True
         step = invert(self._T_map_cam) @ T_map_cam
+        dt = self._frame_dt_s
         return (
-            np.linalg.norm(step[:3, 3]) <= self.config.max_frame_motion_m
-            and rotation_angle_deg(step[:3, :3]) <= self.config.max_frame_rotation_deg
+            np.linalg.norm(step[:3, 3]) <= self.config.max_speed_m_s * dt
+            and rotation_angle_deg(step[:3, :3]) <= self.config.max_turn_rate_deg_s * dt
         )
 
     # --- keyframes --------------------------------------------------------------------------------

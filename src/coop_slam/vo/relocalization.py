@@ -9,17 +9,18 @@ import numpy as np
 
 from ..descriptors import match_ratio
 from ..geometry import invert
+from ..registration.camera import RegistrationError
 from ..registration.pnp import pnp_ransac
 from .config import VoConfig
 from .features import FrameFeatures, inv_sigma2
 from .map import Map
 from .pose_opt import optimize_pose
-from .sensor import RgbdSensor
+from .sensor import RgbdSensor, StereoSensor
 from .tracking import LocalMapTracker, Tracked
 
 
 def pnp_against_keyframe(
-    vmap: Map, feats: FrameFeatures, kf_id: int, config: VoConfig, sensor: RgbdSensor
+    vmap: Map, feats: FrameFeatures, kf_id: int, config: VoConfig, sensor: RgbdSensor | StereoSensor
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
     """(T_map_cam, matched map point ids) of the frame from a keyframe's map points, or
     (None, None)."""
@@ -44,17 +45,20 @@ def pnp_against_keyframe(
     obj = xyz[m[:, 1]].astype(np.float64)
     img = feats.uv_px[m[:, 0]].astype(np.float64)
     K = sensor.camera.K
-    res = pnp_ransac(
-        obj,
-        img,
-        K,
-        reprojection_px=cfg.pnp_reprojection_px,
-        max_iterations=cfg.pnp_iterations,
-        confidence=0.99,
-        method="epnp",
-        min_inliers=cfg.pnp_min_inliers,
-        refine=False,
-    )
+    try:
+        res = pnp_ransac(
+            obj,
+            img,
+            K,
+            reprojection_px=cfg.pnp_reprojection_px,
+            max_iterations=cfg.pnp_iterations,
+            confidence=0.99,
+            method="epnp",
+            min_inliers=cfg.pnp_min_inliers,
+            refine=False,
+        )
+    except RegistrationError:  # degenerate points: no pose, as RANSAC finding none
+        return None, None
     if res.T_camB_camA is None:
         return None, None
     inl = np.flatnonzero(res.inliers)
@@ -77,7 +81,9 @@ class Relocalizer:
     """Tries the robot's ``reloc_keyframes`` newest keyframes in turn,
     ``reloc_keyframes_per_frame`` per lost frame."""
 
-    def __init__(self, config: VoConfig, sensor: RgbdSensor, tracker: LocalMapTracker):
+    def __init__(
+        self, config: VoConfig, sensor: RgbdSensor | StereoSensor, tracker: LocalMapTracker
+    ):
         self.config = config
         self.sensor = sensor
         self.tracker = tracker

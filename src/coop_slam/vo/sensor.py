@@ -16,48 +16,83 @@ import numpy as np
 
 from ..datasets.base import CameraModel
 from .config import VoConfig
-from .features import FrameFeatures, OrbKeypoints
+from .features import FrameFeatures, OrbExtractor, OrbKeypoints, level_scales
+from .stereo_matching import level_images, match_stereo
 from .types import VoError
+
+
+def gray_image(image, camera: CameraModel, what: str = "image") -> np.ndarray:
+    """The grey uint8 image of a grey, BGR or BGRA frame of the camera's size; VoError naming
+    what is wrong otherwise."""
+    if not isinstance(image, np.ndarray) or image.size == 0:
+        raise VoError(f"empty {what}: expected a BGR or grey uint8 array")
+    if image.dtype != np.uint8 or image.ndim not in (2, 3):
+        raise VoError(
+            f"{what} must be uint8 grey or BGR, got dtype {image.dtype} shape {image.shape}"
+        )
+    if image.shape[:2] != (camera.height, camera.width):
+        raise VoError(
+            f"{what} is {image.shape[1]}x{image.shape[0]} "
+            f"but the camera model is {camera.width}x{camera.height}"
+        )
+    if image.ndim == 2:
+        return image
+    if image.shape[2] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.shape[2] == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
+    if image.shape[2] == 1:
+        return image[:, :, 0]
+    raise VoError(f"{what} has {image.shape[2]} channels, expected 1, 3 or 4")
+
+
+def make_sensor(config: VoConfig, camera: CameraModel) -> "RgbdSensor | StereoSensor":
+    """The sensor model of ``camera.sensor``."""
+    if camera.sensor == "rgbd":
+        return RgbdSensor(config, camera)
+    if camera.sensor == "stereo":
+        return StereoSensor(config, camera)
+    raise VoError(f"the odometry has no model of a '{camera.sensor}' camera (rgbd, stereo)")
+
+
+def _frame_features(kps: OrbKeypoints, depth, u_right, camera: CameraModel) -> FrameFeatures:
+    z = np.where(depth > 0, depth, np.nan).astype(np.float64)
+    uv = kps.uv_px
+    points_cam = np.stack(
+        [(uv[:, 0] - camera.cx) / camera.fx * z, (uv[:, 1] - camera.cy) / camera.fy * z, z], axis=1
+    )
+    return FrameFeatures(
+        uv_px=uv,
+        size_px=kps.size_px,
+        angle_deg=kps.angle_deg,
+        octaves=kps.octaves,
+        descriptors=kps.descriptors,
+        depths_m=depth,
+        points_cam=points_cam,
+        u_right_px=u_right,
+    )
 
 
 class RgbdSensor:
     """A colour image with a depth image (registered to it, or with the depth camera's own
-    intrinsics and offset, see ``vo.depth_*``)."""
+    intrinsics and offset, see ``vo.depth_*``). Its right-image coordinate belongs to a virtual
+    stereo pair of ``vo.virtual_baseline_m``."""
 
     kind = "rgbd"
 
     def __init__(self, config: VoConfig, camera: CameraModel):
         self.config = config
         self.camera = camera
-        self.bf = camera.fx * config.virtual_baseline_m  # [px * m]
+        self.baseline_m = config.virtual_baseline_m
+        self.bf = camera.fx * self.baseline_m  # [px * m]
+        self.close_depth_m = config.close_depth_m
 
     # --- input ------------------------------------------------------------------------------------
     def check_input(self, image, depth_m) -> tuple[np.ndarray, np.ndarray]:
         """(grey uint8 image, depth [m] float) of one frame; raises VoError naming what is wrong
         with the input."""
         cam = self.camera
-        if not isinstance(image, np.ndarray) or image.size == 0:
-            raise VoError("empty image: expected a BGR or grey uint8 array")
-        if image.dtype != np.uint8 or image.ndim not in (2, 3):
-            raise VoError(
-                f"image must be uint8 grey or BGR, got dtype {image.dtype} shape {image.shape}"
-            )
-        if image.shape[:2] != (cam.height, cam.width):
-            raise VoError(
-                f"image is {image.shape[1]}x{image.shape[0]} "
-                f"but the camera model is {cam.width}x{cam.height}"
-            )
-        if image.ndim == 3:
-            if image.shape[2] == 3:
-                gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-            elif image.shape[2] == 4:
-                gray = cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
-            elif image.shape[2] == 1:
-                gray = image[:, :, 0]
-            else:
-                raise VoError(f"image has {image.shape[2]} channels, expected 1, 3 or 4")
-        else:
-            gray = image
+        gray = gray_image(image, cam)
         if depth_m is None or not isinstance(depth_m, np.ndarray) or depth_m.size == 0:
             raise VoError("no depth image: RGB-D odometry needs a depth image in metres")
         if depth_m.ndim != 2 or depth_m.shape != gray.shape:
@@ -71,10 +106,10 @@ class RgbdSensor:
         return np.ascontiguousarray(gray), depth
 
     # --- measurements -----------------------------------------------------------------------------
-    def features(self, kps: OrbKeypoints, depth_m: np.ndarray | None) -> FrameFeatures:
+    def features(self, kps: OrbKeypoints, gray: np.ndarray, depth_m) -> FrameFeatures:
         """The frame's keypoints with their depth (outside [min_depth_m, max_depth_m]: none),
         3D point and right-image coordinate."""
-        cfg, cam = self.config, self.camera
+        cfg = self.config
         uv = kps.uv_px
         n = len(uv)
         depth = np.zeros(n, np.float32)
@@ -82,19 +117,7 @@ class RgbdSensor:
             depth = self._lookup_depth(uv, depth_m)
             depth[~np.isfinite(depth) | (depth < cfg.min_depth_m) | (depth > cfg.max_depth_m)] = 0.0
         z = np.where(depth > 0, depth, np.nan).astype(np.float64)
-        points_cam = np.stack(
-            [(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z], axis=1
-        )
-        return FrameFeatures(
-            uv_px=uv,
-            size_px=kps.size_px,
-            angle_deg=kps.angle_deg,
-            octaves=kps.octaves,
-            descriptors=kps.descriptors,
-            depths_m=depth,
-            points_cam=points_cam,
-            u_right_px=self.u_right(uv[:, 0], z),
-        )
+        return _frame_features(kps, depth, self.u_right(uv[:, 0], z), self.camera)
 
     def u_right(self, u_px: np.ndarray, depths_m: np.ndarray) -> np.ndarray:
         """Right-image u [px] of keypoints at u_px with depths (0 or NaN = none); NaN where there
@@ -152,3 +175,95 @@ class RgbdSensor:
             )  # keep iterating from the last guess where there was a hole
         settled = (z_read > 0) & (np.abs(z - z_prev) <= 0.02 * z)
         return np.where(settled, z, 0.0).astype(np.float32)
+
+
+class StereoSensor:
+    """A rectified stereo pair (left image = the camera model's, right image on the same rows,
+    ``camera.baseline_m`` to the right). The right-image coordinate is measured by matching the
+    left keypoints in the right image (:mod:`.stereo_matching`); depth = fx * baseline /
+    disparity, up to ``stereo_close_baselines`` baselines."""
+
+    kind = "stereo"
+
+    def __init__(self, config: VoConfig, camera: CameraModel):
+        if camera.baseline_m <= 0:
+            raise VoError(f"a stereo camera needs a baseline > 0, got {camera.baseline_m} m")
+        self.config = config
+        self.camera = camera
+        self.baseline_m = camera.baseline_m
+        self.bf = camera.fx * self.baseline_m
+        self.close_depth_m = config.stereo_close_baselines * self.baseline_m
+        self._scales = level_scales(config)
+        self._right_extractor = OrbExtractor(config, camera)
+        self.warning: str | None = None  # for the odometry to pass on (then cleared)
+        self._frames_since_check = None  # frames since the last rectification check
+
+    def check_input(self, image, right) -> tuple[np.ndarray, np.ndarray]:
+        """(left grey, right grey) uint8 of one pair; raises VoError naming what is wrong."""
+        left = gray_image(image, self.camera, "left image")
+        if right is None:
+            raise VoError("no right image: stereo odometry needs the rectified right image")
+        return left, np.ascontiguousarray(gray_image(right, self.camera, "right image"))
+
+    def features(self, kps: OrbKeypoints, gray: np.ndarray, right: np.ndarray) -> FrameFeatures:
+        """The left keypoints with their measured right-image coordinate and depth (none beyond
+        ``close_depth_m``, nor without a match)."""
+        right_kps = self._right_extractor.extract(right)
+        u_right = match_stereo(
+            kps,
+            right_kps,
+            level_images(gray, self._scales),
+            level_images(right, self._scales),
+            self._scales,
+            self.camera.fx,
+            self.config,
+        )
+        self._check_rectified(kps, right_kps, np.isfinite(u_right).mean() if len(kps) else 1.0)
+        disparity = kps.uv_px[:, 0] - u_right
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth = self.bf / disparity
+        close = np.isfinite(depth) & (depth > 0) & (depth <= self.close_depth_m)
+        depth = np.where(close, depth, 0.0).astype(np.float32)
+        return _frame_features(kps, depth, np.where(close, u_right, np.nan), self.camera)
+
+    def _check_rectified(self, left: OrbKeypoints, right: OrbKeypoints, matched: float) -> None:
+        """On the first pair, and when few left keypoints find a right match (at most once per 300
+        frames), say whether the pair's rows disagree (an unrectified pair) or left and right are
+        swapped."""
+        if self._frames_since_check is not None:
+            self._frames_since_check += 1
+            if self._frames_since_check < 300 or matched >= 0.2:
+                return
+        if len(left) < 50 or len(right) < 50:
+            return
+        self._frames_since_check = 0
+        pairs = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(
+            left.descriptors, right.descriptors
+        )
+        # Sure matches of precise (level 0) keypoints; repeated texture still leaves a few wrong.
+        good = [
+            m
+            for m in pairs
+            if m.distance < 30 and left.octaves[m.queryIdx] == 0 and right.octaves[m.trainIdx] == 0
+        ]
+        if len(good) < 20:
+            return
+        dv = np.array([left.uv_px[m.queryIdx, 1] - right.uv_px[m.trainIdx, 1] for m in good])
+        du = np.array([left.uv_px[m.queryIdx, 0] - right.uv_px[m.trainIdx, 0] for m in good])
+        if np.median(np.abs(dv)) > 1.0:
+            self.warning = (
+                f"only {100 * matched:.0f} % of the left keypoints found a stereo match: the "
+                f"pair's rows differ by {np.median(np.abs(dv)):.1f} px (median of {len(good)} "
+                "matches); is the pair rectified (image_rect topics)?"
+            )
+        elif np.median(du) < 0:
+            self.warning = (
+                f"only {100 * matched:.0f} % of the left keypoints found a stereo match: points "
+                "appear farther right in the right image; are left and right swapped?"
+            )
+
+    def u_right(self, u_px: np.ndarray, depths_m: np.ndarray) -> np.ndarray:
+        """Right-image u [px] of keypoints with depths (0 or NaN = none): u - fx b / z."""
+        d = np.asarray(depths_m)
+        ok = d > 0
+        return np.where(ok, u_px - self.bf / np.where(ok, d, 1.0), np.nan)

@@ -1,0 +1,147 @@
+"""Stereo cameras in the odometry: matching a rectified pair against rendered ground-truth
+disparity, tracking a rendered stereo sequence, bad input, and the real stereo clips (EuRoC static,
+KITTI straight) when ../shared is present."""
+
+import dataclasses
+import os
+
+import numpy as np
+import pytest
+
+import helpers_vo
+from coop_slam.datasets import DatasetError
+from coop_slam.geometry import path_length, se3
+from coop_slam.vo.config import VoConfig
+from coop_slam.vo.evaluate import ate_rmse, frame_ate, run_sequence
+from coop_slam.vo.features import OrbExtractor
+from coop_slam.vo.pipeline import VisualOdometry
+from coop_slam.vo.sensor import StereoSensor
+from coop_slam.vo.types import VoError
+from helpers import REPO
+
+SHARED = os.path.normpath(os.path.join(REPO, "..", "shared", "data"))
+EUROC = os.path.join(SHARED, "euroc_v101_static95")
+KITTI = os.path.join(SHARED, "kitti_clip_straight", "sequences", "00")
+BASELINE_M = 0.12
+STEREO = dataclasses.replace(helpers_vo.CAMERA, sensor="stereo", baseline_m=BASELINE_M)
+
+
+def _pair(planes, T_world_cam):
+    """Rendered (left BGR, right BGR, left depth [m]) of a rectified pair at T_world_cam."""
+    left, depth = helpers_vo.render(planes, T_world_cam)
+    right, _ = helpers_vo.render(planes, T_world_cam @ se3(t=[BASELINE_M, 0.0, 0.0]))
+    return left, right, depth
+
+
+def test_stereo_matching_finds_the_rendered_disparity():
+    planes = helpers_vo.room(np.random.default_rng(1))
+    left, right, depth = _pair(planes, se3(t=[0.1, -0.1, 0.3]))
+    cfg = VoConfig()
+    sensor = StereoSensor(cfg, STEREO)
+    gray, right_gray = sensor.check_input(left, right)
+    feats = sensor.features(OrbExtractor(cfg, STEREO).extract(gray), gray, right_gray)
+    u, v = np.rint(feats.uv_px).astype(int).T
+    z_true = depth[v, u]
+    usable = (z_true > 0) & (z_true < sensor.close_depth_m)
+    has = feats.depths_m > 0
+    assert has[usable].mean() > 0.6, "most keypoints of the room should find their right match"
+    d_est = STEREO.fx * BASELINE_M / feats.depths_m[has & usable]
+    d_true = STEREO.fx * BASELINE_M / z_true[has & usable]
+    err = np.abs(d_est - d_true)
+    assert np.median(err) < 0.15 and np.percentile(err, 95) < 0.6, (np.median(err), err.max())
+    # The measured right-image coordinate is the one of the depth: u_right = u - fx b / z.
+    np.testing.assert_allclose(
+        feats.u_right_px[has], feats.uv_px[has, 0] - STEREO.fx * BASELINE_M / feats.depths_m[has]
+    )
+
+
+def test_stereo_odometry_tracks_a_rendered_sequence():
+    planes = helpers_vo.room(np.random.default_rng(0))
+    gt = helpers_vo.trajectory(40)
+    cfg = VoConfig(threaded=False)
+    poses = []
+    with VisualOdometry(cfg, STEREO) as vo:
+        for k, T in enumerate(gt):
+            left, right, _ = _pair(planes, T)
+            res = vo.track(100.0 + k / 30.0, left, right)
+            assert res.ok, (k, res.message)
+            poses.append(res.T_map_cam)
+    ate = ate_rmse(np.arange(len(gt)), np.array(poses), gt)
+    assert ate < 0.005, f"stereo ATE {100 * ate:.2f} cm on a 40-frame room sequence"
+
+
+def test_bad_stereo_input_is_named():
+    cfg = VoConfig(threaded=False)
+    planes = helpers_vo.room(np.random.default_rng(0))
+    left, right, _ = _pair(planes, np.eye(4))
+    with VisualOdometry(cfg, STEREO) as vo:
+        with pytest.raises(VoError, match="no right image"):
+            vo.track(1.0, left, None)
+        with pytest.raises(VoError, match="right image is 320x240"):
+            vo.track(1.0, left, right[::2, ::2])
+        assert vo.track(1.0, left, right).ok  # the node keeps going after bad frames
+    with pytest.raises(DatasetError, match="baseline"):
+        dataclasses.replace(STEREO, baseline_m=0.0)
+    with pytest.raises(DatasetError, match="baseline"):
+        dataclasses.replace(STEREO, baseline_m=-0.1)
+
+
+def test_an_unrectified_pair_is_reported():
+    """Rows of the right image 6 px off: few matches survive the row test, and the odometry says
+    why instead of silently tracking without depth."""
+    from coop_slam.vo.types import EVENT_WARNING
+
+    planes = helpers_vo.room(np.random.default_rng(0))
+    left, right, _ = _pair(planes, np.eye(4))
+    shifted = np.roll(right, 6, axis=0)
+    with VisualOdometry(VoConfig(threaded=False), STEREO) as vo:
+        vo.track(1.0, left, shifted)
+        warnings = [e.message for e in vo.drain_events() if e.kind == EVENT_WARNING]
+    assert any("rectified" in w for w in warnings), warnings
+
+
+@pytest.mark.skipif(not os.path.isdir(EUROC), reason=f"EuRoC clip not found at {EUROC}")
+def test_euroc_reader_rectifies_rows_onto_rows_and_a_still_camera_stays_still():
+    import cv2
+
+    from coop_slam.datasets import read_euroc
+
+    seq = read_euroc(EUROC)
+    assert seq.camera.sensor == "stereo" and 0.10 < seq.camera.baseline_m < 0.12
+
+    def row_differences(left, right):
+        """|v_left - v_right| [px] of sure ORB matches (level 0, distance < 30, disparity > 0);
+        repeated texture still leaves a few wrong ones."""
+        orb = cv2.ORB_create(2000)
+        kl, dl = orb.detectAndCompute(left, None)
+        kr, dr = orb.detectAndCompute(right, None)
+        matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr)
+        good = [
+            (kl[m.queryIdx].pt, kr[m.trainIdx].pt)
+            for m in matches
+            if m.distance < 30 and kl[m.queryIdx].octave == 0 and kr[m.trainIdx].octave == 0
+        ]
+        return np.array([abs(a[1] - b[1]) for a, b in good if 0 < a[0] - b[0] < 120])
+
+    dv = row_differences(*seq.load_frame(seq.frames[0]))
+    assert len(dv) > 50 and np.median(dv) < 0.5 and np.mean(dv < 1.0) > 0.6, dv
+    raw = [
+        cv2.imread(p, cv2.IMREAD_GRAYSCALE)
+        for p in (seq.frames[0].color_path, seq.frames[0].right_path)
+    ]
+    assert np.median(row_differences(*raw)) > 5.0  # what the reader's rectification removed
+    run = run_sequence(seq, VoConfig(threaded=False))
+    assert run.ok.all() and run.segments.max() == 0
+    pos = run.poses_se3[:, :3, 3]
+    assert np.linalg.norm(pos - pos[0], axis=1).max() < 0.01  # the drone stood still
+
+
+@pytest.mark.skipif(not os.path.isdir(KITTI), reason=f"KITTI clip not found at {KITTI}")
+def test_kitti_clip_as_one_stereo_robot():
+    from coop_slam.datasets import read_kitti
+
+    seq = read_kitti(KITTI)
+    run = run_sequence(seq, VoConfig(threaded=False))
+    assert run.ok.all(), "never lost"
+    length = path_length(seq.frame_poses())
+    assert frame_ate(run, seq) < 0.01 * length, f"ATE over 1 % of {length:.0f} m"
