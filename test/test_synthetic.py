@@ -362,3 +362,54 @@ def test_world_cache_key_covers_the_routes():
     assert key == generate_mod.params_hash(generate_mod._params(sc, True, cam))
     sc.trajectories[3].poses_se3[:, 0, 3] += 0.01  # robot 4 drives 1 cm further east
     assert key != generate_mod.params_hash(generate_mod._params(sc, True, cam))
+
+
+def test_stereo_world_renders_the_right_camera_of_a_rectified_pair(tmp_path):
+    """With a baseline, each robot folder also holds the right camera's images, 0.12 m to the
+    right of the left one: a left pixel's depth z reappears fx * b / z pixels to the left, on the
+    same row. Played as stereo it has what that needs; a plain world refuses to be."""
+    import cv2
+
+    from coop_slam.playback import PlaybackError, RobotStream, _with_sensor
+
+    folder = generate_mod.generate(
+        "rendezvous",
+        seed=0,
+        duration_s=1.0,
+        rate_hz=5.0,
+        noise=False,
+        out_dir=str(tmp_path / "world"),
+        camera=SMALL_CAMERA,
+        overlap_config=FAST_OVERLAP,
+        stereo_baseline_m=0.12,
+    )
+    seq = read_synthetic(folder).sequences[1]
+    assert seq.camera.baseline_m == 0.12 and seq.frames[0].right_path is not None
+    frame = seq.frames[2]
+    left, right = seq.load_color(frame), seq.load_right(frame)
+    depth = seq.load_depth_m(frame)
+    gray_l = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY).astype(float)
+    gray_r = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY).astype(float)
+    v, u = np.mgrid[0 : gray_l.shape[0], 0 : gray_l.shape[1]].astype(np.float32)
+    with np.errstate(divide="ignore"):
+        disparity = np.where(depth > 0, SMALL_CAMERA.fx * 0.12 / depth, 0).astype(np.float32)
+    warped = cv2.remap(gray_r, u - disparity, v, cv2.INTER_LINEAR)
+    seen = (depth > 0) & (u - disparity > 2)
+    shifted = cv2.remap(gray_r, u, v, cv2.INTER_LINEAR)  # as if the pair had no baseline
+    assert np.abs(warped - gray_l)[seen].mean() < 0.5 * np.abs(shifted - gray_l)[seen].mean()
+    stream = RobotStream(1, seq)
+    assert _with_sensor(stream, "stereo").sequence.camera.sensor == "stereo"
+    plain = read_synthetic(
+        generate_mod.generate(
+            "rendezvous",
+            seed=0,
+            duration_s=1.0,
+            rate_hz=5.0,
+            noise=False,
+            out_dir=str(tmp_path / "plain"),
+            camera=SMALL_CAMERA,
+            overlap_config=FAST_OVERLAP,
+        )
+    )
+    with pytest.raises(PlaybackError, match="no right images"):
+        _with_sensor(RobotStream(1, plain.sequences[1]), "stereo")

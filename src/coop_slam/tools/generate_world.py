@@ -1,4 +1,5 @@
-"""Generate (or fetch from the cache) a synthetic multi-robot RGB-D world and print its folder."""
+"""Generate (or fetch from the cache) a synthetic multi-robot RGB-D (and stereo) world and print
+its folder."""
 
 import argparse
 import os
@@ -19,6 +20,12 @@ def main(argv=None) -> int:
     parser.add_argument("--duration", type=float, default=None, help="seconds (scenario default)")
     parser.add_argument("--rate", type=float, default=15.0, help="frame rate [Hz]")
     parser.add_argument("--no-noise", action="store_true", help="ideal images and exact depth")
+    parser.add_argument(
+        "--stereo-baseline",
+        type=float,
+        default=0.0,
+        help="also render each robot's right camera this far to the right [m] (0: none)",
+    )
     parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     parser.add_argument(
         "--out",
@@ -48,6 +55,7 @@ def main(argv=None) -> int:
             out_dir=args.out,
             progress=progress,
             workers=args.workers,
+            stereo_baseline_m=args.stereo_baseline,
         )
     except CoopSlamError as exc:
         print(f"generate_world: error: {exc}", file=sys.stderr)

@@ -34,6 +34,14 @@ def _num(v, digits: int = 1) -> str:
     return "–" if v is None else f"{v:.{digits}f}"
 
 
+def _dataset_name(folder: str) -> str:
+    """A dataset folder as a reader would know it (KITTI: the clip, not ``sequences/00``)."""
+    parts = os.path.normpath(folder).split(os.sep)
+    if len(parts) >= 3 and parts[-2] == "sequences":
+        return os.path.join(parts[-3], "sequences", parts[-1])
+    return parts[-1]
+
+
 def describe(info: dict) -> str:
     """How the run was made, as the ``scripts/demo`` options that make it again."""
     if info.get("scenario"):
@@ -43,11 +51,13 @@ def describe(info: dict) -> str:
         if info.get("seed"):
             what += f" --seed {info['seed']}"
     elif info.get("dataset"):
-        what = f"--dataset {os.path.basename(info['dataset'])}"
+        what = f"--dataset {_dataset_name(info['dataset'])}"
         if info.get("split"):
             what += f" --split {info['split']}"
     else:
         what = f"--bag {os.path.basename(info.get('bag') or '?')}"
+    if info.get("sensors"):
+        what += f" --sensors {info['sensors']}"
     return f"`{what}`"
 
 
@@ -108,7 +118,8 @@ def main(argv=None) -> int:
         "runs' `report.json` (lock-step playback unless the run says otherwise). Errors are "
         "against ground truth; `–` = not measured. Robot ATE: each robot's keyframes aligned on "
         "their own; pooled: those pooled (what a perfect placement of the robots' maps would "
-        "score); team ATE: all robots in `world` with one alignment.\n"
+        "score); team ATE: all robots in `world` with one alignment. A commit ending in `+` "
+        "ran with changes on top of it that were not committed yet.\n"
     )
     print(table(args.results))
     return 0

@@ -12,8 +12,9 @@
    with known disparity that doubled the median error;
 3. matches whose best patch cost exceeds 1.5 x 1.4 x the median cost are outliers.
 
-Vectorised: OpenCV's brute-force matcher with a candidate mask does step 1; step 2 gathers every
-patch of one pyramid level at once.
+Vectorised: step 1 lists the candidate pairs from the right keypoints sorted by row (a few dozen
+per left keypoint rather than all of them) and takes descriptor distances of those pairs only;
+step 2 gathers every patch of one pyramid level at once.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..descriptors import hamming_rows
 from .config import VoConfig
 from .features import OrbKeypoints
 
@@ -49,29 +51,7 @@ def match_stereo(
     u_right = np.full(n, np.nan)
     if n == 0 or len(right) == 0:
         return u_right
-    uL, vL = left.uv_px[:, 0], left.uv_px[:, 1]
-    uR, vR = right.uv_px[:, 0], right.uv_px[:, 1]
-    oL, oR = left.octaves.astype(int), right.octaves.astype(int)
-    row_tol = config.stereo_row_tolerance_px * scales[oR]
-    disparity = uL[:, None] - uR[None, :]
-    mask = (
-        (np.abs(vL[:, None] - vR[None, :]) <= row_tol[None, :])
-        & (np.abs(oL[:, None] - oR[None, :]) <= 1)
-        & (disparity >= 0)
-        & (disparity < fx)
-    )
-    if not mask.any():
-        return u_right
-    matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=False)
-    matches = matcher.match(left.descriptors, right.descriptors, mask.astype(np.uint8))
-    pairs = np.array(
-        [
-            (m.queryIdx, m.trainIdx)
-            for m in matches
-            if m.distance < config.stereo_max_descriptor_distance and mask[m.queryIdx, m.trainIdx]
-        ],
-        dtype=np.int64,
-    ).reshape(-1, 2)
+    pairs = _candidate_matches(left, right, scales, fx, config)
     if len(pairs) == 0:
         return u_right
     refined, cost = _refine(pairs, left, right, left_levels, right_levels, scales, config)
@@ -81,11 +61,48 @@ def match_stereo(
     # Patch-cost outliers (ORB-SLAM2: 1.5 x 1.4 x the median).
     ok &= cost <= 1.5 * 1.4 * np.median(cost[ok])
     i = pairs[ok, 0]
+    uL = left.uv_px[:, 0]
     d = uL[i] - refined[ok]
     good = (d >= 0) & (d < fx)
     d = np.maximum(d[good], 0.01)  # a zero disparity is a point at infinity: keep it finite
     u_right[i[good]] = uL[i[good]] - d
     return u_right
+
+
+def _candidate_matches(
+    left: OrbKeypoints, right: OrbKeypoints, scales: np.ndarray, fx: float, config: VoConfig
+) -> np.ndarray:
+    """(K, 2) (left, right) index pairs: each left keypoint with its best right candidate (step 1
+    of the module docstring)."""
+    uR, vR, oR = right.uv_px[:, 0], right.uv_px[:, 1], right.octaves.astype(int)
+    order = np.argsort(vR, kind="stable")
+    v_sorted = vR[order]
+    band = config.stereo_row_tolerance_px * scales[-1]  # the widest any right keypoint allows
+    lo = np.searchsorted(v_sorted, left.uv_px[:, 1] - band, side="left")
+    hi = np.searchsorted(v_sorted, left.uv_px[:, 1] + band, side="right")
+    counts = hi - lo
+    if counts.sum() == 0:
+        return np.zeros((0, 2), np.int64)
+    li = np.repeat(np.arange(len(left)), counts)
+    starts = np.repeat(lo - np.r_[0, np.cumsum(counts)[:-1]], counts)
+    ri = order[np.arange(counts.sum()) + starts]
+    disparity = left.uv_px[li, 0] - uR[ri]
+    ok = (
+        (np.abs(left.uv_px[li, 1] - vR[ri]) <= config.stereo_row_tolerance_px * scales[oR[ri]])
+        & (np.abs(left.octaves[li].astype(int) - oR[ri]) <= 1)
+        & (disparity >= 0)
+        & (disparity < fx)
+    )
+    li, ri = li[ok], ri[ok]
+    if len(li) == 0:
+        return np.zeros((0, 2), np.int64)
+    dist = hamming_rows(left.descriptors[li], right.descriptors[ri])
+    # The best candidate of each left keypoint (ties: the first right keypoint by row).
+    best = np.lexsort((dist, li))
+    first = np.r_[True, li[best][1:] != li[best][:-1]]
+    best = best[first]
+    keep = dist[best] < config.stereo_max_descriptor_distance
+    return np.column_stack([li[best][keep], ri[best][keep]]).astype(np.int64)
 
 
 def _refine(pairs, left, right, left_levels, right_levels, scales, config):
@@ -117,12 +134,12 @@ def _refine(pairs, left, right, left_levels, right_levels, scales, config):
         if len(sel) == 0:
             continue
         rows = vl[:, None, None] + offsets[None, :, None]  # (n, P, 1)
-        patch_l = img_l[rows, ul[:, None, None] + offsets[None, None, :]].astype(float)  # (n, P, P)
+        patch_l = img_l[rows, ul[:, None, None] + offsets[None, None, :]].astype(np.float32)
         patch_l -= patch_l.mean(axis=(1, 2), keepdims=True)
         cols = ur0[:, None, None, None] + shifts[None, :, None, None] + offsets[None, None, None, :]
-        patch_r = img_r[rows[:, None, :, :], cols].astype(float)  # (n, S, P, P)
+        patch_r = img_r[rows[:, None, :, :], cols].astype(np.float32)  # (n, S, P, P)
         patch_r -= patch_r.mean(axis=(2, 3), keepdims=True)
-        costs = ((patch_r - patch_l[:, None]) ** 2).sum(axis=(2, 3))  # (n, S)
+        costs = ((patch_r - patch_l[:, None]) ** 2).sum(axis=(2, 3), dtype=np.float64)  # (n, S)
         best = np.argmin(costs, axis=1)
         interior = (best > 0) & (best < len(shifts) - 1)
         k = np.flatnonzero(interior)
