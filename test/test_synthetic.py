@@ -372,18 +372,22 @@ def test_stereo_world_renders_the_right_camera_of_a_rectified_pair(tmp_path):
 
     from coop_slam.playback import PlaybackError, RobotStream, _with_sensor
 
-    folder = generate_mod.generate(
-        "rendezvous",
-        seed=0,
-        duration_s=1.0,
-        rate_hz=5.0,
-        noise=False,
-        out_dir=str(tmp_path / "world"),
-        camera=SMALL_CAMERA,
-        overlap_config=FAST_OVERLAP,
-        stereo_baseline_m=0.12,
-    )
-    seq = read_synthetic(folder).sequences[1]
+    def small_world(name, **kwargs):
+        return read_synthetic(
+            generate_mod.generate(
+                "rendezvous",
+                seed=0,
+                duration_s=1.0,
+                rate_hz=5.0,
+                noise=False,
+                out_dir=str(tmp_path / name),
+                camera=SMALL_CAMERA,
+                overlap_config=FAST_OVERLAP,
+                **kwargs,
+            )
+        )
+
+    seq = small_world("stereo", stereo_baseline_m=0.12).sequences[1]
     assert seq.camera.baseline_m == 0.12 and seq.frames[0].right_path is not None
     frame = seq.frames[2]
     left, right = seq.load_color(frame), seq.load_right(frame)
@@ -399,17 +403,6 @@ def test_stereo_world_renders_the_right_camera_of_a_rectified_pair(tmp_path):
     assert np.abs(warped - gray_l)[seen].mean() < 0.5 * np.abs(shifted - gray_l)[seen].mean()
     stream = RobotStream(1, seq)
     assert _with_sensor(stream, "stereo").sequence.camera.sensor == "stereo"
-    plain = read_synthetic(
-        generate_mod.generate(
-            "rendezvous",
-            seed=0,
-            duration_s=1.0,
-            rate_hz=5.0,
-            noise=False,
-            out_dir=str(tmp_path / "plain"),
-            camera=SMALL_CAMERA,
-            overlap_config=FAST_OVERLAP,
-        )
-    )
+    plain = small_world("plain")
     with pytest.raises(PlaybackError, match="no right images"):
         _with_sensor(RobotStream(1, plain.sequences[1]), "stereo")
