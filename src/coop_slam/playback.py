@@ -62,11 +62,27 @@ class Source:
     meta: dict = field(default_factory=dict)  # synthetic world metadata (overlap events, ...)
 
 
-def image_topic(robot_id: int, sensor: str) -> str:
-    """The topic of a robot's main image: colour of an RGB-D camera, left of a stereo pair."""
+def camera_topics(robot_id: int, sensor: str) -> dict:
+    """A robot's camera topics, as the player publishes them and a client subscribes to them:
+    ``image`` (colour of an RGB-D camera, left of a stereo pair), ``second`` (depth, or the right
+    image) and ``infos`` (name -> camera info topic). ROS stereo conventions for a pair."""
+    cam = f"/robot_{robot_id}/camera"
     if sensor == "stereo":
-        return f"/robot_{robot_id}/camera/left/image_rect"
-    return f"/robot_{robot_id}/camera/color/image_raw"
+        return {
+            "image": f"{cam}/left/image_rect",
+            "second": f"{cam}/right/image_rect",
+            "infos": {"left": f"{cam}/left/camera_info", "right": f"{cam}/right/camera_info"},
+        }
+    return {
+        "image": f"{cam}/color/image_raw",
+        "second": f"{cam}/depth/image_raw",
+        "infos": {"color": f"{cam}/color/camera_info"},
+    }
+
+
+def image_topic(robot_id: int, sensor: str) -> str:
+    """The topic of a robot's main image (see :func:`camera_topics`)."""
+    return camera_topics(robot_id, sensor)["image"]
 
 
 def parse_sensors(text: str | None, n_robots: int | None = None) -> list[str] | None:

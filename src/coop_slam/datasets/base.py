@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from ..errors import CoopSlamError
+from ..geometry import invert
 from ..timestamps import associate
 
 SENSORS = ("rgbd", "stereo", "mono")
@@ -80,9 +81,8 @@ class Sequence:
     gt_max_dt_s: float = 0.02  # largest stamp difference accepted when associating ground truth
     # Raw images with lens distortion: loading maps them onto ``camera`` (= undistort.camera).
     undistort: Undistortion | None = field(default=None, repr=False)
-    # A raw stereo pair: loading rectifies left and right images onto ``camera``
-    # (a coop_slam.datasets.euroc.StereoRectification).
-    rectify: object | None = field(default=None, repr=False)
+    # A raw stereo pair: loading rectifies left and right images onto ``camera``.
+    rectify: StereoRectification | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -279,6 +279,77 @@ class Undistortion:
                 f"or a built-in TUM freiburg calibration) is {self.map_x.shape[1]}x"
                 f"{self.map_x.shape[0]}"
             )
+
+
+@dataclass
+class RawCamera:
+    """A camera as calibrated, before rectification: intrinsics, lens distortion (OpenCV order),
+    image size and its pose in the body frame."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    size: tuple[int, int]  # (width, height)
+    T_body_cam: np.ndarray
+
+
+@dataclass
+class StereoRectification:
+    """Maps raw left / right images onto the rectified pair (rows of one point agree)."""
+
+    camera: CameraModel  # the rectified left camera, with the pair's baseline
+    T_camraw_rect: np.ndarray  # rectified left camera in the raw left camera
+    maps: tuple  # (left map_x, left map_y, right map_x, right map_y)
+
+    @classmethod
+    def create(cls, left: RawCamera, right: RawCamera) -> StereoRectification:
+        if left.size != right.size:
+            raise DatasetError(
+                f"the stereo cameras differ in size: {left.size} and {right.size} px"
+            )
+        T_right_left = invert(right.T_body_cam) @ left.T_body_cam  # left points -> right camera
+        R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(
+            left.K,
+            left.dist,
+            right.K,
+            right.dist,
+            left.size,
+            T_right_left[:3, :3],
+            T_right_left[:3, 3],
+            flags=cv2.CALIB_ZERO_DISPARITY,
+            alpha=0.0,
+        )
+        baseline_m = -P2[0, 3] / P2[0, 0]
+        if not np.isfinite(baseline_m) or baseline_m <= 0:
+            raise DatasetError(
+                f"stereo rectification gives baseline {baseline_m:.4f} m: is cam1 the right "
+                "camera of the pair?"
+            )
+        width, height = left.size
+        camera = CameraModel(
+            width=width,
+            height=height,
+            fx=P1[0, 0],
+            fy=P1[1, 1],
+            cx=P1[0, 2],
+            cy=P1[1, 2],
+            sensor="stereo",
+            baseline_m=float(baseline_m),
+        )
+        maps = (
+            *cv2.initUndistortRectifyMap(left.K, left.dist, R1, P1[:, :3], left.size, cv2.CV_32FC1),
+            *cv2.initUndistortRectifyMap(
+                right.K, right.dist, R2, P2[:, :3], right.size, cv2.CV_32FC1
+            ),
+        )
+        T_camraw_rect = np.eye(4)
+        T_camraw_rect[:3, :3] = R1.T  # rectified = R1 @ raw
+        return cls(camera, T_camraw_rect, maps)
+
+    def left(self, img: np.ndarray) -> np.ndarray:
+        return cv2.remap(img, self.maps[0], self.maps[1], cv2.INTER_LINEAR)
+
+    def right(self, img: np.ndarray) -> np.ndarray:
+        return cv2.remap(img, self.maps[2], self.maps[3], cv2.INTER_LINEAR)
 
 
 def write_camera_yaml(path: str, camera: CameraModel) -> None:

@@ -2,24 +2,22 @@
 ``sensor.yaml`` with pinhole intrinsics, radial-tangential distortion and ``T_BS``) and
 ``mav0/state_groundtruth_estimate0/data.csv`` (body pose ``p_RS_R``, ``q_RS`` w x y z in the world).
 
-The pair is rectified as it loads (OpenCV ``stereoRectify``, cropped to pixels both cameras saw):
-the sequence's camera is the rectified left camera, its baseline the rectified pair's, and ground
-truth ``T_world_cam`` the rectified left camera's pose.
+The pair is rectified as it loads (:class:`.base.StereoRectification`: OpenCV ``stereoRectify``,
+cropped to pixels both cameras saw): the sequence's camera is the rectified left camera, its
+baseline the rectified pair's, and ground truth ``T_world_cam`` the rectified left camera's pose.
 """
 
 from __future__ import annotations
 
 import csv
 import os
-from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import yaml
 
 from ..errors import GeometryError
-from ..geometry import check_se3, invert, se3_from_quat
-from .base import CameraModel, DatasetError, Frame, Sequence
+from ..geometry import check_se3, se3_from_quat
+from .base import DatasetError, Frame, RawCamera, Sequence, StereoRectification
 
 
 def is_euroc(folder: str) -> bool:
@@ -48,15 +46,7 @@ def _sensor_yaml(path: str) -> dict:
     return data
 
 
-@dataclass
-class _Camera:
-    K: np.ndarray
-    dist: np.ndarray
-    size: tuple[int, int]  # (width, height)
-    T_body_cam: np.ndarray
-
-
-def _camera(path: str) -> _Camera:
+def _camera(path: str) -> RawCamera:
     data = _sensor_yaml(path)
     try:
         fu, fv, cu, cv = (float(v) for v in data["intrinsics"])
@@ -67,67 +57,7 @@ def _camera(path: str) -> _Camera:
     except (TypeError, ValueError, KeyError, GeometryError) as exc:
         raise DatasetError(f"{path}: malformed calibration ({exc})") from None
     K = np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]])
-    return _Camera(K, dist, (width, height), T_body_cam)
-
-
-@dataclass
-class StereoRectification:
-    """Maps raw left / right images onto the rectified pair (rows of one point agree)."""
-
-    camera: CameraModel  # the rectified left camera, with the pair's baseline
-    T_camraw_rect: np.ndarray  # rectified left camera in the raw left camera
-    maps: tuple  # (left map_x, left map_y, right map_x, right map_y)
-
-    @classmethod
-    def create(cls, left: _Camera, right: _Camera) -> StereoRectification:
-        if left.size != right.size:
-            raise DatasetError(
-                f"the stereo cameras differ in size: {left.size} and {right.size} px"
-            )
-        T_right_left = invert(right.T_body_cam) @ left.T_body_cam  # left points -> right camera
-        R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(
-            left.K,
-            left.dist,
-            right.K,
-            right.dist,
-            left.size,
-            T_right_left[:3, :3],
-            T_right_left[:3, 3],
-            flags=cv2.CALIB_ZERO_DISPARITY,
-            alpha=0.0,
-        )
-        baseline_m = -P2[0, 3] / P2[0, 0]
-        if not np.isfinite(baseline_m) or baseline_m <= 0:
-            raise DatasetError(
-                f"stereo rectification gives baseline {baseline_m:.4f} m: is cam1 the right "
-                "camera of the pair?"
-            )
-        width, height = left.size
-        camera = CameraModel(
-            width=width,
-            height=height,
-            fx=P1[0, 0],
-            fy=P1[1, 1],
-            cx=P1[0, 2],
-            cy=P1[1, 2],
-            sensor="stereo",
-            baseline_m=float(baseline_m),
-        )
-        maps = (
-            *cv2.initUndistortRectifyMap(left.K, left.dist, R1, P1[:, :3], left.size, cv2.CV_32FC1),
-            *cv2.initUndistortRectifyMap(
-                right.K, right.dist, R2, P2[:, :3], right.size, cv2.CV_32FC1
-            ),
-        )
-        T_camraw_rect = np.eye(4)
-        T_camraw_rect[:3, :3] = R1.T  # rectified = R1 @ raw
-        return cls(camera, T_camraw_rect, maps)
-
-    def left(self, img: np.ndarray) -> np.ndarray:
-        return cv2.remap(img, self.maps[0], self.maps[1], cv2.INTER_LINEAR)
-
-    def right(self, img: np.ndarray) -> np.ndarray:
-        return cv2.remap(img, self.maps[2], self.maps[3], cv2.INTER_LINEAR)
+    return RawCamera(K, dist, (width, height), T_body_cam)
 
 
 def _frames_csv(path: str) -> list[tuple[int, str]]:

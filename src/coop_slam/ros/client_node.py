@@ -30,6 +30,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from ..config import load_yaml_config
 from ..errors import CoopSlamError
 from ..geometry import invert, se3_from_quat, transform_points
+from ..playback import PLAYABLE_SENSORS, camera_topics
 from .convert import (
     MessageError,
     camera_from_info,
@@ -50,28 +51,6 @@ from .validation import RejectCounter
 R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
-SENSORS = ("rgbd", "stereo")
-
-
-def _input_topics(ns: str, sensor: str) -> dict:
-    """The camera topics a client of ``sensor`` subscribes to: its main image, the second image
-    (depth, or right of a pair) and the camera infos."""
-    if sensor == "stereo":
-        return {
-            "image": f"{ns}/camera/left/image_rect",
-            "second": f"{ns}/camera/right/image_rect",
-            "infos": {
-                "left": f"{ns}/camera/left/camera_info",
-                "right": f"{ns}/camera/right/camera_info",
-            },
-        }
-    return {
-        "image": f"{ns}/camera/color/image_raw",
-        "second": f"{ns}/camera/depth/image_raw",
-        "infos": {"color": f"{ns}/camera/color/camera_info"},
-    }
-
-
 def default_T_base_cam() -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = R_BODY_OPTICAL
@@ -90,8 +69,10 @@ class ClientNode:
         self.name = f"robot_{self.robot_id}"
         ns = f"/{self.name}"
         self.sensor = rospy.get_param("~sensor", "rgbd")
-        if self.sensor not in SENSORS:
-            raise CoopSlamError(f"~sensor must be one of {', '.join(SENSORS)}, got '{self.sensor}'")
+        if self.sensor not in PLAYABLE_SENSORS:
+            raise CoopSlamError(
+                f"~sensor must be one of {', '.join(PLAYABLE_SENSORS)}, got '{self.sensor}'"
+            )
         self.map_frame = f"{self.name}/map"
         self.odom_frame = f"{self.name}/odom"
         self.base_frame = f"{self.name}/base_link"
@@ -145,7 +126,7 @@ class ClientNode:
         from coop_slam.msg import RobotSighting
 
         self.pub_sighting = rospy.Publisher("/robot_sightings", RobotSighting, queue_size=10)
-        self.topics = _input_topics(ns, self.sensor)
+        self.topics = camera_topics(self.robot_id, self.sensor)
         self.infos: dict[str, CameraInfo] = {}
         self.subs_info = [
             rospy.Subscriber(topic, CameraInfo, self._on_info, which, queue_size=5)

@@ -33,6 +33,7 @@ from ..playback import (
     PlaybackError,
     RobotStream,
     build_schedule,
+    camera_topics,
     ground_truth_by_frame,
     group_simultaneous,
     image_topic,
@@ -62,20 +63,21 @@ def frame_messages(
     stamp = rospy.Time.from_sec(play_s)
     color = seq.load_color(frame)
     enc = "bgr8" if color.ndim == 3 else "mono8"
+    topics = camera_topics(stream.robot_id, seq.camera.sensor)
     if seq.camera.sensor == "stereo":
         right = seq.load_right(frame)
         right_frame = f"{stream.name}/camera_right_optical"
         out = [
-            (f"{ns}/camera/left/camera_info", camera_info_to_msg(seq.camera, stamp, optical_frame)),
+            (topics["infos"]["left"], camera_info_to_msg(seq.camera, stamp, optical_frame)),
             (
-                f"{ns}/camera/right/camera_info",
+                topics["infos"]["right"],
                 camera_info_to_msg(seq.camera, stamp, right_frame, right=True),
             ),
-            (f"{ns}/camera/right/image_rect", image_to_msg(right, enc, stamp, right_frame)),
-            (f"{ns}/camera/left/image_rect", image_to_msg(color, enc, stamp, optical_frame)),
+            (topics["second"], image_to_msg(right, enc, stamp, right_frame)),
+            (topics["image"], image_to_msg(color, enc, stamp, optical_frame)),
         ]
         return out + _ground_truth(ns, stamp, T_world_cam)
-    out = [(f"{ns}/camera/color/camera_info", camera_info_to_msg(seq.camera, stamp, optical_frame))]
+    out = [(topics["infos"]["color"], camera_info_to_msg(seq.camera, stamp, optical_frame))]
     if seq.camera.sensor == "rgbd":
         depth_m = seq.load_depth_m(frame)
         if depth_encoding == "16UC1":
@@ -83,12 +85,9 @@ def frame_messages(
         else:
             depth_img = depth_m
         out.append(
-            (
-                f"{ns}/camera/depth/image_raw",
-                image_to_msg(depth_img, depth_encoding, stamp, optical_frame),
-            )
+            (topics["second"], image_to_msg(depth_img, depth_encoding, stamp, optical_frame))
         )
-    out.append((f"{ns}/camera/color/image_raw", image_to_msg(color, enc, stamp, optical_frame)))
+    out.append((topics["image"], image_to_msg(color, enc, stamp, optical_frame)))
     return out + _ground_truth(ns, stamp, T_world_cam)
 
 

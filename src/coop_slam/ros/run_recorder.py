@@ -17,7 +17,7 @@ import numpy as np
 from ..evaluation import EvaluationError
 from ..evaluation.run_report import RobotRun, RunData, RunInput
 from ..keyframe_record import ACTION_REMOVE
-from ..playback import COLOR_TOPIC, GROUND_TRUTH_TOPIC
+from ..playback import COLOR_TOPIC, GROUND_TRUTH_TOPIC, image_topic
 from .convert import (
     MessageError,
     cloud_colours_from_msg,
@@ -218,7 +218,7 @@ def read_bag_input(bag_path: str) -> RunInput:
                 np.asarray(stamps, float)[order],
                 np.asarray(poses, float).reshape(-1, 4, 4)[order],
             )
-        stereo = {rid for t, rid in colors.items() if t.endswith("/left/image_rect")}
+        stereo = {rid for t, rid in colors.items() if t == image_topic(rid, "stereo")}
         return RunInput(
             robot_ids,
             sum(topics[t].message_count for t in colors),

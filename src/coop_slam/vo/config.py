@@ -35,7 +35,7 @@ class VoConfig:
     # --- stereo (rectified pairs; ORB-SLAM2's stereo matching) ----------------------------------
     stereo_max_descriptor_distance: int = 75  # Hamming gate of a left/right match [bits]
     stereo_row_tolerance_px: float = 2.0  # rows of a match differ by at most this x level scale
-    stereo_patch_radius_px: int = 5  # SAD patch radius of the subpixel refinement [level px]
+    stereo_patch_radius_px: int = 5  # patch radius of the subpixel refinement [level px]
     stereo_search_px: int = 5  # columns searched either side of the descriptor match [level px]
     # Points farther than this many baselines are used without depth: their disparity is a few
     # pixels and its error dominates (ORB-SLAM2's 40).

@@ -15,10 +15,12 @@ from .tracking import Tracked
 
 class KeyframePolicy:
     """The keyframe decision (see module docstring); caches the reference keyframe's point count
-    for a few frames, since counting observations is a Python loop."""
+    for a few frames, since counting observations is a Python loop. ``close_depth_m``: the
+    sensor's depth of reliable points."""
 
-    def __init__(self, config: VoConfig):
+    def __init__(self, config: VoConfig, close_depth_m: float):
         self.config = config
+        self.close_depth_m = close_depth_m
         self._n_ref_cache: tuple = (None, 0)
 
     def reset(self) -> None:
@@ -33,11 +35,9 @@ class KeyframePolicy:
         frames_since_kf: int,
         frames_processed: int,
         mapping_free: bool,
-        close_depth_m: float,
     ) -> bool:
         """Whether the tracked frame becomes a keyframe. ``mapping_free``: local mapping is idle
-        or has few keyframes queued (RGB-D and stereo insert even while mapping is busy);
-        ``close_depth_m``: the sensor's depth of reliable points."""
+        or has few keyframes queued (RGB-D and stereo insert even while mapping is busy)."""
         cfg = self.config
         if frames_since_kf + 1 < cfg.keyframe_min_frames:
             return False
@@ -57,7 +57,7 @@ class KeyframePolicy:
                     n_ref = sum(1 for p in pids if len(obs.get(p, ())) >= min_obs)
                     self._n_ref_cache = (key, n_ref)
         d = feats.depths_m
-        close = (d > 0) & (d <= close_depth_m)
+        close = (d > 0) & (d <= self.close_depth_m)
         tracked_mask = np.zeros(len(feats), bool)
         tracked_mask[tracked.kp_idx] = True
         n_tracked_close = int((close & tracked_mask).sum())

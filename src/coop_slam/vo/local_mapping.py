@@ -28,13 +28,13 @@ from .features import FrameFeatures, level_scales
 from .local_ba import BaProblem, BaResult, BaWorker, run_local_ba
 from .map import Map, MapKeyframe
 from .matching import project_points, search_by_projection
-from .sensor import RgbdSensor, StereoSensor
+from .sensor import Sensor
 from .types import EVENT_KEYFRAME_NEW, EVENT_KEYFRAME_REMOVE, EVENT_KEYFRAME_UPDATE, VoEvent
 
 log = logging.getLogger(__name__)
 
 
-def keyframe_features(kf: MapKeyframe, sensor: RgbdSensor | StereoSensor) -> FrameFeatures:
+def keyframe_features(kf: MapKeyframe, sensor: Sensor) -> FrameFeatures:
     """The keyframe's keypoints as FrameFeatures (cached on the keyframe for its KD-tree)."""
     if kf.features is None:
         kf.features = FrameFeatures(
@@ -57,7 +57,7 @@ class LocalMapper:
     def __init__(
         self,
         config: VoConfig,
-        sensor: RgbdSensor | StereoSensor,
+        sensor: Sensor,
         get_map: Callable[[], Map],
         emit: Callable[[VoEvent], None],
     ):

@@ -23,7 +23,6 @@ map frame, ``map_segment`` + 1, EVENT_NEW_SEGMENT). It never reports a pose it d
 from __future__ import annotations
 
 import collections
-import logging
 import threading
 import time
 from typing import Self
@@ -53,8 +52,6 @@ from .types import (
     VoEvent,
 )
 
-log = logging.getLogger(__name__)
-
 
 class VisualOdometry:
     """Visual odometry of one RGB-D camera (see module docstring). Not thread-safe: call ``track``
@@ -73,7 +70,7 @@ class VisualOdometry:
         self._sensor = make_sensor(self.config, camera)
         self._tracker = LocalMapTracker(self.config, self._sensor, self.scales)
         self._relocalizer = Relocalizer(self.config, self._sensor, self._tracker)
-        self._keyframe_policy = KeyframePolicy(self.config)
+        self._keyframe_policy = KeyframePolicy(self.config, self._sensor.close_depth_m)
         self._events: collections.deque = collections.deque()
         self._events_lock = threading.Lock()
         self.map_segment = 0
@@ -112,10 +109,9 @@ class VisualOdometry:
         self._last_stamp = stamp_s
         self.frames_processed += 1
         feats = self._sensor.features(self._extractor.extract(gray), gray, second)
-        warning = getattr(self._sensor, "warning", None)
-        if warning:
+        if self._sensor.warning:
+            self._emit(VoEvent(EVENT_WARNING, self.map_segment, message=self._sensor.warning))
             self._sensor.warning = None
-            self._emit(VoEvent(EVENT_WARNING, self.map_segment, message=warning))
         feats = self._drop_ignored(stamp_s, feats)
         if self._state == STATE_INITIALIZING:
             result = self._initialize(stamp_s, feats)
@@ -309,7 +305,6 @@ class VisualOdometry:
             self._frames_since_kf,
             self.frames_processed,
             self._mapper.idle or self._mapper.pending < 3,
-            self._sensor.close_depth_m,
         ):
             kf_id = self._insert_keyframe(
                 stamp_s, feats, tracked.T_map_cam, tracked.kp_idx, tracked.point_ids

@@ -15,12 +15,12 @@ from .config import VoConfig
 from .features import FrameFeatures, inv_sigma2
 from .map import Map
 from .pose_opt import optimize_pose
-from .sensor import RgbdSensor, StereoSensor
+from .sensor import Sensor
 from .tracking import LocalMapTracker, Tracked
 
 
 def pnp_against_keyframe(
-    vmap: Map, feats: FrameFeatures, kf_id: int, config: VoConfig, sensor: RgbdSensor | StereoSensor
+    vmap: Map, feats: FrameFeatures, kf_id: int, config: VoConfig, sensor: Sensor
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
     """(T_map_cam, matched map point ids) of the frame from a keyframe's map points, or
     (None, None)."""
@@ -81,9 +81,7 @@ class Relocalizer:
     """Tries the robot's ``reloc_keyframes`` newest keyframes in turn,
     ``reloc_keyframes_per_frame`` per lost frame."""
 
-    def __init__(
-        self, config: VoConfig, sensor: RgbdSensor | StereoSensor, tracker: LocalMapTracker
-    ):
+    def __init__(self, config: VoConfig, sensor: Sensor, tracker: LocalMapTracker):
         self.config = config
         self.sensor = sensor
         self.tracker = tracker

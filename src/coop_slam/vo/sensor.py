@@ -46,7 +46,7 @@ def gray_image(image, camera: CameraModel, what: str = "image") -> np.ndarray:
     raise VoError(f"{what} has {image.shape[2]} channels, expected 1, 3 or 4")
 
 
-def make_sensor(config: VoConfig, camera: CameraModel) -> "RgbdSensor | StereoSensor":
+def make_sensor(config: VoConfig, camera: CameraModel) -> "Sensor":
     """The sensor model of ``camera.sensor``."""
     if camera.sensor == "rgbd":
         return RgbdSensor(config, camera)
@@ -73,7 +73,29 @@ def _frame_features(kps: OrbKeypoints, depth, u_right, camera: CameraModel) -> F
     )
 
 
-class RgbdSensor:
+class Sensor:
+    """What both sensors share: the stereo model ``bf`` = fx * baseline, the depth up to which a
+    keypoint's depth enters that model, and a warning about the input for the odometry to pass
+    on (then cleared)."""
+
+    def __init__(self, config: VoConfig, camera: CameraModel, baseline_m: float, close_m: float):
+        self.config = config
+        self.camera = camera
+        self.baseline_m = baseline_m
+        self.bf = camera.fx * baseline_m  # [px * m]
+        self.close_depth_m = close_m
+        self.warning: str | None = None
+
+    def u_right(self, u_px: np.ndarray, depths_m: np.ndarray) -> np.ndarray:
+        """Right-image u = u - fx b / z [px] of keypoints at u_px with depths (0 or NaN = none);
+        NaN where there is none or it is beyond close_depth_m: far depth is too noisy for the
+        stereo model, those keypoints count as monocular."""
+        d = np.asarray(depths_m)
+        close = (d > 0) & (d <= self.close_depth_m)
+        return np.where(close, u_px - self.bf / np.where(close, d, 1.0), np.nan)
+
+
+class RgbdSensor(Sensor):
     """A colour image with a depth image (registered to it, or with the depth camera's own
     intrinsics and offset, see ``vo.depth_*``). Its right-image coordinate belongs to a virtual
     stereo pair of ``vo.virtual_baseline_m``."""
@@ -81,11 +103,7 @@ class RgbdSensor:
     kind = "rgbd"
 
     def __init__(self, config: VoConfig, camera: CameraModel):
-        self.config = config
-        self.camera = camera
-        self.baseline_m = config.virtual_baseline_m
-        self.bf = camera.fx * self.baseline_m  # [px * m]
-        self.close_depth_m = config.close_depth_m
+        super().__init__(config, camera, config.virtual_baseline_m, config.close_depth_m)
 
     # --- input ------------------------------------------------------------------------------------
     def check_input(self, image, depth_m) -> tuple[np.ndarray, np.ndarray]:
@@ -116,16 +134,8 @@ class RgbdSensor:
         if depth_m is not None and n:
             depth = self._lookup_depth(uv, depth_m)
             depth[~np.isfinite(depth) | (depth < cfg.min_depth_m) | (depth > cfg.max_depth_m)] = 0.0
-        z = np.where(depth > 0, depth, np.nan).astype(np.float64)
-        return _frame_features(kps, depth, self.u_right(uv[:, 0], z), self.camera)
-
-    def u_right(self, u_px: np.ndarray, depths_m: np.ndarray) -> np.ndarray:
-        """Right-image u [px] of keypoints at u_px with depths (0 or NaN = none); NaN where there
-        is none or it is beyond close_depth_m: far depth is too noisy for the stereo-like term,
-        those keypoints count as monocular."""
-        d = np.asarray(depths_m)
-        close = (d > 0) & (d <= self.config.close_depth_m)
-        return np.where(close, u_px - self.bf / np.where(close, d, 1.0), np.nan)
+        u_right = self.u_right(uv[:, 0], depth.astype(np.float64))
+        return _frame_features(kps, depth, u_right, self.camera)
 
     def _lookup_depth(self, uv: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
         """Depth along the colour optical axis at colour pixels uv (0 = none).
@@ -177,7 +187,7 @@ class RgbdSensor:
         return np.where(settled, z, 0.0).astype(np.float32)
 
 
-class StereoSensor:
+class StereoSensor(Sensor):
     """A rectified stereo pair (left image = the camera model's, right image on the same rows,
     ``camera.baseline_m`` to the right). The right-image coordinate is measured by matching the
     left keypoints in the right image (:mod:`.stereo_matching`); depth = fx * baseline /
@@ -188,14 +198,10 @@ class StereoSensor:
     def __init__(self, config: VoConfig, camera: CameraModel):
         if camera.baseline_m <= 0:
             raise VoError(f"a stereo camera needs a baseline > 0, got {camera.baseline_m} m")
-        self.config = config
-        self.camera = camera
-        self.baseline_m = camera.baseline_m
-        self.bf = camera.fx * self.baseline_m
-        self.close_depth_m = config.stereo_close_baselines * self.baseline_m
+        close_m = config.stereo_close_baselines * camera.baseline_m
+        super().__init__(config, camera, camera.baseline_m, close_m)
         self._scales = level_scales(config)
         self._right_extractor = OrbExtractor(config, camera)
-        self.warning: str | None = None  # for the odometry to pass on (then cleared)
         self._frames_since_check = None  # frames since the last rectification check
 
     def check_input(self, image, right) -> tuple[np.ndarray, np.ndarray]:
@@ -261,9 +267,3 @@ class StereoSensor:
                 f"only {100 * matched:.0f} % of the left keypoints found a stereo match: points "
                 "appear farther right in the right image; are left and right swapped?"
             )
-
-    def u_right(self, u_px: np.ndarray, depths_m: np.ndarray) -> np.ndarray:
-        """Right-image u [px] of keypoints with depths (0 or NaN = none): u - fx b / z."""
-        d = np.asarray(depths_m)
-        ok = d > 0
-        return np.where(ok, u_px - self.bf / np.where(ok, d, 1.0), np.nan)

@@ -17,7 +17,7 @@ from .features import FrameFeatures, inv_sigma2
 from .map import Map
 from .matching import project_points, search_by_projection
 from .pose_opt import optimize_pose
-from .sensor import RgbdSensor, StereoSensor
+from .sensor import Sensor
 
 
 @dataclass
@@ -48,7 +48,7 @@ class LocalMap:
 
 
 class LocalMapTracker:
-    def __init__(self, config: VoConfig, sensor: RgbdSensor | StereoSensor, scales: np.ndarray):
+    def __init__(self, config: VoConfig, sensor: Sensor, scales: np.ndarray):
         self.config = config
         self.sensor = sensor
         self.camera = sensor.camera
