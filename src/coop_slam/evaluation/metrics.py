@@ -134,6 +134,30 @@ def merge_error(
     return transform_error(T_mapA_mapB_est, invert(T_world_mapA_gt) @ T_world_mapB_gt)
 
 
+def pose_at(stamps_gt, poses_gt, stamp_s: float, max_dt_s: float = 0.02) -> np.ndarray | None:
+    """The ground-truth pose nearest in time to ``stamp_s``; None when none is within
+    ``max_dt_s`` (or there is no ground truth)."""
+    if len(stamps_gt) == 0:
+        return None
+    i = int(np.argmin(np.abs(np.asarray(stamps_gt) - stamp_s)))
+    if abs(stamps_gt[i] - stamp_s) > max_dt_s:
+        return None
+    return np.asarray(poses_gt[i], float)
+
+
+def relative_pose_error(
+    T_camA_camB_est: np.ndarray, stamp_a: float, stamp_b: float, gt_a: tuple, gt_b: tuple
+) -> tuple[float, float] | None:
+    """(translation [m], rotation [deg]) error of an estimated relative pose of two cameras
+    (e.g. a merge's or link's registration of two keyframes) against their true relative pose at
+    their stamps; ``gt_a`` / ``gt_b`` are (stamps, T_world_cam). None without ground truth there.
+    Odometry drift does not enter."""
+    T_world_camA, T_world_camB = pose_at(*gt_a, stamp_a), pose_at(*gt_b, stamp_b)
+    if T_world_camA is None or T_world_camB is None:
+        return None
+    return transform_error(T_camA_camB_est, invert(T_world_camA) @ T_world_camB)
+
+
 @dataclass
 class NoiseSplit:
     """Each trajectory's own RMS error of the relative motion over ``step`` frames."""

@@ -42,6 +42,8 @@ TOP_KEYS = (
     "server_ms_per_keyframe",
     "wrong_merges",
     "loop_closures",
+    "links",
+    "overlap_agreement",
     "topics",
 )
 BANDWIDTH_KEYS = ("per_robot_kBps", "peak_kBps", "total_MB", "keyframe_bytes_mean")
@@ -77,6 +79,13 @@ def new_report(robot_ids: list[int]) -> dict:
         "server_ms_per_keyframe": None,
         "wrong_merges": None,
         "loop_closures": None,
+        # Per robot pair of one group: constraints between the two accepted after they merged
+        # (count), with their registrations' median error at the keyframes against ground truth.
+        "links": [],
+        # Per robot pair whose maps overlap, without ground truth: how far each one's points lie
+        # from the other's surfaces (inter_m) against how far a robot's points lie from its own
+        # surfaces where it revisits (intra_m); see coop_slam.evaluation.agreement.
+        "overlap_agreement": [],
         "topics": {},
     }
 
@@ -159,6 +168,40 @@ def render_markdown(report: dict) -> str:
         f"- loop closures: {_fmt(report.get('loop_closures'))}",
         "",
     ]
+    if report.get("links"):
+        lines += [
+            "## Links between merged robots",
+            "",
+            "Constraints accepted between two robots after they merged; errors are the median "
+            "registration error at the keyframes against ground truth.",
+            "",
+            "| robots | count | trans_err_m | rot_err_deg |",
+            "|---|---|---|---|",
+        ]
+        for k in report["links"]:
+            lines.append(
+                f"| {k['robots']} | {k['count']} | {_fmt(k.get('trans_err_m'))} | "
+                f"{_fmt(k.get('rot_err_deg'), 2)} |"
+            )
+        lines.append("")
+    if report.get("overlap_agreement"):
+        lines += [
+            "## Overlap agreement (no ground truth needed)",
+            "",
+            "How far one robot's map points lie from the other's surfaces where both mapped "
+            "(`inter_m`), against how far a robot's points lie from its own surfaces where it "
+            "revisits (`intra_m`): a stitch as good as the robots' own maps has inter <= intra.",
+            "",
+            "| robots | inter_m | intra_m | ratio |",
+            "|---|---|---|---|",
+        ]
+        for k in report["overlap_agreement"]:
+            inter, intra = k.get("inter_m"), k.get("intra_m")
+            ratio = inter / intra if inter is not None and intra else None
+            lines.append(
+                f"| {k['robots']} | {_fmt(inter, 4)} | {_fmt(intra, 4)} | {_fmt(ratio, 2)} |"
+            )
+        lines.append("")
     topics = report.get("topics") or {}
     if topics:
         lines += [

@@ -13,9 +13,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..datasets import write_tum_trajectory
-from ..geometry import invert, path_length, transform_error
+from ..geometry import path_length
 from ..playback import build_schedule
-from .metrics import EvaluationError, ate, merge_error, rpe_rmse, team_ate
+from ..team.results import TYPE_LINK
+from .agreement import KeyframeCloud, team_agreement
+from .metrics import EvaluationError, ate, merge_error, relative_pose_error, rpe_rmse, team_ate
+from .overlap_view import plot_overlap
 from .plots import plot_team, plot_trajectories, write_ply
 from .report import count_wrong_merges, new_report, write_report
 
@@ -26,6 +29,7 @@ class RobotRun:
     lost_frames: int = 0
     track_ms: list = field(default_factory=list)
     keyframes: dict = field(default_factory=dict)  # id -> (stamp_s, T_map_cam), latest version
+    keyframe_points: dict = field(default_factory=dict)  # id -> points_cam (N, 3) with depth
     first_keyframe: tuple | None = None  # (stamp_s, T_map_cam) as first published
     # id -> stamp_s of every keyframe ever published, culled ones included: a merge may rest on
     # a keyframe the client culls while the merge is on its way
@@ -43,6 +47,9 @@ class RunData:
     merges: list = field(
         default_factory=list
     )  # dicts: type, robot_a, robot_b, stamp_s, T_mapA_mapB
+    # constraints inside groups (link: two robots, loop: one): dicts type, robots,
+    # keyframe_stamps, stamp_s, T_camA_camB
+    links: list = field(default_factory=list)
     server_stats: dict = field(default_factory=dict)
     duration_s: float = 0.0  # sim time from first to last frame
     topic_bytes: dict = field(default_factory=dict)  # topic -> [(sim t_s, bytes)] per message
@@ -210,6 +217,8 @@ def evaluate_run(
             report["single_ate_pooled_m"] = float(np.sqrt(sum(e**2 * c for e, c in pooled) / n))
     report["server_ms_per_keyframe"] = run.server_stats.get("ms_per_keyframe_mean")
     report["loop_closures"] = run.server_stats.get("loops")
+    report["links"] = _links(run, gts, report["groups"])
+    report["overlap_agreement"] = _overlap_agreement(run, out_dir)
     report["bandwidth"] = _bandwidth(run)
     report["topics"] = _topic_bandwidth(run)
     if out_dir:
@@ -223,20 +232,78 @@ def _local_merge_error(m: dict, run: RunData, gts: dict) -> tuple[float, float] 
     """Error of the merge's registration against the truth: the verified relative pose of the
     matched keyframes' cameras against their true relative pose. Odometry drift does not enter,
     nor do later local-BA moves of the keyframes (which the map transform was chained through)."""
-    T_world_cams = []
+    stamps = []
     for robot, kf in ((m["robot_a"], m.get("keyframe_a")), (m["robot_b"], m.get("keyframe_b"))):
         stamp = (m.get("keyframe_stamps") or {}).get(robot)
         if stamp is None and robot in run.robots:
             stamp = run.robots[robot].keyframe_stamps.get(kf)
-        if stamp is None or robot not in gts or len(gts[robot][0]) == 0:
+        if stamp is None or robot not in gts:
             return None
-        stamps_gt, poses_gt = gts[robot]
-        i = int(np.argmin(np.abs(stamps_gt - stamp)))
-        if abs(stamps_gt[i] - stamp) > 0.02:
-            return None
-        T_world_cams.append(poses_gt[i])
-    T_world_camA, T_world_camB = T_world_cams
-    return transform_error(m["T_camA_camB"], invert(T_world_camA) @ T_world_camB)
+        stamps.append(stamp)
+    a, b = m["robot_a"], m["robot_b"]
+    return relative_pose_error(m["T_camA_camB"], stamps[0], stamps[1], gts[a], gts[b])
+
+
+def _links(run: RunData, gts: dict, groups: list) -> list[dict]:
+    """Per robot pair of one group: the links between them (see :class:`RunData`) and their
+    median registration error at the keyframes (None without ground truth)."""
+    out = []
+    for group in groups:
+        for i, a in enumerate(sorted(group)):
+            for b in sorted(group)[i + 1 :]:
+                errs = []
+                count = 0
+                for k in run.links:
+                    if k["type"] != TYPE_LINK or sorted(k["robots"]) != [a, b]:
+                        continue
+                    count += 1
+                    (ra, rb), (sa, sb) = k["robots"], k["keyframe_stamps"]
+                    if sa is None or sb is None or ra not in gts or rb not in gts:
+                        continue
+                    err = relative_pose_error(k["T_camA_camB"], sa, sb, gts[ra], gts[rb])
+                    if err is not None:
+                        errs.append(err)
+                errs = np.array(errs).reshape(-1, 2)
+                out.append(
+                    {
+                        "robots": [a, b],
+                        "count": count,
+                        "trans_err_m": float(np.median(errs[:, 0])) if len(errs) else None,
+                        "rot_err_deg": float(np.median(errs[:, 1])) if len(errs) else None,
+                    }
+                )
+    return out
+
+
+def _overlap_agreement(run: RunData, out_dir: str | None) -> list[dict]:
+    """Ground-truth-free agreement of the robots' maps where they overlap (see
+    :mod:`.agreement`), over the robots in ``world`` (their keyframes' depth points at the
+    server's optimized poses); draws ``overlap.png`` into ``out_dir``."""
+    clouds = {}
+    for rid, r in sorted(run.robots.items()):
+        kfs = [
+            KeyframeCloud(stamp, T_world_cam, r.keyframe_points[k])
+            for k, (stamp, T_world_cam) in sorted(r.team_keyframes.items())
+            if len(r.keyframe_points.get(k, ()))
+        ]
+        if kfs:
+            clouds[rid] = kfs
+    if len(clouds) < 2:
+        return []
+    result = team_agreement(clouds)
+    pairs = [
+        {"robots": p["robots"], "inter_m": p["inter_m"], "intra_m": p["intra_m"]}
+        for p in result.pairs
+    ]
+    if out_dir:
+        plot_overlap(
+            os.path.join(out_dir, "overlap.png"),
+            clouds,
+            up_axis="z",  # world (REP-103)
+            pairs=result.pairs,
+            title="team map where robots overlap (world, top view and a slice)",
+        )
+    return pairs
 
 
 def _first_evidence(overlap: dict | None, kind: str, a: int, b: int) -> float | None:

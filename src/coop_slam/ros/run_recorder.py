@@ -18,6 +18,7 @@ from ..evaluation import EvaluationError
 from ..evaluation.run_report import RobotRun, RunData, RunInput
 from ..keyframe_record import ACTION_REMOVE
 from ..playback import COLOR_TOPIC, GROUND_TRUTH_TOPIC, image_topic
+from ..team.results import TYPE_LINK, TYPE_LOOP
 from .convert import (
     MessageError,
     cloud_colours_from_msg,
@@ -105,6 +106,7 @@ class RunRecorder:
         r.kf_bytes.append((float(t_s), int(nbytes)))
         if msg.action == ACTION_REMOVE:
             r.keyframes.pop(msg.keyframe_id, None)
+            r.keyframe_points.pop(msg.keyframe_id, None)
             return
         try:
             T = pose_from_msg(msg.pose)
@@ -112,6 +114,7 @@ class RunRecorder:
             return
         stamp = msg.header.stamp.to_sec()
         r.keyframes[msg.keyframe_id] = (stamp, T)
+        r.keyframe_points[msg.keyframe_id] = _points_cam(msg)
         r.keyframe_stamps[msg.keyframe_id] = stamp
         if r.first_keyframe is None:
             r.first_keyframe = (stamp, T)
@@ -137,11 +140,22 @@ class RunRecorder:
     def _on_merge(self, msg) -> None:
         # Stamps of the matched keyframes, culled ones included (the client may cull a keyframe
         # while the merge that rests on it is on its way).
-        stamps = {}
+        stamps = []
         for robot, kf in ((msg.robot_a, msg.keyframe_a), (msg.robot_b, msg.keyframe_b)):
             known = self.run.robots[robot].keyframe_stamps if robot in self.run.robots else {}
-            if kf in known:
-                stamps[robot] = known[kf]
+            stamps.append(known.get(kf))
+        if msg.type in (TYPE_LINK, TYPE_LOOP):
+            self.run.links.append(
+                {
+                    "type": msg.type,
+                    "robots": [msg.robot_a, msg.robot_b],
+                    "keyframe_stamps": stamps,
+                    "stamp_s": msg.header.stamp.to_sec(),
+                    "T_camA_camB": transform_from_msg(msg.T_camA_camB),
+                }
+            )
+            return
+        stamps = {r: t for r, t in zip((msg.robot_a, msg.robot_b), stamps) if t is not None}
         self.run.merges.append(
             {
                 "type": msg.type,
@@ -155,6 +169,23 @@ class RunRecorder:
                 "T_camA_camB": transform_from_msg(msg.T_camA_camB),
             }
         )
+
+
+def _points_cam(msg) -> np.ndarray:
+    """(N, 3) float32 points of a KeyFrame message's keypoints with depth, in its camera frame
+    (empty when the message is malformed: the report then leaves the keyframe out)."""
+    try:
+        kp = np.asarray(msg.keypoints, np.float32).reshape(-1, 4)
+        z = np.asarray(msg.depths_m, np.float32)
+        c = msg.camera
+        ok = (z > 0) & np.isfinite(z)
+        if len(z) != len(kp) or not (c.fx > 0 and c.fy > 0):
+            return np.zeros((0, 3), np.float32)
+        x = (kp[ok, 0] - c.cx) / c.fx * z[ok]
+        y = (kp[ok, 1] - c.cy) / c.fy * z[ok]
+        return np.column_stack([x, y, z[ok]]).astype(np.float32)
+    except (ValueError, TypeError):
+        return np.zeros((0, 3), np.float32)
 
 
 def run_data_from_bag(bag_path: str, robot_ids: list[int]) -> RunData:

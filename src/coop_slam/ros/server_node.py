@@ -29,8 +29,9 @@ from ..errors import CoopSlamError
 from ..geometry import invert, se3_from_quat
 from ..keyframe_record import KeyframeRecord
 from ..team.config import ServerConfig
-from ..team.results import TYPE_LOOP
+from ..team.results import TYPE_LINK, TYPE_LOOP, TYPE_OVERLAP
 from ..team.server import TeamServer
+from ..team.view import marker_scale
 from .convert import (
     MessageError,
     cloud_to_msg,
@@ -93,6 +94,7 @@ class ServerNode:
         self.vocab_path = vocab_path
         self.server = TeamServer(self.cfg, Vocabulary.load(vocab_path))
         self.rejects = RejectCounter("server")
+        self._constraints_published = 0  # server.constraints already sent as merge events
         self.queue: queue.Queue = queue.Queue()
         self.tf = tf2_ros.StaticTransformBroadcaster()
         self.pub_merge = rospy.Publisher("/merge_events", MergeEvent, queue_size=20, latch=True)
@@ -319,6 +321,7 @@ class ServerNode:
         stamp = rospy.Time.from_sec(stamp_s)
         for m in merges:
             self._publish_merge(m)
+        self._publish_constraints(stamp)
         if merges or self.server.map_moved:
             self._publish_tf(stamp)
         self._map_dirty, self._last_stamp_s = True, stamp_s
@@ -344,6 +347,31 @@ class ServerNode:
         msg.header.stamp = rospy.Time.from_sec(m.stamp_s)
         msg.header.frame_id = "world"
         self.pub_merge.publish(msg)  # the core logged the merge
+
+    def _publish_constraints(self, stamp) -> None:
+        """Constraints accepted inside a group since the last call, as merge events of type
+        ``link`` (two robots) or ``loop`` (one robot); the core logged each."""
+        new = self.server.constraints[self._constraints_published :]
+        self._constraints_published += len(new)
+        for c in new:
+            (ra, ka), (rb, kb) = c.key_a, c.key_b
+            msg = self._MergeEvent(
+                type=TYPE_LOOP if ra == rb else TYPE_LINK,
+                robot_a=ra,
+                robot_b=rb,
+                keyframe_a=ka,
+                keyframe_b=kb,
+                T_mapA_mapB=transform_to_msg(
+                    np.linalg.inv(self.server.T_group_map(ra)) @ self.server.T_group_map(rb)
+                ),
+                T_camA_camB=transform_to_msg(c.T_camA_camB),
+                inliers=c.inliers,
+                residual_px=c.residual_px,
+                group=self.server.groups.members(ra),
+            )
+            msg.header.stamp = stamp
+            msg.header.frame_id = "world"
+            self.pub_merge.publish(msg)
 
     def _publish_tf(self, stamp) -> None:
         transforms = []
@@ -391,6 +419,7 @@ class ServerNode:
                 path.poses.append(ps)
             self.pub_path[r].publish(path)
         paths, edges = self.server.team_view()
+        size = marker_scale(paths)
         markers = MarkerArray()
         clear = Marker(action=Marker.DELETEALL)
         clear.header.frame_id = "world"
@@ -406,21 +435,25 @@ class ServerNode:
 
         for robot, pos in paths.items():
             c = robot_colours([robot])[0] / 255.0
-            line = marker("paths", robot, Marker.LINE_STRIP, (*c, 1.0), 0.04)
+            line = marker("paths", robot, Marker.LINE_STRIP, (*c, 1.0), 0.04 * size)
             line.points = [Point(*p) for p in pos]
             markers.markers.append(line)
             merged = self.server.in_world(robot)
-            label = marker("labels", robot, Marker.TEXT_VIEW_FACING, (1.0, 1.0, 1.0, 1.0), 0.4)
+            white = (1.0, 1.0, 1.0, 1.0)
+            label = marker("labels", robot, Marker.TEXT_VIEW_FACING, white, 0.4 * size)
             label.text = f"robot_{robot}" + ("" if merged else " (unmerged)")
-            label.pose.position = Point(pos[-1][0], pos[-1][1], pos[-1][2] + 0.6)
+            label.pose.position = Point(pos[-1][0], pos[-1][1], pos[-1][2] + 0.6 * size)
             markers.markers.append(label)
         colours = {
             "place_recognition": (1.0, 0.9, 0.1, 1.0),
             "rendezvous": (1.0, 0.2, 1.0, 1.0),
+            TYPE_OVERLAP: (1.0, 0.6, 0.1, 1.0),
             TYPE_LOOP: (0.2, 1.0, 1.0, 1.0),
         }
         for k, (kind, pa, pb) in enumerate(edges):
-            edge = marker("merges", k, Marker.LINE_LIST, colours.get(kind, (1, 1, 1, 1)), 0.06)
+            edge = marker(
+                "merges", k, Marker.LINE_LIST, colours.get(kind, (1, 1, 1, 1)), 0.06 * size
+            )
             edge.points = [Point(*pa), Point(*pb)]
             markers.markers.append(edge)
         self.pub_markers.publish(markers)

@@ -1,5 +1,6 @@
 """Configuration of the server (section ``server`` of ``config/server.yaml``): one dataclass per
-stage -- place recognition, rendezvous, constraints inside a group, global BA, pose graph -- and
+stage -- place recognition, rendezvous, constraints inside a group, links where merged maps
+overlap, global BA, pose graph -- and
 :class:`ServerConfig` holding them. Loaded by :func:`coop_slam.config.load_yaml_config`.
 """
 
@@ -11,6 +12,7 @@ from ..bow.database import DatabaseConfig
 from ..config import require
 from ..registration.relative_pose import RegistrationConfig
 from .global_ba import GlobalBaConfig
+from .overlap_links import OverlapLinkConfig
 from .pose_graph import PoseGraphConfig
 
 
@@ -91,14 +93,19 @@ class LoopClosureConfig:
     enabled: bool = True
     min_separation_s: float = 5.0  # a robot's own candidate must be at least this much older [s]
     min_interval_kf: int = 2  # keyframes of a robot between two constraints it adds
-    # A constraint needs as many verified inliers as a merge: registration accepts from 30, and on
-    # RedKitchen keyframe pairs one accepted estimate with 35 inliers was 30 cm / 4.4 deg off --
-    # within the gate below, whose slack also widens the constraint's robust kernel.
+    # A constraint with this many verified inliers (as a merge) may move the map up to the gate:
+    # registration accepts from 30, and on RedKitchen keyframe pairs one accepted estimate with
+    # 35 inliers was 30 cm / 4.4 deg off -- within the gate, whose slack also widens the
+    # constraint's robust kernel.
     min_inliers: int = 60
     # A verified constraint further than this from the current estimate is refused (the robust
     # kernel is the second line of defence): indoor drift between revisits is well below it.
     gate_trans_m: float = 1.0
     gate_rot_deg: float = 15.0
+    # A constraint with fewer inliers (but accepted by registration) must agree with the current
+    # estimate within this: on real images most verified pairs between merged robots have 30-60.
+    weak_gate_trans_m: float = 0.1
+    weak_gate_rot_deg: float = 3.0
     # Loop and merge factors take the registration's BA marginal std, inflated (pixel noise is not
     # independent in practice) and floored: a well-measured constraint outweighs odometry drift.
     sigma_scale: float = 3.0
@@ -111,6 +118,8 @@ class LoopClosureConfig:
         require(self.min_inliers >= 1, "loops.min_inliers must be >= 1")
         require(self.gate_trans_m > 0, "loops.gate_trans_m must be > 0")
         require(self.gate_rot_deg > 0, "loops.gate_rot_deg must be > 0")
+        require(self.weak_gate_trans_m > 0, "loops.weak_gate_trans_m must be > 0")
+        require(self.weak_gate_rot_deg > 0, "loops.weak_gate_rot_deg must be > 0")
         require(self.sigma_scale > 0, "loops.sigma_scale must be > 0")
         require(self.min_sigma_trans_m > 0, "loops.min_sigma_trans_m must be > 0")
         require(self.min_sigma_rot_deg > 0, "loops.min_sigma_rot_deg must be > 0")
@@ -122,6 +131,7 @@ class ServerConfig:
     place_recognition: PlaceRecognitionConfig = field(default_factory=PlaceRecognitionConfig)
     rendezvous: RendezvousConfig = field(default_factory=RendezvousConfig)
     loops: LoopClosureConfig = field(default_factory=LoopClosureConfig)
+    links: OverlapLinkConfig = field(default_factory=OverlapLinkConfig)
     global_ba: GlobalBaConfig = field(default_factory=GlobalBaConfig)
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     optimize_every: int = 5  # incremental (iSAM2) update every N keyframes; full after each merge
@@ -140,4 +150,5 @@ class ServerConfig:
         self.place_recognition.validate()
         self.rendezvous.validate()
         self.loops.validate()
+        self.links.validate()
         self.global_ba.validate()

@@ -14,6 +14,10 @@ TYPE_LOOP = KIND_LOOP  # a robot's own loop closure (a loop factor in the pose g
 
 TYPE_PLACE_RECOGNITION = "place_recognition"
 TYPE_RENDEZVOUS = "rendezvous"
+# a pair of merged robots' keyframes the team map predicts to overlap (see .overlap_links)
+TYPE_OVERLAP = "overlap"
+# a constraint between two robots already in one group, as a merge event (whatever found it)
+TYPE_LINK = "link"
 
 Key = tuple[int, int]  # (robot_id, keyframe_id)
 
@@ -38,11 +42,14 @@ class MergeResult:
     keyframe_a: int
     keyframe_b: int
     stamp_s: float  # stamp of the keyframe that triggered the merge
+    # Robot b's map in robot a's, and the matched keyframes' relative pose: first from the
+    # verified registration, then as the merge's optimization placed them (welding window).
     T_mapA_mapB: np.ndarray
     T_camA_camB: np.ndarray
     inliers: int
     residual_px: float
     group: list[int]
+    welded: int = 0  # further verified keyframe pairs the merge rests on (welding window)
 
 
 @dataclass

@@ -29,6 +29,7 @@ from .config import ServerConfig
 from .global_ba import GlobalBaError, GlobalBaResult, count_observations, global_bundle_adjustment
 from .groups import MergeGroups
 from .keyframe_store import KeyframeStore
+from .overlap_links import OverlapLinks
 from .place_recognition import PlaceRecognition
 from .pose_graph import PoseGraphError, TeamPoseGraph
 from .rendezvous import Rendezvous
@@ -56,12 +57,14 @@ class TeamServer:
         self.store = KeyframeStore(vocabulary, config.place_recognition.database)
         self.graph = TeamPoseGraph(config.pose_graph)
         self._kf_count: dict[int, int] = {}  # keyframes received per robot
+        self.links = OverlapLinks(config.links, self.store, lambda key: self.T_group_cam(*key))
         self.stitcher = Stitcher(
             config.loops,
             self.store,
             self.groups,
             self.graph,
             lambda robot: self._kf_count.get(robot, 0),
+            self.links,
         )
         self.rendezvous = Rendezvous(config.rendezvous, self.store, self.groups)
         self.place_recognition = PlaceRecognition(
@@ -89,7 +92,11 @@ class TeamServer:
 
     @property
     def verifications(self) -> int:
-        return self.place_recognition.verifications + self.rendezvous.verifications
+        return (
+            self.place_recognition.verifications
+            + self.rendezvous.verifications
+            + self.links.verifications
+        )
 
     # --- keyframes --------------------------------------------------------------------------------
     def add_keyframe(self, rec: KeyframeRecord) -> list[MergeResult]:
@@ -124,10 +131,10 @@ class TeamServer:
             self._kf_count[rec.robot_id] = self._kf_count.get(rec.robot_id, 0) + 1
             merges = self._stitch(rec, bow, covisible)
         self._since_optimize += 1
-        if merges or self.stitcher.need_full:
+        if merges:
+            self._settle(merges)
+        elif self.stitcher.need_full:
             self.optimize(full=True)
-            if merges and self.config.global_ba.after_merge:
-                self._global_ba_if_cheap(merges[-1].robot_a)
         elif self._since_optimize >= self.config.optimize_every:
             self.optimize(full=False)
         self.keyframe_ms.append(1e3 * (time.perf_counter() - t0))
@@ -145,9 +152,29 @@ class TeamServer:
             merges = self._merge_verified([rdv.retry_requests(rec)])
             if merges:
                 return merges
+        merges = []
         if self.config.place_recognition.enabled:
-            return self._place_recognition(rec, bow, covisible)
-        return []
+            merges = self._place_recognition(rec, bow, covisible)
+        if not merges:
+            self._overlap_link(rec)
+        return merges
+
+    def _overlap_link(self, rec: KeyframeRecord) -> None:
+        """A merged robot's new keyframe against the keyframe of another robot of its group that
+        sees most of its scene (see :mod:`.overlap_links`), when the robot is due a constraint."""
+        others = set(self.groups.members(rec.robot_id)) - {rec.robot_id}
+        if (
+            not others
+            or not self.config.links.enabled
+            or not self.stitcher.constraint_due(rec.robot_id)
+        ):
+            return
+        key_b = (rec.robot_id, rec.keyframe_id)
+        candidates = [k for k in self.store.keys() if k[0] in others]
+        for key_a in self.links.best_partners(key_b, candidates):
+            v = self.links.verify(key_a, key_b, rec.stamp_s)
+            if v is not None:
+                self.stitcher.add_constraint(v)
 
     def _place_recognition(self, rec: KeyframeRecord, bow, covisible) -> list[MergeResult]:
         """Matches in other groups become merges (in the order the merge plan gives); consistent
@@ -211,6 +238,7 @@ class TeamServer:
         merges = self._merge_verified([v])
         if not merges:
             return None, why
+        self._settle(merges)
         merge = merges[0]
         return merge, f"merged ({merge.inliers} inliers, {merge.residual_px:.2f} px)"
 
@@ -244,6 +272,18 @@ class TeamServer:
         for robot in self.groups.robots:
             if robot in self.graph.robots and self.graph.keyframe_ids(robot):
                 self.groups.set_T_root_map(robot, self.graph.T_group_map(robot))
+
+    def _settle(self, merges: list[MergeResult]) -> None:
+        """After merges: a full optimization (and global BA when cheap); each merge then reports
+        its transforms as the optimization placed the maps, which rests on all its pairs."""
+        self.optimize(full=True)
+        if self.config.global_ba.after_merge:
+            self._global_ba_if_cheap(merges[-1].robot_a)
+        for m in merges:
+            key_a, key_b = (m.robot_a, m.keyframe_a), (m.robot_b, m.keyframe_b)
+            if key_a in self.store and key_b in self.store:
+                m.T_camA_camB = np.linalg.inv(self.T_group_cam(*key_a)) @ self.T_group_cam(*key_b)
+            m.T_mapA_mapB = np.linalg.inv(self.T_group_map(m.robot_a)) @ self.T_group_map(m.robot_b)
 
     def _global_ba_if_cheap(self, robot_id: int) -> None:
         members = set(self.groups.members(robot_id))

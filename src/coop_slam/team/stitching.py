@@ -20,6 +20,7 @@ from .config import LoopClosureConfig
 from .groups import MergeGroups, chain_map_transform
 from .keyframe_store import KeyframeStore
 from .merge_order import plan_merge_steps
+from .overlap_links import OverlapLinks
 from .pose_graph import PoseGraphError, TeamPoseGraph
 from .results import TYPE_LOOP, ConstraintResult, MergeResult, Verified, robot_pair
 
@@ -48,11 +49,13 @@ class Stitcher:
         groups: MergeGroups,
         graph: TeamPoseGraph,
         kf_count: Callable[[int], int],
+        links: OverlapLinks | None = None,
     ):
         self.config = config
         self.store = store
         self.groups = groups
         self.graph = graph
+        self.links = links  # welding windows of merges; None: a merge rests on its one pair
         self._kf_count = kf_count
         self.merges: list[MergeResult] = []
         self.constraints: list[ConstraintResult] = []  # loop closures and in-group links
@@ -86,12 +89,26 @@ class Stitcher:
         return merges
 
     def merge(self, v: Verified) -> MergeResult:
-        """Join the groups of the two keyframes' robots on the verified match."""
+        """Join the groups of the two keyframes' robots on the verified match, welded on the
+        pairs around it that the match predicts and registration confirms (see
+        :mod:`.overlap_links`); the optimization that follows estimates the map transform from
+        all of them."""
         key_a, key_b, res = v.key_a, v.key_b, v.result
         rec_a, rec_b = self.store.record(key_a), self.store.record(key_b)
+        robots_a = set(self.groups.members(key_a[0]))
+        robots_b = set(self.groups.members(key_b[0]))
         T_mapA_mapB = chain_map_transform(rec_a.T_map_cam, res.T_a_b, rec_b.T_map_cam)
         group = self.groups.merge(key_a[0], key_b[0], T_mapA_mapB)
         self._add_factor(v.kind, key_a, key_b, res)
+        welded = []
+        if self.links is not None and self.links.config.enabled:
+            # The graph has moved b's group onto a's at this match: its estimate predicts
+            # the pairs.
+            welded = self.links.weld(key_a, key_b, robots_a, robots_b, v.stamp_s)
+            for w in welded:
+                self._add_factor(v.kind, w.key_a, w.key_b, w.result)
+            if welded:
+                self.need_full = True
         merge = MergeResult(
             v.kind,
             key_a[0],
@@ -104,15 +121,18 @@ class Stitcher:
             int(res.n_inliers),
             float(res.residual_px),
             group,
+            len(welded),
         )
         self.merges.append(merge)
         log.info(
-            "merged robot %d into robot %d's map (%s, %d inliers, %.2f px): group %s",
+            "merged robot %d into robot %d's map (%s, %d inliers, %.2f px, welded on %d more "
+            "pairs): group %s",
             key_b[0],
             key_a[0],
             v.kind,
             merge.inliers,
             merge.residual_px,
+            len(welded),
             group,
         )
         return merge
@@ -124,27 +144,29 @@ class Stitcher:
         estimate by more than the gate. A full optimization follows."""
         key_a, key_b, res = v.key_a, v.key_b, v.result
         loops = self.config
-        if res.n_inliers < loops.min_inliers:
-            log.info(
-                "constraint %s - %s skipped: %d inliers, fewer than loops.min_inliers (%d)",
-                key_a,
-                key_b,
-                res.n_inliers,
-                loops.min_inliers,
-            )
-            return False
         try:
             T_est = invert(self.graph.T_group_cam(*key_a)) @ self.graph.T_group_cam(*key_b)
         except PoseGraphError as exc:
             log.warning("constraint %s - %s skipped: %s", key_a, key_b, exc)
             return False
         dt, dr = transform_error(res.T_a_b, T_est)
-        if dt > loops.gate_trans_m or dr > loops.gate_rot_deg:
+        # A well-supported constraint may correct drift up to the gate; a weakly supported one
+        # (registration accepted, fewer than min_inliers) only where it agrees with the estimate,
+        # which on real images it mostly does: it then refines rather than moves the map.
+        strong = res.n_inliers >= loops.min_inliers
+        gate_t, gate_r = (
+            (loops.gate_trans_m, loops.gate_rot_deg)
+            if strong
+            else (loops.weak_gate_trans_m, loops.weak_gate_rot_deg)
+        )
+        if dt > gate_t or dr > gate_r:
             self.rejected_constraints += 1
             log.info(
-                "constraint %s - %s refused: %.2f m / %.1f deg from the current estimate",
+                "constraint %s - %s refused: %d inliers, %.2f m / %.1f deg from the current "
+                "estimate",
                 key_a,
                 key_b,
+                res.n_inliers,
                 dt,
                 dr,
             )

@@ -83,3 +83,22 @@ def team_cloud(
     points, ids, robots = fuse_points(points, robots, ids, radius_m=fuse_radius_m)
     points, robots = voxel_downsample(points, robots, voxel_m)
     return points, robot_colours(robots), robots
+
+
+# Labels, paths and edges are sized for a map this wide [m] (the synthetic worlds); a smaller map
+# (a 3 m kitchen) draws them proportionally smaller, down to MIN_MARKER_SCALE, so that they do not
+# cover what they label.
+MARKER_REFERENCE_SPAN_M = 10.0
+MIN_MARKER_SCALE = 0.25
+
+
+def marker_scale(paths: dict[int, np.ndarray]) -> float:
+    """Size factor of the team view's markers: the horizontal span of the keyframe paths
+    (robot -> (K, 3) positions as drawn) against MARKER_REFERENCE_SPAN_M, within
+    [MIN_MARKER_SCALE, 1]."""
+    pos = [p for p in paths.values() if len(p)]
+    if not pos:
+        return 1.0
+    allpos = np.concatenate(pos)
+    span = float(np.max(np.ptp(allpos[:, :2], axis=0)))
+    return float(np.clip(span / MARKER_REFERENCE_SPAN_M, MIN_MARKER_SCALE, 1.0))

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import CoopSlamError
 from ..evaluation.run_report import evaluate_results, run_input_of
-from ..geometry import quat_from_se3
+from ..geometry import quat_from_se3, se3_from_quat
 from ..playback import load_run_source
 from .progress import throttled
 
@@ -181,6 +181,67 @@ def _commit() -> str | None:
     if head.returncode != 0:
         return None
     return head.stdout.strip() + ("+" if dirty.stdout.strip() else "")
+
+
+def _framed_rviz_config(out: str, source, inputs, base_cam: list) -> str | None:
+    """A copy of rviz/coop_slam.rviz in ``out`` whose view frames the map this run builds (see
+    :mod:`.framing`: ground-truth cameras and what they see, in ``world``); None (the package's
+    default view) without ground truth of the first robot, whose map ``world`` is."""
+    from . import framing
+    from .record import DEFAULT_SIZE, find_config
+
+    try:
+        if base_cam:
+            T_base_cam = se3_from_quat(base_cam[:3], base_cam[3:])
+        else:
+            from ..ros.client_node import default_T_base_cam  # what the clients then use
+
+            T_base_cam = default_T_base_cam()
+        T_world_gt = framing.T_world_gt(inputs.gts, T_base_cam)
+        poses = framing.world_camera_poses(inputs.gts, T_world_gt)
+        seen, images = (
+            framing.seen_depth_points(source.streams, T_world_gt)
+            if source is not None
+            else (np.zeros((0, 3)), 0)
+        )
+        half_tan = (
+            framing.half_tangents(source.streams[0].sequence.camera)
+            if source is not None and source.streams
+            else framing.HALF_TAN
+        )
+        points = framing.framing_points(poses, seen, half_tan)
+        template = find_config()
+        default = framing.template_view(template)  # its pitch, yaw and FOV are kept
+        view = framing.fit_orbit_view(
+            points,
+            pitch=default.pitch,
+            yaws=(default.yaw, default.yaw - np.pi / 2),
+            fov=default.fov,
+            aspect=DEFAULT_SIZE[0] / DEFAULT_SIZE[1],
+        )
+        what = (
+            f"what {images} depth images see"
+            if images
+            else f"their views {framing.LOOK_AHEAD_M:g} m ahead (no depth images)"
+        )
+        path = framing.framed_config(
+            template,
+            os.path.join(out, "video", "rviz_view.rviz"),
+            view,
+            f"Framed on the ground-truth cameras and {what}.",
+            # the robots' axes as large on screen as in the package's view
+            axes_scale=min(1.0, view.distance / default.distance),
+        )
+    except Exception as exc:  # noqa: BLE001 - a recording detail: never worth failing the run
+        say(f"      RViz keeps the package's default view (rviz/coop_slam.rviz): {exc}")
+        return None
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    say(
+        f"      RViz view framed on the ground-truth cameras and {what}: "
+        f"{hi[0] - lo[0]:.1f} m x {hi[1] - lo[1]:.1f} m of world, from {view.distance:.1f} m "
+        f"(the world group only: unmerged maps drawn aside are not framed; {path})"
+    )
+    return str(path)
 
 
 def _free_port() -> int:
@@ -404,6 +465,7 @@ def run(args: argparse.Namespace) -> int:
     launch_args.append(f"record_bag:={bag_path}")
     launch_args.append(f"record_topics:={' '.join(RunRecorder(robot_ids).topics())}")
     _write_run_info(out, args, robot_ids, ground, base_cam)
+    rviz_config = _framed_rviz_config(out, source, inputs, base_cam) if args.record else None
     log_path = os.path.join(out, "roslaunch.log")
     say(f"[2/3] running the system (ROS master {uri}; log {log_path})")
     recorder = None
@@ -425,6 +487,7 @@ def run(args: argparse.Namespace) -> int:
                     "--headless",
                     "--out",
                     os.path.join(out, "video"),
+                    *(["--config", rviz_config] if rviz_config else []),
                 ],
                 stdout=open(os.path.join(out, "record.log"), "w"),
                 stderr=subprocess.STDOUT,

@@ -26,6 +26,7 @@ from pathlib import Path
 from ..errors import CoopSlamError
 
 CONFIG_NAME = "coop_slam.rviz"
+DEFAULT_SIZE = (1280, 720)  # screen / video size (scripts/demo frames its view for this aspect)
 # Topics every rviz subscribes to on its own; a subscription to anything else means the displays
 # of the config are loaded.
 _RVIZ_OWN_TOPICS = {"/tf", "/tf_static", "/clock", "/rosout"}
@@ -77,7 +78,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         metavar="TOPIC",
         help="stop when this std_msgs/Bool topic carries true (e.g. /player/done)",
     )
-    p.add_argument("--size", type=_size, default=(1280, 720), help="screen / video size [1280x720]")
+    p.add_argument(
+        "--size",
+        type=_size,
+        default=DEFAULT_SIZE,
+        help=f"screen / video size [{DEFAULT_SIZE[0]}x{DEFAULT_SIZE[1]}]",
+    )
     p.add_argument("--framerate", type=_positive, default=10.0, help="video frame rate [10]")
     p.add_argument("--headless", action="store_true", help="use Xvfb even when DISPLAY is set")
     p.add_argument(

@@ -34,12 +34,14 @@ def _server_config(path: str, info: dict, overrides: dict):
 
 
 def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None = None) -> dict:
-    """Replay the bag through a fresh server core; returns the summary (see :func:`summary`)."""
+    """Replay the bag through a fresh server core; returns the server, the summary (see
+    :func:`summary`) and the stamp of every keyframe received."""
     import rosbag
 
     from ..bow import Vocabulary
     from ..bow.training import ensure_default_vocabulary
     from ..geometry import invert, se3_from_quat
+    from ..keyframe_record import ACTION_REMOVE
     from ..ros.convert import MessageError, keyframe_from_msg, pose_from_msg
     from ..team.server import TeamServer
 
@@ -49,6 +51,7 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
     T_body_cam = invert(se3_from_quat(base_cam[:3], base_cam[3:])) if base_cam else None
     topics = [f"/robot_{r}/keyframes" for r in cfg.robots] + ["/robot_sightings"]
     rejected = 0
+    stamps = {}  # (robot, keyframe) -> stamp_s of every keyframe received, culled ones included
     with rosbag.Bag(bag_path) as bag:
         for topic, msg, _ in bag.read_messages(topics=topics):
             if topic == "/robot_sightings":
@@ -66,10 +69,13 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
                 )
                 continue
             try:
-                server.add_keyframe(keyframe_from_msg(msg, known_robots=server.known_robots))
+                rec = keyframe_from_msg(msg, known_robots=server.known_robots)
+                if rec.action != ACTION_REMOVE:  # a removal carries no stamp
+                    stamps.setdefault((rec.robot_id, rec.keyframe_id), rec.stamp_s)
+                server.add_keyframe(rec)
             except CoopSlamError:
                 rejected += 1
-    return summary(server, rejected)
+    return server, summary(server, rejected), stamps
 
 
 def summary(server, rejected: int = 0) -> dict:
@@ -105,6 +111,52 @@ def summary(server, rejected: int = 0) -> dict:
     return out
 
 
+def judge(server, stamps: dict, gts: dict) -> dict:
+    """The replayed decisions against ground truth ``gts`` (robot -> (stamps, T_world_cam) on the
+    playback timeline): each merge's and inter-robot constraint's registration error at its
+    keyframes, the team ATE of the world group's optimized keyframes and the pooled ATE of the
+    robots' own keyframe poses (as in the demo's report, there from the published poses)."""
+    from ..evaluation.metrics import EvaluationError, ate, relative_pose_error, team_ate
+
+    def error(key_a, key_b, T_camA_camB):
+        if key_a not in stamps or key_b not in stamps or key_a[0] not in gts or key_b[0] not in gts:
+            return None
+        err = relative_pose_error(
+            T_camA_camB, stamps[key_a], stamps[key_b], gts[key_a[0]], gts[key_b[0]]
+        )
+        return None if err is None else [round(err[0] * 100, 2), round(err[1], 2)]
+
+    out = {"merge_errors_cm_deg": [], "link_errors_cm_deg": [], "loop_errors_cm_deg": []}
+    for m in server.merges:
+        key_a, key_b = (m.robot_a, m.keyframe_a), (m.robot_b, m.keyframe_b)
+        out["merge_errors_cm_deg"].append(error(key_a, key_b, m.T_camA_camB))
+    for c in server.constraints:
+        kind = "loop" if c.key_a[0] == c.key_b[0] else "link"
+        out[f"{kind}_errors_cm_deg"].append(error(c.key_a, c.key_b, c.T_camA_camB))
+    own, est = [], {}
+    for robot in server.store.robots():
+        keys = sorted(server.store.keyframe_ids(robot))
+        t = np.array([server.store.stamp((robot, k)) for k in keys])
+        if robot not in gts or len(gts[robot][0]) == 0 or len(keys) < 3:
+            continue
+        try:
+            res = ate(t, [server.store.record((robot, k)).T_map_cam for k in keys], *gts[robot])
+            own.append((res.rmse_m, res.count))
+        except EvaluationError:
+            pass
+        if server.in_world(robot):
+            est[robot] = (t, np.array([server.T_group_cam(robot, k) for k in keys]))
+    n = sum(c for _, c in own)
+    out["single_ate_pooled_cm"] = (
+        round(100 * float(np.sqrt(sum(e**2 * c for e, c in own) / n)), 2) if n else None
+    )
+    try:
+        out["team_ate_cm"] = round(100 * team_ate(est, gts).rmse_m, 2) if est else None
+    except EvaluationError:
+        out["team_ate_cm"] = None
+    return out
+
+
 def compare(a: dict, b: dict, tol_mm: float = 0.5) -> list[str]:
     """Differences between two replay summaries (positions within ``tol_mm`` count as equal)."""
     diffs = []
@@ -130,7 +182,11 @@ def main(argv=None) -> int:
     p.add_argument("--server-config", help="server YAML (default: config/server.yaml)")
     p.add_argument("--out", help="write the summary as JSON here")
     p.add_argument("--compare", help="a summary JSON written before: print the differences")
+    p.add_argument(
+        "--no-truth", action="store_true", help="do not judge against the run's ground truth"
+    )
     args = p.parse_args(argv)
+    truth = None
     repo = os.path.normpath(
         os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", "..")
     )
@@ -141,7 +197,13 @@ def main(argv=None) -> int:
         bag = os.path.join(args.results, "run.bag")
         if not os.path.isfile(bag):
             raise CoopSlamError(f"{bag} not found: the run was not recorded")
-        result = replay(bag, info, config)
+        server, result, stamps = replay(bag, info, config)
+        if not args.no_truth and (info.get("scenario") or info.get("dataset")):
+            from ..evaluation.run_report import run_input_of
+            from ..playback import load_run_source
+
+            gts = run_input_of(load_run_source(info), bool(info.get("keep_timing"))).gts
+            truth = judge(server, stamps, gts)
     except (CoopSlamError, OSError, ValueError) as exc:
         print(f"[replay] ERROR: {exc}", file=sys.stderr)
         return 2
@@ -156,6 +218,20 @@ def main(argv=None) -> int:
         f"{result['refused_constraints']} refused, {result['verifications']} verifications, "
         f"groups {result['groups']}, {result['keyframes']} keyframes, {result['rejected']} rejected"
     )
+    if truth is not None:
+        print(
+            f"[replay] truth: team ATE {truth['team_ate_cm']} cm, single-robot pooled "
+            f"{truth['single_ate_pooled_cm']} cm"
+        )
+        print(f"[replay] merge errors [cm, deg] at the keyframes: {truth['merge_errors_cm_deg']}")
+        for kind in ("link", "loop"):
+            errs = np.array([e for e in truth[f"{kind}_errors_cm_deg"] if e is not None])
+            if len(errs):
+                print(
+                    f"[replay] {len(errs)} {kind}s' errors at the keyframes: median "
+                    f"{np.median(errs[:, 0]):.2f} cm / {np.median(errs[:, 1]):.2f} deg, max "
+                    f"{errs[:, 0].max():.2f} cm / {errs[:, 1].max():.2f} deg"
+                )
     if args.out:
         with open(args.out, "w", encoding="utf-8") as fh:
             json.dump(result, fh, indent=1)

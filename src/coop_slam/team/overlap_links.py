@@ -1,0 +1,227 @@
+"""Links where merged maps overlap: keyframes of different robots that the team map's current
+estimate says see the same scene, checked by a guided registration.
+
+Two uses, one mechanism:
+
+- the **welding window** of a merge (ORB-SLAM's term): right after two groups are joined on one
+  verified keyframe pair, the covisible neighbours of both matched keyframes are registered
+  against the other side's keyframes that see the same scene, and every pair that holds goes
+  into the pose graph with the first. The map transform then rests on a neighbourhood on each side,
+  estimated jointly by the optimization, not on one pair's registration error;
+- **links after a merge**: a new keyframe of a merged robot is registered against the keyframe of
+  another robot of its group that sees most of the same scene. BoW retrieval misses most such
+  pairs between robots: two robots rarely see a place from the same direction at the same
+  distance, and the words of an ORB descriptor change with both.
+
+The prediction picks the pair and seeds the registration (3D-3D with the predicted pose as one more
+hypothesis, then descriptor ICP and BA); the registration, not the prediction, is the constraint.
+A result far from the prediction is refused: the estimate it contradicts rests on verified merges.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..config import require
+from ..geometry import invert, transform_error, transform_points
+from ..registration.relative_pose import RegistrationConfig, estimate_3d3d
+from .keyframe_store import Key, KeyframeStore
+from .results import TYPE_OVERLAP, Verified
+
+log = logging.getLogger(__name__)
+
+# Around a merge, partners may look this much further away from each other than the matched pair
+# does [deg]: the window's keyframes turn a little against the pair's.
+WELD_EXTRA_ANGLE_DEG = 20.0
+
+
+@dataclass
+class OverlapLinkConfig:
+    enabled: bool = True
+    # A pair is tried when this share of one keyframe's 3D points would be seen by the other
+    # (in front, inside its image, nearer than its own farthest point) ...
+    min_shared: float = 0.3
+    # ... from directions at most this far apart: beyond it ORB descriptors rarely match [deg].
+    max_view_angle_deg: float = 40.0
+    # Keyframes on each side of a merge's matched pair (their covisible neighbours, most covisible
+    # first) registered against the other side right after the merge; 0 = no welding.
+    weld_window: int = 3
+    # A guided registration further than this from the prediction is refused [m], [deg].
+    gate_trans_m: float = 0.15
+    gate_rot_deg: float = 5.0
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+
+    def validate(self) -> None:
+        require(0 < self.min_shared <= 1, "links.min_shared must be in (0, 1]")
+        require(0 < self.max_view_angle_deg <= 180, "links.max_view_angle_deg must be in (0, 180]")
+        require(self.weld_window >= 0, "links.weld_window must be >= 0")
+        require(self.gate_trans_m > 0, "links.gate_trans_m must be > 0")
+        require(self.gate_rot_deg > 0, "links.gate_rot_deg must be > 0")
+        self.registration.validate()
+
+
+def shared_view(
+    points_b: np.ndarray, T_a_b: np.ndarray, K_a: np.ndarray, size_a: tuple, far_a_m: float
+) -> float:
+    """Share of keyframe b's 3D points ``points_b`` (its camera frame) that keyframe a, at
+    ``T_a_b`` (b's camera in a's), would see: in front, inside its image (``size_a`` = width,
+    height [px]) and nearer than ``far_a_m`` (a's own farthest point)."""
+    if len(points_b) == 0:
+        return 0.0
+    p = transform_points(T_a_b, points_b)
+    z = p[:, 2]
+    front = z > 1e-3
+    uv = (p[front, :2] / z[front, None]) @ K_a[:2, :2].T + K_a[:2, 2]
+    inside = (
+        (uv[:, 0] >= 0)
+        & (uv[:, 0] < size_a[0])
+        & (uv[:, 1] >= 0)
+        & (uv[:, 1] < size_a[1])
+        & (z[front] <= far_a_m)
+    )
+    return float(inside.sum()) / len(points_b)
+
+
+class OverlapLinks:
+    """Finds and verifies keyframe pairs of different robots whose views overlap (see module doc).
+
+    ``T_group_cam(key)`` is a keyframe's pose in its group frame at the current estimate."""
+
+    def __init__(
+        self,
+        config: OverlapLinkConfig,
+        store: KeyframeStore,
+        T_group_cam: Callable[[Key], np.ndarray],
+    ):
+        self.config = config
+        self.store = store
+        self._T_group_cam = T_group_cam
+        self.verifications = 0
+
+    def _points(self, key: Key) -> np.ndarray:
+        view = self.store.view(key)
+        return view.points_cam[view.has_point]
+
+    def view_angle_deg(self, key_a: Key, key_b: Key) -> float:
+        """Angle between two keyframes' optical axes at the current estimate [deg]."""
+        cos = float(self._T_group_cam(key_a)[:3, 2] @ self._T_group_cam(key_b)[:3, 2])
+        return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+    def best_partners(
+        self,
+        key_b: Key,
+        candidates: Iterable[Key],
+        n: int = 1,
+        max_angle_deg: float | None = None,
+    ) -> list[Key]:
+        """Up to ``n`` of ``candidates`` that see most of keyframe b's scene, best first (each at
+        least ``min_shared``, both ways; optical axes within ``max_angle_deg``, default
+        ``max_view_angle_deg``)."""
+        cfg = self.config
+        T_g_b = self._T_group_cam(key_b)
+        points_b = self._points(key_b)
+        rec_b = self.store.record(key_b)
+        max_angle = cfg.max_view_angle_deg if max_angle_deg is None else max_angle_deg
+        cos_max = np.cos(np.radians(min(max_angle, 180.0)))
+        scored = []
+        for key_a in candidates:
+            T_g_a = self._T_group_cam(key_a)
+            # Optical axes apart by more than the angle: no descriptor would match anyway.
+            if float(T_g_a[:3, 2] @ T_g_b[:3, 2]) < cos_max:
+                continue
+            T_a_b = invert(T_g_a) @ T_g_b
+            rec_a = self.store.record(key_a)
+            points_a = self._points(key_a)
+            if len(points_a) == 0:
+                continue
+            far_a = float(np.max(points_a[:, 2]))
+            share = shared_view(
+                points_b, T_a_b, rec_a.camera.K, (rec_a.camera.width, rec_a.camera.height), far_a
+            )
+            if share < cfg.min_shared:
+                continue
+            far_b = float(np.max(points_b[:, 2])) if len(points_b) else 0.0
+            back = shared_view(
+                points_a,
+                invert(T_a_b),
+                rec_b.camera.K,
+                (rec_b.camera.width, rec_b.camera.height),
+                far_b,
+            )
+            if back < cfg.min_shared:
+                continue
+            scored.append((min(share, back), key_a))
+        scored.sort(key=lambda sk: -sk[0])
+        return [k for _, k in scored[:n]]
+
+    def verify(self, key_a: Key, key_b: Key, stamp_s: float) -> Verified | None:
+        """Registration of the pair seeded with the predicted relative pose; the verified match, or
+        None when it fails or lies further than the gate from the prediction."""
+        cfg = self.config
+        T_pred = invert(self._T_group_cam(key_a)) @ self._T_group_cam(key_b)
+        self.verifications += 1
+        res = estimate_3d3d(
+            self.store.view(key_a), self.store.view(key_b), cfg.registration, T_init=T_pred
+        )
+        if not res.accepted:
+            log.debug("overlap link %s - %s: %s", key_a, key_b, res.reason)
+            return None
+        dt, dr = transform_error(res.T_a_b, T_pred)
+        if dt > cfg.gate_trans_m or dr > cfg.gate_rot_deg:
+            log.info(
+                "overlap link %s - %s refused: %.3f m / %.2f deg from the prediction",
+                key_a,
+                key_b,
+                dt,
+                dr,
+            )
+            return None
+        return Verified(TYPE_OVERLAP, key_a, key_b, res, stamp_s)
+
+    def window(self, key: Key) -> list[Key]:
+        """The keyframe's covisible neighbours (same robot, stored), most covisible first, up to
+        ``weld_window``."""
+        rec = self.store.record(key)
+        order = np.argsort(-np.asarray(rec.covisible_weights, float), kind="stable")
+        out = []
+        for i in order:
+            k = (key[0], int(rec.covisible_ids[i]))
+            if k != key and k in self.store and len(out) < self.config.weld_window:
+                out.append(k)
+        return out
+
+    def weld(
+        self, key_a: Key, key_b: Key, robots_a: set[int], robots_b: set[int], stamp_s: float
+    ) -> list[Verified]:
+        """Verified pairs around a merge's matched keyframes: each matched keyframe and its
+        window, against the other side's keyframe that sees most of its scene and has not been
+        paired yet (the matched pair itself excluded). Call after the merge's first constraint is
+        in the estimate."""
+        found: list[Verified] = []
+        if self.config.weld_window == 0:
+            return found
+        tried = {(key_a, key_b)}
+        # The matched pair shows what angle this scene's features match across (robots facing
+        # each other match on the side walls).
+        max_angle = max(
+            self.config.max_view_angle_deg,
+            self.view_angle_deg(key_a, key_b) + WELD_EXTRA_ANGLE_DEG,
+        )
+        for own, others in ((key_b, robots_a), (key_a, robots_b)):
+            candidates = [k for k in self.store.keys() if k[0] in others]
+            for k in [own] + self.window(own):
+                for partner in self.best_partners(k, candidates, n=3, max_angle_deg=max_angle):
+                    # Pairs are oriented as the merge: a-side first.
+                    pair = (partner, k) if own == key_b else (k, partner)
+                    if pair in tried:
+                        continue
+                    tried.add(pair)
+                    v = self.verify(*pair, stamp_s)
+                    if v is not None:
+                        found.append(v)
+                    break
+        return found
