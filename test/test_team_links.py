@@ -84,7 +84,7 @@ def test_a_merge_welded_on_its_neighbourhood_outweighs_one_bad_pair(world):
     welded = _two_robots(world)
     dt, dr = _merge_off_by(welded, 2.0)
     assert welded.merges[0].welded >= 3
-    alone = _two_robots(world, weld_window=0)
+    alone = _two_robots(world, weld_window=0, sweep_pairs=0)
     dt0, dr0 = _merge_off_by(alone, 2.0)
     assert alone.merges[0].welded == 0
     assert dr0 > 1.0  # the one pair sets the transform
@@ -176,3 +176,14 @@ def test_markers_shrink_with_the_map():
     assert marker_scale(kitchen) == pytest.approx(0.25)
     assert marker_scale({1: np.array([[0, 0, 0.0]])}) == MIN_MARKER_SCALE
     assert marker_scale({}) == 1.0
+
+
+def test_a_late_merge_links_across_the_overlap(world):
+    """A merge after the last keyframes still links the two maps beyond its welding window."""
+    server = _two_robots(world)
+    _merge_off_by(server, 0.0)
+    links = [c for c in server.constraints if c.type == TYPE_OVERLAP]
+    assert len(links) >= 3 and all(c.key_a[0] == 1 and c.key_b[0] == 2 for c in links)
+    unswept = _two_robots(world, sweep_pairs=0)
+    _merge_off_by(unswept, 0.0)
+    assert unswept.constraints == []

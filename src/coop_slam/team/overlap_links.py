@@ -37,6 +37,8 @@ log = logging.getLogger(__name__)
 # Around a merge, partners may look this much further away from each other than the matched pair
 # does [deg]: the window's keyframes turn a little against the pair's.
 WELD_EXTRA_ANGLE_DEG = 20.0
+# A merge's sweep scores this many b-side keyframes per pair it wants.
+SWEEP_SAMPLES_PER_PAIR = 3
 
 
 @dataclass
@@ -50,6 +52,9 @@ class OverlapLinkConfig:
     # Keyframes on each side of a merge's matched pair (their covisible neighbours, most covisible
     # first) registered against the other side right after the merge; 0 = no welding.
     weld_window: int = 3
+    # Links a merge also looks for across the whole overlap of the two sides (see sweep);
+    # 0 = none.
+    sweep_pairs: int = 8
     # A guided registration further than this from the prediction is refused [m], [deg].
     gate_trans_m: float = 0.15
     gate_rot_deg: float = 5.0
@@ -59,6 +64,7 @@ class OverlapLinkConfig:
         require(0 < self.min_shared <= 1, "links.min_shared must be in (0, 1]")
         require(0 < self.max_view_angle_deg <= 180, "links.max_view_angle_deg must be in (0, 180]")
         require(self.weld_window >= 0, "links.weld_window must be >= 0")
+        require(self.sweep_pairs >= 0, "links.sweep_pairs must be >= 0")
         require(self.gate_trans_m > 0, "links.gate_trans_m must be > 0")
         require(self.gate_rot_deg > 0, "links.gate_rot_deg must be > 0")
         self.registration.validate()
@@ -195,16 +201,23 @@ class OverlapLinks:
         return out
 
     def weld(
-        self, key_a: Key, key_b: Key, robots_a: set[int], robots_b: set[int], stamp_s: float
+        self,
+        key_a: Key,
+        key_b: Key,
+        robots_a: set[int],
+        robots_b: set[int],
+        stamp_s: float,
+        tried: set | None = None,
     ) -> list[Verified]:
         """Verified pairs around a merge's matched keyframes: each matched keyframe and its
         window, against the other side's keyframe that sees most of its scene and has not been
-        paired yet (the matched pair itself excluded). Call after the merge's first constraint is
-        in the estimate."""
+        paired yet (the matched pair itself excluded); ``tried`` collects the pairs tried. Call
+        after the merge's first constraint is in the estimate."""
         found: list[Verified] = []
+        tried = set() if tried is None else tried
+        tried.add((key_a, key_b))
         if self.config.weld_window == 0:
             return found
-        tried = {(key_a, key_b)}
         # The matched pair shows what angle this scene's features match across (robots facing
         # each other match on the side walls).
         max_angle = max(
@@ -224,4 +237,41 @@ class OverlapLinks:
                     if v is not None:
                         found.append(v)
                     break
+        return found
+
+    def sweep(
+        self, robots_a: set[int], robots_b: set[int], stamp_s: float, tried: set
+    ) -> list[Verified]:
+        """Pairs across the whole overlap of two just-merged sides, not only around the matched
+        keyframes: b-side keyframes spread evenly over its arrival order, each against the a-side
+        keyframe that sees most of its scene, until ``sweep_pairs`` hold (at most twice as many
+        tried). A merge late in a run has no new keyframes after it to link by."""
+        cfg = self.config
+        found: list[Verified] = []
+        if cfg.sweep_pairs == 0:
+            return found
+        keys_a = [k for k in self.store.keys() if k[0] in robots_a]
+        keys_b = [k for k in self.store.keys() if k[0] in robots_b]
+        # Evenly spread samples bound the cost (each scores every a-side keyframe).
+        n = min(len(keys_b), SWEEP_SAMPLES_PER_PAIR * cfg.sweep_pairs)
+        attempts = 0
+        for i in np.linspace(0, len(keys_b) - 1, n).round().astype(int) if n else []:
+            if len(found) >= cfg.sweep_pairs or attempts >= 2 * cfg.sweep_pairs:
+                break
+            key_b = keys_b[i]
+            for key_a in self.best_partners(key_b, keys_a):
+                if (key_a, key_b) in tried:
+                    continue
+                tried.add((key_a, key_b))
+                attempts += 1
+                v = self.verify(key_a, key_b, stamp_s)
+                if v is not None:
+                    found.append(v)
+        log.info(
+            "links across the overlap of robots %s and %s: %d of %d pairs tried hold",
+            sorted(robots_a),
+            sorted(robots_b),
+            len(found),
+            attempts,
+        )
         return found

@@ -100,15 +100,17 @@ class Stitcher:
         T_mapA_mapB = chain_map_transform(rec_a.T_map_cam, res.T_a_b, rec_b.T_map_cam)
         group = self.groups.merge(key_a[0], key_b[0], T_mapA_mapB)
         self._add_factor(v.kind, key_a, key_b, res)
-        welded = []
+        welded, swept = [], []
         if self.links is not None and self.links.config.enabled:
             # The graph has moved b's group onto a's at this match: its estimate predicts
             # the pairs.
-            welded = self.links.weld(key_a, key_b, robots_a, robots_b, v.stamp_s)
+            tried: set = set()
+            welded = self.links.weld(key_a, key_b, robots_a, robots_b, v.stamp_s, tried)
             for w in welded:
                 self._add_factor(v.kind, w.key_a, w.key_b, w.result)
             if welded:
                 self.need_full = True
+            swept = self.links.sweep(robots_a, robots_b, v.stamp_s, tried)
         merge = MergeResult(
             v.kind,
             key_a[0],
@@ -135,6 +137,9 @@ class Stitcher:
             len(welded),
             group,
         )
+        # Links across the rest of the overlap, each judged as any link (gates, robust kernel).
+        for w in swept:
+            self.add_constraint(w)
         return merge
 
     # --- constraints inside a group ---------------------------------------------------------------
