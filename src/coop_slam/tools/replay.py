@@ -111,6 +111,33 @@ def summary(server, rejected: int = 0) -> dict:
     return out
 
 
+def agreement(server) -> list:
+    """[robots, inter, intra] [mm] of every robot pair in ``world`` (see
+    :mod:`coop_slam.evaluation.agreement`), from the stored keyframes' depth points at their
+    optimized poses: no ground truth needed."""
+    from ..evaluation.agreement import KeyframeCloud, team_agreement
+
+    clouds = {}
+    for robot in server.store.robots():
+        if not server.in_world(robot):
+            continue
+        kfs = []
+        for k in server.store.keyframe_ids(robot):
+            view = server.store.view((robot, k))
+            points = view.points_cam[view.has_point]
+            if len(points):
+                kfs.append(
+                    KeyframeCloud(
+                        server.store.stamp((robot, k)), server.T_group_cam(robot, k), points
+                    )
+                )
+        clouds[robot] = kfs
+    if len(clouds) < 2:
+        return []
+    mm = lambda v: None if v is None else round(1e3 * v, 1)  # noqa: E731
+    return [[p["robots"], mm(p["inter_m"]), mm(p["intra_m"])] for p in team_agreement(clouds).pairs]
+
+
 def judge(server, stamps: dict, gts: dict) -> dict:
     """The replayed decisions against ground truth ``gts`` (robot -> (stamps, T_world_cam) on the
     playback timeline): each merge's and inter-robot constraint's registration error at its
@@ -146,6 +173,7 @@ def judge(server, stamps: dict, gts: dict) -> dict:
             pass
         if server.in_world(robot):
             est[robot] = (t, np.array([server.T_group_cam(robot, k) for k in keys]))
+    out["overlap_agreement_mm"] = agreement(server)
     n = sum(c for _, c in own)
     out["single_ate_pooled_cm"] = (
         round(100 * float(np.sqrt(sum(e**2 * c for e, c in own) / n)), 2) if n else None
@@ -224,6 +252,9 @@ def main(argv=None) -> int:
             f"{truth['single_ate_pooled_cm']} cm"
         )
         print(f"[replay] merge errors [cm, deg] at the keyframes: {truth['merge_errors_cm_deg']}")
+        print(
+            f"[replay] overlap agreement [robots, inter, intra mm]: {truth['overlap_agreement_mm']}"
+        )
         for kind in ("link", "loop"):
             errs = np.array([e for e in truth[f"{kind}_errors_cm_deg"] if e is not None])
             if len(errs):
