@@ -11,9 +11,9 @@ Layout of the output folder::
     .complete             written last: the folder is whole
 
 Outputs are cached under ``${COOP_SLAM_CACHE:-~/.cache/coop_slam}/worlds/<scenario>-<hash>``, the
-hash covering every parameter, the routes and the generator version; a complete folder is returned
-as is. The folder is written under a temporary name and renamed at the end, so readers never see
-half a world.
+hash covering every parameter, the routes, the scenario's sensor noise profile and the generator
+version; a complete folder is returned as is. The folder is written under a temporary name and
+renamed at the end, so readers never see half a world.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from ..datasets import CameraModel, write_camera_yaml, write_tum_trajectory
 from ..errors import CoopSlamError
 from ..geometry import se3
 from .overlap import OverlapConfig, compute_overlap
-from .render import DEFAULT_CAMERA, DynamicObject, NoiseConfig, Renderer
+from .render import DEFAULT_CAMERA, DynamicObject, NoiseConfig, Renderer, exposure_gains
 from .scenarios import Scenario, make_scenario
 from .world import BODY_SIZE_M, WALL_HEIGHT_M, body_model, build_world
 
@@ -73,6 +73,10 @@ def _params(scenario: Scenario, noise: bool, camera: CameraModel) -> dict:
         "routes_sha1": _routes_digest(scenario),
         "layout": scenario.layout,
     }
+    if scenario.noise != NoiseConfig():
+        # A scenario's own sensor profile (all of it): worlds with the default profile keep the
+        # keys they had before profiles existed, so their cached folders stay valid.
+        params["noise_profile"] = dataclasses.asdict(scenario.noise)
     return params
 
 
@@ -104,6 +108,11 @@ def _frame_seed(seed: int, robot_id: int, frame: int) -> int:
     return int(np.random.SeedSequence([seed, robot_id, frame, 11]).generate_state(1)[0])
 
 
+def _noise_config(scenario: Scenario, noise: bool) -> NoiseConfig:
+    """The scenario's sensor profile, or an ideal sensor when ``noise`` is off."""
+    return dataclasses.replace(scenario.noise, enabled=bool(noise))
+
+
 # Rendering state of a worker process (built once per process, textures shared between chunks).
 _WORKER: dict = {}
 
@@ -119,12 +128,11 @@ def _render_chunk(job) -> int:
 
 
 def _render_frames(scenario, noise, camera, out_dir, robot_id, frames) -> int:
-    key = (scenario.layout, scenario.seed, noise, tuple(camera.to_dict().values()))
+    cfg = _noise_config(scenario, noise)
+    key = (scenario.layout, scenario.seed, tuple(camera.to_dict().values()), repr(cfg))
     if _WORKER.get("key") != key:
         world = build_world(scenario.layout, scenario.seed)
-        _WORKER.update(
-            key=key, renderer=Renderer(world, camera, NoiseConfig(enabled=noise)), bodies={}
-        )
+        _WORKER.update(key=key, renderer=Renderer(world, camera, cfg), bodies={})
     renderer, bodies = _WORKER["renderer"], _WORKER["bodies"]
     for t in scenario.trajectories:
         if (t.robot_id, scenario.marker_size_m) not in bodies:
@@ -133,6 +141,10 @@ def _render_frames(scenario, noise, camera, out_dir, robot_id, frames) -> int:
             )
     trajs = {t.robot_id: t for t in scenario.trajectories}
     me = trajs[robot_id]
+    # Auto-exposure gain of this camera over the whole sequence (a frame's gain depends on its
+    # time only, so chunks agree).
+    gain_seed = int(np.random.SeedSequence([scenario.seed, robot_id, 13]).generate_state(1)[0])
+    gains = exposure_gains(cfg, gain_seed, me.stamps_s - me.stamps_s[0])
     folder = os.path.join(out_dir, me.name)
     # Fast PNG: level 1 with Huffman-only coding (sensor noise leaves little for LZ77 to find).
     png = [
@@ -144,13 +156,21 @@ def _render_frames(scenario, noise, camera, out_dir, robot_id, frames) -> int:
     scale = camera.depth_scale
     for k in frames:
         T_world_cam = me.poses_se3[k] @ scenario.T_base_cam
-        others = [
+        others = [  # hand-held cameras have no robot body for the others to see
             DynamicObject(t.poses_se3[k], bodies[rid, scenario.marker_size_m])
             for rid, t in trajs.items()
-            if rid != robot_id
+            if rid != robot_id and not scenario.hand_held
         ]
         seed = _frame_seed(scenario.seed, robot_id, k)
-        bgr, depth = renderer.render(T_world_cam, others, noise_seed=seed)
+        pose_at = None
+        if cfg.enabled and cfg.needs_motion:
+
+            def pose_at(dt_s, stamp_s=me.stamps_s[k]):  # sub-frame camera poses
+                return me.poses_at(stamp_s + np.asarray(dt_s, float)) @ scenario.T_base_cam
+
+        bgr, depth = renderer.render(
+            T_world_cam, others, noise_seed=seed, pose_at=pose_at, gain=float(gains[k])
+        )
         raw = np.round(depth * scale)
         raw[raw > 65535] = 0  # out of the 16-bit range: no measurement rather than a wrong one
         name = _frame_name(me.stamps_s[k])
@@ -163,7 +183,9 @@ def _render_frames(scenario, noise, camera, out_dir, robot_id, frames) -> int:
             raise GenerateError(f"cannot write {os.path.join(folder, 'depth', name)}")
         if camera.baseline_m > 0:
             T_cam_right = se3(t=[camera.baseline_m, 0.0, 0.0])
-            right, _ = renderer.render(T_world_cam @ T_cam_right, others, noise_seed=seed + 1)
+            right, _ = renderer.render(
+                T_world_cam @ T_cam_right, others, noise_seed=seed + 1, gain=float(gains[k])
+            )
             path = os.path.join(folder, "right", rgb_name)
             if not cv2.imwrite(path, right, [cv2.IMWRITE_JPEG_QUALITY, 95]):
                 raise GenerateError(f"cannot write {path}")
@@ -180,6 +202,11 @@ def _write_lists(folder: str, stamps_s, stereo: bool) -> None:
 def _world_yaml(
     scenario: Scenario, params: dict, camera: CameraModel, noise: bool, events, ocfg
 ) -> dict:
+    frames = (
+        {"world": "z up (REP-103)", "base_link": "the camera carrier: x forward, y left, z up"}
+        if scenario.hand_held
+        else {"world": "z up (REP-103)", "base_link": "x forward, y left, z up"}
+    )
     return {
         "generator_version": GENERATOR_VERSION,
         "scenario": scenario.name,
@@ -194,12 +221,10 @@ def _world_yaml(
                 for o in build_world(scenario.layout, scenario.seed).building_origins_xy
             ],
             "wall_height_m": WALL_HEIGHT_M,
-            "frames": {
-                "world": "z up (REP-103)",
-                "base_link": "x forward, y left, z up",
-                "camera": "optical: z forward, x right, y down",
-            },
+            "frames": {**frames, "camera": "optical: z forward, x right, y down"},
         },
+        # Hand-held: 6-DoF cameras carried by people (no robot bodies or markers, not level).
+        "hand_held": bool(scenario.hand_held),
         "start_stamp_s": float(scenario.trajectories[0].stamps_s[0]),
         "frame_count": len(scenario.trajectories[0].stamps_s),
         "rate_hz": scenario.rate_hz,
@@ -215,7 +240,7 @@ def _world_yaml(
             "body_size_m": list(BODY_SIZE_M),
         },
         "camera": camera.to_dict(),
-        "noise": NoiseConfig(enabled=noise).__dict__,
+        "noise": dataclasses.asdict(_noise_config(scenario, noise)),
         "overlap": events.to_dict(),
         "overlap_config": ocfg.__dict__,
         "meta": {
@@ -244,7 +269,7 @@ def generate(
     seed: int = 0,
     robots: int | None = None,
     duration_s: float | None = None,
-    rate_hz: float = 15.0,
+    rate_hz: float | None = None,
     noise: bool = True,
     out_dir: str | None = None,
     progress: Callable[[int, int], None] | None = None,
@@ -255,7 +280,8 @@ def generate(
 ) -> str:
     """Render ``scenario`` and return its folder (cached: a complete folder is not rendered again).
 
-    ``robots``/``duration_s`` None take the scenario's defaults. ``progress(done_frames,
+    ``robots``/``duration_s``/``rate_hz`` None take the scenario's defaults. ``noise`` renders with
+    the scenario's sensor noise profile (off: ideal images and exact depth). ``progress(done_frames,
     total_frames)`` is called as frames are written. ``workers`` > 1 renders in that many
     processes (one core each; started with 'spawn', so a calling script needs the usual
     ``if __name__ == "__main__":`` guard). Output is identical whatever ``workers`` is.
@@ -338,6 +364,8 @@ def _generate_into(tmp, sc: Scenario, params, noise, camera, ocfg, progress, wor
                 if progress:
                     progress(done, total)
     world = build_world(sc.layout, sc.seed)
+    if noise:  # nothing to match beyond the sensor's depth range
+        ocfg = dataclasses.replace(ocfg, max_range_m=min(ocfg.max_range_m, sc.noise.depth_max_m))
     events = compute_overlap(sc, world, camera, ocfg)
     with open(os.path.join(tmp, WORLD_FILE), "w", encoding="utf-8") as fh:
         yaml.safe_dump(_world_yaml(sc, params, camera, noise, events, ocfg), fh, sort_keys=False)

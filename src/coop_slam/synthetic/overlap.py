@@ -7,7 +7,7 @@ could see, not from the SLAM output:
 - ``revisit`` (per ordered pair a -> b): first time robot b views a place robot a saw at least
   ``min_revisit_gap_s`` earlier;
 - ``marker_sightings`` (per ordered pair): first time robot a's camera sees robot b's marker well
-  enough to detect it;
+  enough to detect it (never for hand-held cameras: nobody carries a marker);
 - ``first_overlap`` (per pair): the earliest of all the above, the first moment a merge is possible.
 
 Visibility: points sampled on every static surface are visible in a frame when they are in the
@@ -213,10 +213,11 @@ def compute_overlap(
     t_s = stamps[frames]
     vis = _Visibility(world, camera, cfg)
     n_features = len(vis.points_world) * cfg.azimuth_bins
+    # Hand-held cameras have no robot body (and so no marker) for the others to see.
     faces = [
         f.marker_corners_base
         for f in body_faces(scenario.marker_size_m)
-        if f.marker_corners_base is not None
+        if f.marker_corners_base is not None and not scenario.hand_held
     ]
 
     seen, counts, sightings = {}, {}, {}

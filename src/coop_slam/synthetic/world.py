@@ -6,6 +6,8 @@ camera optical frame z forward, x right, y down. ``T_a_b`` maps points of frame 
 A building is a ring corridor (12 m x 8 m outside, 2 m wide) around two rooms (4 m x 3.8 m) joined
 by doors, with pillars, cabinets and crates for corners and depth structure. A world holds one or
 two buildings 30 m apart; walls are closed, so no camera ever sees from one building into another.
+The 'kitchen' layout is one small cluttered room instead (4 m x 3.5 m, for hand-held cameras):
+counters and wall cabinets, a fridge, an open shelf, a table and objects of many sizes on them.
 Surfaces are split into tiles of at most 2 m so each tile picks its own mip level and its own
 screen bounding box stays small.
 """
@@ -15,6 +17,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from ..errors import CoopSlamError
@@ -34,6 +37,10 @@ DEFAULT_MARKER_SIZE_M = 0.25
 # Camera on the robot: 0.1 m forward, 0.5 m up, looking forward (optical z = base x).
 R_BASE_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 DEFAULT_T_BASE_CAM = se3(R_BASE_CAM, [0.1, 0.0, 0.5])
+# A hand-held camera: base_link is the camera carrier itself (same origin, REP-103 axes), so the
+# base moves in 6-DoF and T_world_cam = T_world_base @ HAND_HELD_T_BASE_CAM.
+HAND_HELD_T_BASE_CAM = se3(R_BASE_CAM, [0.0, 0.0, 0.0])
+KITCHEN_SIZE_M = (4.0, 3.5)
 
 
 class WorldError(CoopSlamError):
@@ -66,6 +73,9 @@ class Surface:
     edge_v_world: np.ndarray
     seed: tuple
     posters: list[Poster] = field(default_factory=list)
+    # Below 1, the texture's detail (what differs from its 15 cm blur) is toned down: plain
+    # painted walls and cabinet doors, as real rooms have; posters keep their full contrast.
+    contrast: float = 1.0
 
     @property
     def size_m(self) -> tuple[float, float]:
@@ -88,6 +98,9 @@ class Surface:
         w_m, h_m = self.size_m
         ppm = PX_PER_M[self.kind]
         tex = textures.surface_texture(w_px, h_px, ppm, self.seed, style=self.kind)
+        if self.contrast < 1.0:
+            base = cv2.GaussianBlur(tex, (0, 0), 0.15 * ppm)
+            tex = cv2.addWeighted(tex, self.contrast, base, 1.0 - self.contrast, 0.0)
         sx, sy = w_px / w_m, h_px / h_m  # exact texels per metre along each edge
         for p in self.posters:
             pw, ph = round(p.width_m * sx), round(p.height_m * sy)
@@ -132,11 +145,17 @@ class World:
     """Static textured quads of one or more buildings, and their 2D footprint (free-space tests)."""
 
     def __init__(
-        self, surfaces: list[Surface], obstacles_xy: list[tuple], building_origins_xy, meta
+        self,
+        surfaces: list[Surface],
+        obstacles_xy: list[tuple],
+        building_origins_xy,
+        meta,
+        building_size_m: tuple[float, float] = BUILDING_SIZE_M,
     ):
         self.surfaces = surfaces
         self.obstacles_xy = obstacles_xy  # (x0, y0, x1, y1) occupied rectangles
         self.building_origins_xy = [tuple(map(float, o)) for o in building_origins_xy]
+        self.building_size_m = tuple(map(float, building_size_m))  # outer walls (x, y) [m]
         self.meta = meta
         origins, eus, evs, names, self._tile_of = [], [], [], [], []
         for si, s in enumerate(surfaces):
@@ -170,7 +189,7 @@ class World:
         """Whether a disc of radius ``clearance_m`` at each (x, y) is in a building's free space."""
         xy = np.atleast_2d(np.asarray(xy, float))
         inside_any = np.zeros(len(xy), bool)
-        bw, bh = BUILDING_SIZE_M
+        bw, bh = self.building_size_m
         for ox, oy in self.building_origins_xy:
             inside_any |= (
                 (xy[:, 0] >= ox + clearance_m)
@@ -204,18 +223,32 @@ class World:
 
 
 # --- building layout ---------------------------------------------------------------------------
-def _wall(name, a_xy, b_xy, z0, z1, kind, seed, posters=()) -> Surface:
+def _wall(name, a_xy, b_xy, z0, z1, kind, seed, posters=(), contrast=1.0) -> Surface:
     """Vertical rectangle from a to b, visible from the right-hand side of the direction a -> b."""
     a = np.array([a_xy[0], a_xy[1], z1], float)
     b = np.array([b_xy[0], b_xy[1], z1], float)
-    return Surface(name, kind, a, b - a, np.array([0.0, 0.0, z0 - z1]), seed, list(posters))
+    return Surface(
+        name, kind, a, b - a, np.array([0.0, 0.0, z0 - z1]), seed, list(posters), contrast
+    )
 
 
-def _box(name, x0, y0, x1, y1, z0, z1, kind, seed, top=True) -> list[Surface]:
-    """Outward-facing sides (counter-clockwise = outside on the right) and top of a cuboid."""
+def _box(
+    name, x0, y0, x1, y1, z0, z1, kind, seed, top=True, bottom=False, contrast=1.0
+) -> list[Surface]:
+    """Outward-facing sides (counter-clockwise = outside on the right), top and (for boxes that
+    hang above the floor, seen from below) bottom of a cuboid."""
     corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
     out = [
-        _wall(f"{name}.side{k}", corners[k], corners[(k + 1) % 4], z0, z1, kind, seed + (k,))
+        _wall(
+            f"{name}.side{k}",
+            corners[k],
+            corners[(k + 1) % 4],
+            z0,
+            z1,
+            kind,
+            seed + (k,),
+            contrast=contrast,
+        )
         for k in range(4)
     ]
     if top:
@@ -227,6 +260,19 @@ def _box(name, x0, y0, x1, y1, z0, z1, kind, seed, top=True) -> list[Surface]:
                 np.array([x1 - x0, 0.0, 0.0]),
                 np.array([0.0, y0 - y1, 0.0]),
                 seed + (4,),
+                contrast=contrast,
+            )
+        )
+    if bottom:  # normal edge_v x edge_u points down
+        out.append(
+            Surface(
+                f"{name}.bottom",
+                kind,
+                np.array([x0, y0, z0]),
+                np.array([x1 - x0, 0.0, 0.0]),
+                np.array([0.0, y1 - y0, 0.0]),
+                seed + (5,),
+                contrast=contrast,
             )
         )
     return out
@@ -325,14 +371,216 @@ def _building(index: int, origin_xy, texture_key: tuple, poster_key: tuple) -> t
     return surfaces, obstacles
 
 
-LAYOUTS = ("ring", "two_buildings", "two_buildings_aliased")
+def _kitchen(seed: int) -> tuple[list, list]:
+    """Surfaces and obstacle footprints of a kitchen of KITCHEN_SIZE_M with its corner at (0, 0).
+
+    x east, y north. Counters (0.9 m) with wall cabinets above run along the south and west walls,
+    a fridge stands in the south-east corner, an open shelf of books and a sideboard along the north
+    wall, boxes and a radiator along the east wall, a table in the middle; the free floor around the
+    table (x 1.3-3.3, y 1.2-2.5 with some margin) is where people walk. Every surface, door and
+    object has its own texture seed: nothing repeats exactly (no aliasing between places).
+    """
+    H = WALL_HEIGHT_M
+    W, D = KITCHEN_SIZE_M
+    key = (int(seed), 2000)  # apart from the ring buildings' (seed, b) and posters' (seed, 1000+)
+    surfaces: list[Surface] = []
+    obstacles: list[tuple] = []
+    counter = iter(range(10_000))
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 2001]))
+
+    def seed_():
+        return key + (next(counter),)
+
+    def poster(u, v, w, h):
+        return Poster(u, v, w, h, key + (500 + next(counter),))
+
+    # Texture detail of the large surfaces (Surface.contrast): painted walls and cabinet fronts
+    # are plain, worktops and wood a little less so; appliances, books, boxes and posters keep
+    # their full detail. Corners then cluster on the clutter, as in a real kitchen.
+    plain, smooth = 0.35, 0.6
+
+    # Walls face inwards (clockwise); posters: tiles behind the south counter, a window (east), a
+    # calendar above the sideboard (north) and a picture beside the west cabinets.
+    walls = [
+        ("west", (0, 0), (0, D), [poster(2.7, 0.7, 0.6, 0.6)]),
+        ("north", (0, D), (W, D), [poster(2.55, 0.6, 0.5, 0.6)]),
+        ("east", (W, D), (W, 0), [poster(0.9, 0.3, 1.2, 1.1)]),
+        ("south", (W, 0), (0, 0), [poster(1.0, H - 1.5, 3.0, 0.55)]),
+    ]
+    for name, a, c, posters in walls:
+        surfaces.append(
+            _wall(f"kitchen.{name}", a, c, 0.0, H, "wall", seed_(), posters, contrast=plain)
+        )
+
+    def solid(name, x0, y0, x1, y1, z0, z1, top=True, bottom=False, obstacle=False, contrast=1.0):
+        surfaces.extend(
+            _box(f"kitchen.{name}", x0, y0, x1, y1, z0, z1, "box", seed_(), top, bottom, contrast)
+        )
+        if obstacle:
+            obstacles.append((x0, y0, x1, y1))
+
+    # Counters: carcass, worktop with a 2-4 cm overhang, door fronts 2 cm proud of the carcass.
+    solid("counter_s", 0.0, 0.0, 3.0, 0.58, 0.0, 0.86, top=False, contrast=plain)
+    solid("worktop_s", 0.0, 0.0, 3.02, 0.62, 0.86, 0.9, bottom=True, obstacle=True, contrast=smooth)
+    solid("counter_w", 0.0, 0.62, 0.58, 2.6, 0.0, 0.86, top=False, contrast=plain)
+    solid(
+        "worktop_w", 0.0, 0.62, 0.62, 2.62, 0.86, 0.9, bottom=True, obstacle=True, contrast=smooth
+    )
+    for k, x in enumerate((0.62, 1.22, 1.82, 2.42)):
+        solid(f"door_s{k}", x + 0.01, 0.58, x + 0.57, 0.6, 0.1, 0.82, top=False, contrast=plain)
+    for k, y in enumerate((0.66, 1.32, 1.98)):
+        solid(f"door_w{k}", 0.58, y + 0.01, 0.6, y + 0.6, 0.1, 0.82, top=False, contrast=plain)
+    # Wall cabinets (seen from below when the camera is low), with door fronts.
+    solid("upper_s", 0.0, 0.0, 2.2, 0.34, 1.5, 2.2, top=False, bottom=True, contrast=plain)
+    for k, x in enumerate((0.0, 0.55, 1.1, 1.65)):
+        solid(
+            f"upper_door_s{k}",
+            x + 0.01,
+            0.34,
+            x + 0.54,
+            0.36,
+            1.52,
+            2.18,
+            top=False,
+            contrast=plain,
+        )
+    solid("upper_w", 0.0, 0.8, 0.34, 2.4, 1.5, 2.2, top=False, bottom=True, contrast=plain)
+    for k, y in enumerate((0.8, 1.34, 1.88)):
+        solid(
+            f"upper_door_w{k}",
+            0.34,
+            y + 0.01,
+            0.36,
+            y + 0.52,
+            1.52,
+            2.18,
+            top=False,
+            contrast=plain,
+        )
+    solid("fridge", 3.2, 0.02, 3.9, 0.68, 0.0, 1.9, obstacle=True, contrast=plain)
+    solid("fridge_box", 3.3, 0.1, 3.7, 0.5, 1.9, 2.1)
+    # Things on the south worktop (z 0.9): microwave, cutting board, kettle, toaster, cereal, jars.
+    for name, x0, y0, x1, y1, h in (
+        ("microwave", 0.7, 0.06, 1.2, 0.42, 0.3),
+        ("board", 1.25, 0.02, 1.4, 0.05, 0.35),
+        ("kettle", 1.45, 0.1, 1.65, 0.28, 0.25),
+        ("toaster", 1.85, 0.08, 2.15, 0.26, 0.18),
+        ("cereal", 2.35, 0.06, 2.55, 0.13, 0.3),
+        ("jar_a", 2.65, 0.1, 2.75, 0.2, 0.12),
+        ("jar_b", 2.8, 0.1, 2.9, 0.2, 0.15),
+    ):
+        solid(name, x0, y0, x1, y1, 0.9, 0.9 + h)
+    # ... and on the west worktop: dish rack, bottles, bread box.
+    for name, x0, y0, x1, y1, h in (
+        ("rack", 0.1, 1.0, 0.5, 1.4, 0.15),
+        ("bottle_a", 0.15, 1.7, 0.22, 1.77, 0.3),
+        ("bottle_b", 0.27, 1.72, 0.34, 1.79, 0.35),
+        ("breadbox", 0.05, 2.0, 0.45, 2.35, 0.2),
+    ):
+        solid(name, x0, y0, x1, y1, 0.9, 0.9 + h)
+    # Open shelf on the north wall: two sides, five boards, books and jars on the boards.
+    sy0, sy1 = 3.15, 3.5
+    solid("shelf_side_a", 1.0, sy0, 1.03, sy1, 0.0, 1.7, contrast=smooth)
+    solid("shelf_side_b", 2.17, sy0, 2.2, sy1, 0.0, 1.7, contrast=smooth)
+    obstacles.append((1.0, sy0, 2.2, sy1))
+    boards = (0.0, 0.42, 0.85, 1.28, 1.67)
+    for k, z in enumerate(boards):
+        solid(f"shelf_board{k}", 1.03, sy0, 2.17, sy1, z, z + 0.03, bottom=k > 0, contrast=smooth)
+    for level, z in enumerate(boards[:4]):
+        x = 1.06 + rng.uniform(0.0, 0.08)
+        k = 0
+        while True:
+            w = rng.uniform(0.03, 0.09) if level < 3 else rng.uniform(0.08, 0.16)
+            h = rng.uniform(0.16, 0.33) if level < 3 else rng.uniform(0.08, 0.2)
+            if x + w > 2.14:
+                break
+            depth = rng.uniform(0.16, 0.26)
+            solid(
+                f"shelf_item{level}_{k}",
+                x,
+                sy1 - 0.02 - depth,
+                x + w,
+                sy1 - 0.02,
+                z + 0.03,
+                z + 0.03 + h,
+            )
+            x += w + (rng.uniform(0.0, 0.02) if rng.random() < 0.8 else rng.uniform(0.08, 0.2))
+            k += 1
+    solid("sideboard", 2.5, 3.05, 3.8, 3.5, 0.0, 0.85, obstacle=True, contrast=smooth)
+    for name, x0, y0, x1, y1, z0, z1 in (
+        ("pot", 2.6, 3.2, 2.8, 3.4, 0.85, 1.1),
+        ("plant", 2.55, 3.15, 2.85, 3.45, 1.1, 1.45),
+        ("radio", 3.0, 3.25, 3.35, 3.45, 0.85, 1.0),
+        ("storage_box", 3.45, 3.1, 3.75, 3.4, 0.85, 1.15),
+    ):
+        solid(name, x0, y0, x1, y1, z0, z1)
+    # East wall: stacked moving boxes and a radiator under the window.
+    solid("boxes_a", 3.65, 1.3, 3.97, 1.72, 0.0, 0.38, obstacle=True)
+    solid("boxes_b", 3.68, 1.36, 3.95, 1.66, 0.38, 0.6)
+    solid("boxes_c", 3.72, 1.42, 3.9, 1.6, 0.6, 0.76)
+    solid("radiator", 3.9, 2.05, 3.98, 2.95, 0.15, 0.7, obstacle=True)
+    # North-west corner: a chair (seat, back, legs) and a bin.
+    solid("chair_seat", 0.15, 2.75, 0.55, 3.15, 0.43, 0.47, bottom=True, obstacle=True)
+    solid("chair_back", 0.15, 3.11, 0.55, 3.15, 0.47, 0.95)
+    for k, (x, y) in enumerate(((0.16, 2.76), (0.51, 2.76), (0.16, 3.11), (0.51, 3.11))):
+        solid(f"chair_leg{k}", x, y, x + 0.03, y + 0.03, 0.0, 0.43, top=False)
+    solid("bin", 0.62, 3.15, 0.92, 3.45, 0.0, 0.5, obstacle=True)
+    # The table in the middle (top on four legs) and what is on it.
+    tx0, ty0, tx1, ty1 = 1.9, 1.64, 2.7, 2.06
+    solid("table_top", tx0, ty0, tx1, ty1, 0.72, 0.76, bottom=True, obstacle=True, contrast=smooth)
+    for k, (x, y) in enumerate(
+        (
+            (tx0 + 0.03, ty0 + 0.03),
+            (tx1 - 0.07, ty0 + 0.03),
+            (tx1 - 0.07, ty1 - 0.07),
+            (tx0 + 0.03, ty1 - 0.07),
+        )
+    ):
+        solid(f"table_leg{k}", x, y, x + 0.04, y + 0.04, 0.0, 0.72, top=False)
+    for name, x0, y0, x1, y1, z0, z1 in (
+        ("bowl", 2.0, 1.7, 2.25, 1.95, 0.76, 0.86),
+        ("book_a", 2.35, 1.69, 2.62, 1.88, 0.76, 0.81),
+        ("book_b", 2.38, 1.71, 2.6, 1.86, 0.81, 0.84),
+        ("mug", 2.5, 1.95, 2.58, 2.03, 0.76, 0.86),
+    ):
+        solid(name, x0, y0, x1, y1, z0, z1)
+    surfaces.append(
+        Surface(
+            "kitchen.floor",
+            "floor",
+            np.array([0.0, D, 0.0]),
+            np.array([W, 0.0, 0.0]),
+            np.array([0.0, -D, 0.0]),
+            seed_(),
+            contrast=smooth,
+        )
+    )
+    surfaces.append(
+        Surface(
+            "kitchen.ceiling",
+            "ceiling",
+            np.array([0.0, 0.0, H]),
+            np.array([W, 0.0, 0.0]),
+            np.array([0.0, D, 0.0]),
+            seed_(),
+        )
+    )
+    return surfaces, obstacles
+
+
+LAYOUTS = ("ring", "two_buildings", "two_buildings_aliased", "kitchen")
 
 
 def build_world(layout: str = "ring", seed: int = 0) -> World:
     """The static world: 'ring' (one building), 'two_buildings' (two buildings whose textures all
-    differ) or 'two_buildings_aliased' (two buildings that share identical posters)."""
+    differ), 'two_buildings_aliased' (two buildings that share identical posters) or 'kitchen'
+    (one small cluttered room for hand-held cameras)."""
     if layout not in LAYOUTS:
         raise WorldError(f"unknown world layout '{layout}'; use one of {LAYOUTS}")
+    if layout == "kitchen":
+        surfaces, obstacles = _kitchen(seed)
+        meta = {"layout": layout, "seed": int(seed), "buildings": [[0.0, 0.0]]}
+        return World(surfaces, obstacles, [(0.0, 0.0)], meta, building_size_m=KITCHEN_SIZE_M)
     n_buildings = 1 if layout == "ring" else 2
     surfaces, obstacles, origins = [], [], []
     for b in range(n_buildings):

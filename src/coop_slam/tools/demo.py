@@ -88,8 +88,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         action=argparse.BooleanOptionalAction,
         default=None,
         help="the cameras sit on bases driving on a level floor, so local BA keeps them level "
-        "(client vo.planar_motion); default: on for synthetic scenarios (wheeled robots), off "
-        "for datasets and bags",
+        "(client vo.planar_motion); default: on for synthetic scenarios of wheeled robots, off "
+        "for hand-held ones (kitchen), datasets and bags",
     )
     p.add_argument(
         "--rendezvous",
@@ -242,6 +242,14 @@ def _framed_rviz_config(out: str, source, inputs, base_cam: list) -> str | None:
         f"(the world group only: unmerged maps drawn aside are not framed; {path})"
     )
     return str(path)
+
+
+def _hand_held(scenario: str) -> bool:
+    """Whether people carry the scenario's cameras (6-DoF motion: no ground-robot prior)."""
+    from ..synthetic.scenarios import SCENARIOS
+
+    spec = SCENARIOS.get(scenario)
+    return bool(spec is not None and spec.hand_held)
 
 
 def _free_port() -> int:
@@ -459,7 +467,12 @@ def run(args: argparse.Namespace) -> int:
             launch_args.append(f"{flag}:={os.path.abspath(arg)}")
     if args.no_markers:
         launch_args.append("marker_every_frames:=0")
-    ground = args.ground_robots if args.ground_robots is not None else bool(args.scenario)
+    # Synthetic robots drive on the floor unless people carry the cameras (hand-held scenarios).
+    ground = (
+        args.ground_robots
+        if args.ground_robots is not None
+        else bool(args.scenario) and not _hand_held(args.scenario)
+    )
     launch_args.append(f"ground_robots:={str(ground).lower()}")
     bag_path = os.path.join(out, "run.bag")
     launch_args.append(f"record_bag:={bag_path}")

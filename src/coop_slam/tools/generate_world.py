@@ -18,7 +18,12 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--robots", type=int, default=None, help="robot count (scenario default)")
     parser.add_argument("--duration", type=float, default=None, help="seconds (scenario default)")
-    parser.add_argument("--rate", type=float, default=15.0, help="frame rate [Hz]")
+    parser.add_argument(
+        "--rate",
+        type=float,
+        default=None,
+        help="frame rate [Hz] (scenario default: 15, kitchen 30)",
+    )
     parser.add_argument("--no-noise", action="store_true", help="ideal images and exact depth")
     parser.add_argument(
         "--stereo-baseline",
