@@ -19,6 +19,8 @@ COLUMNS = (
     "team ATE [cm]",
     "merges (type, latency s, error cm / deg at the matched keyframes)",
     "wrong merges",
+    "links (robots: count)",
+    "overlap agreement (robots: inter / intra mm)",
     "loops",
     "track ms (mean / p95)",
     "server ms / kf",
@@ -28,6 +30,10 @@ COLUMNS = (
 
 def _cm(v) -> str:
     return "–" if v is None else f"{100 * v:.2f}"
+
+
+def _mm(v) -> str:
+    return "–" if v is None else f"{1000 * v:.1f}"
 
 
 def _num(v, digits: int = 1) -> str:
@@ -84,6 +90,12 @@ def row(report: dict, info: dict) -> list[str]:
         _cm(report.get("team_ate_rmse_m")),
         "<br>".join(merges) or "none",
         _num(report.get("wrong_merges"), 0),
+        "<br>".join(f"{k['robots']}: {k['count']}" for k in report.get("links") or []) or "–",
+        "<br>".join(
+            f"{a['robots']}: {_mm(a.get('inter_m'))} / {_mm(a.get('intra_m'))}"
+            for a in report.get("overlap_agreement") or []
+        )
+        or "–",
         _num(report.get("loop_closures"), 0),
         track,
         _num(report.get("server_ms_per_keyframe")),
@@ -118,7 +130,10 @@ def main(argv=None) -> int:
         "runs' `report.json` (lock-step playback unless the run says otherwise). Errors are "
         "against ground truth; `–` = not measured. Robot ATE: each robot's keyframes aligned on "
         "their own; pooled: those pooled (what a perfect placement of the robots' maps would "
-        "score); team ATE: all robots in `world` with one alignment. A commit ending in `+` "
+        "score); team ATE: all robots in `world` with one alignment. Links: constraints between "
+        "two robots accepted after they merged. Overlap agreement (no ground truth): how far "
+        "one robot's points lie from the other's surfaces where both mapped, against a robot's "
+        "own revisits. A commit ending in `+` "
         "ran with changes on top of it that were not committed yet.\n"
     )
     print(table(args.results))
