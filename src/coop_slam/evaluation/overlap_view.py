@@ -157,7 +157,9 @@ def plot_overlap(
         f"{title}  (up = {axis_label}; trimmed-RMS point-to-plane gap)\n" + "\n".join(lines),
         fontsize=10,
     )
-    fig.tight_layout(rect=(0, 0.05, 1, 1))  # room for the legend below the panels
+    # Room for the legend below the panels and for the title's lines above them.
+    top = 0.99 - 0.022 * (len(lines) + 1)
+    fig.tight_layout(rect=(0, 0.05, 1, top))
     fig.savefig(path_png, dpi=110)
     plt.close(fig)
     return path_png
