@@ -163,6 +163,41 @@ def test_matching_finds_true_pairs_and_respects_groups(scene):
     assert len(match_descriptors(kf_a.descriptors, kf_b.descriptors, groups=wrong)) == 0
 
 
+def test_matching_works_in_row_blocks_with_bounded_memory(scene, monkeypatch):
+    """Descriptors are compared block of rows by block: the matches of a plain ratio test on the
+    whole distance matrix whatever the block size, in memory that does not grow with the product
+    of the keyframes' sizes (two keyframes of 20,000 keypoints took a 20k x 20k matrix, 6.5 GB)."""
+    import tracemalloc
+
+    from coop_slam import descriptors
+    from coop_slam.descriptors import hamming_matrix, match_ratio
+
+    kf_a, kf_b, _ = scene
+    a, b = kf_a.descriptors, kf_b.descriptors
+    dist = hamming_matrix(a, b)
+    d_sorted = np.sort(dist, axis=1)
+    best = np.argmin(dist, axis=1)
+    rows = np.arange(len(a))
+    keep = (d_sorted[:, 0] <= 64) & (d_sorted[:, 0] < 0.8 * d_sorted[:, 1])
+    keep &= np.argmin(dist, axis=0)[best] == rows
+    plain = np.stack([rows[keep], best[keep]], axis=1)
+    assert len(plain) > 100 and np.array_equal(match_ratio(a, b), plain)
+    monkeypatch.setattr(descriptors, "BLOCK_BYTES", 8 * len(b) * 7)  # blocks of 7 rows
+    assert np.array_equal(match_ratio(a, b), plain)
+    assert np.array_equal(hamming_matrix(a, b), dist)
+    monkeypatch.undo()
+    rng = np.random.default_rng(0)
+    big = rng.integers(0, 256, (6000, 32), dtype=np.uint8)
+    tracemalloc.start()
+    try:
+        pairs = match_ratio(big, big ^ np.uint8(1))  # one bit off each: 6000 true matches
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert np.array_equal(pairs[:, 0], pairs[:, 1]) and len(pairs) == 6000
+    assert peak < 2 * descriptors.BLOCK_BYTES + 20e6, f"{peak / 1e6:.0f} MB"  # was 576 MB
+
+
 # --- RANSAC and ICP -------------------------------------------------------------------------------
 def _matched_points(kf_a, kf_b):
     pairs = match_descriptors(kf_a.descriptors, kf_b.descriptors)

@@ -17,6 +17,8 @@ from coop_slam.ros.convert import (  # noqa: E402
     keyframe_to_msg,
     pose_from_msg,
     pose_to_msg,
+    transform_from_msg,
+    transform_to_msg,
 )
 from coop_slam.ros.validation import RejectCounter  # noqa: E402
 
@@ -45,6 +47,11 @@ def test_keyframe_round_trip_over_the_wire():
     assert back.stamp_s == pytest.approx(kf.stamp_s)
 
 
+def _remove_with_200k_keypoints(msg):
+    msg.action = msg.ACTION_REMOVE
+    msg.keypoints = [1.0] * (4 * 200_000)
+
+
 @pytest.mark.parametrize(
     "mutate, match",
     [
@@ -55,6 +62,11 @@ def test_keyframe_round_trip_over_the_wire():
         (lambda m: setattr(m, "keypoints", list(m.keypoints)[:-1]), "4 per keypoint"),
         (lambda m: setattr(m, "depths_m", list(m.depths_m)[:-1]), "depths_m"),
         (lambda m: setattr(m.camera, "fx", 0.0), "camera model"),
+        # Finite yet absurd, as a fuzzer sent them.
+        (lambda m: setattr(m.camera, "fx", 1e-300), "camera fx = 1e-300 px is outside"),
+        (lambda m: setattr(m.pose.position, "y", 1e300), "pose position 1e.300 m"),
+        (lambda m: setattr(m, "depths_m", [1e30] * len(m.depths_m)), "depths must be in"),
+        (_remove_with_200k_keypoints, "keypoints holds 200000 entries, above the limit"),
     ],
 )
 def test_malformed_keyframes_are_rejected(mutate, match):
@@ -91,6 +103,11 @@ def test_pose_conversion_and_reject_counter():
     T = np.eye(4)
     T[:3, 3] = [1, 2, 3]
     assert np.allclose(pose_from_msg(pose_to_msg(T)), T)
+    T[1, 3] = 1e300  # a map correction placing a keyframe there would move the client's pose
+    with pytest.raises(MessageError, match="keyframe pose position 1e.300 m is beyond"):
+        pose_from_msg(pose_to_msg(T), "keyframe pose")
+    with pytest.raises(MessageError, match="T_world_map position"):
+        transform_from_msg(transform_to_msg(T), "T_world_map")
     counter = RejectCounter("test", log_period_s=100.0)
     counter.reject("/a", "bad")
     counter.reject("/a", "bad")

@@ -38,17 +38,52 @@ def as_descriptors(desc, name: str = "descriptors") -> np.ndarray:
     return np.ascontiguousarray(arr)
 
 
+# Working memory [bytes] of one block of a distance matrix. Descriptors are compared block of rows
+# by block of rows, so the memory needed does not grow with the product of the keyframes' sizes:
+# two keyframes of 20,000 keypoints (a message the server accepts) would otherwise need a dense
+# 20k x 20k matrix and its temporaries, 6.5 GB, and stall the server for half a minute.
+BLOCK_BYTES = 32 << 20
+_BLOCK_CELL_BYTES = 8  # per matrix cell: the float32 product and a float32 temporary
+
+
+def _row_blocks(n_rows: int, n_cols: int):
+    """Slices of rows such that a block of ``n_cols`` columns stays within BLOCK_BYTES."""
+    step = max(1, BLOCK_BYTES // (_BLOCK_CELL_BYTES * max(1, n_cols)))
+    for start in range(0, n_rows, step):
+        yield slice(start, min(start + step, n_rows))
+
+
+def _bits(desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 256) float32 bits and (N,) float32 bit counts of descriptors."""
+    bits = np.unpackbits(desc, axis=1).astype(np.float32)
+    return bits, bits.sum(axis=1)
+
+
+def _distance_block(bits_a, count_a, bits_b, count_b) -> np.ndarray:
+    """(n, M) float32 Hamming distances of a block of rows (exact: integers up to 256)."""
+    # |a xor b| = |a| + |b| - 2 a.b: one BLAS product instead of an N*M*32 XOR.
+    dist = bits_a @ bits_b.T
+    dist *= -2.0
+    dist += count_a[:, None]
+    dist += count_b[None, :]
+    return dist
+
+
 def hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(N, M) int32 Hamming distances between the rows of ``a`` (N, 32) and ``b`` (M, 32)."""
+    """(N, M) int32 Hamming distances between the rows of ``a`` (N, 32) and ``b`` (M, 32).
+
+    The result itself is N x M x 4 bytes; the working memory beyond it stays within a block (see
+    :data:`BLOCK_BYTES`). Matching should not ask for the whole matrix: :func:`match_ratio` keeps
+    only what it needs of each block."""
     a = as_descriptors(a, "a")
     b = as_descriptors(b, "b")
+    out = np.empty((len(a), len(b)), dtype=np.int32)
     if len(a) == 0 or len(b) == 0:
-        return np.zeros((len(a), len(b)), dtype=np.int32)
-    # Bits as 0/1 floats: |a xor b| = |a| + |b| - 2 a.b, one BLAS product instead of an N*M*32 XOR.
-    bits_a = np.unpackbits(a, axis=1).astype(np.float32)
-    bits_b = np.unpackbits(b, axis=1).astype(np.float32)
-    dist = bits_a.sum(1)[:, None] + bits_b.sum(1)[None, :] - 2.0 * (bits_a @ bits_b.T)
-    return np.rint(dist).astype(np.int32)
+        return out
+    bits_b, count_b = _bits(b)
+    for rows in _row_blocks(len(a), len(b)):
+        out[rows] = _distance_block(*_bits(a[rows]), bits_b, count_b)
+    return out
 
 
 def popcount_u64_sum(x: np.ndarray) -> np.ndarray:
@@ -97,20 +132,36 @@ def match_ratio(
     """Nearest-neighbour matches with Lowe's ratio test; (K, 2) int array of (query_idx, train_idx).
 
     ``mutual`` also requires the train descriptor's best match to be the query one (cross check).
+    The distances are computed block of query rows by block (see :data:`BLOCK_BYTES`), keeping per
+    query row its best and second-best distance and per train row its best query so far.
     """
-    dist = hamming_matrix(query, train)
-    if dist.size == 0 or dist.shape[1] < 2:
+    query = as_descriptors(query, "a")
+    train = as_descriptors(train, "b")
+    n, m = len(query), len(train)
+    if n == 0 or m < 2:
         return np.zeros((0, 2), dtype=int)
-    order = np.argpartition(dist, 1, axis=1)[:, :2]
-    rows = np.arange(len(dist))
-    d0 = dist[rows, order[:, 0]]
-    d1 = dist[rows, order[:, 1]]
-    swap = d1 < d0
-    best = np.where(swap, order[:, 1], order[:, 0])
-    d_best, d_second = np.minimum(d0, d1), np.maximum(d0, d1)
+    bits_t, count_t = _bits(train)
+    best = np.empty(n, dtype=np.int64)
+    d_best = np.empty(n, dtype=np.int32)
+    d_second = np.empty(n, dtype=np.int32)
+    col_best = np.full(m, np.inf, dtype=np.float32)  # per train row: smallest distance so far
+    col_arg = np.zeros(m, dtype=np.int64)  # ... and the first query row reaching it
+    cols = np.arange(m)
+    for rows in _row_blocks(n, m):
+        dist = _distance_block(*_bits(query[rows]), bits_t, count_t)
+        r = np.arange(dist.shape[0])
+        j = np.argmin(dist, axis=1)
+        best[rows], d_best[rows] = j, dist[r, j]
+        if mutual:
+            i = np.argmin(dist, axis=0)
+            d_col = dist[i, cols]
+            better = d_col < col_best  # strict: on ties the earlier row wins, as one argmin would
+            col_best[better] = d_col[better]
+            col_arg[better] = i[better] + rows.start
+        dist[r, j] = np.inf
+        d_second[rows] = dist.min(axis=1)
     keep = (d_best <= max_distance) & (d_best < ratio * d_second)
+    q = np.arange(n)
     if mutual:
-        back = np.argmin(dist, axis=0)
-        keep &= back[best] == rows
-    q = rows[keep]
-    return np.stack([q, best[keep]], axis=1).astype(int)
+        keep &= col_arg[best] == q
+    return np.stack([q[keep], best[keep]], axis=1).astype(int)

@@ -1,8 +1,9 @@
 """The keyframe record clients send to the server (the pure-core twin of ``msg/KeyFrame.msg``).
 
 :class:`KeyframeRecord` holds numpy arrays shaped for computation; :func:`KeyframeRecord.validate`
-is the one place where an incoming keyframe is checked (sizes, NaN/inf, robot ids, descriptor
-bytes), so every node rejects bad input the same way and nothing malformed reaches a map.
+is the one place where an incoming keyframe is checked (sizes, types, NaN/inf, robot ids,
+descriptor bytes, and physical bounds: intrinsics, positions, depths, stamps, keypoints), so every
+node rejects bad input the same way and nothing malformed or absurd reaches a map.
 """
 
 from __future__ import annotations
@@ -17,7 +18,26 @@ from .errors import CoopSlamError
 from .geometry import GeometryError, check_se3
 
 ACTION_NEW, ACTION_UPDATE, ACTION_REMOVE = 0, 1, 2
-MAX_KEYPOINTS = 20000  # far above any real keyframe; guards the server against absurd messages
+
+# Physical bounds of a keyframe. Values beyond them are finite yet absurd (a corrupted or hostile
+# message): accepted, they poison the team map for the rest of the run (a focal length of 1e-300
+# px makes every later global BA refuse, a pose 1e300 m away breaks the pose graph).
+# Keypoints per keyframe: clients send 1000 (config/client.yaml vo.n_features), ORB-SLAM's largest
+# presets 2000 (stereo KITTI); 5 x that leaves room for dense stereo / RGB-D extractors. Matching
+# two keyframes costs time in the product of their sizes: 1 s at this limit, 5 s at 20,000.
+MAX_KEYPOINTS = 10000
+# Covisible keyframes listed per keyframe: each shares map points with this one; ORB-SLAM keeps
+# tens. This many is hours of keyframes at 1 Hz all seeing one scene.
+MAX_COVISIBLE = 10000
+MAX_IMAGE_SIDE_PX = 16384  # 16K: above any camera a robot streams keyframes from
+MIN_FOCAL_PX = 1.0  # a focal length below one pixel images the world onto a pixel or two
+MAX_FOCAL_PER_SIDE = 100.0  # focal length / image size: 100 is a 0.6 deg field of view
+MAX_POSITION_M = 1e5  # poses and map points: within 100 km of the robot's map origin
+MAX_DEPTH_M = 1000.0  # depth cameras reach ~10 m, stereo ~100 m
+MAX_STAMP_S = 1e10  # seconds since 1970 (the year 2286) or since the sim clock started
+MAX_OCTAVE = 31  # pyramid level; clients use at most 16 (vo.n_levels)
+KEYPOINT_ANGLE_DEG = (-1.0, 360.0)  # OpenCV: [0, 360), -1 = no orientation
+_MAX_KEYFRAME_ID = (1 << 32) - 1  # KeyFrame.msg: uint32 keyframe_id
 
 
 class KeyframeError(CoopSlamError):
@@ -72,36 +92,120 @@ class KeyframeRecord:
         return out
 
     def validate(self, known_robots: set[int] | None = None) -> "KeyframeRecord":
-        """Check every field; raise KeyframeError naming the first problem. Returns self."""
+        """Check every field against its type, shape and physical bounds (module constants); raise
+        KeyframeError naming the first problem. Returns self.
+
+        A REMOVE is checked like the others up to the array sizes (its arrays may be empty, but are
+        bounded as every keyframe's); what the arrays hold is not looked at, the server drops the
+        keyframe."""
         rid = self.robot_id
-        if rid < 1:
-            raise KeyframeError(f"robot_id {rid} is invalid: robot ids start at 1")
+        if not _is_int(rid) or rid < 1:
+            raise KeyframeError(f"robot_id {rid!r} is invalid: robot ids are integers from 1")
         if known_robots is not None and rid not in known_robots:
             raise KeyframeError(
                 f"robot_id {rid} is unknown to this node (known: {sorted(known_robots)})"
             )
+        if not _is_int(self.keyframe_id) or not 1 <= self.keyframe_id <= _MAX_KEYFRAME_ID:
+            raise KeyframeError(
+                f"keyframe_id {self.keyframe_id!r} of robot {rid} is invalid: keyframe ids are "
+                f"integers in [1, {_MAX_KEYFRAME_ID}]"
+            )
         where = f"keyframe {self.keyframe_id} of robot {rid}"
-        if self.keyframe_id < 1:
-            raise KeyframeError(f"{where}: keyframe_id must be > 0")
-        if not np.isfinite(self.stamp_s) or self.stamp_s < 0:
-            raise KeyframeError(f"{where}: stamp {self.stamp_s} is not a valid time")
-        if self.action not in (ACTION_NEW, ACTION_UPDATE, ACTION_REMOVE):
-            raise KeyframeError(f"{where}: unknown action {self.action}")
         try:
-            check_se3(self.T_map_cam, "pose")
+            stamp_ok = bool(0.0 <= float(self.stamp_s) < MAX_STAMP_S)
+        except (TypeError, ValueError):
+            stamp_ok = False
+        if not stamp_ok:
+            raise KeyframeError(
+                f"{where}: stamp {self.stamp_s!r} s is not a valid time (finite, in "
+                f"[0, {MAX_STAMP_S:g}) s)"
+            )
+        if not _is_int(self.action) or self.action not in (
+            ACTION_NEW,
+            ACTION_UPDATE,
+            ACTION_REMOVE,
+        ):
+            raise KeyframeError(f"{where}: unknown action {self.action!r}")
+        if not _is_int(self.map_segment) or self.map_segment < 0:
+            raise KeyframeError(
+                f"{where}: map_segment {self.map_segment!r} must be an integer >= 0"
+            )
+        self._validate_camera(where)
+        try:
+            with np.errstate(over="ignore", invalid="ignore"):  # a rotation of 1e300: overflow
+                check_se3(_numeric(self.T_map_cam, "pose", where), "pose")
         except GeometryError as exc:
             raise KeyframeError(f"{where}: {exc}") from None
+        far = float(np.abs(self.T_map_cam[:3, 3]).max())
+        if far > MAX_POSITION_M:
+            raise KeyframeError(
+                f"{where}: pose position {far:.3g} m from the map origin is beyond the "
+                f"{MAX_POSITION_M:g} m any map spans"
+            )
+        self._validate_sizes(where)
         if self.action == ACTION_REMOVE:
             return self
+        self._validate_contents(where)
+        return self
+
+    def _validate_camera(self, where: str) -> None:
+        """Intrinsics within physical bounds (CameraModel itself only asks for finite, fx, fy > 0):
+        every later use of the keyframe divides by them or projects with them."""
+        cam = self.camera
+        if not isinstance(cam, CameraModel):
+            raise KeyframeError(f"{where}: camera must be a CameraModel, got {type(cam).__name__}")
+        w, h = cam.width, cam.height
+        if not all(
+            isinstance(x, (int, float, np.number)) and float(x).is_integer() for x in (w, h)
+        ):
+            raise KeyframeError(f"{where}: camera image size {w!r}x{h!r} is not in whole pixels")
+        if max(w, h) > MAX_IMAGE_SIDE_PX:
+            raise KeyframeError(
+                f"{where}: camera image {w}x{h} px exceeds {MAX_IMAGE_SIDE_PX} px per side"
+            )
+        f_max = MAX_FOCAL_PER_SIDE * max(w, h)
+        for name in ("fx", "fy"):
+            f = getattr(cam, name)
+            if not MIN_FOCAL_PX <= f <= f_max:
+                raise KeyframeError(
+                    f"{where}: camera {name} = {f:.6g} px is outside [{MIN_FOCAL_PX:g}, "
+                    f"{f_max:g}] px ({MAX_FOCAL_PER_SIDE:g} x the image size): not a camera "
+                    "calibration"
+                )
+        if not (-w <= cam.cx <= 2 * w and -h <= cam.cy <= 2 * h):
+            raise KeyframeError(
+                f"{where}: camera principal point ({cam.cx:.6g}, {cam.cy:.6g}) px lies outside "
+                f"the {w}x{h} image extended by its size on every side"
+            )
+
+    def _validate_sizes(self, where: str) -> None:
+        """Array types and sizes, before anything looks at their contents."""
+        shapes = {  # name: (ndim, columns, limit on rows)
+            "keypoints": (2, 4, MAX_KEYPOINTS),
+            "octaves": (1, None, MAX_KEYPOINTS),
+            "descriptors": (2, DESCRIPTOR_BYTES, MAX_KEYPOINTS),
+            "depths_m": (1, None, MAX_KEYPOINTS),
+            "map_point_ids": (1, None, MAX_KEYPOINTS),
+            "map_points": (2, 3, MAX_KEYPOINTS),
+            "covisible_ids": (1, None, MAX_COVISIBLE),
+            "covisible_weights": (1, None, MAX_COVISIBLE),
+        }
+        for name, (ndim, cols, limit) in shapes.items():
+            arr = _numeric(getattr(self, name), name, where)
+            if arr.ndim != ndim or (cols is not None and arr.shape[1] != cols):
+                layout = f"(N, {cols})" if cols is not None else "(N,)"
+                raise KeyframeError(f"{where}: {name} has shape {arr.shape}, expected {layout}")
+            if len(arr) > limit:
+                raise KeyframeError(
+                    f"{where}: {name} holds {len(arr)} entries, above the limit of {limit}"
+                )
+
+    def _validate_contents(self, where: str) -> None:
         n = len(self.keypoints)
-        if n > MAX_KEYPOINTS:
-            raise KeyframeError(f"{where}: {n} keypoints exceed the limit of {MAX_KEYPOINTS}")
-        if self.keypoints.ndim != 2 or self.keypoints.shape[1] != 4:
-            raise KeyframeError(f"{where}: keypoints must be 4 floats each (u, v, size, angle)")
         if self.descriptors.shape != (n, DESCRIPTOR_BYTES) or self.descriptors.dtype != np.uint8:
             raise KeyframeError(
                 f"{where}: descriptors must be {n} x {DESCRIPTOR_BYTES} bytes, got "
-                f"{self.descriptors.size} bytes"
+                f"{self.descriptors.size} {self.descriptors.dtype} values"
             )
         for name in ("octaves", "depths_m", "map_point_ids"):
             if len(getattr(self, name)) != n:
@@ -109,6 +213,14 @@ class KeyframeRecord:
                     f"{where}: {name} has {len(getattr(self, name))} entries, "
                     f"expected one per keypoint ({n})"
                 )
+        if len(self.covisible_ids) != len(self.covisible_weights):
+            raise KeyframeError(f"{where}: covisible_ids and covisible_weights differ in length")
+        for name in ("octaves", "map_point_ids", "covisible_ids", "covisible_weights"):
+            arr = getattr(self, name)
+            if arr.dtype.kind not in "ui":
+                raise KeyframeError(f"{where}: {name} must be integers, got {arr.dtype}")
+            if len(arr) and arr.min() < 0:
+                raise KeyframeError(f"{where}: {name} holds a negative value")
         m = int(np.count_nonzero(self.map_point_ids))
         if self.map_points.shape != (m, 3):
             raise KeyframeError(
@@ -118,17 +230,50 @@ class KeyframeRecord:
         for name in ("keypoints", "depths_m", "map_points"):
             if not np.all(np.isfinite(getattr(self, name))):
                 raise KeyframeError(f"{where}: {name} contains NaN or inf")
-        if np.any(self.depths_m < 0):
-            raise KeyframeError(f"{where}: negative depth")
+        if m and np.abs(self.map_points).max() > MAX_POSITION_M:
+            raise KeyframeError(
+                f"{where}: a map point lies {float(np.abs(self.map_points).max()):.3g} m from the "
+                f"map origin, beyond the {MAX_POSITION_M:g} m any map spans"
+            )
+        if n and (self.depths_m.min() < 0 or self.depths_m.max() > MAX_DEPTH_M):
+            raise KeyframeError(
+                f"{where}: depths must be in [0, {MAX_DEPTH_M:g}] m (0 = none), got "
+                f"[{float(self.depths_m.min()):.3g}, {float(self.depths_m.max()):.3g}]"
+            )
+        if n and self.octaves.max() > MAX_OCTAVE:
+            raise KeyframeError(
+                f"{where}: octave {int(self.octaves.max())} is above the limit of {MAX_OCTAVE}"
+            )
+        if n == 0:
+            return
         cam = self.camera
-        uv = self.keypoints[:, :2]
-        if n and (
-            uv.min() < -1 or uv[:, 0].max() > cam.width + 1 or uv[:, 1].max() > cam.height + 1
-        ):
+        uv, size, angle = self.keypoints[:, :2], self.keypoints[:, 2], self.keypoints[:, 3]
+        if uv.min() < -1 or uv[:, 0].max() > cam.width + 1 or uv[:, 1].max() > cam.height + 1:
             raise KeyframeError(f"{where}: keypoints outside the {cam.width}x{cam.height} image")
-        if len(self.covisible_ids) != len(self.covisible_weights):
-            raise KeyframeError(f"{where}: covisible_ids and covisible_weights differ in length")
-        return self
+        diagonal = float(np.hypot(cam.width, cam.height))
+        if size.min() <= 0 or size.max() > diagonal:
+            raise KeyframeError(
+                f"{where}: keypoint sizes must be in (0, {diagonal:.0f}] px (the image "
+                f"diagonal), got [{float(size.min()):.3g}, {float(size.max()):.3g}]"
+            )
+        lo, hi = KEYPOINT_ANGLE_DEG
+        if angle.min() < lo or angle.max() > hi:
+            raise KeyframeError(
+                f"{where}: keypoint angles must be in [{lo:g}, {hi:g}] deg (-1 = none), got "
+                f"[{float(angle.min()):.3g}, {float(angle.max()):.3g}]"
+            )
+
+
+def _is_int(x) -> bool:
+    return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
+
+
+def _numeric(arr, name: str, where: str) -> np.ndarray:
+    """``arr`` if it is a numpy array of real numbers; KeyframeError otherwise."""
+    if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "uif":
+        kind = arr.dtype if isinstance(arr, np.ndarray) else type(arr).__name__
+        raise KeyframeError(f"{where}: {name} must be a numeric array, got {kind}")
+    return arr
 
 
 def camera_from_fields(**kwargs) -> CameraModel:

@@ -14,7 +14,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from ..datasets.base import SENSORS, CameraModel, DatasetError
 from ..errors import CoopSlamError
 from ..geometry import GeometryError, quat_from_se3, se3_from_quat
-from ..keyframe_record import KeyframeError, KeyframeRecord, camera_from_fields
+from ..keyframe_record import MAX_POSITION_M, KeyframeError, KeyframeRecord, camera_from_fields
 
 
 class MessageError(CoopSlamError):
@@ -42,6 +42,13 @@ def pose_from_msg(msg: Pose, name: str = "pose") -> np.ndarray:
 def _finite_pose(T: np.ndarray, name: str) -> np.ndarray:
     if not np.all(np.isfinite(T)):
         raise MessageError(f"{name} contains NaN or inf")
+    # Finite yet absurd (a correction placing a keyframe 1e300 m away would move the client's
+    # published pose there): every pose and transform between map frames lies within a map.
+    far = float(np.abs(T[:3, 3]).max())
+    if far > MAX_POSITION_M:
+        raise MessageError(
+            f"{name} position {far:.3g} m is beyond the {MAX_POSITION_M:g} m any map spans"
+        )
     return T
 
 

@@ -486,4 +486,5 @@ def main() -> None:
         rospy.logfatal("server: %s", exc)
         raise SystemExit(1) from exc
     rospy.on_shutdown(node._publish_stats)
+    rospy.on_shutdown(lambda: node.rejects.flush(force=True))  # counts not logged yet
     rospy.spin()

@@ -25,7 +25,9 @@ Optimisation: :meth:`TeamPoseGraph.optimize_incremental` feeds new factors to iS
 arrive; :meth:`TeamPoseGraph.optimize_full` runs batch Levenberg-Marquardt (after a merge or loop
 closure) and resets iSAM2 from its result. Changes iSAM2 cannot absorb (a merge re-expresses one
 group in another's frame, a culled keyframe removes a variable, a gauge prior moves) make the next
-incremental call fall back to a full optimisation.
+incremental call fall back to a full optimisation. A failing step (GTSAM throws, or the error or
+result is not finite) raises PoseGraphError and leaves the estimate as it was; iSAM2, which may
+hold half of that step, is dropped, so the next call rebuilds it from the factor list.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ import bisect
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import NoReturn
 
 import gtsam
 import numpy as np
@@ -173,6 +176,28 @@ def _poses_from_values(values: gtsam.Values) -> dict[Key, np.ndarray]:
     T[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
     T[:, :3, 3] = rows[:, 9:]
     return dict(zip(keys, T))
+
+
+def _finite_error(error: float | None, when: str) -> float:
+    """A factor-graph error as a float; RuntimeError if it is NaN or inf (a keyframe or constraint
+    with absurd values: Levenberg-Marquardt then returns its start unchanged, without throwing)."""
+    error = float(error or 0.0)
+    if not np.isfinite(error):
+        raise RuntimeError(f"the graph's error {when} the step is {error}")
+    return error
+
+
+def _finite_poses(values: gtsam.Values) -> dict[Key, np.ndarray]:
+    """The poses of an optimizer's result; RuntimeError if any is NaN or inf (an optimizer can
+    diverge without throwing, e.g. from a pose of 1e300 m)."""
+    poses = _poses_from_values(values)
+    bad = [k for k, T in poses.items() if not np.all(np.isfinite(T))]
+    if bad:
+        raise RuntimeError(
+            f"the result holds non-finite poses ({len(bad)}, e.g. keyframe {bad[0][1]} of robot "
+            f"{bad[0][0]})"
+        )
+    return poses
 
 
 class TeamPoseGraph:
@@ -556,7 +581,8 @@ class TeamPoseGraph:
 
     def optimize_full(self) -> OptimizationStats:
         """Batch Levenberg-Marquardt over the whole graph from the current estimate (after a merge
-        or loop closure). iSAM2 is re-initialised from the result at the next incremental call."""
+        or loop closure). iSAM2 is re-initialised from the result at the next incremental call.
+        Raises PoseGraphError, with the estimate left as it was, when the optimizer fails."""
         t0 = time.perf_counter()
         self._sync_priors()
         fids = list(self._factors)
@@ -567,16 +593,17 @@ class TeamPoseGraph:
             params = gtsam.LevenbergMarquardtParams()
             params.setMaxIterations(self.config.lm_max_iterations)
             params.setRelativeErrorTol(self.config.lm_relative_error_tol)
-            optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
-            result = optimizer.optimize()
+            try:
+                optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+                result = optimizer.optimize()
+                stats.error_before = _finite_error(graph.error(initial), "before")
+                stats.error_after = _finite_error(graph.error(result), "after")
+                poses = _finite_poses(result)
+            except RuntimeError as exc:  # GTSAM's exceptions arrive as RuntimeError
+                self._step_failed("full", exc)
             stats.iterations = int(optimizer.iterations())
-            stats.error_before = float(graph.error(initial))
-            stats.error_after = float(graph.error(result))
-            self._values.update(_poses_from_values(result))
-        self._isam = None
-        self._isam_index.clear()
-        self._isam_keys.clear()
-        self._isam_remove.clear()
+            self._values.update(poses)
+        self._reset_isam()
         self._rebuild = False
         stats.time_ms = 1e3 * (time.perf_counter() - t0)
         self.stats = stats
@@ -585,7 +612,8 @@ class TeamPoseGraph:
 
     def optimize_incremental(self) -> OptimizationStats:
         """iSAM2 update with the factors and keyframes added since the last call. Falls back to
-        :meth:`optimize_full` when the graph changed in a way iSAM2 cannot absorb."""
+        :meth:`optimize_full` when the graph changed in a way iSAM2 cannot absorb. Raises
+        PoseGraphError, with the estimate left as it was, when the optimizer fails."""
         t0 = time.perf_counter()
         if self._sync_priors() or self._rebuild:
             return self.optimize_full()
@@ -601,22 +629,45 @@ class TeamPoseGraph:
             "incremental", variables=len(self._values), factors=len(self._factors)
         )
         if new_fids or new_keys or self._isam_remove:
-            result = self._isam.update(
-                self._graph(new_fids), self._gtsam_values(new_keys), list(self._isam_remove)
-            )
+            try:
+                result = self._isam.update(
+                    self._graph(new_fids), self._gtsam_values(new_keys), list(self._isam_remove)
+                )
+                stats.error_before = _finite_error(result.getErrorBefore(), "before")
+                stats.error_after = _finite_error(result.getErrorAfter(), "after")
+                for _ in range(self.config.isam_extra_updates):
+                    stats.error_after = _finite_error(self._isam.update().getErrorAfter(), "after")
+                poses = _finite_poses(self._isam.calculateEstimate())
+            except RuntimeError as exc:
+                self._step_failed("incremental", exc)
             for fid, slot in zip(new_fids, result.getNewFactorsIndices()):
                 self._isam_index[fid] = int(slot)
             self._isam_keys.update(new_keys)
             self._isam_remove.clear()
-            stats.error_before = float(result.getErrorBefore() or 0.0)
-            stats.error_after = float(result.getErrorAfter() or 0.0)
-            for _ in range(self.config.isam_extra_updates):
-                stats.error_after = float(self._isam.update().getErrorAfter() or 0.0)
             stats.iterations = 1 + self.config.isam_extra_updates
-            self._values.update(_poses_from_values(self._isam.calculateEstimate()))
+            self._values.update(poses)
         stats.time_ms = 1e3 * (time.perf_counter() - t0)
         self.stats = stats
         return stats
+
+    def _reset_isam(self) -> None:
+        self._isam = None
+        self._isam_index.clear()
+        self._isam_keys.clear()
+        self._isam_remove.clear()
+
+    def _step_failed(self, mode: str, exc: Exception) -> NoReturn:
+        """A failed optimizer step leaves the graph as it was before the step: the estimate is only
+        written after success, and iSAM2, which may hold half of the step (GTSAM inserts the new
+        variables before it solves: every later update would fail with "key already exists"), is
+        dropped and rebuilt from the factor list by the next call, a full optimisation."""
+        self._reset_isam()
+        self._rebuild = True
+        cause = " ".join(str(exc).split())  # GTSAM's messages span several lines
+        raise PoseGraphError(
+            f"{mode} optimisation failed, estimate kept as before the step (the next call "
+            f"rebuilds the optimizer from the factors): {cause}"
+        ) from None
 
     # --- results ----------------------------------------------------------------------------------
     @property
