@@ -335,3 +335,25 @@ def test_a_pose_of_1e300_m_fails_its_steps_until_removed_then_the_graph_carries_
     reference.optimize_full()
     graph.optimize_full()
     _assert_same_estimates(_estimates(graph, team), _estimates(reference, team), 1e-4, 1e-5)
+
+
+def test_newest_keyframe_follows_its_client_update():
+    """A keyframe's first client pose (from tracking) can sit off the local-BA poses before it;
+    when its update arrives, the newest keyframe (held only by client factors) is chained again
+    from its predecessor instead of keeping the off estimate until the next optimisation."""
+    graph = TeamPoseGraph()
+    poses = [se3(np.eye(3), [0.3 * k, 0.0, 0.0]) for k in range(6)]
+    for k, T in enumerate(poses[:5], start=1):
+        graph.add_keyframe(1, k, T)
+    graph.optimize_full()
+    off = se3(Rotation.from_euler("z", 4.0, degrees=True).as_matrix(), [0.1, 0.05, 0.0])
+    graph.add_keyframe(1, 6, off @ poses[5])  # tracking's pose, 10 cm / 4 deg off
+    graph.optimize_incremental()  # the off pose is now part of an optimised estimate
+    assert transform_error(graph.T_group_cam(1, 6), poses[5])[0] > 0.05
+    graph.update_keyframe(1, 6, poses[5])  # local BA's pose
+    dt, dr = transform_error(graph.T_group_cam(1, 6), poses[5])
+    assert dt < 1e-6 and dr < 1e-6
+    # Older keyframes keep their optimised estimate until the next optimisation.
+    before = graph.T_group_cam(1, 3).copy()
+    graph.update_keyframe(1, 3, off @ poses[2])
+    np.testing.assert_allclose(graph.T_group_cam(1, 3), before)

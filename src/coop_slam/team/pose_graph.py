@@ -209,6 +209,7 @@ class TeamPoseGraph:
         cfg = self.config
         self._kernel = self._make_kernel(cfg.robust_k)
         self._client: dict[Key, np.ndarray] = {}  # T_map_cam as the client last sent it
+        self._fresh: set[Key] = set()  # keyframes no optimisation has seen yet
         self._refined: dict[Key, np.ndarray] = {}  # pose from global BA, until the client moves it
         self._values: dict[Key, np.ndarray] = {}  # current estimate T_group_cam
         self._chain: dict[int, list[int]] = {}  # robot -> sorted keyframe ids
@@ -352,12 +353,7 @@ class TeamPoseGraph:
         nxt = (robot_id, chain[pos]) if pos < len(chain) else None
         chain.insert(pos, keyframe_id)
         self._client[key] = T_map_cam
-        # Initial estimate: chained from a neighbour's estimate (already in the graph's frame).
-        ref = prev or nxt
-        if ref is not None:
-            self._values[key] = self._values[ref] @ invert(self._client[ref]) @ T_map_cam
-        else:
-            self._values[key] = self._map_hint.get(robot_id, np.eye(4)) @ T_map_cam
+        self._chain_estimate(key, prev or nxt)
         if prev is not None and nxt is not None:
             # Out-of-order arrival: the new keyframe splits an existing odometry edge.
             for fid in self._odometry_between(prev, nxt):
@@ -375,14 +371,37 @@ class TeamPoseGraph:
                 self._client_factor(KIND_COVISIBLE, ckey, key)
                 added += 1
 
+    def _chain_estimate(self, key: Key, ref: Key | None) -> None:
+        """Initial estimate of a keyframe no optimisation has seen yet: chained from neighbour
+        ``ref``'s estimate (already in the graph's frame) by their client poses; without one, from
+        the robot's map hint."""
+        if ref is not None:
+            self._values[key] = self._values[ref] @ invert(self._client[ref]) @ self._client[key]
+        else:
+            self._values[key] = self._map_hint.get(key[0], np.eye(4)) @ self._client[key]
+        self._fresh.add(key)
+
     def update_keyframe(self, robot_id: int, keyframe_id: int, T_map_cam: np.ndarray) -> None:
         """The client's local BA moved a keyframe: every odometry / covisible factor touching it is
         rebuilt from the new client pose (loop and merge constraints are camera-to-camera and stay).
-        The estimate itself is left alone; the new measurements act at the next optimisation."""
+        An optimised estimate is left alone (the new measurements act at the next optimisation),
+        except for one no optimisation has seen yet and for the robot's newest keyframe when only
+        its client factors hold it: those are chained again from the predecessor. A client's first
+        pose of a keyframe (from tracking) can sit centimetres off the local-BA poses of the
+        keyframes before it, which the chain would otherwise carry into the team map until the next
+        optimisation -- at the end of a run, for good."""
         key = self._check_key(robot_id, keyframe_id)
         self._client[key] = self._pose(
             T_map_cam, f"pose of keyframe {keyframe_id} of robot " f"{robot_id}"
         )
+        chain = self._chain[robot_id]
+        newest_free = chain[-1] == keyframe_id and not any(
+            self._factors[fid].kind in (KIND_LOOP, KIND_MERGE) for fid in self._by_key.get(key, ())
+        )
+        if key in self._fresh or newest_free:
+            pos = chain.index(keyframe_id)
+            ref = chain[pos - 1] if pos > 0 else (chain[1] if len(chain) > 1 else None)
+            self._chain_estimate(key, None if ref is None else (robot_id, ref))
         self._refined.pop(key, None)
         for fid in list(self._by_key.get(key, ())):
             f = self._factors[fid]
@@ -415,6 +434,7 @@ class TeamPoseGraph:
             self._client_factor(KIND_ODOMETRY, prev, nxt)
         chain.pop(pos)
         del self._values[key], self._client[key]
+        self._fresh.discard(key)
         self._refined.pop(key, None)
         self._by_key.pop(key, None)
         self._priors.pop(key, None)
@@ -603,6 +623,7 @@ class TeamPoseGraph:
                 self._step_failed("full", exc)
             stats.iterations = int(optimizer.iterations())
             self._values.update(poses)
+        self._fresh.clear()
         self._reset_isam()
         self._rebuild = False
         stats.time_ms = 1e3 * (time.perf_counter() - t0)
@@ -643,6 +664,7 @@ class TeamPoseGraph:
             for fid, slot in zip(new_fids, result.getNewFactorsIndices()):
                 self._isam_index[fid] = int(slot)
             self._isam_keys.update(new_keys)
+            self._fresh.difference_update(new_keys)
             self._isam_remove.clear()
             stats.iterations = 1 + self.config.isam_extra_updates
             self._values.update(poses)
