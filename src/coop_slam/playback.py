@@ -32,9 +32,10 @@ from .errors import CoopSlamError
 PLAYBACK_T0_S = 1.0  # first sim time when robots start together (ROS time 0 means "unset")
 # The stereo baseline of synthetic robots playing stereo cameras (a ZED's) [m].
 SYNTHETIC_STEREO_BASELINE_M = 0.12
-PLAYABLE_SENSORS = ("rgbd", "stereo")
+# A monocular camera plays the colour image of RGB-D data or the left image of a stereo pair.
+PLAYABLE_SENSORS = ("rgbd", "stereo", "mono")
 # A robot's streams as the player publishes them (and a sensor bag must hold them): the colour
-# (RGB-D) or left (stereo) image tells which robots there are; ground truth is optional.
+# (RGB-D, monocular) or left (stereo) image tells which robots there are; ground truth is optional.
 COLOR_TOPIC = re.compile(r"^/robot_(\d+)/camera/(?:color/image_raw|left/image_rect)$")
 GROUND_TRUTH_TOPIC = re.compile(r"^/robot_(\d+)/ground_truth/pose$")
 
@@ -64,9 +65,15 @@ class Source:
 
 def camera_topics(robot_id: int, sensor: str) -> dict:
     """A robot's camera topics, as the player publishes them and a client subscribes to them:
-    ``image`` (colour of an RGB-D camera, left of a stereo pair), ``second`` (depth, or the right
-    image) and ``infos`` (name -> camera info topic). ROS stereo conventions for a pair."""
+    ``image`` (colour of an RGB-D or monocular camera, left of a stereo pair), ``second`` (depth,
+    or the right image; a monocular camera has none) and ``infos`` (name -> camera info topic). ROS
+    stereo conventions for a pair; a monocular camera publishes as an RGB-D camera's colour."""
     cam = f"/robot_{robot_id}/camera"
+    if sensor == "mono":
+        return {
+            "image": f"{cam}/color/image_raw",
+            "infos": {"color": f"{cam}/color/camera_info"},
+        }
     if sensor == "stereo":
         return {
             "image": f"{cam}/left/image_rect",
@@ -112,7 +119,9 @@ def _with_sensor(stream: RobotStream, sensor: str) -> RobotStream:
         raise PlaybackError(f"{stream.name}: its data has no right images to play a stereo camera")
     if sensor == "rgbd" and frame.depth_path is None:
         raise PlaybackError(f"{stream.name}: its data has no depth images to play an RGB-D camera")
-    camera = dataclasses.replace(seq.camera, sensor=sensor)
+    # A monocular camera: the colour (left) image and its intrinsics; no baseline.
+    baseline_m = 0.0 if sensor == "mono" else seq.camera.baseline_m
+    camera = dataclasses.replace(seq.camera, sensor=sensor, baseline_m=baseline_m)
     return dataclasses.replace(stream, sequence=dataclasses.replace(seq, camera=camera))
 
 
@@ -137,9 +146,10 @@ def load_streams(
     sensors: list[str] | None = None,
 ) -> Source:
     """Resolve a scenario name or a dataset folder into robot streams (see module doc).
-    ``sensors`` (one for all robots, or one each) plays robots as RGB-D or stereo cameras where
-    their data allows (a synthetic world is rendered with right images when one is stereo);
-    None: as the data is."""
+    ``sensors`` (one for all robots, or one each) plays robots as RGB-D, stereo or monocular
+    cameras where their data allows (a synthetic world is rendered with right images when one is
+    stereo; a monocular camera plays the colour or left image of any data); None: as the data
+    is."""
     if (scenario is None) == (dataset is None):
         raise PlaybackError("give exactly one of a synthetic scenario or a dataset folder")
     if scenario is not None:

@@ -1,11 +1,16 @@
-"""Client node: visual odometry on one robot's RGB-D or stereo camera, publishing keyframes, pose,
-TF, path and cloud.
+"""Client node: visual odometry on one robot's RGB-D, stereo or monocular camera, publishing
+keyframes, pose, TF, path and cloud.
 
 Inputs (``~sensor``): ``rgbd`` -- ``camera/color/image_raw``, ``camera/depth/image_raw`` (registered
 to colour) and ``camera/color/camera_info``; ``stereo`` -- the ROS stereo conventions of a
 rectified pair, ``camera/left/image_rect``, ``camera/right/image_rect``,
 ``camera/left/camera_info``, ``camera/right/camera_info`` (the baseline from the right camera's
-projection matrix). Colour or grey images.
+projection matrix); ``mono`` -- one image, ``camera/color/image_raw`` and
+``camera/color/camera_info``. Colour or grey images.
+
+A monocular map has no metric scale (its unit is the median depth of the first two keyframes'
+points): poses, paths, clouds and keyframes are in that unit, and the keyframes say so by their
+camera's sensor type (``CameraModel.SENSOR_MONO``); only the server can give them metres.
 
 Robot k's topics live under ``/robot_k`` and its frames are ``robot_k/...``, whatever namespace the
 node is started in: the server finds a robot by its id alone. Frames (REP-105):
@@ -140,31 +145,37 @@ class ClientNode:
         # Stamps of the latest pairs: the lone image's callback may run after its pair's.
         self._paired: collections.deque = collections.deque(maxlen=64)
         self._last_second_wall = -1e9  # wall time of the last second image [s]
-        image = message_filters.Subscriber(
-            self.topics["image"], Image, queue_size=5, buff_size=2**24
-        )
-        second = message_filters.Subscriber(
-            self.topics["second"], Image, queue_size=5, buff_size=2**24
-        )
-        self.sync = message_filters.TimeSynchronizer([image, second], 10)
-        self.sync.registerCallback(self._on_frame)
-        self.sub_image_watch = rospy.Subscriber(
-            self.topics["image"], Image, self._on_image_alone, queue_size=5, buff_size=2**24
-        )
-        self.sub_second_watch = rospy.Subscriber(
-            self.topics["second"], Image, self._on_second_alone, queue_size=5, buff_size=2**24
-        )
-        self._watch = threading.Thread(target=self._watch_pairs, daemon=True)
-        self._watch.start()
+        if self.sensor == "mono":  # one image: nothing to pair
+            self.sub_image = rospy.Subscriber(
+                self.topics["image"], Image, self._on_frame, queue_size=5, buff_size=2**24
+            )
+        else:
+            image = message_filters.Subscriber(
+                self.topics["image"], Image, queue_size=5, buff_size=2**24
+            )
+            second = message_filters.Subscriber(
+                self.topics["second"], Image, queue_size=5, buff_size=2**24
+            )
+            self.sync = message_filters.TimeSynchronizer([image, second], 10)
+            self.sync.registerCallback(self._on_frame)
+            self.sub_image_watch = rospy.Subscriber(
+                self.topics["image"], Image, self._on_image_alone, queue_size=5, buff_size=2**24
+            )
+            self.sub_second_watch = rospy.Subscriber(
+                self.topics["second"], Image, self._on_second_alone, queue_size=5, buff_size=2**24
+            )
+            self._watch = threading.Thread(target=self._watch_pairs, daemon=True)
+            self._watch.start()
         self.sub_corr = rospy.Subscriber(
             f"{ns}/correction", MapCorrection, self._on_correction, queue_size=5
         )
         rospy.loginfo(
-            "client %s (%s): waiting for %s and %s",
+            "client %s (%s): waiting for %s",
             self.name,
             self.sensor,
-            rospy.resolve_name(self.topics["image"]),
-            rospy.resolve_name(self.topics["second"]),
+            " and ".join(
+                rospy.resolve_name(self.topics[k]) for k in ("image", "second") if k in self.topics
+            ),
         )
 
     # --- callbacks --------------------------------------------------------------------------------
@@ -176,8 +187,8 @@ class ClientNode:
                 if "left" not in self.infos or "right" not in self.infos:
                     return
                 cam = stereo_camera_from_infos(self.infos["left"], self.infos["right"])
-            else:
-                cam = camera_from_info(msg, sensor="rgbd", depth_scale=self.depth_scale)
+            else:  # rgbd or mono: the colour camera
+                cam = camera_from_info(msg, sensor=self.sensor, depth_scale=self.depth_scale)
         except MessageError as exc:
             self.rejects.reject(topic, str(exc))
             return
@@ -240,8 +251,10 @@ class ClientNode:
                 stats.header.stamp = stamp
                 self.pub_stats.publish(stats)
 
-    def _on_frame(self, image_msg: Image, second_msg: Image) -> None:
+    def _on_frame(self, image_msg: Image, second_msg: Image | None = None) -> None:
         from coop_slam.msg import FrameStats
+
+        from ..vo.types import STATE_INITIALIZING
 
         stamp = image_msg.header.stamp
         stats = FrameStats(robot_id=self.robot_id, tracking_ok=False)
@@ -255,23 +268,35 @@ class ClientNode:
                     missing = [t for w, t in self.topics["infos"].items() if w not in self.infos]
                     raise MessageError(f"no camera_info received yet on {', '.join(missing)}")
                 image = image_from_msg(image_msg)
-                if self.sensor == "stereo":
-                    second, what = image_from_msg(second_msg), "right image"
+                if self.sensor == "mono":
+                    second = None
+                    if image.shape[:2] != (self.camera.height, self.camera.width):
+                        raise MessageError(
+                            f"image {image.shape[1]}x{image.shape[0]} does not match "
+                            f"camera_info {self.camera.width}x{self.camera.height}"
+                        )
                 else:
-                    second, what = depth_from_msg(second_msg, self.depth_scale), "depth"
-                if (
-                    image.shape[:2] != (self.camera.height, self.camera.width)
-                    or second.shape[:2] != image.shape[:2]
-                ):
-                    raise MessageError(
-                        f"image {image.shape[1]}x{image.shape[0]} / {what} "
-                        f"{second.shape[1]}x{second.shape[0]} do not match camera_info "
-                        f"{self.camera.width}x{self.camera.height}"
-                    )
+                    if self.sensor == "stereo":
+                        second, what = image_from_msg(second_msg), "right image"
+                    else:
+                        second, what = depth_from_msg(second_msg, self.depth_scale), "depth"
+                    if (
+                        image.shape[:2] != (self.camera.height, self.camera.width)
+                        or second.shape[:2] != image.shape[:2]
+                    ):
+                        raise MessageError(
+                            f"image {image.shape[1]}x{image.shape[0]} / {what} "
+                            f"{second.shape[1]}x{second.shape[0]} do not match camera_info "
+                            f"{self.camera.width}x{self.camera.height}"
+                        )
                 if self.vo is None:
                     self.vo = self._VisualOdometry(self.vo_cfg, self.camera)
                 res = self.vo.track(stamp.to_sec(), image, second)
                 self.frames += 1
+                if res.state == STATE_INITIALIZING:  # e.g. a monocular camera not moved yet
+                    rospy.loginfo_throttle(5.0, "client %s: %s", self.name, res.message)
+                elif res.message.startswith("map initialized"):
+                    rospy.loginfo("client %s: %s", self.name, res.message)
                 stats.track_ms, stats.tracking_ok = res.track_ms, bool(res.ok)
                 stats.keyframes = len(self.kf_poses)
                 self._publish_events()

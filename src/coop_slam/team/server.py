@@ -75,6 +75,7 @@ class TeamServer:
         self.optimize_ms: list[float] = []
         self.map_moved = False  # the last call optimized the team map (robots' maps moved)
         self._since_optimize = 0
+        self._mono_robots: set[int] = set()  # robots that sent monocular keyframes (warned once)
 
     # --- what the stages found --------------------------------------------------------------------
     @property
@@ -143,6 +144,17 @@ class TeamServer:
     def _stitch(self, rec: KeyframeRecord, bow, covisible) -> list[MergeResult]:
         """A new keyframe through the stitching stages: rendezvous (automatic, then open
         requests), then place recognition; the first that merges ends it."""
+        if rec.camera.sensor == "mono":
+            # A monocular map has its own scale: a rigid merge would place it wrongly (a 1.98 m
+            # map error, measured). Until merges estimate similarities it stays on its own.
+            if rec.robot_id not in self._mono_robots:
+                self._mono_robots.add(rec.robot_id)
+                log.warning(
+                    "robot %d sends monocular keyframes (a map without metric scale): they are "
+                    "stored and shown, but not merged or linked with other robots' maps yet",
+                    rec.robot_id,
+                )
+            return []
         rdv = self.rendezvous
         if self.config.rendezvous.auto:
             merges = self._merge_verified([rdv.co_observation(rec)])

@@ -53,7 +53,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--robots", type=int, default=None, help="number of robots")
     p.add_argument(
         "--sensors",
-        help="each robot's camera, comma-separated, or one for all: rgbd, stereo (e.g. "
+        help="each robot's camera, comma-separated, or one for all: rgbd, stereo, mono (e.g. "
         "rgbd,stereo,stereo); default: RGB-D for synthetic worlds, what a dataset or bag has",
     )
     p.add_argument("--split", help="inclusive frame ranges, one robot each: 0-299,300-599")

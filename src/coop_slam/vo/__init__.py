@@ -1,4 +1,5 @@
-"""Client visual odometry: ORB-SLAM-style RGB-D tracking and local mapping (pure core, no rospy).
+"""Client visual odometry: ORB-SLAM-style RGB-D, stereo or monocular tracking and local mapping
+(pure core, no rospy).
 
 Entry point: :class:`VisualOdometry` (``track`` per frame, keyframes / map points / events out).
 """

@@ -1,4 +1,5 @@
-"""Parameters of the client's RGB-D visual odometry (features, tracking, keyframes, local mapping).
+"""Parameters of the client's RGB-D, stereo or monocular visual odometry (features, tracking,
+keyframes, local mapping).
 
 Loaded with :func:`coop_slam.config.load_config` / ``load_yaml_config`` (section ``vo`` of
 ``config/client.yaml``). Units are in the field names or comments; pixel thresholds refer to pyramid
@@ -85,7 +86,8 @@ class VoConfig:
     max_lost_frames: int = 10  # lost frames before a new map segment is started
 
     # --- keyframes --------------------------------------------------------------------------------
-    min_init_points: int = 100  # keypoints with depth needed to start a map
+    # Keypoints with depth needed to start a map (monocular: points the two views triangulate).
+    min_init_points: int = 100
     keyframe_max_frames: int = 30  # insert a keyframe at least this often (if tracking is weak)
     keyframe_min_frames: int = 0  # never insert two keyframes closer than this in frames
     # ORB-SLAM2 RGB-D value; 0.6 made 2.5x fewer keyframes on RedKitchen and 0.5-0.9 cm more ATE
@@ -125,6 +127,31 @@ class VoConfig:
     kf_culling: bool = True
     kf_cull_redundancy: float = 0.9  # fraction of points seen by >= kf_cull_observers other KFs
     kf_cull_observers: int = 3
+
+    # --- monocular cameras (no depth: two-view initialization, points from triangulation) -------
+    # The map starts from a reference frame and a later one with enough parallax
+    # (vo.initialization); a reference older than this is replaced by the current frame [s].
+    mono_init_max_age_s: float = 2.0
+    # Median parallax the two views need [deg]. ORB-SLAM's 1 deg (for a different statistic: its
+    # 51st largest parallax) kept a robot driving down the synthetic revisit corridor waiting
+    # 1.07 s; 0.75 initializes it in 0.93 s, as accurately (each point still needs 1 deg).
+    mono_init_min_parallax_deg: float = 0.75
+    # ... when the views fit a homography. With little translation its decomposition is poorly
+    # conditioned: on RedKitchen a homography at 1.2 deg median parallax (3 cm baseline) was off
+    # by 2.5 deg in rotation and 105 deg in translation direction, and the map it started lost
+    # its scale (Sim(3) ATE 38 cm; waiting for 1.5 deg: 3.6 cm).
+    mono_init_min_parallax_homography_deg: float = 1.5
+    keyframe_ref_ratio_mono: float = 0.9  # ORB-SLAM2's monocular keyframe_ref_ratio
+    # Points seen by fewer keyframes 2 keyframes after their creation are removed (ORB-SLAM2's
+    # monocular 3: a point triangulated from 2 keyframes that no third one sees is suspect).
+    cull_min_observations_mono: int = 3
+    # New points of a keyframe: triangulated with its best covisible keyframes (ORB-SLAM2's 20)
+    # whose baseline is at least this fraction of their median scene depth.
+    triangulation_neighbors: int = 20
+    triangulation_min_baseline_ratio: float = 0.01
+    triangulation_max_descriptor_distance: int = 50  # Hamming gate (ORB-SLAM's TH_LOW) [bits]
+    triangulation_ratio: float = 0.9  # best / second best among keypoints on the epipolar line
+    triangulation_min_parallax_deg: float = 1.0  # rays meeting at less give no point [deg]
 
     @property
     def depth_registered(self) -> bool:
@@ -196,6 +223,30 @@ class VoConfig:
             "vo.planar_sigma_height_m and vo.planar_sigma_tilt_deg must be > 0",
         )
         require(0 < self.kf_cull_redundancy <= 1.0, "vo.kf_cull_redundancy must be in (0, 1]")
+        require(self.mono_init_max_age_s > 0, "vo.mono_init_max_age_s must be > 0")
+        require(self.mono_init_min_parallax_deg >= 0, "vo.mono_init_min_parallax_deg must be >= 0")
+        require(
+            self.mono_init_min_parallax_homography_deg >= 0,
+            "vo.mono_init_min_parallax_homography_deg must be >= 0",
+        )
+        require(
+            0 < self.keyframe_ref_ratio_mono <= 1.0, "vo.keyframe_ref_ratio_mono must be in (0, 1]"
+        )
+        require(self.cull_min_observations_mono >= 2, "vo.cull_min_observations_mono must be >= 2")
+        require(self.triangulation_neighbors >= 1, "vo.triangulation_neighbors must be >= 1")
+        require(
+            self.triangulation_min_baseline_ratio >= 0,
+            "vo.triangulation_min_baseline_ratio must be >= 0",
+        )
+        require(
+            0 < self.triangulation_max_descriptor_distance <= 256,
+            "vo.triangulation_max_descriptor_distance must be in 1..256",
+        )
+        require(0 < self.triangulation_ratio <= 1.0, "vo.triangulation_ratio must be in (0, 1]")
+        require(
+            0 <= self.triangulation_min_parallax_deg < 90,
+            "vo.triangulation_min_parallax_deg must be in [0, 90)",
+        )
         require(
             self.update_min_trans_m >= 0 and self.update_min_rot_deg >= 0,
             "vo.update_min_trans_m and vo.update_min_rot_deg must be >= 0",

@@ -84,7 +84,10 @@ def run_sequence(
     t_start = time.perf_counter()
     try:
         for i, frame in enumerate(seq.frames):
-            image, second = seq.load_frame(frame)
+            if seq.camera.sensor == "mono":  # the colour (left) image of any data
+                image, second = seq.load_color(frame), None
+            else:
+                image, second = seq.load_frame(frame)
             if rate_hz:
                 # Pace like a live camera: frame i is available at t_start + i / rate.
                 wait = t_start + i / rate_hz - time.perf_counter()

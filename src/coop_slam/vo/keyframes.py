@@ -1,6 +1,7 @@
 """When a tracked frame becomes a keyframe (ORB-SLAM2's NeedNewKeyFrame for RGB-D, with a floor on
-the tracked points) and how: the keyframe keeps the frame's keypoints, its tracked map points, and
-new map points from depth for the keypoints that matched none."""
+the tracked points; for a monocular camera its monocular rules) and how: the keyframe keeps the
+frame's keypoints, its tracked map points, and new map points from depth for the keypoints that
+matched none (a monocular keyframe has no depth: local mapping triangulates its new points)."""
 
 from __future__ import annotations
 
@@ -16,11 +17,19 @@ from .tracking import Tracked
 class KeyframePolicy:
     """The keyframe decision (see module docstring); caches the reference keyframe's point count
     for a few frames, since counting observations is a Python loop. ``close_depth_m``: the
-    sensor's depth of reliable points."""
+    sensor's depth of reliable points.
 
-    def __init__(self, config: VoConfig, close_depth_m: float):
+    ``monocular`` (no depth): ORB-SLAM2's monocular rules. There are no close points; the
+    reference keyframe's points count when 3 keyframes see them (2 while the map has 2
+    keyframes); a frame tracking fewer than ``keyframe_ref_ratio_mono`` of them becomes a
+    keyframe when ``keyframe_max_frames`` passed or local mapping is free. The floor
+    ``keyframe_min_tracked`` does not apply: every weakly tracked frame would become a keyframe,
+    with baselines too short to triangulate from."""
+
+    def __init__(self, config: VoConfig, close_depth_m: float, monocular: bool = False):
         self.config = config
         self.close_depth_m = close_depth_m
+        self.monocular = monocular
         self._n_ref_cache: tuple = (None, 0)
 
     def reset(self) -> None:
@@ -43,8 +52,10 @@ class KeyframePolicy:
             return False
         with vmap.lock:
             # ORB-SLAM2 counts an observation with depth twice and asks for 3 (2 with <= 2
-            # keyframes): in keyframes, that is 2 (1).
+            # keyframes): in keyframes, that is 2 (1). Monocular observations count once.
             min_obs = 2 if len(vmap.keyframes) > 2 else 1
+            if self.monocular:
+                min_obs += 1
             ref = vmap.keyframes.get(tracked.ref_kf_id) or vmap.keyframes.get(ref_kf_id)
             n_ref = 0
             if ref is not None:
@@ -56,6 +67,12 @@ class KeyframePolicy:
                     pids = ref.map_point_ids[ref.map_point_ids > 0].tolist()
                     n_ref = sum(1 for p in pids if len(obs.get(p, ())) >= min_obs)
                     self._n_ref_cache = (key, n_ref)
+        if self.monocular:
+            c1a = frames_since_kf + 1 >= cfg.keyframe_max_frames
+            c2 = tracked.n < cfg.keyframe_ref_ratio_mono * n_ref and (
+                tracked.n > cfg.keyframe_min_inliers
+            )
+            return (c1a or mapping_free) and c2
         d = feats.depths_m
         close = (d > 0) & (d <= self.close_depth_m)
         tracked_mask = np.zeros(len(feats), bool)

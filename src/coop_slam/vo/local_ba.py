@@ -11,7 +11,9 @@ Factors, as ORB-SLAM2's RGB-D local BA: keypoints with a usable depth get a
 ``GenericStereoFactor3D`` on (u, v, u_right) of a virtual stereo pair
 (u_right = u - fx * baseline / depth), the others a ``GenericProjectionFactorCal3_S2``; both with a
 Huber kernel and sigma = scale**octave px. Keyframes outside the window that see window points are
-held fixed (stiff ``PriorFactorPose3``).
+held fixed (stiff ``PriorFactorPose3``). A monocular camera has projection factors only; its map's
+scale is held by the fixed keyframes, or (fewer than two of them) by a range factor between a fixed
+and a free keyframe (``scale_anchor``).
 """
 
 from __future__ import annotations
@@ -66,6 +68,11 @@ class BaProblem:
     planar_up_cam: np.ndarray | None = None
     planar_sigmas: tuple[float, float] = (0.0, 0.0)
     planar_T_map_plane: np.ndarray | None = None
+    # Monocular map (no metric scale): (index of a fixed keyframe, index of a free one) whose
+    # distance is held at its current value. With fewer than two fixed keyframes the problem's
+    # scale is a gauge freedom, and LM's small damping lets it wander (measured: the window grew
+    # 5-20 % per BA on a small mono map, then halved in one). None: no such factor.
+    scale_anchor: tuple[int, int] | None = None
 
 
 def _level_frame(up_cam: np.ndarray) -> np.ndarray:
@@ -205,6 +212,11 @@ def run_local_ba(problem: BaProblem) -> BaResult:
                 T_prior, info = planar_prior(p.T_map_cam[k], up_cam[k], *p.planar_sigmas, plane)
                 model = gtsam.noiseModel.Gaussian.Information(info)
                 graph.add(gtsam.PriorFactorPose3(X(int(k)), gtsam.Pose3(T_prior), model))
+        if p.scale_anchor is not None:
+            f, k = (int(i) for i in p.scale_anchor)
+            dist = float(np.linalg.norm(p.T_map_cam[k][:3, 3] - p.T_map_cam[f][:3, 3]))
+            noise = gtsam.noiseModel.Isotropic.Sigma(1, 1e-4 * dist)
+            graph.add(gtsam.RangeFactorPose3(X(f), X(k), dist, noise))
         for j, xyz in enumerate(p.points_map):
             values.insert(L(j), np.asarray(xyz, dtype=float))
         # Observations in front of their camera only: GTSAM's stereo camera throws on cheirality.

@@ -1,10 +1,13 @@
 """Local mapping: what ORB-SLAM's LocalMapping thread does after tracking inserted a keyframe.
 
-For each new keyframe: refresh the statistics of the points it observes, fuse duplicate points with
-its covisible keyframes (projection search both ways), cull recent points that tracking rarely
-finds, run local BA over the covisible window (when no other keyframe is waiting), then cull
-redundant keyframes. Keyframe events (new / update / remove) are emitted from here, so a NEW
-keyframe is sent after its points were fused and its covisibility is known.
+For each new keyframe: refresh the statistics of the points it observes, (monocular cameras only)
+triangulate new points with its covisible keyframes, fuse duplicate points with its covisible
+keyframes (projection search both ways), cull recent points that tracking rarely finds, run local
+BA over the covisible window (when no other keyframe is waiting), then cull redundant keyframes.
+RGB-D and stereo keyframes got their new points from depth when tracking inserted them; a
+monocular camera measures no depth, so its new points come from ORB-SLAM's CreateNewMapPoints
+(:meth:`LocalMapper.triangulate_new_points`). Keyframe events (new / update / remove) are emitted
+from here, so a NEW keyframe is sent after its points were fused and its covisibility is known.
 
 With ``threaded`` the steps run in a background thread and the BA itself in a worker process (GTSAM
 holds the GIL); every map access holds ``Map.lock`` for a short, bounded section. Without it,
@@ -20,14 +23,17 @@ import threading
 import time
 from collections.abc import Callable
 
+import cv2
 import numpy as np
 
-from ..geometry import transform_error
+from ..descriptors import hamming_rows
+from ..geometry import invert, transform_error, transform_points
 from .config import VoConfig
 from .features import FrameFeatures, level_scales
+from .initialization import fundamental_from_pose
 from .local_ba import BaProblem, BaResult, BaWorker, run_local_ba
 from .map import Map, MapKeyframe
-from .matching import project_points, search_by_projection
+from .matching import project_points, rotation_consistent, search_by_projection
 from .sensor import Sensor
 from .types import EVENT_KEYFRAME_NEW, EVENT_KEYFRAME_REMOVE, EVENT_KEYFRAME_UPDATE, VoEvent
 
@@ -69,7 +75,14 @@ class LocalMapper:
         self.scales = level_scales(config)
         self._get_map = get_map
         self._emit = emit
-        self.stats = {"ba_runs": 0, "ba_ms": [], "kf_culled": 0, "points_culled": 0, "fused": 0}
+        self.stats = {
+            "ba_runs": 0,
+            "ba_ms": [],
+            "kf_culled": 0,
+            "points_culled": 0,
+            "fused": 0,
+            "triangulated": 0,
+        }
         self._queue: queue.Queue = queue.Queue()
         # Keyframes announced (NEW; only those may be culled or updated) -> T_map_cam last sent.
         self._sent_pose: dict[int, np.ndarray] = {}
@@ -183,6 +196,8 @@ class LocalMapper:
             vmap.update_covisibility(kf_id, propagate=False)
             neighbours = vmap.best_covisible(kf_id, self.config.fuse_neighbors)
             touched = {int(p) for p in kf.map_point_ids[kf.map_point_ids > 0]}
+        if self.sensor.monocular:
+            touched |= self.triangulate_new_points(vmap, kf_id)
         if neighbours:
             touched |= self._fuse(vmap, kf, neighbours)
         touched_ids = np.array(sorted(touched), dtype=np.int64)
@@ -263,6 +278,180 @@ class LocalMapper:
                 touched.add(pid)
         return touched
 
+    # --- new points of a monocular keyframe -----------------------------------------------------
+    def triangulate_new_points(self, vmap: Map, kf_id: int) -> set[int]:
+        """New map points of keyframe ``kf_id`` from its keypoints without a point, triangulated
+        with the keypoints without a point of its best covisible keyframes (ORB-SLAM's
+        CreateNewMapPoints; see :meth:`_triangulation_pairs`). Returns the new points' ids.
+
+        The matching and triangulation run on copies outside the map lock; the points are added
+        under it, each only if both keypoints are still free. Stops early when another keyframe
+        waits (threaded), as ORB-SLAM: tracking needs the next keyframe's points more."""
+        cfg = self.config
+        created: set[int] = set()
+        with vmap.lock:
+            if kf_id not in vmap.keyframes:
+                return created
+            neighbours = vmap.best_covisible(kf_id, cfg.triangulation_neighbors)
+        for i, other in enumerate(neighbours):
+            if i > 0 and self._thread is not None and not self._queue.empty():
+                break
+            with vmap.lock:
+                if kf_id not in vmap.keyframes or other not in vmap.keyframes:
+                    continue
+                views = [self._triangulation_view(vmap, k) for k in (kf_id, other)]
+            found = self._triangulation_pairs(*views)
+            if found is None:
+                continue
+            i1, i2, xyz = found
+            with vmap.lock:
+                kf1, kf2 = vmap.keyframes.get(kf_id), vmap.keyframes.get(other)
+                if kf1 is None or kf2 is None:
+                    continue
+                free = (kf1.map_point_ids[i1] == 0) & (kf2.map_point_ids[i2] == 0)
+                i1, i2, xyz = i1[free], i2[free], xyz[free]
+                if len(i1) == 0:
+                    continue
+                centre = kf1.T_map_cam[:3, 3]
+                ray = xyz - centre
+                dist = np.linalg.norm(ray, axis=1)
+                ids = vmap.points.add(
+                    xyz,
+                    kf1.descriptors[i1],
+                    kf1.angle_deg[i1],
+                    ray / dist[:, None],
+                    dist * self.scales[kf1.octaves[i1].astype(int)],
+                    vmap.kf_seq,
+                )
+                for pid, a, b in zip(ids.tolist(), i1.tolist(), i2.tolist()):
+                    vmap.add_observation(pid, kf_id, a)
+                    vmap.add_observation(pid, other, b)
+            created.update(ids.tolist())
+            self.stats["triangulated"] += len(ids)
+        return created
+
+    def _triangulation_view(self, vmap: Map, kf_id: int) -> dict:
+        """What triangulation needs of one keyframe (copies; map lock held): its pose, free
+        keypoints and median scene depth."""
+        kf = vmap.keyframes[kf_id]
+        free = np.flatnonzero(kf.map_point_ids == 0)
+        pids = kf.map_point_ids[kf.map_point_ids > 0].astype(np.int64)
+        pids = pids[vmap.points.is_alive(pids)]
+        T_cam_map = invert(kf.T_map_cam)
+        z = transform_points(T_cam_map, vmap.points.xyz[pids])[:, 2] if len(pids) else []
+        return {
+            "T_map_cam": kf.T_map_cam.copy(),
+            "T_cam_map": T_cam_map,
+            "idx": free,
+            "uv": kf.uv_px[free].astype(float),
+            "octave": kf.octaves[free].astype(int),
+            "desc": kf.descriptors[free],
+            "angle": kf.angle_deg[free],
+            "median_depth": float(np.median(z)) if len(z) else float("nan"),
+        }
+
+    def _triangulation_pairs(self, a: dict, b: dict):
+        """(keypoint indices in keyframe a, in keyframe b, map points (M, 3)) of the free keypoints
+        of two keyframes that match and triangulate, or None (ORB-SLAM's SearchForTriangulation and
+        the checks of CreateNewMapPoints).
+
+        Skipped when the baseline is below ``triangulation_min_baseline_ratio`` of b's median
+        scene depth. Candidate pairs lie within the 95 % gate (1 dof) of each other's epipolar
+        line and not next to b's epipole; the best descriptor (Hamming within
+        ``triangulation_max_descriptor_distance``, ratio test against the next candidate) wins,
+        each keypoint of b used once, rotation-histogram consistent. A match becomes a point when
+        its rays meet at ``triangulation_min_parallax_deg`` or more, the DLT point lies in front
+        of both cameras, reprojects within the 2-dof chi-square gate at the keypoints' octave in
+        both, and its distances to the two cameras agree with the keypoints' pyramid levels."""
+        cfg = self.config
+        K = self.K
+        if len(a["idx"]) == 0 or len(b["idx"]) == 0:
+            return None
+        c_a, c_b = a["T_map_cam"][:3, 3], b["T_map_cam"][:3, 3]
+        baseline = float(np.linalg.norm(c_b - c_a))
+        if not baseline > cfg.triangulation_min_baseline_ratio * b["median_depth"]:
+            return None  # also when b has no points (NaN median)
+        T_ba = b["T_cam_map"] @ a["T_map_cam"]
+        F = fundamental_from_pose(T_ba[:3, :3], T_ba[:3, 3], K)  # x_b^T F x_a = 0
+        x_a = np.column_stack([a["uv"], np.ones(len(a["uv"]))])
+        x_b = np.column_stack([b["uv"], np.ones(len(b["uv"]))])
+        lines = x_a @ F.T  # epipolar line in b of each keypoint of a
+        num = lines @ x_b.T  # (Na, Nb)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d2 = num**2 / (lines[:, :1] ** 2 + lines[:, 1:2] ** 2)
+        sigma2_b = self.scales[b["octave"]] ** 2
+        ok = d2 < 3.841 * sigma2_b[None, :]
+        # Not next to the epipole (b's image of a's centre): every line passes through it.
+        ep = K @ transform_points(b["T_cam_map"], c_a[None])[0]
+        if ep[2] > 0:
+            e2 = ((b["uv"] - ep[:2] / ep[2]) ** 2).sum(1)
+            ok &= (e2 >= 100.0 * self.scales[b["octave"]])[None, :]
+        ia, ib = np.nonzero(ok)
+        if len(ia) == 0:
+            return None
+        dist = hamming_rows(a["desc"][ia], b["desc"][ib])
+        keep = dist <= cfg.triangulation_max_descriptor_distance
+        ia, ib, dist = ia[keep], ib[keep], dist[keep]
+        if len(ia) == 0:
+            return None
+        # Best and second best candidate of each keypoint of a; ratio test between them.
+        order = np.lexsort((dist, ia))
+        ia, ib, dist = ia[order], ib[order], dist[order]
+        first = np.r_[True, ia[1:] != ia[:-1]]
+        best = np.flatnonzero(first)
+        has_second = np.r_[~first[1:], False][best]
+        second = np.where(has_second, dist[np.minimum(best + 1, len(dist) - 1)], 10**6)
+        best = best[~(dist[best] > cfg.triangulation_ratio * second)]
+        if len(best) == 0:
+            return None
+        ia, ib, dist = ia[best], ib[best], dist[best]
+        # Each keypoint of b once: the closest descriptor wins.
+        order = np.lexsort((dist, ib))
+        ia, ib = ia[order], ib[order]
+        first = np.r_[True, ib[1:] != ib[:-1]]
+        ia, ib = ia[first], ib[first]
+        if len(ia) > 10:
+            keep = rotation_consistent(a["angle"][ia], b["angle"][ib])
+            ia, ib = ia[keep], ib[keep]
+        if len(ia) == 0:
+            return None
+        # Parallax of the two keypoint rays (map frame).
+        K_inv = np.linalg.inv(K)
+        ray_a = (x_a[ia] @ K_inv.T) @ a["T_map_cam"][:3, :3].T
+        ray_b = (x_b[ib] @ K_inv.T) @ b["T_map_cam"][:3, :3].T
+        cos_par = (ray_a * ray_b).sum(1) / (
+            np.linalg.norm(ray_a, axis=1) * np.linalg.norm(ray_b, axis=1)
+        )
+        keep = (cos_par > 0) & (cos_par < np.cos(np.radians(cfg.triangulation_min_parallax_deg)))
+        ia, ib = ia[keep], ib[keep]
+        if len(ia) == 0:
+            return None
+        P_a = K @ a["T_cam_map"][:3]
+        P_b = K @ b["T_cam_map"][:3]
+        X = cv2.triangulatePoints(P_a, P_b, a["uv"][ia].T.copy(), b["uv"][ib].T.copy())
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xyz = (X[:3] / X[3]).T
+        good = np.isfinite(xyz).all(1)
+        xyz = np.where(good[:, None], xyz, 0.0)
+        for view, idx in ((a, ia), (b, ib)):
+            pc = transform_points(view["T_cam_map"], xyz)
+            front = pc[:, 2] > 0
+            z = np.where(front, pc[:, 2], 1.0)
+            uv = pc[:, :2] / z[:, None] * [K[0, 0], K[1, 1]] + K[:2, 2]
+            err2 = ((uv - view["uv"][idx]) ** 2).sum(1) / self.scales[view["octave"][idx]] ** 2
+            good &= front & (err2 <= cfg.chi2_mono)
+        # Scale consistency: the distance ratio to the two cameras matches the octave ratio.
+        dist_a = np.linalg.norm(xyz - c_a, axis=1)
+        dist_b = np.linalg.norm(xyz - c_b, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio_dist = dist_b / dist_a
+        ratio_oct = self.scales[a["octave"][ia]] / self.scales[b["octave"][ib]]
+        factor = 1.5 * cfg.scale_factor
+        good &= (ratio_dist * factor >= ratio_oct) & (ratio_dist <= ratio_oct * factor)
+        if not good.any():
+            return None
+        return a["idx"][ia[good]], b["idx"][ib[good]], xyz[good]
+
     def _cull_points(self, vmap: Map) -> None:
         """Remove recent points that tracking rarely finds or no second keyframe sees."""
         cfg = self.config
@@ -275,7 +464,10 @@ class LocalMapper:
         ratio = pts.found[recent] / np.maximum(pts.visible[recent], 1)
         n_obs = np.array([len(pts.obs[int(p)]) for p in recent])
         age = vmap.kf_seq - pts.created_kf_seq[recent]
-        bad = (ratio < cfg.cull_found_ratio) | ((age >= 2) & (n_obs < cfg.cull_min_observations))
+        min_obs = (
+            cfg.cull_min_observations_mono if self.sensor.monocular else cfg.cull_min_observations
+        )
+        bad = (ratio < cfg.cull_found_ratio) | ((age >= 2) & (n_obs < min_obs))
         for pid in recent[bad]:
             vmap.remove_point(int(pid))
         self.stats["points_culled"] += int(bad.sum())
@@ -336,9 +528,11 @@ class LocalMapper:
         # point seen once without depth (its creator outside the problem) leaves the linear system
         # singular, and mono-only points over a short baseline are barely determined: measured, LM
         # then spends most of its time raising lambda (380 ms instead of ~60 ms for 4000 factors).
+        # A monocular camera has only such points (triangulated with enough parallax).
         n_in = np.bincount(obs_pt, minlength=len(local))
-        n_depth = np.bincount(obs_pt, weights=np.isfinite(ur), minlength=len(local))
-        good_pt = (n_in >= 2) & (n_depth >= 1)
+        good_pt = n_in >= 2
+        if not self.sensor.monocular:
+            good_pt &= np.bincount(obs_pt, weights=np.isfinite(ur), minlength=len(local)) >= 1
         keep = good_pt[obs_pt]
         new_index = np.cumsum(good_pt) - 1
         obs_kf, obs_kp, uv, ur, octave = (
@@ -352,6 +546,15 @@ class LocalMapper:
         local = local[good_pt]
         if len(local) == 0:
             return None
+        scale_anchor = None
+        if self.sensor.monocular and fixed.sum() < 2:
+            # The map's scale is free: hold the distance of the fixed keyframe to the farthest
+            # free one (see BaProblem.scale_anchor).
+            centres = np.array([vmap.keyframes[k].T_map_cam[:3, 3] for k in all_ids])
+            f = int(np.flatnonzero(fixed)[0])
+            dist = np.where(fixed, -1.0, np.linalg.norm(centres - centres[f], axis=1))
+            if dist.max() > 0:
+                scale_anchor = (f, int(np.argmax(dist)))
         return BaProblem(
             segment=vmap.segment,
             kf_ids=np.array(all_ids),
@@ -379,6 +582,7 @@ class LocalMapper:
             planar_sigmas=(np.radians(cfg.planar_sigma_tilt_deg), cfg.planar_sigma_height_m),
             chi2_mono=cfg.chi2_mono,
             chi2_stereo=cfg.chi2_stereo,
+            scale_anchor=scale_anchor,
         )
 
     def apply_ba_result(self, vmap: Map, result: BaResult) -> None:
@@ -421,8 +625,8 @@ class LocalMapper:
 
     # --- keyframe culling -------------------------------------------------------------------------
     def cull_keyframes(self, vmap: Map, kf_id: int) -> list[int]:
-        """Remove covisible keyframes whose close points are >= 90 % seen by >= 3 other keyframes
-        at the same or a finer scale (ORB-SLAM's KeyFrameCulling)."""
+        """Remove covisible keyframes whose close points (monocular: all points) are >= 90 % seen
+        by >= 3 other keyframes at the same or a finer scale (ORB-SLAM's KeyFrameCulling)."""
         removed = []
         with vmap.lock:
             if kf_id not in vmap.keyframes:
@@ -444,8 +648,13 @@ class LocalMapper:
         ):
             return False
         kf = vmap.keyframes[c]
-        d = kf.depths_m
-        idx = np.flatnonzero((kf.map_point_ids > 0) & (d > 0) & (d <= self.sensor.close_depth_m))
+        if self.sensor.monocular:  # all its points (ORB-SLAM's monocular culling)
+            idx = np.flatnonzero(kf.map_point_ids > 0)
+        else:
+            d = kf.depths_m
+            idx = np.flatnonzero(
+                (kf.map_point_ids > 0) & (d > 0) & (d <= self.sensor.close_depth_m)
+            )
         if len(idx) == 0:
             return False
         row, other, oidx = vmap.observation_table(kf.map_point_ids[idx])

@@ -1,8 +1,8 @@
-"""ORB-SLAM-style visual odometry of one client's RGB-D or stereo camera (pure core, no rospy): the
-tracking state machine. Each stage is a module of its own.
+"""ORB-SLAM-style visual odometry of one client's RGB-D, stereo or monocular camera (pure core, no
+rospy): the tracking state machine. Each stage is a module of its own.
 
 ``VisualOdometry.track(stamp_s, image, second)`` (``second``: the depth image of an RGB-D camera,
-the right image of a stereo pair) runs, per frame:
+the right image of a stereo pair, None for a monocular camera) runs, per frame:
 
 1. the input checks and what the sensor measures per keypoint (:mod:`.sensor`) on grid-bucketed
    ORB features (:mod:`.features`);
@@ -13,6 +13,18 @@ the right image of a stereo pair) runs, per frame:
 4. the keyframe decision (:mod:`.keyframes`); the keyframe gets new map points from depth at once
    (so the next frames can track them) and goes to local mapping (:mod:`.local_mapping`: fusion,
    point culling, GTSAM local BA, keyframe culling).
+
+A monocular camera measures no depth. Its map starts from two views (:mod:`.initialization`): the
+first frame with enough keypoints becomes the reference; each later frame is matched with it and
+the two-view initialization tried, until it succeeds (enough parallax, a clear motion) -- while it
+waits the state is ``initializing`` and the message says why ("initializing: not enough parallax:
+keep moving"); a homography, poorly conditioned with little translation, needs more parallax
+(``mono_init_min_parallax_homography_deg``). The reference is replaced when too few matches remain
+or it is older than ``mono_init_max_age_s``. The map then holds the reference frame as its first
+keyframe (the map frame), the current frame as the second, and the triangulated points, scaled so
+their median depth in the first keyframe is 1: the map has no metric scale
+(:attr:`VisualOdometry.metric_scale`).
+Later keyframes get their new points from triangulation in local mapping.
 
 When tracking fails the odometry is *lost*: it tries to relocalize against its own recent keyframes
 (brute-force descriptor matching + PnP RANSAC + local-map search), a few keyframes per frame so the
@@ -33,6 +45,14 @@ from ..datasets.base import CameraModel
 from ..geometry import invert, rotation_angle_deg, transform_points
 from .config import VoConfig
 from .features import FrameFeatures, OrbExtractor, level_scales
+from .initialization import (
+    MODEL_HOMOGRAPHY,
+    MonoInitConfig,
+    TwoViewResult,
+    initialize_two_view,
+    match_for_initialization,
+    scale_to_median_depth,
+)
 from .keyframes import KeyframePolicy, add_keyframe
 from .local_mapping import LocalMapper
 from .map import Map, MapKeyframe
@@ -54,8 +74,8 @@ from .types import (
 
 
 class VisualOdometry:
-    """Visual odometry of one RGB-D camera (see module docstring). Not thread-safe: call ``track``
-    from one thread; ``drain_events`` may be called from another."""
+    """Visual odometry of one RGB-D, stereo or monocular camera (see module docstring). Not
+    thread-safe: call ``track`` from one thread; ``drain_events`` may be called from another."""
 
     def __init__(self, config: VoConfig | None = None, camera: CameraModel | None = None):
         if camera is None:
@@ -70,7 +90,13 @@ class VisualOdometry:
         self._sensor = make_sensor(self.config, camera)
         self._tracker = LocalMapTracker(self.config, self._sensor, self.scales)
         self._relocalizer = Relocalizer(self.config, self._sensor, self._tracker)
-        self._keyframe_policy = KeyframePolicy(self.config, self._sensor.close_depth_m)
+        self._keyframe_policy = KeyframePolicy(
+            self.config, self._sensor.close_depth_m, monocular=self._sensor.monocular
+        )
+        self._mono_init = MonoInitConfig(
+            min_median_parallax_deg=self.config.mono_init_min_parallax_deg
+        )
+        self._init_ref: tuple[float, FrameFeatures] | None = None  # monocular: (stamp, features)
         self._events: collections.deque = collections.deque()
         self._events_lock = threading.Lock()
         self.map_segment = 0
@@ -83,9 +109,11 @@ class VisualOdometry:
         self._ignored: list[tuple[np.ndarray, float]] = []  # (corners_map (N, 3), until [s])
 
     # --- public API -------------------------------------------------------------------------------
-    def track(self, stamp_s: float, image: np.ndarray, second: np.ndarray) -> TrackResult:
-        """Track one frame. Raises VoError on malformed input; a frame it cannot use is a lost
-        result."""
+    def track(
+        self, stamp_s: float, image: np.ndarray, second: np.ndarray | None = None
+    ) -> TrackResult:
+        """Track one frame (``second``: depth or right image, None for a monocular camera). Raises
+        VoError on malformed input; a frame it cannot use is a lost result."""
         t0 = time.perf_counter()
         c0 = time.thread_time()
         try:
@@ -214,6 +242,13 @@ class VisualOdometry:
         return self._state
 
     @property
+    def metric_scale(self) -> bool:
+        """Whether the map is in metres: False for a monocular camera, whose map unit is the
+        median depth of the first two keyframes' points (fixed at initialization, and drifting
+        with the odometry)."""
+        return not self._sensor.monocular
+
+    @property
     def mapping_stats(self) -> dict:
         return self._mapper.stats
 
@@ -231,6 +266,7 @@ class VisualOdometry:
         self._ref_kf_id = 0
         self._frames_since_kf = 0
         self._lost_count = 0
+        self._init_ref = None
         self._relocalizer.reset()
         self._keyframe_policy.reset()
 
@@ -250,6 +286,8 @@ class VisualOdometry:
     def _initialize(
         self, stamp_s: float, feats: FrameFeatures, state: str | None = None
     ) -> TrackResult:
+        if self._sensor.monocular:
+            return self._initialize_mono(stamp_s, feats, state)
         n_depth = int(feats.has_depth.sum())
         if n_depth < self.config.min_init_points:
             return self._result(
@@ -269,6 +307,104 @@ class VisualOdometry:
         self._last_point_ids = kf.map_point_ids[kf.map_point_ids > 0].astype(np.int64)
         state = state or (STATE_NEW_SEGMENT if self.map_segment > 0 else STATE_OK)
         return self._result(stamp_s, True, state, kf_id=kf_id, message="map initialized")
+
+    def _initialize_mono(
+        self, stamp_s: float, feats: FrameFeatures, state: str | None
+    ) -> TrackResult:
+        """Two-view initialization of a monocular camera (see module docstring)."""
+        cfg, icfg = self.config, self._mono_init
+        ref = self._init_ref
+        if ref is None:
+            return self._new_init_reference(stamp_s, feats, "reference frame set: keep moving")
+        if stamp_s - ref[0] > cfg.mono_init_max_age_s:
+            return self._new_init_reference(
+                stamp_s,
+                feats,
+                f"no initialization within {cfg.mono_init_max_age_s:g} s of the reference frame:"
+                " new reference frame",
+            )
+        pairs = match_for_initialization(ref[1], feats, icfg)
+        if len(pairs) < icfg.min_matches:
+            return self._new_init_reference(
+                stamp_s,
+                feats,
+                f"{len(pairs)} matches with the reference frame ({icfg.min_matches} needed): "
+                "new reference frame",
+            )
+        two_view = initialize_two_view(
+            ref[1].uv_px[pairs[:, 0]], feats.uv_px[pairs[:, 1]], self.K, icfg
+        )
+        if not two_view.success:
+            return self._waiting(stamp_s, two_view.reason)
+        need_h = cfg.mono_init_min_parallax_homography_deg
+        if two_view.model == MODEL_HOMOGRAPHY and two_view.median_parallax_deg < need_h:
+            return self._waiting(
+                stamp_s,
+                f"not enough parallax for the homography: keep moving (median parallax "
+                f"{two_view.median_parallax_deg:.2f} deg < {need_h:g} deg)",
+            )
+        if two_view.n_points < cfg.min_init_points:
+            return self._waiting(
+                stamp_s,
+                f"{two_view.n_points} points triangulated, {cfg.min_init_points} needed: keep "
+                "moving",
+            )
+        two_view = scale_to_median_depth(two_view)
+        kf_id = self._create_two_view_map(stamp_s, feats, pairs, two_view)
+        self._init_ref = None
+        self._state = STATE_OK
+        self._velocity = np.eye(4)
+        state = state or (STATE_NEW_SEGMENT if self.map_segment > 0 else STATE_OK)
+        message = (
+            f"map initialized from two views ({two_view.model}, {two_view.n_points} points, "
+            f"median parallax {two_view.median_parallax_deg:.1f} deg, "
+            f"{stamp_s - ref[0]:.2f} s after the reference frame; no metric scale)"
+        )
+        return self._result(stamp_s, True, state, kf_id=kf_id, message=message)
+
+    def _waiting(self, stamp_s: float, reason: str) -> TrackResult:
+        return self._result(stamp_s, False, STATE_INITIALIZING, message=f"initializing: {reason}")
+
+    def _new_init_reference(self, stamp_s: float, feats: FrameFeatures, reason: str) -> TrackResult:
+        """Make the frame the reference of the two-view initialization (if it has keypoints
+        enough to match)."""
+        need = self._mono_init.min_matches
+        if len(feats) < need:
+            self._init_ref = None
+            return self._waiting(stamp_s, f"{len(feats)} keypoints, {need} needed")
+        self._init_ref = (stamp_s, feats)
+        return self._waiting(stamp_s, reason)
+
+    def _create_two_view_map(
+        self, stamp_s: float, feats: FrameFeatures, pairs: np.ndarray, two_view: TwoViewResult
+    ) -> int:
+        """The map of a successful two-view initialization: the reference frame as the first
+        keyframe (the map frame), the current one as the second, the triangulated points observed
+        by both; both keyframes go to local mapping (local BA). Returns the second's id."""
+        ref_stamp, ref_feats = self._init_ref
+        i_ref = pairs[two_view.match_index, 0]
+        i_cur = pairs[two_view.match_index, 1]
+        xyz = two_view.points_ref  # the reference camera frame is the map frame
+        with self._map.lock:
+            dist = np.linalg.norm(xyz, axis=1)
+            point_ids = self._map.points.add(
+                xyz,
+                ref_feats.descriptors[i_ref],
+                ref_feats.angle_deg[i_ref],
+                xyz / dist[:, None],
+                dist * self.scales[ref_feats.octaves[i_ref].astype(int)],
+                self._map.kf_seq + 1,
+            )
+        T_map_cur = invert(two_view.T_cur_ref)
+        kf_ref = self._insert_keyframe(ref_stamp, ref_feats, np.eye(4), i_ref, point_ids, False)
+        kf_cur = self._insert_keyframe(stamp_s, feats, T_map_cur, i_cur, point_ids, False)
+        with self._map.lock:
+            self._map.update_point_stats(point_ids, self.scales)
+        self._T_map_cam = T_map_cur
+        self._last_point_ids = point_ids.astype(np.int64)
+        self._mapper.submit(kf_ref)
+        self._mapper.submit(kf_cur)
+        return kf_cur
 
     def _track_frame(self, stamp_s: float, feats: FrameFeatures) -> TrackResult:
         T_pred = self._T_map_cam @ self._velocity
@@ -304,7 +440,9 @@ class VisualOdometry:
             self._ref_kf_id,
             self._frames_since_kf,
             self.frames_processed,
-            self._mapper.idle or self._mapper.pending < 3,
+            # RGB-D and stereo insert while mapping is busy, monocular (ORB-SLAM2) only when
+            # it is idle: its keyframes cost triangulation as well.
+            self._mapper.idle or (self._mapper.pending < 3 and not self._sensor.monocular),
         ):
             kf_id = self._insert_keyframe(
                 stamp_s, feats, tracked.T_map_cam, tracked.kp_idx, tracked.point_ids
@@ -362,8 +500,10 @@ class VisualOdometry:
         )
 
     # --- keyframes --------------------------------------------------------------------------------
-    def _insert_keyframe(self, stamp_s, feats: FrameFeatures, T_map_cam, kp_idx, point_ids) -> int:
-        """Create a keyframe from the frame and hand it to local mapping."""
+    def _insert_keyframe(
+        self, stamp_s, feats: FrameFeatures, T_map_cam, kp_idx, point_ids, submit: bool = True
+    ) -> int:
+        """Create a keyframe from the frame and (``submit``) hand it to local mapping."""
         kf_id = self._next_kf_id
         self._next_kf_id += 1
         add_keyframe(
@@ -380,7 +520,8 @@ class VisualOdometry:
         )
         self._ref_kf_id = kf_id
         self._frames_since_kf = 0
-        self._mapper.submit(kf_id)
+        if submit:
+            self._mapper.submit(kf_id)
         return kf_id
 
     def _emit(self, event: VoEvent) -> None:

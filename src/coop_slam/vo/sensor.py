@@ -5,8 +5,9 @@ Tracking, local BA and keyframes use one measurement model for every keypoint: i
 and, where the sensor measured its depth, a right-image coordinate ``u_right = u - bf / z`` (a
 stereo pair's, with ``bf`` = fx * baseline) and the 3D point in the camera frame. An RGB-D camera
 measures the depth and its ``u_right`` belongs to a *virtual* stereo pair of
-``vo.virtual_baseline_m`` (ORB-SLAM2's RGB-D model); a stereo camera would measure ``u_right`` and
-get the depth from it; a monocular one measures neither.
+``vo.virtual_baseline_m`` (ORB-SLAM2's RGB-D model); a stereo camera measures ``u_right`` and gets
+the depth from it; a monocular one (:class:`MonoSensor`) measures neither: all its observations
+are (u, v), its map points come from triangulation, and its map has no metric scale.
 """
 
 from __future__ import annotations
@@ -52,7 +53,9 @@ def make_sensor(config: VoConfig, camera: CameraModel) -> "Sensor":
         return RgbdSensor(config, camera)
     if camera.sensor == "stereo":
         return StereoSensor(config, camera)
-    raise VoError(f"the odometry has no model of a '{camera.sensor}' camera (rgbd, stereo)")
+    if camera.sensor == "mono":
+        return MonoSensor(config, camera)
+    raise VoError(f"the odometry has no model of a '{camera.sensor}' camera (rgbd, stereo, mono)")
 
 
 def _frame_features(kps: OrbKeypoints, depth, u_right, camera: CameraModel) -> FrameFeatures:
@@ -74,9 +77,13 @@ def _frame_features(kps: OrbKeypoints, depth, u_right, camera: CameraModel) -> F
 
 
 class Sensor:
-    """What both sensors share: the stereo model ``bf`` = fx * baseline, the depth up to which a
+    """What the sensors share: the stereo model ``bf`` = fx * baseline, the depth up to which a
     keypoint's depth enters that model, and a warning about the input for the odometry to pass
-    on (then cleared)."""
+    on (then cleared). ``monocular``: the sensor measures no depth (the map has no metric scale,
+    its points come from triangulation)."""
+
+    kind = ""
+    monocular = False
 
     def __init__(self, config: VoConfig, camera: CameraModel, baseline_m: float, close_m: float):
         self.config = config
@@ -267,3 +274,26 @@ class StereoSensor(Sensor):
                 f"only {100 * matched:.0f} % of the left keypoints found a stereo match: points "
                 "appear farther right in the right image; are left and right swapped?"
             )
+
+
+class MonoSensor(Sensor):
+    """One camera: no depth, no right-image coordinate. Every keypoint is a monocular (u, v)
+    observation; map points come from two-view initialization and triangulation between
+    keyframes, and the map has no metric scale."""
+
+    kind = "mono"
+    monocular = True
+
+    def __init__(self, config: VoConfig, camera: CameraModel):
+        super().__init__(config, camera, 0.0, 0.0)
+
+    def check_input(self, image, second=None) -> tuple[np.ndarray, None]:
+        """(grey uint8 image, None) of one frame; a second image (e.g. the depth of an RGB-D
+        recording played as a monocular camera) is ignored. Raises VoError naming what is wrong
+        with the image."""
+        return np.ascontiguousarray(gray_image(image, self.camera)), None
+
+    def features(self, kps: OrbKeypoints, gray: np.ndarray, second=None) -> FrameFeatures:
+        """The frame's keypoints without depth (depth 0, u_right and 3D point NaN)."""
+        n = len(kps)
+        return _frame_features(kps, np.zeros(n, np.float32), np.full(n, np.nan), self.camera)
