@@ -48,6 +48,26 @@ def invert(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices [v]_x, (..., 3, 3), of (..., 3) vectors: [v]_x w = v x w."""
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def exp_so3(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector ``w`` [rad] (Rodrigues)."""
+    w = np.asarray(w, dtype=float)
+    theta = np.linalg.norm(w)
+    W = skew(w)
+    if theta < 1e-10:
+        return np.eye(3) + W
+    return np.eye(3) + np.sin(theta) / theta * W + (1 - np.cos(theta)) / theta**2 * W @ W
+
+
 def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
     """Apply ``T_a_b`` to an (N, 3) array of points given in frame b."""
     points_b = np.asarray(points_b, dtype=float).reshape(-1, 3)

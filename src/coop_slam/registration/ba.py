@@ -50,19 +50,21 @@ class BaResult:
     @property
     def sigma_rot_deg(self) -> float:
         """Largest rotation standard deviation [deg] (worst-constrained axis); inf if singular."""
-        return float(np.degrees(_worst_sigma(self.covariance[:3, :3])))
+        return float(np.degrees(worst_sigma(self.covariance[:3, :3])))
 
     @property
     def sigma_trans_m(self) -> float:
         """Largest translation standard deviation [m] (worst direction); inf if singular."""
-        return _worst_sigma(self.covariance[3:, 3:])
+        return worst_sigma(self.covariance[3:, 3:])
 
 
-def _worst_sigma(cov: np.ndarray) -> float:
+def worst_sigma(cov: np.ndarray) -> float:
+    """Standard deviation along the worst-constrained direction of a covariance block; inf when
+    the problem is singular."""
     # A singular problem's covariance is inf, on which eigvalsh raises instead of answering.
     if not np.all(np.isfinite(cov)):
         return float("inf")
-    return float(np.sqrt(np.linalg.eigvalsh(cov).max()))
+    return float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0)))
 
 
 def reprojection_errors_both(T_camA_camB, points_camA, uv_px_a, uv_px_b, K_a, K_b):
@@ -73,7 +75,8 @@ def reprojection_errors_both(T_camA_camB, points_camA, uv_px_a, uv_px_b, K_a, K_
     return np.nan_to_num(err_a, nan=np.inf), np.nan_to_num(err_b, nan=np.inf)
 
 
-def _rms(err_a: np.ndarray, err_b: np.ndarray, mask: np.ndarray) -> float:
+def rms_both(err_a: np.ndarray, err_b: np.ndarray, mask: np.ndarray) -> float:
+    """RMS per-image reprojection error of the masked correspondences over both images."""
     if not mask.any():
         return np.nan
     return float(np.sqrt(0.5 * (err_a[mask] ** 2 + err_b[mask] ** 2).mean()))
@@ -279,8 +282,8 @@ def two_view_ba(
         errors_a_px=err_a,
         errors_b_px=err_b,
         inliers=inliers,
-        rms_px=_rms(err_a, err_b, inliers),
-        initial_rms_px=_rms(err_a0, err_b0, inliers),
+        rms_px=rms_both(err_a, err_b, inliers),
+        initial_rms_px=rms_both(err_a0, err_b0, inliers),
         n_iterations=iterations,
         covariance=covariance,
     )

@@ -33,6 +33,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import require
+from ..geometry import exp_so3, skew
+from .ba import rms_both, worst_sigma
 from .camera import RegistrationError, check_intrinsics, check_points
 from .ransac import required_iterations
 from .umeyama import umeyama_batch
@@ -418,42 +420,18 @@ class Sim3RefineResult:
     @property
     def sigma_rot_deg(self) -> float:
         """Largest rotation standard deviation [deg] (worst-constrained axis); inf if singular."""
-        return float(np.degrees(_worst_sigma(self.covariance[:3, :3])))
+        return float(np.degrees(worst_sigma(self.covariance[:3, :3])))
 
     @property
     def sigma_trans(self) -> float:
         """Largest translation standard deviation in dst's length units (worst direction)."""
-        return _worst_sigma(self.covariance[3:6, 3:6])
+        return worst_sigma(self.covariance[3:6, 3:6])
 
     @property
     def sigma_scale_rel(self) -> float:
         """Standard deviation of log(scale), i.e. the relative scale uncertainty."""
         var = self.covariance[6, 6]
         return float(np.sqrt(var)) if np.isfinite(var) else float("inf")
-
-
-def _worst_sigma(cov: np.ndarray) -> float:
-    # A singular problem's covariance is inf, on which eigvalsh raises instead of answering.
-    if not np.all(np.isfinite(cov)):
-        return float("inf")
-    return float(np.sqrt(max(np.linalg.eigvalsh(cov).max(), 0.0)))
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) cross-product matrices [v]_x of (N, 3) vectors."""
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
-    return S
-
-
-def _exp_so3(w: np.ndarray) -> np.ndarray:
-    theta = np.linalg.norm(w)
-    W = _skew(w)
-    if theta < 1e-10:
-        return np.eye(3) + W
-    return np.eye(3) + np.sin(theta) / theta * W + (1 - np.cos(theta)) / theta**2 * W @ W
 
 
 def _projection_jacobian(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -482,7 +460,7 @@ class _Sim3:
 
     def retract(self, delta: np.ndarray) -> _Sim3:
         log_s = delta[6] if len(delta) == 7 else 0.0
-        return _Sim3(_exp_so3(delta[:3]) @ self.R, self.t + delta[3:6], self.scale * np.exp(log_s))
+        return _Sim3(exp_so3(delta[:3]) @ self.R, self.t + delta[3:6], self.scale * np.exp(log_s))
 
     def moved(self, data: _Data) -> tuple[np.ndarray, np.ndarray]:
         """(src points in dst, dst points in src)."""
@@ -539,11 +517,11 @@ class _Problem:
         a = d.dst - t
         # d moved_dst / d(r, dt, ds) = (-[q]x, I, q); d moved_src = (R^T [a]x / s, -R^T / s, -p)
         dp_dst = np.zeros((n, 3, 7))
-        dp_dst[:, :, :3] = -_skew(q)
+        dp_dst[:, :, :3] = -skew(q)
         dp_dst[:, :, 3:6] = np.eye(3)
         dp_dst[:, :, 6] = q
         dp_src = np.zeros((n, 3, 7))
-        dp_src[:, :, :3] = np.einsum("ji,njk->nik", R, _skew(a)) / s
+        dp_src[:, :, :3] = np.einsum("ji,njk->nik", R, skew(a)) / s
         dp_src[:, :, 3:6] = -R.T / s
         dp_src[:, :, 6] = -moved_src
         J_dst = np.einsum("nij,njk->nik", _projection_jacobian(moved_dst, d.K_dst), dp_dst)
@@ -634,12 +612,6 @@ def _covariance(state: _Sim3, problem: _Problem, huber_k, n_params) -> tuple[np.
         cov = np.zeros((7, 7))
         cov[:n_params, :n_params] = 2.0 * max(factor, 1.0) * np.linalg.inv(H)
     return cov, factor
-
-
-def _rms(err_src: np.ndarray, err_dst: np.ndarray, mask: np.ndarray) -> float:
-    if not mask.any():
-        return np.nan
-    return float(np.sqrt(0.5 * (err_src[mask] ** 2 + err_dst[mask] ** 2).mean()))
 
 
 def refine_sim3(
@@ -737,8 +709,8 @@ def refine_sim3(
         errors_src_px=err_src,
         errors_dst_px=err_dst,
         inliers=inliers,
-        rms_px=_rms(err_src, err_dst, inliers),
-        initial_rms_px=_rms(err_src0, err_dst0, inliers),
+        rms_px=rms_both(err_src, err_dst, inliers),
+        initial_rms_px=rms_both(err_src0, err_dst0, inliers),
         n_iterations=iterations,
         covariance=covariance,
         variance_factor=factor,

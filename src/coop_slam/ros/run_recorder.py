@@ -18,6 +18,7 @@ from ..evaluation import EvaluationError
 from ..evaluation.run_report import RobotRun, RunData, RunInput
 from ..keyframe_record import ACTION_REMOVE
 from ..playback import COLOR_TOPIC, GROUND_TRUTH_TOPIC, image_topic
+from ..registration.camera import backproject
 from ..team.results import TYPE_LINK, TYPE_LOOP
 from .convert import (
     MessageError,
@@ -181,9 +182,8 @@ def _points_cam(msg) -> np.ndarray:
         ok = (z > 0) & np.isfinite(z)
         if len(z) != len(kp) or not (c.fx > 0 and c.fy > 0):
             return np.zeros((0, 3), np.float32)
-        x = (kp[ok, 0] - c.cx) / c.fx * z[ok]
-        y = (kp[ok, 1] - c.cy) / c.fy * z[ok]
-        return np.column_stack([x, y, z[ok]]).astype(np.float32)
+        K = np.array([[c.fx, 0.0, c.cx], [0.0, c.fy, c.cy], [0.0, 0.0, 1.0]])
+        return backproject(kp[ok, :2], z[ok], K).astype(np.float32)
     except (ValueError, TypeError):
         return np.zeros((0, 3), np.float32)
 

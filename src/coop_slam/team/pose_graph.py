@@ -45,7 +45,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ..config import require
 from ..errors import CoopSlamError, GeometryError
-from ..geometry import check_se3, invert
+from ..geometry import check_se3, exp_so3, invert
 from ..registration.camera import RegistrationError
 from ..registration.umeyama import umeyama
 
@@ -775,10 +775,6 @@ class SyntheticTeam:
     merges: list[tuple[int, int, int, int, np.ndarray]] = field(default_factory=list)  # ra,i,rb,j,T
 
 
-def _exp_so3(w: np.ndarray) -> np.ndarray:
-    return gtsam.Rot3.Expmap(np.asarray(w, float)).matrix()
-
-
 def synthetic_team(
     keyframes_per_robot: int = 60,
     robots: int = 3,
@@ -816,14 +812,14 @@ def synthetic_team(
             D = invert(T[k - 1]) @ T[k]
             noise = np.eye(4)
             # Drift about the camera's y axis (down): yaw in the world.
-            noise[:3, :3] = _exp_so3(rng.normal(0, odom_rot_noise_rad, 3) + [0, yaw_drift_rad, 0])
+            noise[:3, :3] = exp_so3(rng.normal(0, odom_rot_noise_rad, 3) + [0, yaw_drift_rad, 0])
             noise[:3, 3] = rng.normal(0, odom_trans_noise_m, 3)
             C[k] = C[k - 1] @ D @ noise
         client[r] = C
 
     def measure(Ta, Tb):
         noise = np.eye(4)
-        noise[:3, :3] = _exp_so3(rng.normal(0, meas_rot_noise_rad, 3))
+        noise[:3, :3] = exp_so3(rng.normal(0, meas_rot_noise_rad, 3))
         noise[:3, 3] = rng.normal(0, meas_trans_noise_m, 3)
         return invert(Ta) @ Tb @ noise
 

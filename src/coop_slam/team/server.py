@@ -24,6 +24,7 @@ import numpy as np
 
 from ..bow import Vocabulary
 from ..errors import CoopSlamError
+from ..geometry import invert
 from ..keyframe_record import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE, KeyframeRecord
 from .config import ServerConfig
 from .global_ba import GlobalBaError, GlobalBaResult, count_observations, global_bundle_adjustment
@@ -294,8 +295,8 @@ class TeamServer:
         for m in merges:
             key_a, key_b = (m.robot_a, m.keyframe_a), (m.robot_b, m.keyframe_b)
             if key_a in self.store and key_b in self.store:
-                m.T_camA_camB = np.linalg.inv(self.T_group_cam(*key_a)) @ self.T_group_cam(*key_b)
-            m.T_mapA_mapB = np.linalg.inv(self.T_group_map(m.robot_a)) @ self.T_group_map(m.robot_b)
+                m.T_camA_camB = invert(self.T_group_cam(*key_a)) @ self.T_group_cam(*key_b)
+            m.T_mapA_mapB = invert(self.T_group_map(m.robot_a)) @ self.T_group_map(m.robot_b)
 
     def _global_ba_if_cheap(self, robot_id: int) -> None:
         members = set(self.groups.members(robot_id))

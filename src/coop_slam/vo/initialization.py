@@ -45,6 +45,7 @@ from scipy.spatial.transform import Rotation
 
 from ..config import require
 from ..errors import CoopSlamError
+from ..geometry import skew
 from ..registration.matching import match_descriptors
 from .features import OrbKeypoints
 from .matching import rotation_consistent
@@ -264,10 +265,6 @@ def score_fundamental(
     return score, inlier
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def _inv_intrinsics(K: np.ndarray) -> np.ndarray:
     """Closed-form inverse of a pinhole K (np.linalg.inv of a 3x3 cost ~1 ms here: LAPACK call
     overhead, and the refinement needs it hundreds of times)."""
@@ -280,7 +277,7 @@ def _inv_intrinsics(K: np.ndarray) -> np.ndarray:
 def fundamental_from_pose(R: np.ndarray, t: np.ndarray, K: np.ndarray) -> np.ndarray:
     """F with x_cur^T F x_ref = 0 for the motion ``p_cur = R p_ref + t``."""
     K_inv = _inv_intrinsics(K)
-    return K_inv.T @ _skew(t) @ R @ K_inv
+    return K_inv.T @ skew(t) @ R @ K_inv
 
 
 # --- triangulation and candidate checks -----------------------------------------------------------
@@ -439,7 +436,7 @@ def _fit_essential(
         if inliers.sum() < 8:
             break
         R, t = _refine_motion(R, t, uv_ref[inliers], uv_cur[inliers], K, cfg.sigma_px)
-        E = _skew(t) @ R
+        E = skew(t) @ R
         score, inliers = score_fundamental(
             K_inv.T @ E @ K_inv, uv_ref, uv_cur, cfg.sigma_px, cfg.chi2_f, cfg.chi2_h
         )
