@@ -194,3 +194,20 @@ def team_vocabulary(keyframes):
     from coop_slam.bow import Vocabulary
 
     return Vocabulary.train([kf.descriptors for kf in keyframes], k=8, levels=3, seed=0)
+
+
+def as_monocular(kf: KeyframeRecord, units_per_m: float) -> KeyframeRecord:
+    """The keyframe as a monocular client sends it: no depth, its map in its own units
+    (``units_per_m`` of them per metre)."""
+    import dataclasses
+
+    c = kf.camera
+    T = np.array(kf.T_map_cam, dtype=float, copy=True)
+    T[:3, 3] *= units_per_m
+    return dataclasses.replace(
+        kf,
+        camera=CameraModel(c.width, c.height, c.fx, c.fy, c.cx, c.cy, sensor="mono"),
+        T_map_cam=T,
+        depths_m=np.zeros_like(kf.depths_m),
+        map_points=(kf.map_points * units_per_m).astype(np.float32),
+    )

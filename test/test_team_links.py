@@ -187,30 +187,3 @@ def test_a_late_merge_links_across_the_overlap(world):
     unswept = _two_robots(world, sweep_pairs=0)
     _merge_off_by(unswept, 0.0)
     assert unswept.constraints == []
-
-
-def test_monocular_maps_are_not_merged_rigidly(world):
-    """A monocular robot's map has its own scale: the server keeps its keyframes but does not
-    merge it with a rigid transform (the same views with depth do merge)."""
-    from coop_slam.datasets.base import CameraModel
-
-    points, desc, kfs_a, vocab = world
-
-    def run(mono: bool):
-        server = TeamServer(_config(), vocab)
-        for kf in kfs_a:
-            server.add_keyframe(kf)
-        for kf in team_keyframes(
-            2, np.linspace(2.0, 3.0, 8), points, desc, offset=(0.2, 0.1), seed=100, t0=100.0
-        ):
-            if mono:
-                c = kf.camera
-                kf.camera = CameraModel(c.width, c.height, c.fx, c.fy, c.cx, c.cy, sensor="mono")
-                kf.depths_m = np.zeros_like(kf.depths_m)
-            server.add_keyframe(kf)
-        return server
-
-    assert run(mono=False).merges
-    mono = run(mono=True)
-    assert mono.merges == [] and mono.groups.groups() == [[1], [2]]
-    assert len(mono.store.keyframe_ids(2)) == 8

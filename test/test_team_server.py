@@ -348,3 +348,30 @@ def test_cued_request_is_retried_on_the_next_keyframes(world, late):
     assert merges[0].stamp_s == t_next  # when the keyframe showing the shared scene was taken
     dt, dr = transform_error(merges[0].T_mapA_mapB, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
     assert dt < 0.02 and dr < 0.5
+
+
+def test_a_new_map_segment_is_a_map_of_its_own_that_merges_back(world):
+    """A client that lost tracking for good (or restarted) sends a new map segment in a new map
+    frame: the server keeps it apart (no odometry to the old segment) and merges it back."""
+    points, desc, kfs_a, vocab = world
+    server = TeamServer(_config(robots=[1, 2]), vocab)
+    for kf in kfs_a:
+        server.add_keyframe(kf)
+    for kf in _keyframes(2, np.linspace(2.0, 3.0, 8), points, desc, offset=(0.2, 0.1), t0=100.0):
+        server.add_keyframe(kf)
+    assert server.groups.groups() == [[1, 2]]
+    # Segment 1 of robot 2: its map frame is another (robot 3's in the helpers' table).
+    seg = _keyframes(3, np.linspace(4.0, 5.0, 8), points, desc, kid0=100, seed=200, t0=200.0)
+    for kf in seg:
+        kf.robot_id, kf.map_segment = 2, 1
+        server.add_keyframe(kf)
+    mid = server.current_map(2)
+    assert mid == 3 and server.robot_of(mid) == 2
+    assert server.robot_groups() == [(1, 2)] and server.in_world(mid)
+    T_true = invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[3]
+    assert transform_error(server.T_group_map(mid), T_true)[0] < 0.03
+    # The first segment stayed where it was (no odometry across segments pulled it).
+    T_2 = invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2]
+    assert transform_error(server.T_group_map(2), T_2)[0] < 0.03
+    kfs = server.robot_keyframes(2)
+    assert sorted(kfs)[:8] == list(range(1, 9)) and sorted(kfs)[8:] == list(range(100, 108))

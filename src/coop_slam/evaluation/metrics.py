@@ -1,7 +1,8 @@
 """Accuracy metrics against ground truth, computed with evo (ATE/RPE) — never re-implemented here.
 
 Trajectories are (stamps_s (N,), poses_se3 (N, 4, 4)) pairs. Estimated and ground-truth poses are
-associated by timestamp; the alignment is SE(3) (no scale) unless asked otherwise.
+associated by timestamp; the alignment is SE(3) (no scale) unless asked otherwise (Sim(3), for a
+monocular map without metric scale).
 """
 
 from __future__ import annotations
@@ -26,7 +27,9 @@ class AteResult:
     mean_m: float
     max_m: float
     count: int  # associated poses
-    T_gt_est: np.ndarray  # alignment applied to the estimate
+    # alignment applied to the estimate: p_gt = scale * R p_est + t, with (R, t) = T_gt_est
+    T_gt_est: np.ndarray
+    scale: float = 1.0  # ground truth's lengths per estimated length (1 unless correct_scale)
 
 
 def _traj(poses, stamps):
@@ -38,9 +41,17 @@ def _traj(poses, stamps):
 
 
 def ate(
-    stamps_est, poses_est, stamps_gt, poses_gt, max_dt_s: float = 0.02, align: bool = True
+    stamps_est,
+    poses_est,
+    stamps_gt,
+    poses_gt,
+    max_dt_s: float = 0.02,
+    align: bool = True,
+    correct_scale: bool = False,
 ) -> AteResult:
-    """Absolute trajectory error (translation RMSE) after SE(3) alignment, with evo."""
+    """Absolute trajectory error (translation RMSE) after SE(3) alignment, with evo; Sim(3) with
+    ``correct_scale`` (the error then in ground truth's metres, ``scale`` the estimate's metric
+    scale)."""
     from evo.core import metrics
 
     poses_est = np.asarray(poses_est, float)
@@ -59,13 +70,16 @@ def ate(
     ref = _traj(poses_gt[i_gt], stamps)
     est = _traj(poses_est[i_est], stamps)
     T = np.eye(4)
+    scale = 1.0
     if align:
         from evo.core.geometry import GeometryException
 
         try:
-            r, t, _ = est.align(ref, correct_scale=False)
+            r, t, scale = est.align(ref, correct_scale=correct_scale)
             T[:3, :3], T[:3, 3] = r, t
         except GeometryException:
+            if correct_scale:
+                raise EvaluationError("cannot align the trajectories with scale") from None
             # Positions on a line (or a point) leave Umeyama's rotation undetermined: align the
             # first poses instead, which uses their orientations too.
             T = est.align_origin(ref)
@@ -80,12 +94,15 @@ def ate(
         max_m=float(st["max"]),
         count=len(i_est),
         T_gt_est=T,
+        scale=float(scale),
     )
 
 
-def team_ate(est: dict[int, tuple], gt: dict[int, tuple], max_dt_s: float = 0.02) -> AteResult:
+def team_ate(
+    est: dict[int, tuple], gt: dict[int, tuple], max_dt_s: float = 0.02, correct_scale=False
+) -> AteResult:
     """ATE over all robots' poses together (all in one estimated frame, e.g. ``world``) with a
-    single SE(3) alignment for the whole team."""
+    single SE(3) alignment for the whole team (Sim(3) with ``correct_scale``)."""
     stamps, poses_e, poses_g = [], [], []
     offset = 0.0
     for rid in sorted(est):
@@ -102,7 +119,14 @@ def team_ate(est: dict[int, tuple], gt: dict[int, tuple], max_dt_s: float = 0.02
     if not stamps:
         raise EvaluationError("no robot has both an estimate and ground truth")
     s = np.concatenate(stamps)
-    return ate(s, np.concatenate(poses_e), s, np.concatenate(poses_g), max_dt_s=1e-6)
+    return ate(
+        s,
+        np.concatenate(poses_e),
+        s,
+        np.concatenate(poses_g),
+        max_dt_s=1e-6,
+        correct_scale=correct_scale,
+    )
 
 
 def rpe_rmse(

@@ -12,7 +12,13 @@ from .keyframe_view import KeyframeView, point_sigma_m, sample_depth
 from .matching import match_descriptors
 from .pnp import PnpResult, pnp_ransac
 from .ransac import RansacResult, ransac_rigid
-from .relative_pose import RegistrationConfig, RelativePoseResult, estimate_3d3d, estimate_pnp
+from .relative_pose import (
+    RegistrationConfig,
+    RelativePoseResult,
+    estimate_3d3d,
+    estimate_pnp,
+    estimate_similarity,
+)
 from .umeyama import umeyama, umeyama_batch
 
 __all__ = [
@@ -27,6 +33,7 @@ __all__ = [
     "backproject",
     "estimate_3d3d",
     "estimate_pnp",
+    "estimate_similarity",
     "icp_descriptor",
     "match_descriptors",
     "pnp_ransac",

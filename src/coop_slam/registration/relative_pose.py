@@ -8,6 +8,10 @@ Two pipelines share one result type:
   acceptance. Needs 3D points in both. A marker-based ``T_init`` is only an extra RANSAC hypothesis
   / ICP start and, with ``prior_sigma``, a weak BA prior: acceptance always counts feature inliers,
   so a marker sighting without feature support is rejected.
+* :func:`estimate_similarity` (any pair with a monocular keyframe, whose points have no metric
+  scale): match -> Sim(3) RANSAC + refinement over both reprojection errors
+  (:func:`~coop_slam.registration.sim3.estimate_sim3`) -> acceptance; the result's ``scale``
+  multiplies B's lengths into A's.
 
 Rejection is a result (``accepted=False`` with a ``reason``); only invalid input raises
 :class:`RegistrationError`.
@@ -15,6 +19,7 @@ Rejection is a result (``accepted=False`` with a ``reason``); only invalid input
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -30,6 +35,7 @@ from .keyframe_view import KeyframeView, point_sigma_m
 from .matching import match_descriptors
 from .pnp import PNP_METHODS, pnp_ransac
 from .ransac import ransac_rigid
+from .sim3 import Sim3Config, estimate_sim3
 
 
 @dataclass
@@ -83,6 +89,8 @@ class RegistrationConfig:
     # fit the data but are ill-conditioned, e.g. all inliers clustered on one small object
     accept_max_sigma_rot_deg: float = 0.5
     accept_max_sigma_trans_m: float = 0.01
+    # the similarity path (monocular keyframes); its inlier bar is accept_min_inliers above
+    sim3: Sim3Config = field(default_factory=Sim3Config)
 
     def validate(self) -> None:
         require(0 < self.match_ratio <= 1, "match_ratio must be in (0, 1]")
@@ -120,6 +128,7 @@ class RegistrationConfig:
         require(self.accept_max_sigma_rot_deg > 0, "accept_max_sigma_rot_deg must be > 0")
         require(self.accept_max_sigma_trans_m > 0, "accept_max_sigma_trans_m must be > 0")
         require(self.ransac_min_edge_factor >= 0, "ransac_min_edge_factor must be >= 0")
+        self.sim3.validate()
 
 
 @dataclass
@@ -138,6 +147,9 @@ class RelativePoseResult:
     sigma_rot_deg: float = np.inf  # BA marginal std of the rotation (worst axis)
     sigma_trans_m: float = np.inf  # BA marginal std of the translation (worst direction)
     n_matches: int = 0  # descriptor correspondences
+    # B's lengths in A's units: 1 for the rigid paths; a similarity (estimate_similarity) maps
+    # p_a = scale * R p_b + t, with (R, t) = T_a_b and sigma_trans_m in A's units
+    scale: float = 1.0
     inlier_ratio: float = 0.0
     timings_ms: dict = field(default_factory=dict)
 
@@ -430,3 +442,58 @@ def estimate_3d3d(
     )
     timer.lap("ba")
     return _finish(kf_a, kf_b, icp.pairs, ba, n_matches, cfg, timings, t0)
+
+
+def estimate_similarity(
+    kf_a: KeyframeView, kf_b: KeyframeView, cfg: RegistrationConfig | None = None, groups=None
+) -> RelativePoseResult:
+    """Similarity path: descriptor matches with a 3D point in both keyframes (any units: a
+    monocular keyframe's are its map's) -> :func:`~coop_slam.registration.sim3.estimate_sim3`.
+    Acceptance is Sim(3)'s (residual with the points held fixed, marginal sigmas relative to depth)
+    with the rigid paths' inlier count and ratio."""
+    cfg = _check_inputs(kf_a, kf_b, cfg)
+    t0 = time.perf_counter()
+    timings: dict = {}
+    pairs = _match(kf_a, kf_b, cfg, groups)
+    n_matches = len(pairs)
+    pairs = pairs[kf_a.has_point[pairs[:, 0]] & kf_b.has_point[pairs[:, 1]]]
+    timings["match"] = 1e3 * (time.perf_counter() - t0)
+    if len(pairs) < cfg.accept_min_inliers:
+        return _reject(
+            f"too few matches with 3D points in both ({len(pairs)} < {cfg.accept_min_inliers})",
+            t0,
+            timings,
+            n_matches,
+        )
+    sim_cfg = dataclasses.replace(
+        cfg.sim3,
+        accept_min_inliers=max(cfg.sim3.accept_min_inliers, cfg.accept_min_inliers),
+        accept_min_inlier_ratio=max(cfg.sim3.accept_min_inlier_ratio, cfg.accept_min_inlier_ratio),
+    )
+    ia, ib = pairs[:, 0], pairs[:, 1]
+    sim = estimate_sim3(
+        kf_a.points_cam[ia],
+        kf_a.uv_px[ia],
+        kf_a.K,
+        kf_b.points_cam[ib],
+        kf_b.uv_px[ib],
+        kf_b.K,
+        sim_cfg,
+    )
+    timings.update({f"sim3_{k}": v for k, v in sim.timings_ms.items()})
+    timings["total"] = 1e3 * (time.perf_counter() - t0)
+    inlier_idx = pairs[sim.inliers] if len(sim.inliers) == len(pairs) else pairs[:0]
+    return RelativePoseResult(
+        accepted=sim.accepted,
+        reason=sim.reason,
+        T_a_b=sim.T_a_b,
+        n_inliers=len(inlier_idx),
+        inlier_idx=inlier_idx,
+        residual_px=sim.residual_px,
+        sigma_rot_deg=sim.sigma_rot_deg,
+        sigma_trans_m=sim.sigma_trans,
+        n_matches=n_matches,
+        inlier_ratio=min(1.0, len(inlier_idx) / max(n_matches, 1)),
+        timings_ms=timings,
+        scale=float(sim.scale),
+    )

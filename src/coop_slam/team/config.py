@@ -1,6 +1,6 @@
 """Configuration of the server (section ``server`` of ``config/server.yaml``): one dataclass per
 stage -- place recognition, rendezvous, constraints inside a group, links where merged maps
-overlap, global BA, pose graph -- and
+overlap, global BA, pose graph, monocular maps' scales -- and
 :class:`ServerConfig` holding them. Loaded by :func:`coop_slam.config.load_yaml_config`.
 """
 
@@ -12,6 +12,7 @@ from ..bow.database import DatabaseConfig
 from ..config import require
 from ..registration.relative_pose import RegistrationConfig
 from .global_ba import GlobalBaConfig
+from .map_scale import MapScaleConfig
 from .overlap_links import OverlapLinkConfig
 from .pose_graph import PoseGraphConfig
 
@@ -54,6 +55,7 @@ class RendezvousConfig:
     auto_confirmations: int = 2
     confirm_trans_m: float = 0.05
     confirm_rot_deg: float = 2.0
+    confirm_scale_rel: float = 0.03  # and, for a monocular map, on its scale (relative)
     # A sighting / operator request says two robots are together, which rules out look-alike
     # places: for this long after it their co-observations merge on one verification, and a
     # merge between them by any path is a rendezvous [s].
@@ -80,6 +82,7 @@ class RendezvousConfig:
         require(self.auto_confirmations >= 1, "rendezvous.auto_confirmations must be >= 1")
         require(self.confirm_trans_m > 0, "rendezvous.confirm_trans_m must be > 0")
         require(self.confirm_rot_deg > 0, "rendezvous.confirm_rot_deg must be > 0")
+        require(self.confirm_scale_rel > 0, "rendezvous.confirm_scale_rel must be > 0")
         require(self.together_s >= 0, "rendezvous.together_s must be >= 0")
         require(self.min_separation_m >= 0, "rendezvous.min_separation_m must be >= 0")
         self.registration.validate()
@@ -134,6 +137,7 @@ class ServerConfig:
     links: OverlapLinkConfig = field(default_factory=OverlapLinkConfig)
     global_ba: GlobalBaConfig = field(default_factory=GlobalBaConfig)
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
+    map_scale: MapScaleConfig = field(default_factory=MapScaleConfig)
     optimize_every: int = 5  # incremental (iSAM2) update every N keyframes; full after each merge
     cloud_voxel_m: float = 0.05  # voxel size of the stitched team cloud [m]
     fuse_radius_m: float = 0.03  # points of different robots closer than this become one [m]
@@ -152,3 +156,4 @@ class ServerConfig:
         self.loops.validate()
         self.links.validate()
         self.global_ba.validate()
+        self.map_scale.validate()

@@ -78,12 +78,21 @@ class KeyframeStore:
         return self._stored[key].record.stamp_s
 
     def view(self, key: Key) -> KeyframeView:
-        """The keyframe as registration sees it (keypoints, descriptors, depths, intrinsics)."""
+        """The keyframe as registration sees it (keypoints, descriptors, intrinsics, 3D points:
+        from depth, or a monocular keyframe's from its map points, in its map's units)."""
         stored = self._stored[key]
         if stored.view is None:
             r = stored.record
-            stored.view = KeyframeView(r.uv_px, r.descriptors, r.depths_m, r.camera.K)
+            if is_mono(r):
+                stored.view = KeyframeView.from_map_points(
+                    r.uv_px, r.descriptors, r.camera.K, r.map_points_per_keypoint(), r.T_map_cam
+                )
+            else:
+                stored.view = KeyframeView(r.uv_px, r.descriptors, r.depths_m, r.camera.K)
         return stored.view
+
+    def is_mono(self, key: Key) -> bool:
+        return is_mono(self._stored[key].record)
 
     def bow(self, key: Key) -> BowVector:
         return self.database.bow(*key)
@@ -129,6 +138,11 @@ class KeyframeStore:
             ]
             return [max(before, key=lambda ks: ks[1])[0]] if before else []
         return [k for k, _ in sorted(keys, key=lambda kd: kd[1])]
+
+
+def is_mono(rec: KeyframeRecord) -> bool:
+    """Whether a keyframe comes from a monocular camera: its map has no metric scale of its own."""
+    return rec.camera.sensor == "mono"
 
 
 def track(records: list[KeyframeRecord]) -> tuple[np.ndarray, np.ndarray]:

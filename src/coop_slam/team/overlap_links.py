@@ -14,7 +14,8 @@ Two uses, one mechanism:
   distance, and the words of an ORB descriptor change with both.
 
 The prediction picks the pair and seeds the registration (3D-3D with the predicted pose as one more
-hypothesis, then descriptor ICP and BA); the registration, not the prediction, is the constraint.
+hypothesis, then descriptor ICP and BA; a similarity, unseeded, for a monocular keyframe); the
+registration, not the prediction, is the constraint.
 A result far from the prediction is refused: the estimate it contradicts rests on verified merges.
 """
 
@@ -30,6 +31,7 @@ from ..config import require
 from ..geometry import invert, transform_error, transform_points
 from ..registration.relative_pose import RegistrationConfig, estimate_3d3d
 from .keyframe_store import Key, KeyframeStore
+from .map_scale import register_pair
 from .results import TYPE_OVERLAP, Verified
 
 log = logging.getLogger(__name__)
@@ -170,8 +172,8 @@ class OverlapLinks:
         cfg = self.config
         T_pred = invert(self._T_group_cam(key_a)) @ self._T_group_cam(key_b)
         self.verifications += 1
-        res = estimate_3d3d(
-            self.store.view(key_a), self.store.view(key_b), cfg.registration, T_init=T_pred
+        res = register_pair(
+            self.store, key_a, key_b, cfg.registration, estimate_3d3d, T_init=T_pred
         )
         if not res.accepted:
             log.debug("overlap link %s - %s: %s", key_a, key_b, res.reason)

@@ -18,7 +18,8 @@ from ..registration.relative_pose import RelativePoseResult, estimate_pnp
 from .config import LoopClosureConfig, PlaceRecognitionConfig, RendezvousConfig
 from .groups import MergeGroups
 from .keyframe_store import Key, KeyframeStore
-from .plausibility import is_look_alike
+from .map_scale import MapScales, register_pair
+from .plausibility import match_is_look_alike
 from .results import TYPE_PLACE_RECOGNITION, Verified, robot_pair
 
 log = logging.getLogger(__name__)
@@ -42,8 +43,10 @@ class PlaceRecognition:
         rendezvous: RendezvousConfig,
         store: KeyframeStore,
         groups: MergeGroups,
+        scales: MapScales | None = None,
     ):
         self.config = config
+        self.scales = scales  # None: every map metric
         self.loops = loops
         self.rendezvous = rendezvous  # for the look-alike check
         self.store = store
@@ -95,8 +98,8 @@ class PlaceRecognition:
                     res.n_inliers,
                     self.config.merge_min_inliers,
                 )
-            elif res.accepted and not is_look_alike(
-                self.store, self.rendezvous, "place recognition", cand_key, key_b, res.T_a_b
+            elif res.accepted and not match_is_look_alike(
+                self.store, self.rendezvous, self.scales, "place recognition", cand_key, key_b, res
             ):
                 verified_roots.add(root)
                 found.cross.append(
@@ -106,9 +109,10 @@ class PlaceRecognition:
         return found
 
     def verify(self, key_a: Key, key_b: Key) -> RelativePoseResult:
-        """PnP RANSAC of b's keypoints against a's points, refined by two-view BA."""
+        """PnP RANSAC of b's keypoints against a's points, refined by two-view BA; a similarity
+        when either keyframe is monocular (PnP would give b's pose, not b's map's scale)."""
         self.verifications += 1
-        res = estimate_pnp(self.store.view(key_a), self.store.view(key_b), self.config.registration)
+        res = register_pair(self.store, key_a, key_b, self.config.registration, estimate_pnp)
         log.debug("place recognition %s vs %s: %s", key_a, key_b, res.reason)
         return res
 

@@ -16,8 +16,10 @@ import numpy as np
 from ..geometry import invert, transform_points
 from ..keyframe_record import KeyframeRecord
 from ..registration.camera import project
+from ..registration.relative_pose import RelativePoseResult
 from .config import RendezvousConfig
 from .keyframe_store import KeyframeStore, track
+from .map_scale import MapScales, rescale_record, scale_translation
 
 log = logging.getLogger(__name__)
 
@@ -121,21 +123,36 @@ def is_look_alike(
     key_a,
     key_b,
     T_a_b: np.ndarray,
+    s_a_b: float = 1.0,
+    into_b: bool = False,
 ) -> bool:
     """Whether a verified pair of two robots' keyframes taken at about the same time
     (rendezvous.window_s) is physically impossible (see :func:`impossible_reason`): then the two
     places only look alike. Farther apart in time, each robot's drift would blur the test; at
-    ``min_separation_m`` 0 it is off. ``kind`` names the path that verified it in the log."""
+    ``min_separation_m`` 0 it is off. ``kind`` names the path that verified it in the log.
+
+    A similarity (``s_a_b`` != 1, a monocular map) is judged in one length unit: a's (b's maps
+    rescaled by ``s_a_b``), or with ``into_b`` b's, when only b's map is metric."""
     rec_a, rec_b = store.record(key_a), store.record(key_b)
     dt = abs(rec_a.stamp_s - rec_b.stamp_s)
     if config.min_separation_m <= 0 or key_a[0] == key_b[0] or dt > config.window_s:
         return False
+    segment_a = store.segment_records(rec_a.robot_id, rec_a.map_segment)
+    segment_b = store.segment_records(rec_b.robot_id, rec_b.map_segment)
+    if s_a_b != 1.0:
+        if into_b:
+            factor = 1.0 / s_a_b
+            rec_a, T_a_b = rescale_record(rec_a, factor), scale_translation(T_a_b, factor)
+            segment_a = [rescale_record(r, factor) for r in segment_a]
+        else:
+            rec_b = rescale_record(rec_b, s_a_b)
+            segment_b = [rescale_record(r, s_a_b) for r in segment_b]
     why = impossible_reason(
         rec_a,
         rec_b,
         T_a_b,
-        store.segment_records(rec_a.robot_id, rec_a.map_segment),
-        store.segment_records(rec_b.robot_id, rec_b.map_segment),
+        segment_a,
+        segment_b,
         config.window_s,
         config.min_separation_m,
     )
@@ -143,3 +160,22 @@ def is_look_alike(
         return False
     log.info("%s %s - %s: a look-alike place: %s", kind, key_a, key_b, why)
     return True
+
+
+def match_is_look_alike(
+    store: KeyframeStore,
+    config: RendezvousConfig,
+    scales: MapScales | None,
+    kind: str,
+    key_a,
+    key_b,
+    res: RelativePoseResult,
+) -> bool:
+    """:func:`is_look_alike` of a verified match; a similarity is judged in the units of the side
+    a merge would keep (the metric one; ``scales`` None: every map is metric)."""
+    into_b = (
+        scales is not None
+        and res.scale != 1.0
+        and scales.merge_side(key_a[0], key_b[0], res.scale)[0] == "a"
+    )
+    return is_look_alike(store, config, kind, key_a, key_b, res.T_a_b, res.scale, into_b)

@@ -48,6 +48,7 @@ from ..errors import CoopSlamError, GeometryError
 from ..geometry import check_se3, exp_so3, invert
 from ..registration.camera import RegistrationError
 from ..registration.umeyama import umeyama
+from .map_scale import scale_translation
 
 log = logging.getLogger(__name__)
 
@@ -457,6 +458,46 @@ class TeamPoseGraph:
             if f.kind in _CLIENT_KINDS:
                 self._drop_factor(fid)
                 self._client_factor(f.kind, f.key_i, f.key_j)
+        self._rebuild = True
+
+    def rescale_robots(self, robots, factor: float, about_maps: bool = False) -> None:
+        """The robots' map lengths were multiplied by ``factor`` (a monocular map's scale, see
+        :mod:`.map_scale`): client poses, refined poses and estimates follow, client factors are
+        rebuilt, loop factors (and merge factors between the robots) scale with them.
+
+        ``about_maps=False``: the robots are whole components (a group before it merges) whose
+        group frame is rescaled about its origin, an exact similarity of the estimate.
+        ``about_maps=True``: each robot's map is rescaled about its place in the group (its
+        ``T_group_map``) while the rest of the group stays; merge factors to it, relative camera
+        poses measured in the group's units, stay too. The next optimisation is a full one."""
+        robots = {int(r) for r in robots}
+        centers = {r: self.T_group_map(r) for r in robots if about_maps and r in self._chain}
+
+        def moved(T: np.ndarray, robot: int) -> np.ndarray:
+            if not about_maps:
+                return scale_translation(T, factor)
+            C = centers[robot]
+            return C @ scale_translation(invert(C) @ T, factor)
+
+        for key in [k for k in self._values if k[0] in robots]:
+            self._client[key] = scale_translation(self._client[key], factor)
+            self._values[key] = moved(self._values[key], key[0])
+            if key in self._refined:
+                self._refined[key] = moved(self._refined[key], key[0])
+        if not about_maps:
+            for r in robots & set(self._map_hint):
+                self._map_hint[r] = scale_translation(self._map_hint[r], factor)
+        for fid, f in list(self._factors.items()):
+            if f.key_i[0] not in robots:
+                continue
+            if f.kind in _CLIENT_KINDS:
+                self._drop_factor(fid)
+                self._client_factor(f.kind, f.key_i, f.key_j)
+            elif f.kind == KIND_PRIOR:
+                f.T_meas = self._values[f.key_i].copy()
+            elif f.key_j[0] in robots and (f.kind == KIND_LOOP or not about_maps):
+                f.T_meas = scale_translation(f.T_meas, factor)
+                f.sigmas = (f.sigmas[0], f.sigmas[1] * factor)
         self._rebuild = True
 
     # --- constraints ------------------------------------------------------------------------------

@@ -14,7 +14,9 @@ verified match, before :mod:`.stitching` makes it a merge:
   merge on one verification (the cue rules out look-alike places), and a merge between them by any
   path is a rendezvous.
 
-Every verification also passes the look-alike check (:mod:`.plausibility`).
+Every verification also passes the look-alike check (:mod:`.plausibility`). A pair with a
+monocular keyframe is verified as a similarity (:func:`.map_scale.register_pair`); its confirmations
+must then agree on the maps' scale too.
 """
 
 from __future__ import annotations
@@ -24,13 +26,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import invert, transform_error
+from ..geometry import transform_error
 from ..keyframe_record import KeyframeRecord
 from ..registration.relative_pose import RelativePoseResult, estimate_3d3d
+from ..registration.sim3 import sim3_inverse, sim3_matrix
 from .config import RendezvousConfig
-from .groups import MergeGroups, chain_map_transform
+from .groups import MergeGroups
 from .keyframe_store import Key, KeyframeStore
-from .plausibility import is_look_alike
+from .map_scale import MapScales, chain_similarity, register_pair, split_similarity
+from .plausibility import match_is_look_alike
 from .results import TYPE_RENDEZVOUS, Verified, robot_pair
 
 log = logging.getLogger(__name__)
@@ -45,17 +49,24 @@ class _OpenRequest:
 
 
 class Rendezvous:
-    def __init__(self, config: RendezvousConfig, store: KeyframeStore, groups: MergeGroups):
+    def __init__(
+        self,
+        config: RendezvousConfig,
+        store: KeyframeStore,
+        groups: MergeGroups,
+        scales: MapScales | None = None,
+    ):
         self.config = config
         self.store = store
         self.groups = groups
+        self.scales = scales  # None: every map metric
         self.verifications = 0
         # Cued requests (marker sighting, operator) not verified yet: the keyframes that show the
         # shared scene often reach the server just after the cue. robot pair -> _OpenRequest
         self._open_requests: dict[tuple[int, int], _OpenRequest] = {}
         self._seen_together: dict[tuple[int, int], float] = {}  # robot pair -> latest cue [s]
         # (low robot, high robot) -> [((key_low, key_high), T_mapLow_mapHigh)] of automatic
-        # co-observations, for their confirmation
+        # co-observations, for their confirmation (a similarity as its 4x4 matrix)
         self._co_observations: dict[tuple[int, int], list] = {}
         self._last_sighting: dict[tuple[int, int], float] = {}  # (observer, observed) -> [s]
 
@@ -102,21 +113,30 @@ class Rendezvous:
         """Whether earlier automatic verifications of this robot pair (either direction, other
         keyframes) agree with this one on the map transform; this one is remembered either way."""
         cfg = self.config
-        T = chain_map_transform(
-            self.store.record(key_a).T_map_cam, res.T_a_b, self.store.record(key_b).T_map_cam
+        T, s = chain_similarity(
+            self.store.record(key_a).T_map_cam,
+            res.T_a_b,
+            res.scale,
+            self.store.record(key_b).T_map_cam,
         )
         if key_a[0] > key_b[0]:  # one direction per pair: T_mapLow_mapHigh
-            T, key_a, key_b = invert(T), key_b, key_a
+            (T, s), key_a, key_b = sim3_inverse(T, s), key_b, key_a
         hits = self._co_observations.setdefault((key_a[0], key_b[0]), [])
         tolerance = (cfg.confirm_trans_m, cfg.confirm_rot_deg)
+
+        def agrees(S_prev: np.ndarray) -> bool:
+            T_prev, s_prev = split_similarity(S_prev)
+            errors = transform_error(T, T_prev)
+            return all(e <= tol for e, tol in zip(errors, tolerance)) and abs(
+                np.log(s / s_prev)
+            ) <= np.log1p(cfg.confirm_scale_rel)
+
         agreeing = {
             keys
-            for keys, T_prev in hits
-            if key_a not in keys
-            and key_b not in keys
-            and all(e <= tol for e, tol in zip(transform_error(T, T_prev), tolerance))
+            for keys, S_prev in hits
+            if key_a not in keys and key_b not in keys and agrees(S_prev)
         }
-        hits.append(((key_a, key_b), T))
+        hits.append(((key_a, key_b), sim3_matrix(T, s)))
         if len(agreeing) + 1 < cfg.auto_confirmations:
             log.info(
                 "co-observation %s - %s verified (%d inliers); waiting for %d more agreeing",
@@ -137,17 +157,19 @@ class Rendezvous:
         if score < cfg.min_bow_score and T_init is None:
             return None
         self.verifications += 1
-        res = estimate_3d3d(
-            self.store.view(key_a),
-            self.store.view(key_b),
+        res = register_pair(
+            self.store,
+            key_a,
+            key_b,
             cfg.registration,
+            estimate_3d3d,
             T_init=T_init,
             prior_sigma=prior_sigma,
         )
         log.debug("rendezvous %s vs %s (bow %.3f): %s", key_a, key_b, score, res.reason)
         if not res.accepted:
             return None
-        if is_look_alike(self.store, cfg, "rendezvous", key_a, key_b, res.T_a_b):
+        if match_is_look_alike(self.store, cfg, self.scales, "rendezvous", key_a, key_b, res):
             return None
         if res.n_inliers < cfg.merge_min_inliers:
             log.info(

@@ -50,6 +50,9 @@ class MergeResult:
     residual_px: float
     group: list[int]
     welded: int = 0  # further verified keyframe pairs the merge rests on (welding window)
+    # The verified similarity's scale, b's lengths into a's (1: a rigid merge); the side without
+    # metric scale was rescaled by it (see .map_scale), so the transforms above are rigid.
+    scale: float = 1.0
 
 
 @dataclass

@@ -11,12 +11,17 @@ The data flow, one module per stage:
 4. :mod:`.pose_graph` and :mod:`.global_ba` -- the team map's optimization;
 5. :mod:`.view` -- the stitched cloud and paths as shown.
 
+Monocular robots' maps have a scale of their own (:mod:`.map_scale`): matches involving one are
+similarities, a merge rescales the side without metric scale, and the server converts the robot's
+keyframes to its group's units as they arrive, so stages 3-5 stay rigid.
+
 :class:`TeamServer` runs them in that order for each keyframe. A group's frame is the map of its
 smallest robot; the group holding the team's smallest robot id is the one published as ``world``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 
@@ -30,11 +35,13 @@ from .config import ServerConfig
 from .global_ba import GlobalBaError, GlobalBaResult, count_observations, global_bundle_adjustment
 from .groups import MergeGroups
 from .keyframe_store import KeyframeStore
+from .map_scale import MapScales, rescale_record, scale_translation
 from .overlap_links import OverlapLinks
 from .place_recognition import PlaceRecognition
 from .pose_graph import PoseGraphError, TeamPoseGraph
 from .rendezvous import Rendezvous
 from .results import TYPE_PLACE_RECOGNITION, MergeResult, Verified, robot_pair
+from .segments import MapSegments
 from .stitching import Stitcher, graph_call
 from .view import team_cloud, team_paths_and_edges, view_offsets
 
@@ -55,9 +62,14 @@ class TeamServer:
         self.known_robots = set(config.robots)
         self.world_robot = min(self.known_robots)  # its group is published as ``world``
         self.groups = MergeGroups(config.robots)
+        # Stages below work on map ids: a robot's first map segment has its id, a later one (a
+        # client that lost tracking for good, or restarted) a map of its own (see .segments).
+        self.segments = MapSegments(config.robots)
         self.store = KeyframeStore(vocabulary, config.place_recognition.database)
         self.graph = TeamPoseGraph(config.pose_graph)
         self._kf_count: dict[int, int] = {}  # keyframes received per robot
+        self.scales = MapScales(config.map_scale, self.groups)
+        self._due_rescale: dict[int, float] = {}  # robot -> factor its links asked for
         self.links = OverlapLinks(config.links, self.store, lambda key: self.T_group_cam(*key))
         self.stitcher = Stitcher(
             config.loops,
@@ -66,17 +78,24 @@ class TeamServer:
             self.graph,
             lambda robot: self._kf_count.get(robot, 0),
             self.links,
+            self._prepare_merge,
+            self._observe_constraint,
+            self.map_name,
         )
-        self.rendezvous = Rendezvous(config.rendezvous, self.store, self.groups)
+        self.rendezvous = Rendezvous(config.rendezvous, self.store, self.groups, self.scales)
         self.place_recognition = PlaceRecognition(
-            config.place_recognition, config.loops, config.rendezvous, self.store, self.groups
+            config.place_recognition,
+            config.loops,
+            config.rendezvous,
+            self.store,
+            self.groups,
+            self.scales,
         )
         self.global_ba_runs: list[GlobalBaResult] = []
         self.keyframe_ms: list[float] = []  # server time per incoming keyframe
         self.optimize_ms: list[float] = []
         self.map_moved = False  # the last call optimized the team map (robots' maps moved)
         self._since_optimize = 0
-        self._mono_robots: set[int] = set()  # robots that sent monocular keyframes (warned once)
 
     # --- what the stages found --------------------------------------------------------------------
     @property
@@ -106,8 +125,12 @@ class TeamServer:
         t0 = time.perf_counter()
         self.map_moved = False
         rec.validate(self.known_robots)
+        rec = self._to_map_id(rec)
         key = (rec.robot_id, rec.keyframe_id)
         merges: list[MergeResult] = []
+        if rec.action != ACTION_REMOVE:
+            self.scales.note(rec)
+            rec = self.scales.to_stored(rec)
         if rec.action == ACTION_REMOVE:
             if self.store.remove(key):
                 graph_call(self.graph.remove_keyframe, *key)
@@ -132,6 +155,10 @@ class TeamServer:
             )
             self._kf_count[rec.robot_id] = self._kf_count.get(rec.robot_id, 0) + 1
             merges = self._stitch(rec, bow, covisible)
+        for robot, factor in self._due_rescale.items():
+            self._rescale([robot], factor, about_maps=True)
+            self.stitcher.need_full = True
+        self._due_rescale.clear()
         self._since_optimize += 1
         if merges:
             self._settle(merges)
@@ -142,20 +169,54 @@ class TeamServer:
         self.keyframe_ms.append(1e3 * (time.perf_counter() - t0))
         return merges
 
+    def _to_map_id(self, rec: KeyframeRecord) -> KeyframeRecord:
+        """The keyframe with its robot id replaced by its map segment's map id."""
+        mid, new = self.segments.map_id(rec.robot_id, rec.map_segment)
+        if new and mid != rec.robot_id:
+            self.groups.add_robot(mid)
+            log.warning(
+                "robot %d started map segment %d (tracking lost for good, or a restarted "
+                "client): a new map (map id %d) until it merges with the team map again",
+                rec.robot_id,
+                rec.map_segment,
+                mid,
+            )
+        return rec if mid == rec.robot_id else dataclasses.replace(rec, robot_id=mid)
+
+    def robot_of(self, map_id: int) -> int:
+        """The robot a map id belongs to (see .segments)."""
+        return self.segments.robot_of(map_id)
+
+    def map_name(self, map_id: int) -> str:
+        """A map id as the user knows it: ``robot 2``, ``robot 2 (map segment 1)``."""
+        robot = self.robot_of(map_id)
+        if map_id == robot:
+            return f"robot {robot}"
+        return f"robot {robot} (map segment {self.segments.segment_of(map_id)})"
+
+    def current_map(self, robot_id: int) -> int:
+        """The map id of a robot's newest map segment (the map its client works in now)."""
+        return self.segments.current(robot_id)
+
+    def robot_keyframes(self, robot_id: int) -> dict[int, tuple[float, np.ndarray]]:
+        """keyframe id -> (stamp_s, T_group_cam) of a robot's keyframes in the group of its
+        newest segment (older segments not merged back into that group are left out)."""
+        cur = self.current_map(robot_id)
+        out = {}
+        for mid in self.segments.maps_of(robot_id):
+            if self.groups.same_group(mid, cur):
+                for kf, T in self.optimized_keyframes(mid).items():
+                    out[kf] = (self.store.stamp((mid, kf)), T)
+        return dict(sorted(out.items()))
+
+    def robot_groups(self) -> list[list[int]]:
+        """The groups by robot (a robot with a segment outside its newest map's group appears in
+        two)."""
+        return sorted({tuple(sorted({self.robot_of(m) for m in g})) for g in self.groups.groups()})
+
     def _stitch(self, rec: KeyframeRecord, bow, covisible) -> list[MergeResult]:
         """A new keyframe through the stitching stages: rendezvous (automatic, then open
         requests), then place recognition; the first that merges ends it."""
-        if rec.camera.sensor == "mono":
-            # A monocular map has its own scale: a rigid merge would place it wrongly (a 1.98 m
-            # map error, measured). Until merges estimate similarities it stays on its own.
-            if rec.robot_id not in self._mono_robots:
-                self._mono_robots.add(rec.robot_id)
-                log.warning(
-                    "robot %d sends monocular keyframes (a map without metric scale): they are "
-                    "stored and shown, but not merged or linked with other robots' maps yet",
-                    rec.robot_id,
-                )
-            return []
         rdv = self.rendezvous
         if self.config.rendezvous.auto:
             merges = self._merge_verified([rdv.co_observation(rec)])
@@ -220,6 +281,80 @@ class TeamServer:
             self.place_recognition.merged(m.robot_b)
         return merges
 
+    # --- monocular maps' scales (see .map_scale) --------------------------------------------------
+    def is_metric(self, robot_id: int) -> bool:
+        """Whether the robot's map is in metres in the team map: it has depth, or it is merged
+        with a robot that has (a monocular robot before that: its own map's units)."""
+        return self.scales.is_metric(robot_id)
+
+    def map_scale(self, robot_id: int) -> float:
+        """``s_stored_own``: the robot's own map lengths times this are its team map lengths (and
+        those of its keyframes' poses and map points here); 1 unless it is monocular and merged.
+        Its ``T_group_map`` acts on its map so rescaled: a client point p of its map is at
+        ``T_group_map @ (scale * p)``."""
+        return self.scales.scale(robot_id)
+
+    def _rescale(self, robots, factor: float, about_maps: bool = False) -> None:
+        """Multiply the robots' map lengths by ``factor`` everywhere the server holds them: the
+        stored keyframes, the pose graph (see TeamPoseGraph.rescale_robots for ``about_maps``),
+        the group transforms (rescaled with their whole group only) and the constraints found so
+        far between them."""
+        robots = set(robots)
+        self.scales.rescaled(robots, factor)
+        for key in [k for k in self.store.keys() if k[0] in robots]:
+            self.store.update(rescale_record(self.store.record(key), factor))
+        graph_call(self.graph.rescale_robots, robots, factor, about_maps)
+        if not about_maps:
+            for r in robots:
+                self.groups.set_T_root_map(r, scale_translation(self.groups.T_root_map(r), factor))
+        for c in self.stitcher.constraints:
+            if c.key_a[0] in robots and c.key_b[0] in robots:
+                c.T_camA_camB = scale_translation(c.T_camA_camB, factor)
+        for m in self.stitcher.merges:
+            if m.robot_a in robots and m.robot_b in robots and not about_maps:
+                m.T_camA_camB = scale_translation(m.T_camA_camB, factor)
+                m.T_mapA_mapB = scale_translation(m.T_mapA_mapB, factor)
+        log.info(
+            "map lengths of robot(s) %s rescaled by %.4f (%s)",
+            sorted(robots),
+            factor,
+            "each about its map" if about_maps else "their group frame",
+        )
+
+    def _prepare_merge(self, v: Verified) -> Verified:
+        """A merge by a similarity: the side without metric scale (or the second of two such) is
+        rescaled into the other's units, and the match becomes the rigid part in them."""
+        res = v.result
+        if res.scale == 1.0:
+            return v
+        ra, rb = v.key_a[0], v.key_b[0]
+        side, factor = self.scales.merge_side(ra, rb, res.scale)
+        T_a_b, sigma_trans = res.T_a_b, res.sigma_trans_m
+        if side == "b":
+            self._rescale(self.groups.members(rb), factor)
+        elif side == "a":
+            self._rescale(self.groups.members(ra), factor)
+            T_a_b, sigma_trans = scale_translation(T_a_b, factor), sigma_trans * factor
+        log.info(
+            "merge of robots %d and %d by a similarity (scale %.4f): robot(s) %s rescaled by %.4f",
+            ra,
+            rb,
+            res.scale,
+            self.groups.members(rb if side == "b" else ra) if side else [],
+            factor,
+        )
+        res = dataclasses.replace(res, T_a_b=T_a_b, sigma_trans_m=sigma_trans)
+        return dataclasses.replace(v, result=res)
+
+    def _observe_constraint(self, v: Verified) -> None:
+        """A similarity link of a merged monocular robot re-measures its scale (see .map_scale)."""
+        if v.result.scale == 1.0:
+            return
+        due = self.scales.observe_link(v.key_a, v.key_b, v.result.scale)
+        if due is not None:
+            robot, factor = due
+            self._due_rescale[robot] = self._due_rescale.get(robot, 1.0) * factor
+
     # --- rendezvous cues --------------------------------------------------------------------------
     def request_rendezvous(
         self,
@@ -241,6 +376,7 @@ class TeamServer:
                 )
         if robot_a == robot_b:
             return None, "a rendezvous needs two different robots"
+        robot_a, robot_b = self.current_map(robot_a), self.current_map(robot_b)
         if self.groups.same_group(robot_a, robot_b):
             return None, f"robots {robot_a} and {robot_b} are already merged"
         T_init = None
@@ -299,6 +435,8 @@ class TeamServer:
             m.T_mapA_mapB = invert(self.T_group_map(m.robot_a)) @ self.T_group_map(m.robot_b)
 
     def _global_ba_if_cheap(self, robot_id: int) -> None:
+        if not self.is_metric(robot_id):
+            return  # monocular maps only: nothing would hold the group's scale
         members = set(self.groups.members(robot_id))
         n = count_observations(r for r in self.store.records() if r.robot_id in members)
         if n > self.config.global_ba.auto_max_observations:
@@ -323,7 +461,13 @@ class TeamServer:
                 f"robot {robot_id} is unknown to the server "
                 f"(known: {sorted(self.known_robots)})"
             )
+        robot_id = self.current_map(robot_id)
         members = set(self.groups.members(robot_id))
+        if not self.is_metric(robot_id):
+            raise GlobalBaError(
+                f"robot {robot_id}'s group {sorted(members)} has monocular maps only: global BA "
+                "needs a robot with depth to hold the scale"
+            )
         keys = sorted(k for k in self.store.keys() if k[0] in members)
         if not keys:
             raise GlobalBaError(f"robot {robot_id}'s group {sorted(members)} has no keyframes yet")
@@ -375,7 +519,8 @@ class TeamServer:
         return {k: self.T_group_cam(robot_id, k) for k in self.store.keyframe_ids(robot_id)}
 
     def corrected_keyframes(self, robot_id: int, last: int = 20) -> dict[int, np.ndarray]:
-        """Optimized poses (in the robot's own map frame) of its ``last`` newest keyframes."""
+        """Optimized poses (in the robot's own map frame, its lengths times :meth:`map_scale`)
+        of its ``last`` newest keyframes."""
         if robot_id not in self.graph.robots:
             return {}
         T_map_group = np.linalg.inv(self.groups.T_root_map(robot_id))

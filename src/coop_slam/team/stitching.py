@@ -50,6 +50,9 @@ class Stitcher:
         graph: TeamPoseGraph,
         kf_count: Callable[[int], int],
         links: OverlapLinks | None = None,
+        prepare_merge: Callable[[Verified], Verified] | None = None,
+        on_constraint: Callable[[Verified], None] | None = None,
+        map_name: Callable[[int], str] = lambda m: f"robot {m}",
     ):
         self.config = config
         self.store = store
@@ -57,6 +60,11 @@ class Stitcher:
         self.graph = graph
         self.links = links  # welding windows of merges; None: a merge rests on its one pair
         self._kf_count = kf_count
+        # A merge by a similarity first brings both sides to one length unit (see .map_scale) and
+        # returns the match as a rigid one; every accepted constraint is shown to on_constraint.
+        self._prepare_merge = prepare_merge
+        self._on_constraint = on_constraint
+        self._map_name = map_name  # a map id as the user knows it (see .segments)
         self.merges: list[MergeResult] = []
         self.constraints: list[ConstraintResult] = []  # loop closures and in-group links
         self.rejected_constraints = 0  # verified, but too far from the current estimate
@@ -93,6 +101,8 @@ class Stitcher:
         pairs around it that the match predicts and registration confirms (see
         :mod:`.overlap_links`); the optimization that follows estimates the map transform from
         all of them."""
+        if self._prepare_merge is not None:
+            v = self._prepare_merge(v)
         key_a, key_b, res = v.key_a, v.key_b, v.result
         rec_a, rec_b = self.store.record(key_a), self.store.record(key_b)
         robots_a = set(self.groups.members(key_a[0]))
@@ -108,6 +118,8 @@ class Stitcher:
             welded = self.links.weld(key_a, key_b, robots_a, robots_b, v.stamp_s, tried)
             for w in welded:
                 self._add_factor(v.kind, w.key_a, w.key_b, w.result)
+                if self._on_constraint is not None:
+                    self._on_constraint(w)
             if welded:
                 self.need_full = True
             swept = self.links.sweep(robots_a, robots_b, v.stamp_s, tried)
@@ -124,13 +136,14 @@ class Stitcher:
             float(res.residual_px),
             group,
             len(welded),
+            float(res.scale),
         )
         self.merges.append(merge)
         log.info(
-            "merged robot %d into robot %d's map (%s, %d inliers, %.2f px, welded on %d more "
-            "pairs): group %s",
-            key_b[0],
-            key_a[0],
+            "merged %s into %s's map (%s, %d inliers, %.2f px, welded on %d more pairs): "
+            "group %s",
+            self._map_name(key_b[0]),
+            self._map_name(key_a[0]),
             v.kind,
             merge.inliers,
             merge.residual_px,
@@ -198,6 +211,8 @@ class Stitcher:
         )
         self._last_constraint[key_b[0]] = self._kf_count(key_b[0])
         self.need_full = True
+        if self._on_constraint is not None:
+            self._on_constraint(v)
         log.info(
             "%s constraint %s - %s (%d inliers, %.2f px; %.3f m / %.2f deg from estimate)",
             self.constraints[-1].type,

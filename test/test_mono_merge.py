@@ -1,0 +1,110 @@
+"""Monocular robots in the server core (#23): merges by similarity, the monocular map's scale, and
+its keyframes metric in the team map after a merge with a metric robot."""
+
+import numpy as np
+import pytest
+
+from coop_slam.evaluation.metrics import ate
+from coop_slam.geometry import invert, transform_error
+from coop_slam.team.config import ServerConfig
+from coop_slam.team.server import TeamServer
+from helpers import TEAM_T_WORLD_MAP, as_monocular, cylinder_world, team_keyframes, team_vocabulary
+
+UNITS_PER_M = 2.5  # the monocular map's own length unit: 0.4 m
+
+
+def _config():
+    cfg = ServerConfig(robots=[1, 2])
+    cfg.global_ba.disparity_sigma_px = 0.05  # the helpers' depth is near exact (0.3 % noise)
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def world():
+    points, desc = cylinder_world(seed=3)
+    a = team_keyframes(1, np.linspace(0, 2 * np.pi, 36, endpoint=False), points, desc)
+    return points, desc, a, team_vocabulary(a)
+
+
+def _mono_b(points, desc, yaws, kid0=1, t0=100.0):
+    kfs = team_keyframes(
+        2, yaws, points, desc, kid0=kid0, offset=(0.2, 0.1), seed=100 + kid0, t0=t0
+    )
+    return [as_monocular(kf, UNITS_PER_M) for kf in kfs]
+
+
+def test_monocular_robot_merges_with_a_metric_one_by_a_similarity(world):
+    points, desc, kfs_a, vocab = world
+    server = TeamServer(_config(), vocab)
+    for kf in kfs_a:
+        server.add_keyframe(kf)
+    assert server.is_metric(1)
+    merges = []
+    for kf in _mono_b(points, desc, np.linspace(2.0, 3.0, 8)):
+        merges += server.add_keyframe(kf)
+        if not merges:
+            assert not server.is_metric(2) and server.map_scale(2) == 1.0
+    assert len(merges) == 1 and server.groups.groups() == [[1, 2]]
+    m = merges[0]
+    # The similarity's scale: robot 2's own units into robot 1's metres.
+    assert m.scale == pytest.approx(1 / UNITS_PER_M, rel=0.02)
+    assert server.is_metric(2)
+    assert server.map_scale(2) == pytest.approx(1 / UNITS_PER_M, rel=0.02)
+    # The merge is rigid in metres, as any.
+    dt, dr = transform_error(m.T_mapA_mapB, invert(TEAM_T_WORLD_MAP[1]) @ TEAM_T_WORLD_MAP[2])
+    assert dt < 0.02 and dr < 0.5
+    # Keyframes the robot sends later arrive in its own units and sit metric in the team map.
+    later = _mono_b(points, desc, np.linspace(3.1, 3.6, 4), kid0=20, t0=120.0)
+    for kf in later:
+        server.add_keyframe(kf)
+    T_group_map_true = invert(TEAM_T_WORLD_MAP[1]) @ TEAM_T_WORLD_MAP[2]
+    for kf in later:
+        T_map_cam_m = kf.T_map_cam.copy()
+        T_map_cam_m[:3, 3] /= UNITS_PER_M  # in metres, as the truth
+        stored = server.store.record((2, kf.keyframe_id)).T_map_cam
+        assert transform_error(stored, T_map_cam_m)[0] < 0.03
+        dt, dr = transform_error(
+            server.T_group_cam(2, kf.keyframe_id), T_group_map_true @ T_map_cam_m
+        )
+        assert dt < 0.03 and dr < 0.5, (kf.keyframe_id, dt, dr)
+
+
+def test_monocular_keyframes_never_merge_with_an_unrelated_place(world):
+    _, _, kfs_a, vocab = world
+    other_points, other_desc = cylinder_world(seed=99)  # a different building
+    server = TeamServer(_config(), vocab)
+    for kf in kfs_a:
+        server.add_keyframe(kf)
+    server.request_rendezvous(1, 2, stamp_s=0.0)  # together: co-observations merge on one
+    kfs_b = team_keyframes(2, np.linspace(0, 2 * np.pi, 20), other_points, other_desc, seed=7)
+    for kf in kfs_b:
+        assert server.add_keyframe(as_monocular(kf, UNITS_PER_M)) == []
+    assert server.merges == [] and server.groups.groups() == [[1], [2]]
+    assert not server.is_metric(2)
+
+
+def test_two_monocular_robots_merge_in_the_first_ones_units(world):
+    points, desc, kfs_a, vocab = world
+    server = TeamServer(_config(), vocab)
+    for kf in kfs_a[::2]:
+        server.add_keyframe(as_monocular(kf, 1.0))  # robot 1: its units are metres by chance
+    merges = []
+    for kf in _mono_b(points, desc, np.linspace(2.0, 3.0, 8)):
+        merges += server.add_keyframe(kf)
+    assert len(merges) == 1 and server.groups.groups() == [[1, 2]]
+    assert not server.is_metric(1) and not server.is_metric(2)
+    assert server.map_scale(1) == 1.0
+    assert server.map_scale(2) == pytest.approx(1 / UNITS_PER_M, rel=0.02)
+
+
+def test_ate_with_scale_correction_recovers_the_scale():
+    rng = np.random.default_rng(0)
+    n = 50
+    poses_gt = np.tile(np.eye(4), (n, 1, 1))
+    poses_gt[:, :3, 3] = np.cumsum(rng.normal(0, 0.1, (n, 3)), axis=0)
+    poses_est = poses_gt.copy()
+    poses_est[:, :3, 3] *= UNITS_PER_M
+    stamps = np.arange(n, dtype=float)
+    res = ate(stamps, poses_est, stamps, poses_gt, correct_scale=True)
+    assert res.rmse_m < 1e-6 and res.scale == pytest.approx(1 / UNITS_PER_M)
+    assert ate(stamps, poses_est, stamps, poses_gt).rmse_m > 0.1
