@@ -2,7 +2,9 @@
 """rostest node: two robots' keyframes into the server node; after the merge the stitched cloud,
 markers, TF world -> robot_2/map, robot 2's correction and its optimized path are published and
 consistent with the truth; the global BA service succeeds; the rendezvous service refuses merged
-or unknown robots with a reason; a bad keyframe is rejected."""
+or unknown robots with a reason; a bad keyframe is rejected. Robot 2's messages are numbered
+(delivery): sent out of order and twice, each is taken once and acknowledged; the team map saves
+to a file, and loading one is refused once robots have sent keyframes."""
 import json
 import os
 import sys
@@ -101,8 +103,22 @@ class ServerTeamMapTest(unittest.TestCase):
         kfs += team_keyframes(
             2, np.linspace(2.0, 3.0, 8), points, desc, offset=(0.2, 0.1), seed=100, t0=100.0
         )
+        from coop_slam.msg import KeyframeAck
+
+        acks = []
+        subs.append(rospy.Subscriber("/robot_2/keyframe_ack", KeyframeAck, acks.append))
+        msgs = []
         for kf in kfs:
-            pubs[kf.robot_id].publish(keyframe_to_msg(kf, f"robot_{kf.robot_id}/map"))
+            msg = keyframe_to_msg(kf, f"robot_{kf.robot_id}/map")
+            if kf.robot_id == 2:  # a client's numbered messages (session 5)
+                msg.session, msg.sequence = 5, len(msgs) + 1
+                msgs.append(msg)
+            else:
+                pubs[1].publish(msg)
+                time.sleep(0.05)
+        # Robot 2's radio: the second message comes late, the fourth twice.
+        for msg in [msgs[0], *msgs[2:4], msgs[1], msgs[3], *msgs[4:]]:
+            pubs[2].publish(msg)
             time.sleep(0.05)
         bad = team_keyframes(1, [0.5], points, desc, kid0=99)[0]
         bad.robot_id = 7  # unknown robot: rejected with a log line, nothing stored changes
@@ -161,6 +177,33 @@ class ServerTeamMapTest(unittest.TestCase):
         )
         stats = json.loads(got["stats"].data)
         self.assertEqual(stats["groups"], [[1, 2]])
+        # Each of robot 2's messages taken once (8 keyframes), in order, and acknowledged.
+        wait_until(
+            lambda: acks and (acks[-1].session, acks[-1].sequence) == (5, 8),
+            30.0,
+            "robot 2's acknowledgement of sequence 8",
+        )
+        self.assertEqual(acks[-1].last_keyframe_id, 8)
+        self.assertTrue(acks[-1].durable)
+        wait_until(
+            lambda: json.loads(got["stats"].data)["duplicates"] >= 1,
+            30.0,
+            "/server/stats to count the duplicate",
+        )
+        self.assertEqual(json.loads(got["stats"].data)["keyframes_stored"], {"1": 36, "2": 8})
+        from coop_slam.srv import LoadMap, SaveMap
+
+        out = os.path.join(os.environ.get("ROS_LOG_DIR", "/tmp"), "saved.map")
+        rospy.wait_for_service("/server/save_map", 30.0)
+        res = rospy.ServiceProxy("/server/save_map", SaveMap)(path=out)
+        self.assertTrue(res.success, res.message)
+        self.assertTrue(os.path.getsize(res.path) > 0)
+        res = rospy.ServiceProxy("/server/save_map", SaveMap)(path="/no/such/folder/x.map")
+        self.assertFalse(res.success)
+        self.assertIn("does not exist", res.message)
+        res = rospy.ServiceProxy("/server/load_map", LoadMap)(path=out)
+        self.assertFalse(res.success)
+        self.assertIn("only before robots send keyframes", res.message)
 
 
 if __name__ == "__main__":

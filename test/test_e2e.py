@@ -180,3 +180,59 @@ def test_demo_operator_requests_parse_and_bad_ones_are_named():
     for bad in ("1@20", "1,1@20", "1,2@-1", "1,2@nan", "a,b@1", "1,2"):
         with pytest.raises(SystemExit):
             parse_args(["--rendezvous", bad])
+
+
+def test_kill_restart_and_a_lossy_radio_lose_no_keyframe(tmp_path):
+    """The server killed (-9) and resumed from its map file, robot 2's client killed and started
+    again (a new map segment), 10 % of the keyframe messages dropped on the way: robot 1 loses no
+    keyframe (sent again until stored) and robot 2's new segment merges back into one team map.
+    (A killed client loses what it had sent and not got acknowledged: it kept that in memory.)"""
+    faults = "server-kill@15,client-kill:2@32,drop:0.1"
+    report, log, out = _demo(tmp_path, "--scenario", "revisit", "--faults", faults)
+    assert report["faults"]["spec"] == faults
+    assert all(k["done"] for k in report["faults"]["kills"])
+    robot_1, robot_2 = report["robots"]
+    assert robot_1["keyframes_sent"] >= 10 and robot_1["keyframes_lost"] == 0, robot_1
+    assert robot_2["keyframes_stored"] >= 10, robot_2
+    assert report["groups"] == [[1, 2]], log
+    assert report["wrong_merges"] == 0
+    # Robot 2 merged, then its new segment merged back.
+    assert len([m for m in report["merges"] if 2 in m["robots"]]) >= 2, report["merges"]
+    assert "resumed" in (out / "roslaunch.log").read_text(errors="replace")
+
+
+def test_a_later_session_extends_a_saved_map(tmp_path):
+    """Robot 1 maps alone and saves the team map; a later session loads it, robot 2 alone
+    localizes in it by place recognition: one team map, robot 1's keyframes kept."""
+    saved = tmp_path / "revisit.map"
+    first, _, _ = _demo(
+        tmp_path / "day1", "--scenario", "revisit", "--only-robots", "1", "--save-map", str(saved)
+    )
+    assert saved.stat().st_size > 0 and [r["id"] for r in first["robots"]] == [1]
+    report, log, _ = _demo(
+        tmp_path / "day2", "--scenario", "revisit", "--only-robots", "2", "--load-map", str(saved)
+    )
+    assert report["groups"] == [[1, 2]], log
+    assert report["wrong_merges"] == 0
+    merge = report["merges"][0]
+    assert merge["robots"] == [1, 2] and merge["local_trans_err_m"] < 0.10
+    loaded = next(r for r in report["robots"] if r["id"] == 1)
+    assert loaded["keyframes_stored"] == first["robots"][0]["keyframes_stored"]
+
+
+def test_fault_specs_are_read_and_bad_ones_named():
+    from coop_slam.tools.faults import FaultError, parse_faults
+
+    f = parse_faults("drop:0.1, client-kill:2@30,server-kill@25", [1, 2])
+    assert [(k.node, k.robot_id, k.at_s) for k in f.kills] == [
+        ("server", 0, 25.0),
+        ("client", 2, 30.0),
+    ]
+    assert f.drop == 0.1
+    for bad, why in (
+        ("drop:1.5", "share"),
+        ("client-kill:3@5", "robots"),
+        ("reboot@3", "cannot read"),
+    ):
+        with pytest.raises(FaultError, match=why):
+            parse_faults(bad, [1, 2])

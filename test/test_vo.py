@@ -344,6 +344,12 @@ def test_backwards_timestamp_resets_with_warning(room_sequence):
         # Keyframe ids keep increasing across segments (unique per robot).
         new_ids = [e.keyframe_id for e in events if e.kind == EVENT_KEYFRAME_NEW]
         assert new_ids and min(new_ids) > 1
+        # Frames still going back in time: dropped, not one reset each (one reset per jump).
+        for k in range(1, 4):
+            with pytest.raises(VoError, match="time jumped back"):
+                vo.track(stamps[0] - 0.01 * k, *frames[5])
+        assert vo.track(stamps[1], *frames[6]).map_segment == 1
+        assert vo.track(stamps[0] - 1.0, *frames[7]).map_segment == 2  # a new jump
 
 
 # --- configuration --------------------------------------------------------------------------------

@@ -92,6 +92,19 @@ def image_topic(robot_id: int, sensor: str) -> str:
     return camera_topics(robot_id, sensor)["image"]
 
 
+def parse_robot_ids(text) -> list[int] | None:
+    """``"2"`` or ``"1,3"`` (or a list) -> robot ids; empty -> None."""
+    if not text:
+        return None
+    try:
+        ids = [int(x) for x in (text.split(",") if isinstance(text, str) else text)]
+    except ValueError:
+        raise PlaybackError(f"robot ids must be integers, comma-separated: '{text}'") from None
+    if any(i < 1 for i in ids) or len(set(ids)) != len(ids):
+        raise PlaybackError(f"robot ids must be distinct and >= 1: '{text}'")
+    return sorted(ids)
+
+
 def parse_sensors(text: str | None, n_robots: int | None = None) -> list[str] | None:
     """``rgbd,stereo,stereo`` (one per robot, or one for all) -> list; None for none given."""
     if not text:
@@ -144,12 +157,14 @@ def load_streams(
     progress=None,
     world_params: dict | None = None,
     sensors: list[str] | None = None,
+    only_robots: list[int] | None = None,
 ) -> Source:
     """Resolve a scenario name or a dataset folder into robot streams (see module doc).
     ``sensors`` (one for all robots, or one each) plays robots as RGB-D, stereo or monocular
     cameras where their data allows (a synthetic world is rendered with right images when one is
     stereo; a monocular camera plays the colour or left image of any data); None: as the data
-    is."""
+    is. ``only_robots``: play these robots of the source alone, with their ids (a later session
+    of a team, ``scripts/demo --only-robots``)."""
     if (scenario is None) == (dataset is None):
         raise PlaybackError("give exactly one of a synthetic scenario or a dataset folder")
     if scenario is not None:
@@ -200,6 +215,12 @@ def load_streams(
             if not np.isfinite(off) or off < 0:
                 raise PlaybackError(f"start offset {off} of {stream.name} must be >= 0 s")
             stream.start_offset_s = float(off)
+    if only_robots:
+        ids = [s.robot_id for s in source.streams]
+        unknown = sorted(set(only_robots) - set(ids))
+        if unknown:
+            raise PlaybackError(f"robots {unknown} are not in this source (it has {ids})")
+        source.streams = [s for s in source.streams if s.robot_id in only_robots]
     return source
 
 
@@ -223,6 +244,7 @@ def load_run_source(options: dict, progress=None) -> Source:
         progress=progress,
         world_params={"duration_s": duration_s} if duration_s else None,
         sensors=parse_sensors(options.get("sensors")),
+        only_robots=parse_robot_ids(options.get("only_robots")),
     )
 
 

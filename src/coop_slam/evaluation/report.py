@@ -21,6 +21,17 @@ ROBOT_KEYS = (
     "tracking_lost",
     "track_ms_mean",
     "track_ms_p95",
+    # Monocular robots (a map without metric scale; ate_rmse_m, an SE(3) alignment, is null):
+    # the Sim(3)-aligned ATE of its own keyframes, and once the server placed it in a metric world
+    # group, the server's scale of its map against the true one (relative, signed).
+    "sensor",
+    "ate_sim3_rmse_m",
+    "scale_error",
+    # Delivery: new keyframes this run's clients sent (all their sessions), distinct keyframes in
+    # the server's map, and the difference (sent and never stored).
+    "keyframes_sent",
+    "keyframes_stored",
+    "keyframes_lost",
 )
 MERGE_KEYS = (
     "type",
@@ -86,6 +97,8 @@ def new_report(robot_ids: list[int]) -> dict:
         # from the other's surfaces (inter_m) against how far a robot's points lie from its own
         # surfaces where it revisits (intra_m); see coop_slam.evaluation.agreement.
         "overlap_agreement": [],
+        "duplicates_received": None,  # keyframe messages the server got again (clients resending)
+        "faults": None,  # faults injected (scripts/demo --faults)
         "topics": {},
     }
 

@@ -15,6 +15,8 @@ import numpy as np
 from ..datasets import write_tum_trajectory
 from ..geometry import path_length
 from ..playback import build_schedule
+from ..registration.umeyama import umeyama
+from ..team.map_scale import scale_translation
 from ..team.results import TYPE_LINK
 from .agreement import KeyframeCloud, team_agreement
 from .metrics import EvaluationError, ate, merge_error, relative_pose_error, rpe_rmse, team_ate
@@ -39,6 +41,22 @@ class RobotRun:
     # server's optimized keyframe poses in world (latest /team_map/robot_k/path, when merged):
     # id -> (stamp_s, T_world_cam)
     team_keyframes: dict = field(default_factory=dict)
+    sensor: str | None = None  # rgbd, stereo or mono, as its keyframes say
+    # New keyframes its client sessions sent (a restarted client counts from 0 again), and the
+    # keyframe messages not acknowledged by the server at the end
+    keyframes_sent_sessions: list = field(default_factory=list)
+    unacked: int = 0
+    keyframe_segments: dict = field(default_factory=dict)  # id -> map segment
+
+    def in_first_segment(self, keyframe_id: int) -> bool:
+        """Whether a keyframe is of its first map segment (a later one is another map frame)."""
+        if not self.keyframe_segments:
+            return True
+        first = min(self.keyframe_segments.values())
+        return self.keyframe_segments.get(keyframe_id, first) == first
+
+    def first_segment_ids(self) -> list:
+        return sorted(k for k in self.keyframes if self.in_first_segment(k))
 
 
 @dataclass
@@ -66,7 +84,7 @@ class RunInput:
     end_s: float
     gts: dict  # robot id -> (stamps, T_world_cam); empty arrays for robots without ground truth
     overlap: dict | None = None  # synthetic overlap events (merge latency), when known
-    sensors: list[str] | None = None  # each robot's camera (rgbd, stereo), in robot_ids order
+    sensors: list[str] | None = None  # each robot's camera (rgbd, stereo, mono), in robot_ids order
 
 
 def run_input_of(source, keep_timing: bool = False) -> RunInput:
@@ -92,11 +110,69 @@ def run_input_of(source, keep_timing: bool = False) -> RunInput:
 
 
 def _kf_arrays(run: RobotRun):
-    ids = sorted(run.keyframes)
+    ids = run.first_segment_ids()
     return (
         np.array([run.keyframes[k][0] for k in ids]),
         np.array([run.keyframes[k][1] for k in ids]).reshape(-1, 4, 4),
     )
+
+
+def _sim3_scale(points_src: np.ndarray, points_dst: np.ndarray) -> float | None:
+    """Scale of the least-squares similarity of two matched point sets (None when degenerate)."""
+    from ..registration.camera import RegistrationError
+
+    if len(points_src) < 3:
+        return None
+    try:
+        return float(umeyama(points_src, points_dst, with_scale=True)[1])
+    except RegistrationError:
+        return None
+
+
+def _robot_accuracy(entry: dict, r: RobotRun, rid: int, gts: dict, world_metric: bool):
+    """A robot's own ATE (Sim(3) for a monocular map), into ``entry``; returns the ATE result used
+    for its map's ground-truth placement (None for a monocular map: its map transform has a
+    scale) and the result for pooling."""
+    stamps, poses = _kf_arrays(r)
+    stamps_gt, poses_gt = gts[rid]
+    try:
+        res = ate(stamps, poses, stamps_gt, poses_gt, correct_scale=entry["sensor"] == "mono")
+    except EvaluationError:
+        return None, None
+    if entry["sensor"] != "mono":
+        entry["ate_rmse_m"] = res.rmse_m
+        return res, res
+    entry["ate_sim3_rmse_m"] = res.rmse_m
+    if world_metric and r.team_keyframes:
+        # The server's scale of the map: its keyframes in world (metric) against the client's.
+        ids = sorted(set(r.team_keyframes) & set(r.keyframes))
+        s_server = _sim3_scale(
+            np.array([r.keyframes[k][1][:3, 3] for k in ids]).reshape(-1, 3),
+            np.array([r.team_keyframes[k][1][:3, 3] for k in ids]).reshape(-1, 3),
+        )
+        if s_server is not None:
+            entry["scale_error"] = s_server / res.scale - 1.0
+    return None, res
+
+
+def _merge_units(run: RunData, sensors: dict) -> list[float | None]:
+    """Per merge (in order), the true length of one unit of its ``T_camA_camB``: 1 when either
+    side had a robot with depth (the server rescales a monocular side into metres), else the
+    metric scale of the first side's units (its unit robot's Sim(3) scale to ground truth) when
+    known; the server keeps a group of monocular maps in the units of the first side's group."""
+    unit_robot = {r: r for r in run.robots}  # robot -> robot whose own units its group uses
+    group = {r: {r} for r in run.robots}
+    out = []
+    for m in run.merges:
+        a, b = m["robot_a"], m["robot_b"]
+        ga, gb = group.get(a, {a}), group.get(b, {b})
+        metric = any(sensors.get(x) != "mono" for x in ga | gb)
+        out.append(1.0 if metric else ("unit", unit_robot.get(a, a)))
+        merged = ga | gb
+        for x in merged:
+            group[x] = merged
+            unit_robot[x] = unit_robot.get(a, a)
+    return out
 
 
 def evaluate_run(
@@ -104,13 +180,30 @@ def evaluate_run(
     gts: dict,
     overlap: dict | None = None,
     out_dir: str | None = None,
+    sensors: dict | None = None,
 ) -> dict:
     """The report dict (see :mod:`.report`) of a run against ground truth ``gts`` (robot id ->
     (stamps, T_world_cam) on the playback timeline, as in :class:`RunInput`; empty arrays
     where a robot has none, whose accuracy fields then stay null); writes trajectories and plots
-    into ``out_dir``."""
+    into ``out_dir``. ``sensors`` (robot id -> rgbd / stereo / mono) defaults to what each
+    robot's keyframes said."""
     robot_ids = sorted(gts)
     report = new_report(robot_ids)
+    for r in run.robots.values():
+        if not r.keyframes and r.team_keyframes:
+            # A robot of a map loaded from an earlier session sends nothing in this run: its
+            # keyframes are the server's optimized ones, taken back into its own map frame.
+            T_map_world = np.eye(4) if r.T_world_map is None else np.linalg.inv(r.T_world_map)
+            r.keyframes = {k: (t, T_map_world @ T) for k, (t, T) in r.team_keyframes.items()}
+            r.keyframe_stamps = {k: t for k, (t, _) in r.team_keyframes.items()}
+    sensors = {
+        rid: (sensors or {}).get(rid) or run.robots.get(rid, RobotRun()).sensor or "rgbd"
+        for rid in robot_ids
+    }
+    world_groups = run.server_stats.get("groups") or [[rid] for rid in robot_ids]
+    world = next((set(g) for g in world_groups if min(robot_ids, default=0) in g), set())
+    world_metric = any(sensors[r] != "mono" for r in world)
+    true_scale = {}  # monocular robot -> metres per unit of its own map
     est_world, gt_world = {}, {}
     # Ground-truth pose of each robot's map frame: the SE(3) alignment of its keyframe trajectory
     # to ground truth (as for its ATE), so a map's drift is averaged rather than frozen at one
@@ -124,18 +217,19 @@ def evaluate_run(
         entry["path_length_m"] = path_length(poses_gt) if len(poses_gt) else None
         entry["keyframes"] = len(r.keyframes)
         entry["tracking_lost"] = r.lost_frames
+        entry["sensor"] = sensors[rid]
         if r.track_ms:
             entry["track_ms_mean"] = float(np.mean(r.track_ms))
             entry["track_ms_p95"] = float(np.percentile(r.track_ms, 95))
         if r.keyframes:
             stamps, poses = _kf_arrays(r)
-            try:
-                res = ate(stamps, poses, stamps_gt, poses_gt)
-                entry["ate_rmse_m"] = res.rmse_m
-                T_world_map_gt[rid] = res.T_gt_est
+            placed, res = _robot_accuracy(entry, r, rid, gts, world_metric and rid in world)
+            if placed is not None:
+                T_world_map_gt[rid] = placed.T_gt_est
+            if res is not None:
                 own_ate[rid] = (res.rmse_m, res.count)
-            except EvaluationError:
-                pass
+                if sensors[rid] == "mono":
+                    true_scale[rid] = res.scale
             if out_dir:
                 write_tum_trajectory(
                     os.path.join(out_dir, "trajectories", f"robot_{rid}_keyframes.txt"),
@@ -143,7 +237,8 @@ def evaluate_run(
                     poses,
                 )
             try:
-                entry["rpe_rmse_m"] = rpe_rmse(stamps, poses, stamps_gt, poses_gt)
+                if sensors[rid] != "mono":  # in the map's own units otherwise
+                    entry["rpe_rmse_m"] = rpe_rmse(stamps, poses, stamps_gt, poses_gt)
             except EvaluationError:
                 pass
             if r.team_keyframes:  # the server's optimized poses, in world
@@ -169,7 +264,8 @@ def evaluate_run(
             )
     # Merges: transform error against ground truth and latency from the first moment ground truth
     # allowed a merge of that kind.
-    for m in run.merges:
+    units = _merge_units(run, sensors)
+    for m, unit in zip(run.merges, units):
         a, b = m["robot_a"], m["robot_b"]
         entry = {
             "type": m["type"],
@@ -179,11 +275,20 @@ def evaluate_run(
             "rot_err_deg": None,
             "latency_s": None,
         }
-        if a in T_world_map_gt and b in T_world_map_gt:
+        # A map transform is judged for robots' first map segments (their maps as placed
+        # against ground truth); a later segment's merge at its keyframes (local) only.
+        first = all(
+            run.robots.get(m[f"robot_{s}"], RobotRun()).in_first_segment(m[f"keyframe_{s}"])
+            for s in "ab"
+        )
+        if a in T_world_map_gt and b in T_world_map_gt and first:
             entry["trans_err_m"], entry["rot_err_deg"] = merge_error(
                 m["T_mapA_mapB"], T_world_map_gt[a], T_world_map_gt[b]
             )
-        local = _local_merge_error(m, run, gts)
+        if unit != 1.0:  # between monocular maps only: in the first side's units
+            unit = true_scale.get(unit[1])
+            m = dict(m, T_camA_camB=scale_translation(m["T_camA_camB"], unit)) if unit else None
+        local = _local_merge_error(m, run, gts) if m is not None else None
         entry["local_trans_err_m"], entry["local_rot_err_deg"] = local if local else (None, None)
         first = _first_evidence(overlap, m["type"], a, b)
         if first is not None:
@@ -201,7 +306,9 @@ def evaluate_run(
     if len(gt_world) >= 2 or (len(robot_ids) == 1 and gt_world):
         est_world = {rid: est_world[rid] for rid in gt_world}  # only what can be judged
         try:
-            team = team_ate(est_world, gt_world)
+            # Metric: one SE(3) alignment for all; a world of monocular maps only has no metric
+            # scale, and is aligned with one similarity.
+            team = team_ate(est_world, gt_world, correct_scale=not world_metric)
             report["team_ate_rmse_m"] = team.rmse_m
         except EvaluationError:
             team = None
@@ -216,6 +323,17 @@ def evaluate_run(
         if n:
             report["single_ate_pooled_m"] = float(np.sqrt(sum(e**2 * c for e, c in pooled) / n))
     report["server_ms_per_keyframe"] = run.server_stats.get("ms_per_keyframe_mean")
+    stored = run.server_stats.get("keyframes_stored") or {}
+    for entry, rid in zip(report["robots"], robot_ids):
+        r = run.robots.get(rid, RobotRun())
+        sent = int(sum(r.keyframes_sent_sessions))
+        entry["keyframes_sent"] = sent
+        entry["keyframes_stored"] = stored.get(str(rid))
+        # Sent by this run's clients and never stored (a loaded map's robots sent none now).
+        entry["keyframes_lost"] = (
+            max(0, sent - int(stored[str(rid)])) if str(rid) in stored and sent else None
+        )
+    report["duplicates_received"] = run.server_stats.get("duplicates")
     report["loop_closures"] = run.server_stats.get("loops")
     report["links"] = _links(run, gts, report["groups"])
     report["overlap_agreement"] = _overlap_agreement(run, out_dir)
@@ -366,11 +484,19 @@ def _topic_bandwidth(run: RunData) -> dict:
     return out
 
 
-def evaluate_results(out_dir: str, run: RunData, gts: dict, overlap: dict | None = None):
+def evaluate_results(
+    out_dir: str,
+    run: RunData,
+    gts: dict,
+    overlap: dict | None = None,
+    sensors: dict | None = None,
+    extra: dict | None = None,
+):
     """Report, trajectories, plots and the team map PLY of one run into ``out_dir`` (arguments as
-    for :func:`evaluate_run`); returns (report, report.json path, report.md path, PLY path or
-    None)."""
-    report = evaluate_run(run, gts, overlap, out_dir)
+    for :func:`evaluate_run`; ``extra``: fields of the run the recording does not hold, e.g. the
+    faults injected); returns (report, report.json path, report.md path, PLY path or None)."""
+    report = evaluate_run(run, gts, overlap, out_dir, sensors)
+    report.update(extra or {})
     ply = None
     if run.team_cloud is not None:
         ply = os.path.join(out_dir, "team_map.ply")

@@ -18,6 +18,12 @@ node is started in: the server finds a robot by its id alone. Frames (REP-105):
 odometry's own map frame is the first camera frame; this node re-expresses everything in
 ``robot_k/map``, defined as the robot body at start (z up), so maps are upright in RViz.
 ``map -> odom`` is identity until the server sends a correction.
+
+Keyframe messages are numbered (client session and sequence, :mod:`coop_slam.delivery`): the
+client keeps those the server has not acknowledged on ``/robot_k/keyframe_ack`` (at most
+``~max_unacked``) and sends them again every ``~resend_after_s`` until it does, so a server that
+restarts or a radio that drops messages loses nothing. A restarted client continues above the
+keyframe ids and map segments the server has stored for its robot, in a new map segment.
 """
 
 from __future__ import annotations
@@ -122,6 +128,7 @@ class ClientNode:
             transform_stamped(self.T_base_cam, self.base_frame, self.cam_frame, rospy.Time(0))
         )
         self.pub_kf = rospy.Publisher(f"{ns}/keyframes", KeyFrame, queue_size=200)
+        self._start_delivery(ns)
         self.pub_pose = rospy.Publisher(f"{ns}/pose", PoseStamped, queue_size=10)
         self.pub_path = rospy.Publisher(f"{ns}/path", Path, queue_size=1, latch=True)
         from sensor_msgs.msg import PointCloud2
@@ -177,6 +184,83 @@ class ClientNode:
                 rospy.resolve_name(self.topics[k]) for k in ("image", "second") if k in self.topics
             ),
         )
+
+    def _start_delivery(self, ns: str) -> None:
+        """Numbered keyframe messages, acknowledgements, sending again; ids after a restart."""
+        from coop_slam.msg import KeyframeAck
+
+        from ..delivery import Outbox
+
+        self.outbox = Outbox(
+            int(rospy.get_param("~max_unacked", 1000)),
+            float(rospy.get_param("~resend_after_s", 2.0)),
+        )
+        self._outbox_lock = threading.Lock()
+        self.keyframes_sent = 0
+        self._bound_warned = False
+        # A restarted client must not reuse the keyframe ids the server stored before: the
+        # server's latched acknowledgement says how far they went.
+        self.kf_id_base, self.segment_base = 0, 0
+        wait_s = float(rospy.get_param("~server_wait_s", 3.0))
+        try:
+            ack = rospy.wait_for_message(f"{ns}/keyframe_ack", KeyframeAck, timeout=wait_s)
+            if ack.last_keyframe_id > 0:
+                self.kf_id_base = int(ack.last_keyframe_id)
+                self.segment_base = int(ack.last_map_segment) + 1
+                rospy.logwarn(
+                    "client %s: the server holds %d keyframes of this robot from before: "
+                    "continuing from keyframe %d in new map segment %d",
+                    self.name,
+                    ack.last_keyframe_id,
+                    self.kf_id_base + 1,
+                    self.segment_base,
+                )
+        except rospy.ROSException:
+            rospy.loginfo(
+                "client %s: no server acknowledgement within %.0f s: starting at keyframe 1",
+                self.name,
+                wait_s,
+            )
+        self.sub_ack = rospy.Subscriber(f"{ns}/keyframe_ack", KeyframeAck, self._on_ack)
+        self._resender = threading.Thread(target=self._resend_loop, daemon=True)
+        self._resender.start()
+
+    def _on_ack(self, msg) -> None:
+        if msg.robot_id != self.robot_id:
+            self.rejects.reject("keyframe_ack", f"acknowledgement for robot {msg.robot_id}")
+            return
+        with self._outbox_lock:
+            self.outbox.ack(msg.session, msg.sequence)
+
+    def _resend_loop(self) -> None:
+        while not rospy.is_shutdown():
+            time.sleep(0.5)
+            with self._outbox_lock:
+                due = self.outbox.due()
+            if due and self.pub_kf.get_num_connections() > 0:
+                rospy.loginfo_throttle(
+                    10.0,
+                    "client %s: sending %d unacknowledged keyframe messages again",
+                    self.name,
+                    len(due),
+                )
+                for msg in due:
+                    self.pub_kf.publish(msg)
+
+    def _send_keyframe(self, msg) -> None:
+        with self._outbox_lock:
+            msg.session, msg.sequence, overflow = self.outbox.add(msg)
+        if overflow and not self._bound_warned:
+            self._bound_warned = True
+            rospy.logwarn(
+                "client %s: %d keyframe messages not acknowledged by the server (is it "
+                "running? see /robot_%d/keyframe_ack): the oldest are given up from now on "
+                "(~max_unacked)",
+                self.name,
+                self.outbox.max_unacked,
+                self.robot_id,
+            )
+        self.pub_kf.publish(msg)
 
     # --- callbacks --------------------------------------------------------------------------------
     def _on_info(self, msg: CameraInfo, which: str) -> None:
@@ -298,8 +382,9 @@ class ClientNode:
                 elif res.message.startswith("map initialized"):
                     rospy.loginfo("client %s: %s", self.name, res.message)
                 stats.track_ms, stats.tracking_ok = res.track_ms, bool(res.ok)
-                stats.keyframes = len(self.kf_poses)
                 self._publish_events()
+                stats.keyframes = len(self.kf_poses)
+                stats.keyframes_sent, stats.unacked = self.keyframes_sent, self.outbox.unacked
                 if res.ok:
                     self._publish_pose(stamp, self.T_base_cam @ res.T_map_cam)
                 if self.marker_every and self.frames % self.marker_every == 0:
@@ -360,7 +445,7 @@ class ClientNode:
 
     # --- publishing -------------------------------------------------------------------------------
     def _publish_events(self) -> None:
-        from ..keyframe_record import ACTION_REMOVE
+        from ..keyframe_record import ACTION_NEW, ACTION_REMOVE
         from ..vo.outbox import event_record
         from ..vo.types import EVENT_NEW_SEGMENT, EVENT_WARNING, KEYFRAME_ACTIONS
 
@@ -375,14 +460,18 @@ class ClientNode:
                     ev.map_segment,
                     ev.message,
                 )
-                self.segment = ev.map_segment
+                self.segment = ev.map_segment + self.segment_base
             elif ev.kind in KEYFRAME_ACTIONS:
                 rec = event_record(ev, self.robot_id, self.camera, self.T_base_cam)
+                rec.keyframe_id += self.kf_id_base
+                rec.covisible_ids = rec.covisible_ids + np.uint32(self.kf_id_base)
+                rec.map_segment += self.segment_base
                 if rec.action == ACTION_REMOVE:
-                    self.kf_poses.pop(ev.keyframe_id, None)
+                    self.kf_poses.pop(rec.keyframe_id, None)
                 else:
                     self.kf_poses[rec.keyframe_id] = (rec.stamp_s, rec.T_map_cam)
-                self.pub_kf.publish(keyframe_to_msg(rec, self.map_frame))
+                self.keyframes_sent += rec.action == ACTION_NEW
+                self._send_keyframe(keyframe_to_msg(rec, self.map_frame))
                 changed = True
         if changed:
             self._publish_path()

@@ -16,6 +16,7 @@ class PlayerConfig:
     bag: str = ""  # rosbag file to replay (instead of a scenario or dataset)
     split: str = ""  # frame ranges, one robot each, inclusive: "0-299,300-599"
     robots: int = 0  # number of robots (0 = the scenario's / one per split range)
+    only_robots: str = ""  # play only these robots, comma-separated ids ("" = all)
     seed: int = 0  # synthetic world seed
     duration_s: float = 0.0  # synthetic world length [s]; 0 = the scenario's own
     camera_file: str = ""  # camera.yaml for a TUM folder without one

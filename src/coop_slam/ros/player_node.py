@@ -38,6 +38,7 @@ from ..playback import (
     group_simultaneous,
     image_topic,
     load_streams,
+    parse_robot_ids,
     parse_sensors,
 )
 from .convert import camera_info_to_msg, image_to_msg, pose_to_msg
@@ -154,8 +155,29 @@ class _RobotTopics:
         ):
             self.pubs[topic].publish(msg)
 
-    def wait_ack(self, play_s: float, timeout_s: float) -> bool:
-        return self.acks.wait(play_s, timeout_s)
+    def wait_ack(self, play_s: float, timeout_s: float, frame=None) -> bool:
+        """Wait for the client's acknowledgement of the frame at play_s. A client that went away
+        and came back meanwhile (restarted) never got the frame: it is sent again."""
+        deadline = time.monotonic() + timeout_s
+        gone = False
+        while True:
+            remaining = deadline - time.monotonic()
+            if self.acks.wait(play_s, min(1.0, max(remaining, 0.0))):
+                return True
+            if remaining <= 1.0 or rospy.is_shutdown():
+                return False
+            if self.color.get_num_connections() == 0:
+                gone = True
+            elif gone and frame is not None:
+                gone = False
+                rospy.logwarn(
+                    "player: robot_%d's client is back (restarted?): sending the frame at "
+                    "%.3f s again",
+                    self.stream.robot_id,
+                    play_s,
+                )
+                time.sleep(1.0)  # its other subscriptions (depth, camera_info) connect too
+                self.publish(play_s, frame)
 
 
 def wait_for_consumers(color_pubs: dict, cfg: PlayerConfig) -> None:
@@ -204,6 +226,7 @@ class PlayerNode:
             start_offsets_s=offsets,
             world_params={"duration_s": cfg.duration_s} if cfg.duration_s > 0 else None,
             sensors=parse_sensors(cfg.sensors),
+            only_robots=parse_robot_ids(cfg.only_robots),
             progress=lambda done, total: rospy.loginfo_throttle(
                 5.0, "player: generating world %d/%d frames", done, total
             ),
@@ -264,8 +287,9 @@ class PlayerNode:
                     rospy.logerr(
                         "player: skipping robot_%d frame %d: %s", g.robot_id, g.frame.index, exc
                     )
+            frames = {g.robot_id: g.frame for g in group}
             for rid in lockstep_ids:
-                if not self.topics[rid].wait_ack(play_s, cfg.ack_timeout_s):
+                if not self.topics[rid].wait_ack(play_s, cfg.ack_timeout_s, frames[rid]):
                     rospy.logwarn(
                         "player: robot_%d did not acknowledge the frame at %.3f s within "
                         "%.0f s; going on",

@@ -17,7 +17,7 @@ import numpy as np
 from ..evaluation import EvaluationError
 from ..evaluation.run_report import RobotRun, RunData, RunInput
 from ..keyframe_record import ACTION_REMOVE
-from ..playback import COLOR_TOPIC, GROUND_TRUTH_TOPIC, image_topic
+from ..playback import COLOR_TOPIC, GROUND_TRUTH_TOPIC, camera_topics, image_topic
 from ..registration.camera import backproject
 from ..team.results import TYPE_LINK, TYPE_LOOP
 from .convert import (
@@ -36,6 +36,8 @@ ROBOT_TOPICS = {  # relative to /robot_k; the message type of each
     "path": "nav_msgs/Path",
     "local_map": "sensor_msgs/PointCloud2",
 }
+# CameraModel.msg sensor_type -> the sensor's name
+SENSOR_NAMES = {0: "rgbd", 1: "stereo", 2: "mono"}
 TEAM_TOPICS = {
     "/merge_events": "coop_slam/MergeEvent",
     "/server/stats": "std_msgs/String",
@@ -92,6 +94,12 @@ class RunRecorder:
 
     def _on_frame_stats(self, msg, r: RobotRun, t_s, nbytes) -> None:
         r.frames += 1
+        sent = int(getattr(msg, "keyframes_sent", 0))
+        if not r.keyframes_sent_sessions or sent < r.keyframes_sent_sessions[-1]:
+            r.keyframes_sent_sessions.append(sent)  # the first, or a restarted client
+        else:
+            r.keyframes_sent_sessions[-1] = sent
+        r.unacked = int(getattr(msg, "unacked", 0))
         if msg.track_ms > 0:
             r.track_ms.append(float(msg.track_ms))
         if not msg.tracking_ok and r.first_keyframe is not None:
@@ -114,9 +122,11 @@ class RunRecorder:
         except MessageError:
             return
         stamp = msg.header.stamp.to_sec()
+        r.sensor = SENSOR_NAMES.get(msg.camera.sensor_type, r.sensor)
         r.keyframes[msg.keyframe_id] = (stamp, T)
         r.keyframe_points[msg.keyframe_id] = _points_cam(msg)
         r.keyframe_stamps[msg.keyframe_id] = stamp
+        r.keyframe_segments[msg.keyframe_id] = int(msg.map_segment)
         if r.first_keyframe is None:
             r.first_keyframe = (stamp, T)
 
@@ -249,12 +259,18 @@ def read_bag_input(bag_path: str) -> RunInput:
                 np.asarray(stamps, float)[order],
                 np.asarray(poses, float).reshape(-1, 4, 4)[order],
             )
-        stereo = {rid for t, rid in colors.items() if t == image_topic(rid, "stereo")}
+        # A monocular camera publishes as an RGB-D camera's colour, without the depth image.
+        sensors = {}
+        for t, rid in colors.items():
+            if t == image_topic(rid, "stereo"):
+                sensors[rid] = "stereo"
+            else:
+                sensors[rid] = "rgbd" if camera_topics(rid, "rgbd")["second"] in topics else "mono"
         return RunInput(
             robot_ids,
             sum(topics[t].message_count for t in colors),
             bag.get_start_time(),
             bag.get_end_time(),
             gts,
-            sensors=["stereo" if rid in stereo else "rgbd" for rid in robot_ids],
+            sensors=[sensors[rid] for rid in robot_ids],
         )

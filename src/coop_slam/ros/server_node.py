@@ -6,6 +6,12 @@ Subscribes ``/robot_k/keyframes`` for each configured robot; publishes ``/merge_
 ``/team_map/markers``, ``/team_map/robot_k/path``: optimized keyframe poses, in ``world`` once
 merged, else in the robot's group root map) and ``/server/stats``. Keyframes are processed
 in one worker thread in arrival order, so callbacks never block and the graph has one writer.
+
+The team map is durable (:mod:`coop_slam.team.durable`): every input the server takes is
+committed to the map file (``~map``; default a new file per run under ``$ROS_HOME/coop_slam``,
+``off`` for none) before ``/robot_k/keyframe_ack`` acknowledges it; ``~resume`` rebuilds the team
+map from that file after a crash or restart, ``~load_map`` starts from a map saved in an earlier
+session. Services ``~save_map`` and ``~load_map``.
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ from ..errors import CoopSlamError
 from ..geometry import invert, se3_from_quat
 from ..keyframe_record import KeyframeRecord
 from ..team.config import ServerConfig
+from ..team.map_scale import scale_translation
 from ..team.results import TYPE_LINK, TYPE_LOOP, TYPE_OVERLAP
 from ..team.server import TeamServer
 from ..team.view import marker_scale
@@ -51,6 +58,8 @@ from .validation import RejectCounter
 @dataclass
 class _KeyframeJob:
     record: KeyframeRecord
+    session: int = 0  # delivery (see coop_slam.delivery); 0 = unsequenced
+    sequence: int = 0
 
 
 @dataclass
@@ -69,13 +78,38 @@ class _GlobalBaJob:
     reply: Future  # (GlobalBaResult or None, message)
 
 
+@dataclass
+class _MapFileJob:
+    path: str
+    load: bool  # load (else save)
+    reply: Future  # (success, message, path)
+
+
+def default_map_path() -> str:
+    """A new map file per run in ``$ROS_HOME/coop_slam`` (``~/.ros`` by default)."""
+    import time
+
+    home = os.environ.get("ROS_HOME") or os.path.join(os.path.expanduser("~"), ".ros")
+    folder = os.path.join(home, "coop_slam")
+    os.makedirs(folder, exist_ok=True)
+    return os.path.join(folder, time.strftime("team_map_%Y%m%d-%H%M%S.db"))
+
+
 class ServerNode:
     def __init__(self):
         import tf2_ros
 
         from coop_slam.msg import KeyFrame, MapCorrection, MergeEvent
 
-        node_params = ("config", "vocabulary", "T_base_cam", "cloud_period_s")
+        node_params = (
+            "config",
+            "vocabulary",
+            "T_base_cam",
+            "cloud_period_s",
+            "map",
+            "resume",
+            "load_map",
+        )
         overrides = {k: v for k, v in rospy.get_param("~", {}).items() if k not in node_params}
         self.cfg = load_yaml_config(
             ServerConfig, rospy.get_param("~config", ""), "server", overrides
@@ -92,8 +126,18 @@ class ServerNode:
             )
         rospy.loginfo("server: loading vocabulary %s", vocab_path)
         self.vocab_path = vocab_path
-        self.server = TeamServer(self.cfg, Vocabulary.load(vocab_path))
+        with open(vocab_path, "rb") as fh:
+            vocab_data = fh.read()
+        self.vocabulary = Vocabulary.load(vocab_path)
+        self.vocab_sha256 = hashlib.sha256(vocab_data).hexdigest()
+        map_path = str(rospy.get_param("~map", "")).strip()
+        self.map_path = None if map_path == "off" else (map_path or default_map_path())
+        self.durable = self._open_map(
+            bool(rospy.get_param("~resume", False)), str(rospy.get_param("~load_map", "")).strip()
+        )
+        self.server = self.durable.server
         self.rejects = RejectCounter("server")
+        self.duplicates = 0  # keyframe messages received again (a client re-sending)
         self._constraints_published = 0  # server.constraints already sent as merge events
         self.queue: queue.Queue = queue.Queue()
         self.tf = tf2_ros.StaticTransformBroadcaster()
@@ -104,15 +148,13 @@ class ServerNode:
         self.pub_vocab = rospy.Publisher(
             "/server/vocabulary", VocabularyMsg, queue_size=1, latch=True
         )
-        with open(vocab_path, "rb") as fh:
-            data = fh.read()
         self.pub_vocab.publish(
             VocabularyMsg(
-                format="coop_slam-npz" if data[:2] == b"PK" else "dbow2-text",
-                sha256=hashlib.sha256(data).hexdigest(),
+                format="coop_slam-npz" if vocab_data[:2] == b"PK" else "dbow2-text",
+                sha256=self.vocab_sha256,
                 k=self.server.vocabulary.k,
                 levels=self.server.vocabulary.levels,
-                data=data,
+                data=vocab_data,
             )
         )
         from sensor_msgs.msg import PointCloud2
@@ -126,27 +168,10 @@ class ServerNode:
         )
         from nav_msgs.msg import Path
 
-        self._Path = Path
-        self.pub_path = {
-            r: rospy.Publisher(f"/team_map/robot_{r}/path", Path, queue_size=1, latch=True)
-            for r in self.cfg.robots
-        }
-        self.pub_corr = {
-            r: rospy.Publisher(f"/robot_{r}/correction", MapCorrection, queue_size=5, latch=True)
-            for r in self.cfg.robots
-        }
+        self._Path, self._KeyFrame = Path, KeyFrame
         self._MergeEvent, self._MapCorrection = MergeEvent, MapCorrection
-        self.subs = [
-            rospy.Subscriber(
-                f"/robot_{r}/keyframes",
-                KeyFrame,
-                self._on_keyframe,
-                callback_args=r,
-                queue_size=500,
-                buff_size=2**24,
-            )
-            for r in self.cfg.robots
-        ]
+        self.pub_path, self.pub_corr, self.pub_ack, self.subs = {}, {}, {}, []
+        self._robot_topics()
         from coop_slam.msg import RobotSighting
         from coop_slam.srv import Rendezvous
 
@@ -159,11 +184,93 @@ class ServerNode:
         from coop_slam.srv import GlobalBundleAdjustment
 
         self.srv_gba = rospy.Service("~global_ba", GlobalBundleAdjustment, self._on_global_ba)
+        from coop_slam.srv import LoadMap, SaveMap
+
+        self.srv_save = rospy.Service("~save_map", SaveMap, self._on_save_map)
+        self.srv_load = rospy.Service("~load_map", LoadMap, self._on_load_map)
         self._map_dirty, self._last_stamp_s = False, 0.0
         self.worker = threading.Thread(target=self._work, daemon=True)
         self.worker.start()
         self._publish_tf(rospy.Time.now())
+        if self.durable.rebuilt is not None or self.durable.loaded is not None:
+            self._publish_map(rospy.Time.now())
         rospy.loginfo("server: robots %s, waiting for keyframes", self.cfg.robots)
+
+    def _open_map(self, resume: bool, load_path: str):
+        """The durable team map: a new map file, the one resumed, or a saved map loaded."""
+        from ..team.durable import DurableServer
+
+        where = self.map_path or "memory only (map:=off)"
+        what = "resuming" if resume else ("loading " + load_path if load_path else "new map")
+        rospy.loginfo("server: team map file %s (%s)", where, what)
+
+        def progress(done, total):
+            rospy.loginfo("server: rebuilding the team map: %d/%d inputs", done, total)
+
+        durable = DurableServer(
+            self.cfg,
+            lambda cfg: TeamServer(cfg, self.vocabulary),
+            self.map_path,
+            resume=resume,
+            load_path=load_path or None,
+            vocabulary_sha256=self.vocab_sha256,
+            progress=progress,
+        )
+        for name, rep in (("resumed", durable.rebuilt), ("loaded", durable.loaded)):
+            if rep is not None:
+                rospy.loginfo(
+                    "server: %s %d keyframes (%d inputs) in %.1f s; robots %s",
+                    name,
+                    rep.keyframes,
+                    rep.inputs,
+                    rep.time_s,
+                    durable.robots,
+                )
+        return durable
+
+    def _robot_topics(self) -> None:
+        """Publishers and subscribers of every robot the server knows (loaded maps add some)."""
+        from coop_slam.msg import KeyframeAck
+
+        for r in self.durable.robots:
+            if r in self.pub_path:
+                continue
+            self.pub_path[r] = rospy.Publisher(
+                f"/team_map/robot_{r}/path", self._Path, queue_size=1, latch=True
+            )
+            self.pub_corr[r] = rospy.Publisher(
+                f"/robot_{r}/correction", self._MapCorrection, queue_size=5, latch=True
+            )
+            self.pub_ack[r] = rospy.Publisher(
+                f"/robot_{r}/keyframe_ack", KeyframeAck, queue_size=5, latch=True
+            )
+            self.subs.append(
+                rospy.Subscriber(
+                    f"/robot_{r}/keyframes",
+                    self._KeyFrame,
+                    self._on_keyframe,
+                    callback_args=r,
+                    queue_size=500,
+                    buff_size=2**24,
+                )
+            )
+            self._publish_ack(r)
+
+    def _publish_ack(self, robot_id: int) -> None:
+        from coop_slam.msg import KeyframeAck
+
+        session, sequence = self.durable.acknowledged(robot_id)
+        last_kf, last_seg = self.durable.last_ids().get(robot_id, (0, 0))
+        msg = KeyframeAck(
+            robot_id=robot_id,
+            session=session,
+            sequence=sequence,
+            last_keyframe_id=last_kf,
+            last_map_segment=last_seg,
+            durable=self.durable.store is not None,
+        )
+        msg.header.stamp = rospy.Time.now()
+        self.pub_ack[robot_id].publish(msg)
 
     def _on_keyframe(self, msg, topic_robot: int) -> None:
         topic = f"/robot_{topic_robot}/keyframes"
@@ -177,7 +284,7 @@ class ServerNode:
                 topic, f"keyframe of robot {rec.robot_id} on robot {topic_robot}'s topic"
             )
             return
-        self.queue.put(_KeyframeJob(rec))
+        self.queue.put(_KeyframeJob(rec, msg.session, msg.sequence))
 
     def _on_sighting(self, msg) -> None:
         """A marker sighting asks for a rendezvous check (at most once per pair and period)."""
@@ -236,11 +343,71 @@ class ServerNode:
             time_s=r.time_ms / 1e3,
         )
 
+    def _on_save_map(self, req):
+        from coop_slam.srv import SaveMapResponse
+
+        ok, message, path = self._map_file_request(req.path, load=False)
+        return SaveMapResponse(success=ok, message=message, path=path)
+
+    def _on_load_map(self, req):
+        from coop_slam.srv import LoadMapResponse
+
+        ok, message, _ = self._map_file_request(req.path, load=True)
+        return LoadMapResponse(success=ok, message=message)
+
+    def _map_file_request(self, path: str, load: bool):
+        if not path.strip():
+            return False, "give the map file's path", ""
+        reply: Future = Future()
+        self.queue.put(_MapFileJob(os.path.expanduser(path.strip()), load, reply))
+        try:
+            return reply.result(timeout=600.0)
+        except TimeoutError:
+            return False, "server busy: timed out", ""
+
+    def _map_file(self, job: _MapFileJob) -> None:
+        """Save the team map, or load a saved one as the starting map (in the worker thread)."""
+        from ..team.map_store import MapStoreError
+
+        try:
+            if not job.load:
+                path = self.durable.save(job.path)
+                result = True, f"team map saved to {path}", path
+            elif len(self.server.store):
+                result = (
+                    False,
+                    "a map loads only before robots send keyframes (start the server with "
+                    "load_map:=FILE instead)",
+                    "",
+                )
+            else:
+                self.durable.close()
+                if self.map_path and os.path.exists(self.map_path):
+                    os.remove(self.map_path)  # nothing taken yet: the file starts again
+                    for extra in ("-wal", "-shm"):
+                        if os.path.exists(self.map_path + extra):
+                            os.remove(self.map_path + extra)
+                self.durable = self._open_map(False, job.path)
+                self.server = self.durable.server
+                self._robot_topics()
+                stamp = rospy.Time.from_sec(self._last_stamp_s)
+                self._publish_tf(stamp)
+                self._publish_map(stamp)
+                result = True, f"loaded {job.path}: robots {self.durable.robots}", job.path
+        except MapStoreError as exc:
+            result = False, str(exc), ""
+        (
+            rospy.loginfo("server: %s", result[1])
+            if result[0]
+            else rospy.logwarn("server: %s", result[1])
+        )
+        job.reply.set_result(result)
+
     def _global_ba(self, job: _GlobalBaJob) -> None:
         from ..team.global_ba import GlobalBaError
 
         try:
-            r = self.server.global_bundle_adjustment(job.robot_id)
+            r = self.durable.global_bundle_adjustment(job.robot_id)
             result = r, (
                 f"{r.keyframes} keyframes, {r.points} points: "
                 f"reprojection RMS {r.rms_before:.2f} -> {r.rms_after:.2f} px"
@@ -255,14 +422,14 @@ class ServerNode:
         T_body_cam = None if self.T_base_cam is None else invert(self.T_base_cam)
         T_camA_bodyB = job.T_camA_bodyB if T_body_cam is not None else None
         if job.sighting:
-            outcome = self.server.sighting(
+            outcome = self.durable.sighting(
                 job.robot_a, job.robot_b, job.stamp_s, T_camA_bodyB, T_body_cam
             )
             if outcome is None:
                 return None  # within rendezvous.sighting_period_s of the pair's last request
             merge, message = outcome
         else:
-            merge, message = self.server.request_rendezvous(
+            merge, message = self.durable.request_rendezvous(
                 job.robot_a, job.robot_b, job.stamp_s, T_camA_bodyB, T_body_cam
             )
         rospy.loginfo(
@@ -309,13 +476,28 @@ class ServerNode:
             if merges is None:
                 return
             stamp_s = merges[0].stamp_s if merges else (item.stamp_s or self._last_stamp_s)
+        elif isinstance(item, _MapFileJob):
+            self._map_file(item)
+            return
         else:
             rec = item.record
+            topic = f"/robot_{rec.robot_id}/keyframes"
             try:
-                merges = self.server.add_keyframe(rec)
+                taken = self.durable.add_keyframe(rec, item.session, item.sequence)
             except CoopSlamError as exc:
-                self.rejects.reject(f"/robot_{rec.robot_id}/keyframes", str(exc))
+                self.rejects.reject(topic, str(exc))
                 return
+            finally:
+                if rec.robot_id in self.pub_ack:
+                    self._publish_ack(rec.robot_id)
+            for why in taken.rejected or []:
+                self.rejects.reject(topic, why)
+            if taken.stale:
+                self.rejects.reject(topic, "message of an earlier client session (restarted?)")
+            self.duplicates += taken.duplicate
+            if not taken.taken:
+                return
+            merges = taken.merges
             stamp_s = rec.stamp_s
         stamp_s = max(stamp_s, self._last_stamp_s)  # a late cue must not move the map back in time
         stamp = rospy.Time.from_sec(stamp_s)
@@ -334,15 +516,15 @@ class ServerNode:
     def _publish_merge(self, m) -> None:
         msg = self._MergeEvent(
             type=m.type,
-            robot_a=m.robot_a,
-            robot_b=m.robot_b,
+            robot_a=self.server.robot_of(m.robot_a),
+            robot_b=self.server.robot_of(m.robot_b),
             keyframe_a=m.keyframe_a,
             keyframe_b=m.keyframe_b,
             T_mapA_mapB=transform_to_msg(m.T_mapA_mapB),
             T_camA_camB=transform_to_msg(m.T_camA_camB),
             inliers=m.inliers,
             residual_px=m.residual_px,
-            group=m.group,
+            group=sorted({self.server.robot_of(r) for r in m.group}),
         )
         msg.header.stamp = rospy.Time.from_sec(m.stamp_s)
         msg.header.frame_id = "world"
@@ -355,10 +537,11 @@ class ServerNode:
         self._constraints_published += len(new)
         for c in new:
             (ra, ka), (rb, kb) = c.key_a, c.key_b
+            robot_a, robot_b = self.server.robot_of(ra), self.server.robot_of(rb)
             msg = self._MergeEvent(
-                type=TYPE_LOOP if ra == rb else TYPE_LINK,
-                robot_a=ra,
-                robot_b=rb,
+                type=TYPE_LOOP if robot_a == robot_b else TYPE_LINK,
+                robot_a=robot_a,
+                robot_b=robot_b,
                 keyframe_a=ka,
                 keyframe_b=kb,
                 T_mapA_mapB=transform_to_msg(
@@ -367,7 +550,7 @@ class ServerNode:
                 T_camA_camB=transform_to_msg(c.T_camA_camB),
                 inliers=c.inliers,
                 residual_px=c.residual_px,
-                group=self.server.groups.members(ra),
+                group=sorted({self.server.robot_of(r) for r in self.server.groups.members(ra)}),
             )
             msg.header.stamp = stamp
             msg.header.frame_id = "world"
@@ -375,17 +558,25 @@ class ServerNode:
 
     def _publish_tf(self, stamp) -> None:
         transforms = []
-        for r in self.cfg.robots:
-            T, merged = self.server.T_group_map(r), self.server.in_world(r)
+        for r in self.durable.robots:
+            m = self.server.current_map(r)  # the map segment the client works in now
+            T, merged = self.server.T_group_map(m), self.server.in_world(m)
             if merged:
                 transforms.append(transform_stamped(T, "world", f"robot_{r}/map", stamp))
-            corrected = self.server.corrected_keyframes(r)
+            # The server holds a monocular map's lengths times its scale; the client its own.
+            scale = self.server.map_scale(m)
+            corrected = {
+                k: scale_translation(P, 1.0 / scale)
+                for k, P in self.server.corrected_keyframes(m).items()
+            }
             corr = self._MapCorrection(
                 robot_id=r,
                 merged=merged,
                 T_world_map=transform_to_msg(T),
                 keyframe_ids=list(corrected),
                 keyframe_poses=[pose_to_msg(P) for P in corrected.values()],
+                map_scale=scale,
+                metric=self.server.is_metric(m),
             )
             corr.header.stamp, corr.header.frame_id = stamp, "world"
             self.pub_corr[r].publish(corr)
@@ -403,17 +594,19 @@ class ServerNode:
 
         points, rgb, _ = self.server.team_cloud()
         self.pub_cloud.publish(cloud_to_msg(points, "world", stamp, rgb))
-        for r in self.cfg.robots:
-            poses = self.server.optimized_keyframes(r)
+        for r in self.durable.robots:
+            poses = self.server.robot_keyframes(r)
             if not poses:
                 continue
-            merged = self.server.in_world(r)
+            m = self.server.current_map(r)
+            merged = self.server.in_world(m)
+            root = self.server.robot_of(self.server.groups.root(m))
             path = self._Path()
             path.header.stamp = stamp
-            path.header.frame_id = "world" if merged else f"robot_{self.server.groups.root(r)}/map"
-            for kf, T in poses.items():
+            path.header.frame_id = "world" if merged else f"robot_{root}/map"
+            for kf, (stamp_s, T) in poses.items():
                 ps = PoseStamped(pose=pose_to_msg(T))
-                ps.header.stamp = rospy.Time.from_sec(self.server.store.stamp((r, kf)))
+                ps.header.stamp = rospy.Time.from_sec(stamp_s)
                 ps.header.frame_id = path.header.frame_id
                 ps.header.seq = kf  # the keyframe id
                 path.poses.append(ps)
@@ -433,15 +626,20 @@ class ServerNode:
             m.color = ColorRGBA(*rgba)
             return m
 
-        for robot, pos in paths.items():
+        for mid, pos in paths.items():  # per map (a robot's map segments apart)
+            robot = self.server.robot_of(mid)
             c = robot_colours([robot])[0] / 255.0
-            line = marker("paths", robot, Marker.LINE_STRIP, (*c, 1.0), 0.04 * size)
+            line = marker("paths", mid, Marker.LINE_STRIP, (*c, 1.0), 0.04 * size)
             line.points = [Point(*p) for p in pos]
             markers.markers.append(line)
-            merged = self.server.in_world(robot)
+            merged = self.server.in_world(mid)
             white = (1.0, 1.0, 1.0, 1.0)
-            label = marker("labels", robot, Marker.TEXT_VIEW_FACING, white, 0.4 * size)
+            label = marker("labels", mid, Marker.TEXT_VIEW_FACING, white, 0.4 * size)
             label.text = f"robot_{robot}" + ("" if merged else " (unmerged)")
+            if mid != robot:
+                label.text += f" segment {self.server.segments.segment_of(mid)}"
+            if not self.server.is_metric(mid):
+                label.text += " (own scale)"  # a monocular map not merged with a metric one
             label.pose.position = Point(pos[-1][0], pos[-1][1], pos[-1][2] + 0.6 * size)
             markers.markers.append(label)
         colours = {
@@ -466,13 +664,24 @@ class ServerNode:
             "ms_per_keyframe_mean": sum(ms) / len(ms) if ms else None,
             "optimize_ms_mean": sum(opt) / len(opt) if opt else None,
             "merges": len(self.server.merges),
-            "groups": self.server.groups.groups(),
+            "groups": [list(g) for g in self.server.robot_groups()],
             "loops": sum(c.type == TYPE_LOOP for c in self.server.constraints),
             "links": sum(c.type != TYPE_LOOP for c in self.server.constraints),
             "refused_constraints": self.server.rejected_constraints,
             "global_ba_runs": len(self.server.global_ba_runs),
             "verifications": self.server.verifications,
             "rejected": self.rejects.total,
+            "duplicates": self.duplicates,
+            "keyframes_stored": {str(r): n for r, n in self.durable.keyframes_stored().items()},
+            "metric": {
+                str(r): self.server.is_metric(self.server.current_map(r))
+                for r in self.durable.robots
+            },
+            "map_scale": {
+                str(r): self.server.map_scale(self.server.current_map(r))
+                for r in self.durable.robots
+            },
+            "map_file": self.durable.store.path if self.durable.store is not None else None,
         }
         self.pub_stats.publish(String(data=json.dumps(stats)))
 

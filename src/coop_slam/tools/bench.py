@@ -155,6 +155,43 @@ def bench_server() -> Iterator[Figure]:
     yield ("server_ms_per_keyframe_max", float(np.max(server.keyframe_ms)), "ms")
     yield ("server_keyframes_per_s_capacity", len(records) / wall, "1/s")
     yield ("server_merges", float(len(server.merges)), "merges")
+    yield from _bench_store(records)
+
+
+def _bench_store(records) -> Iterator[Figure]:
+    """The durable map store's cost: the same keyframes through the server with the store on and
+    off, in turn (the machine is noisy: medians of alternating runs)."""
+    import tempfile
+
+    import numpy as np
+
+    from ..bow import Vocabulary
+    from ..bow.training import ensure_default_vocabulary
+    from ..team.config import ServerConfig
+    from ..team.durable import DurableServer
+    from ..team.server import TeamServer
+
+    vocab = Vocabulary.load(ensure_default_vocabulary())
+    walls = {"off": [], "on": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(4):
+            mode = ("off", "on")[k % 2]
+            path = os.path.join(tmp, f"map{k}.db") if mode == "on" else None
+            durable = DurableServer(
+                ServerConfig(robots=[1, 2]), lambda cfg: TeamServer(cfg, vocab), path
+            )
+            t0 = time.perf_counter()
+            for rec in records:
+                durable.add_keyframe(rec)
+            walls[mode].append(1e3 * (time.perf_counter() - t0) / len(records))
+            if mode == "on":
+                size_mb = os.path.getsize(path) / 1e6
+            durable.close()
+    off, on = float(np.median(walls["off"])), float(np.median(walls["on"]))
+    yield ("server_ms_per_keyframe_store_off", off, "ms")
+    yield ("server_ms_per_keyframe_store_on", on, "ms")
+    yield ("server_store_cost", 100.0 * (on - off) / off, "%")
+    yield ("server_store_mb_per_keyframe", size_mb / len(records), "MB")
 
 
 def bench_pose_graph() -> Iterator[Figure]:

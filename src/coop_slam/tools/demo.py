@@ -58,6 +58,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     p.add_argument("--split", help="inclusive frame ranges, one robot each: 0-299,300-599")
     p.add_argument(
+        "--only-robots",
+        metavar="IDS",
+        help="run only these robots of the scenario or split, with their ids (comma-separated), "
+        "e.g. a later session: --only-robots 2 --load-map FILE",
+    )
+    p.add_argument(
         "--keep-timing",
         action="store_true",
         help="play split segments at their original times (default: all start together)",
@@ -100,6 +106,23 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="operator trigger: at T seconds into the run, tell the server (its ~rendezvous "
         "service) that robots A and B are together; repeatable",
     )
+    p.add_argument(
+        "--save-map",
+        metavar="FILE",
+        help="at the end, save the team map to FILE (the server's ~save_map) for a later session",
+    )
+    p.add_argument(
+        "--load-map",
+        metavar="FILE",
+        help="start the server from a team map saved before (--save-map): a later session",
+    )
+    p.add_argument(
+        "--faults",
+        metavar="SPEC",
+        help="fault injection: server-kill@T, client-kill:K@T (kill -9 at T s sim time, restarted "
+        "by roslaunch), drop:P (a radio relay drops a share P of the keyframe messages); "
+        "comma-separated, e.g. server-kill@25,drop:0.1",
+    )
     p.add_argument("--out", help="results folder (default: results/<date>-<source>)")
     p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
     p.add_argument(
@@ -122,6 +145,19 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error("--split needs --dataset")
     if args.bag and (args.robots is not None or args.keep_timing or args.camera or args.sensors):
         p.error("--bag: robots, timing, camera and sensors come from the bag")
+    if args.faults:
+        from .faults import FaultError, parse_faults
+
+        try:
+            parse_faults(args.faults)
+        except FaultError as exc:
+            p.error(str(exc))
+    if args.only_robots and args.bag:
+        p.error("--only-robots: a bag plays the robots it has")
+    if args.load_map and not os.path.isfile(args.load_map):
+        p.error(f"--load-map: file not found: {args.load_map}")
+    if (args.faults or args.save_map or args.load_map) and args.no_clients:
+        p.error("--faults, --save-map and --load-map need the server: drop --no-clients")
     if args.sensors:
         from ..playback import PlaybackError, parse_sensors
 
@@ -152,6 +188,9 @@ def _write_run_info(
         "keep_timing": args.keep_timing,
         "bag": os.path.abspath(args.bag) if args.bag else None,
         "robot_ids": robot_ids,
+        "only_robots": args.only_robots,
+        "load_map": os.path.abspath(args.load_map) if args.load_map else None,
+        "faults": args.faults,
         "sensors": args.sensors,
         "ground_robots": ground,
         "commit": _commit(),
@@ -367,6 +406,21 @@ class _Operator:
             say(f"      operator rendezvous {a},{b}@{t_s:g} failed: {exc}")
 
 
+def _save_map(path: str) -> str:
+    import rospy
+
+    from coop_slam.srv import SaveMap
+
+    try:
+        rospy.wait_for_service("/server/save_map", timeout=60.0)
+        res = rospy.ServiceProxy("/server/save_map", SaveMap)(path=os.path.abspath(path))
+    except (rospy.ROSException, rospy.ServiceException) as exc:
+        raise CoopSlamError(f"--save-map {path}: the server did not answer ({exc})") from exc
+    if not res.success:
+        raise CoopSlamError(f"--save-map {path}: {res.message}")
+    return res.message
+
+
 def _wait_for_master(uri: str, timeout_s: float) -> None:
     import rosgraph
 
@@ -411,13 +465,32 @@ def run(args: argparse.Namespace) -> int:
                 f"      rendering {done}/{total} frames ({100.0 * done / max(total, 1):.0f} %)"
             )
         )
-        source = load_run_source(vars(args), progress)
+        # Every robot of the source (ground truth for judging merges with loaded robots); the
+        # player plays --only-robots.
+        source = load_run_source(dict(vars(args), only_robots=None), progress)
         inputs = run_input_of(source, args.keep_timing)
         say(
             f"      {len(inputs.robot_ids)} robots, {inputs.frames} frames, data in {source.folder}"
         )
     robot_ids, total, t0, t1 = inputs.robot_ids, inputs.frames, inputs.start_s, inputs.end_s
     sensors = inputs.sensors or ["rgbd"] * len(robot_ids)
+    all_ids = robot_ids
+    if args.only_robots:
+        from ..playback import PlaybackError, parse_robot_ids
+
+        try:
+            played = parse_robot_ids(args.only_robots)
+        except PlaybackError as exc:
+            raise CoopSlamError(f"--only-robots: {exc}") from None
+        if set(played) - set(robot_ids):
+            raise CoopSlamError(f"--only-robots {args.only_robots}: the source has {robot_ids}")
+        from ..playback import build_schedule
+
+        schedule = build_schedule(
+            [st for st in source.streams if st.robot_id in played], args.keep_timing
+        )
+        robot_ids, total, t1 = played, len(schedule), schedule[-1].play_s
+        say(f"      playing robots {played} only")
     if len(set(sensors)) > 1 or sensors[0] != "rgbd":
         say(f"      cameras: {', '.join(f'robot_{r} {s}' for r, s in zip(robot_ids, sensors))}")
     for a, b, _ in args.rendezvous:
@@ -425,6 +498,9 @@ def run(args: argparse.Namespace) -> int:
             raise CoopSlamError(f"--rendezvous {a},{b}: this run has robots {robot_ids}")
     if args.rendezvous and args.no_clients:
         raise CoopSlamError("--rendezvous needs the server: drop --no-clients")
+    from .faults import kill_node, parse_faults
+
+    faults = parse_faults(args.faults or "", robot_ids)
 
     port = _free_port()
     uri = f"http://127.0.0.1:{port}"
@@ -436,11 +512,13 @@ def run(args: argparse.Namespace) -> int:
     )
     os.environ.update(ROS_MASTER_URI=uri, ROS_HOSTNAME="127.0.0.1")
     launch_args = [
-        f"robots:={len(robot_ids)}",
+        f"robots:={len(all_ids)}",
         f"sensors:={','.join(sensors)}",
         f"seed:={args.seed}",
         f"keep_timing:={str(args.keep_timing).lower()}",
     ]
+    if args.only_robots:
+        launch_args.append(f"only_robots:={','.join(map(str, robot_ids))}")
     if args.scenario:
         launch_args.append(f"scenario:={args.scenario}")
     elif args.bag:
@@ -474,9 +552,22 @@ def run(args: argparse.Namespace) -> int:
         else bool(args.scenario) and not _hand_held(args.scenario)
     )
     launch_args.append(f"ground_robots:={str(ground).lower()}")
+    map_path = os.path.join(out, "team_map.db")
+    for stale in (map_path, map_path + "-wal", map_path + "-shm"):
+        if os.path.exists(stale):  # a results folder used again: this run's map starts empty
+            os.remove(stale)
+    launch_args.append(f"map:={map_path}")
+    if args.load_map:
+        launch_args.append(f"load_map:={os.path.abspath(args.load_map)}")
+    if faults.kills:  # killed nodes come back; the server carries on from its map file
+        launch_args += ["respawn:=true", "resume:=true"]
+    if faults.drop:
+        launch_args.append(f"radio_drop:={faults.drop}")
     bag_path = os.path.join(out, "run.bag")
     launch_args.append(f"record_bag:={bag_path}")
-    launch_args.append(f"record_topics:={' '.join(RunRecorder(robot_ids).topics())}")
+    # A loaded map's robots do not run, but the server shows them: record them for the report.
+    record_ids = all_ids if args.load_map else robot_ids
+    launch_args.append(f"record_topics:={' '.join(RunRecorder(record_ids).topics())}")
     _write_run_info(out, args, robot_ids, ground, base_cam)
     rviz_config = _framed_rviz_config(out, source, inputs, base_cam) if args.record else None
     log_path = os.path.join(out, "roslaunch.log")
@@ -492,7 +583,11 @@ def run(args: argparse.Namespace) -> int:
         )
     try:
         _wait_for_master(uri, 30.0)
-        monitor = _Monitor(robot_ids, ack=args.no_clients, sensors=sensors)
+        monitor = _Monitor(
+            record_ids,
+            ack=args.no_clients,
+            sensors=[sensors[all_ids.index(r)] for r in record_ids],
+        )
         if args.record:
             recorder = subprocess.Popen(
                 [
@@ -521,6 +616,10 @@ def run(args: argparse.Namespace) -> int:
                     f"run did not finish within {args.timeout:.0f} s; see {log_path}"
                 )
             operator.poll(monitor.sim_s)
+            for kill in faults.kills:
+                if not kill.tried and monitor.sim_s - t0 >= kill.at_s:
+                    kill.tried = True
+                    say(f"      fault: {kill_node(launch.pid, kill)}")
             got = sum(r.frames for r in monitor.run.robots.values())
             elapsed = min(max(monitor.sim_s - t0, 0.0), t1 - t0)
             line = (
@@ -534,6 +633,8 @@ def run(args: argparse.Namespace) -> int:
                 print(line, flush=True)
             time.sleep(0.5)
         time.sleep(args.settle)  # let clients and server finish the last keyframes
+        if args.save_map:
+            say(f"      saving the team map: {_save_map(args.save_map)}")
         if recorder is not None:
             say("      stopping the recording (final picture of the map)")
             os.killpg(recorder.pid, signal.SIGINT)
@@ -558,11 +659,23 @@ def run(args: argparse.Namespace) -> int:
     run_data = monitor.run
     if os.path.isfile(bag_path):  # what the system published, as recorded
         say(f"      from the recorded bag {bag_path}")
-        run_data = run_data_from_bag(bag_path, robot_ids)
+        run_data = run_data_from_bag(bag_path, record_ids)
     else:
         say("      WARNING: no bag was recorded; evaluating what this process received")
     run_data.duration_s = monitor.run.duration_s
-    report, json_path, md_path, ply = evaluate_results(out, run_data, inputs.gts, inputs.overlap)
+    report, json_path, md_path, ply = evaluate_results(
+        out,
+        run_data,
+        {r: inputs.gts[r] for r in record_ids},
+        inputs.overlap,
+        extra={"faults": faults.summary()} if faults.any else None,
+    )
+    for entry in report["robots"]:
+        if entry.get("keyframes_lost"):
+            say(
+                f"      WARNING: robot_{entry['id']}: {entry['keyframes_lost']} of "
+                f"{entry['keyframes_sent']} keyframes sent never reached the map"
+            )
     traj_dir = os.path.join(out, "trajectories")
     say(f"done in {time.monotonic() - t_start:.0f} s")
     say(f"report:       {json_path}")

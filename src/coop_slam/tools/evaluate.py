@@ -36,11 +36,16 @@ def main(argv=None) -> int:
         if info.get("bag"):  # the run played a sensor bag: ground truth (if any) is in it
             inputs = read_bag_input(info["bag"])
         else:
-            inputs = run_input_of(load_run_source(info), bool(info.get("keep_timing")))
+            # A later session (load_map) is judged with the loaded robots too.
+            options = dict(info, only_robots=None) if info.get("load_map") else info
+            inputs = run_input_of(load_run_source(options), bool(info.get("keep_timing")))
         print(f"[evaluate] reading {bag}", flush=True)
         run = run_data_from_bag(bag, inputs.robot_ids)
         run.duration_s = inputs.end_s - inputs.start_s
-        _, json_path, md_path, ply = evaluate_results(args.results, run, inputs.gts, inputs.overlap)
+        faults = {"faults": {"spec": info["faults"]}} if info.get("faults") else None
+        _, json_path, md_path, ply = evaluate_results(
+            args.results, run, inputs.gts, inputs.overlap, extra=faults
+        )
     except (CoopSlamError, OSError, ValueError) as exc:
         print(f"[evaluate] ERROR: {exc}", file=sys.stderr)
         return 2

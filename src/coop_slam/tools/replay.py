@@ -43,10 +43,15 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
     from ..geometry import invert, se3_from_quat
     from ..keyframe_record import ACTION_REMOVE
     from ..ros.convert import MessageError, keyframe_from_msg, pose_from_msg
+    from ..team.durable import DurableServer
     from ..team.server import TeamServer
 
     cfg = _server_config(config_path, info, overrides or {})
-    server = TeamServer(cfg, Vocabulary.load(ensure_default_vocabulary()))
+    vocab = Vocabulary.load(ensure_default_vocabulary())
+    # Messages as the server node takes them: each client message once, in order (a run with
+    # faults holds messages sent again).
+    durable = DurableServer(cfg, lambda c: TeamServer(c, vocab), None)
+    server = durable.server
     base_cam = info.get("T_base_cam") or []
     T_body_cam = invert(se3_from_quat(base_cam[:3], base_cam[3:])) if base_cam else None
     topics = [f"/robot_{r}/keyframes" for r in cfg.robots] + ["/robot_sightings"]
@@ -72,7 +77,10 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
                 rec = keyframe_from_msg(msg, known_robots=server.known_robots)
                 if rec.action != ACTION_REMOVE:  # a removal carries no stamp
                     stamps.setdefault((rec.robot_id, rec.keyframe_id), rec.stamp_s)
-                server.add_keyframe(rec)
+                taken = durable.add_keyframe(
+                    rec, getattr(msg, "session", 0), getattr(msg, "sequence", 0)
+                )
+                rejected += len(taken.rejected or [])
             except CoopSlamError:
                 rejected += 1
     return server, summary(server, rejected), stamps
@@ -98,7 +106,7 @@ def summary(server, rejected: int = 0) -> dict:
         ],
         "refused_constraints": server.rejected_constraints,
         "verifications": server.verifications,
-        "groups": server.groups.groups(),
+        "groups": [list(g) for g in server.robot_groups()],
         "rejected": rejected,
         "keyframes": len(server.store),
         "positions_mm": {},

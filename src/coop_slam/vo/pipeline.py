@@ -105,6 +105,9 @@ class VisualOdometry:
         self._mapper = LocalMapper(self.config, self._sensor, lambda: self._map, self._emit)
         self._clear_tracking()
         self._last_stamp: float | None = None
+        # The frame that reset the map after a jump back in time; until time moves forward from
+        # it, older frames are dropped rather than reset the map again (one reset per jump).
+        self._jumped_to: float | None = None
         self.frames_processed = 0
         self._ignored: list[tuple[np.ndarray, float]] = []  # (corners_map (N, 3), until [s])
 
@@ -127,12 +130,18 @@ class VisualOdometry:
         if self._last_stamp is not None and stamp_s == self._last_stamp:
             raise VoError(f"duplicate timestamp {stamp_s:.6f} s: frame ignored")
         if self._last_stamp is not None and stamp_s < self._last_stamp:
+            if self._jumped_to == self._last_stamp:
+                raise VoError(
+                    f"timestamp {stamp_s:.6f} s is before {self._last_stamp:.6f} s, where time "
+                    "jumped back and the map was reset: frame ignored"
+                )
             msg = (
                 f"timestamp {stamp_s:.6f} s is not after the previous "
                 f"{self._last_stamp:.6f} s: map reset"
             )
             self._emit(VoEvent(EVENT_WARNING, self.map_segment, message=msg))
             self.reset()
+            self._jumped_to = stamp_s
         self._frame_dt_s = stamp_s - self._last_stamp if self._last_stamp is not None else 0.0
         self._last_stamp = stamp_s
         self.frames_processed += 1

@@ -1,0 +1,259 @@
+"""The server core made durable: every input it takes is committed to the map store (one
+transaction: the logged input, the derived tables, the acknowledgement) before it is
+acknowledged, each robot's keyframe messages are taken in order exactly once (see
+:mod:`coop_slam.delivery`), and a server started on an existing map file rebuilds the team state
+from it and carries on (``resume``), or starts from a saved map of an earlier session
+(``load``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from ..delivery import UNSEQUENCED, InOrder
+from ..errors import CoopSlamError
+from ..keyframe_record import KeyframeRecord
+from .config import ServerConfig
+from .map_store import (
+    KIND_GLOBAL_BA,
+    KIND_RENDEZVOUS,
+    KIND_SIGHTING,
+    MapStore,
+    MapStoreError,
+    RebuildReport,
+    collision_free_ids,
+    rebuild,
+)
+from .results import MergeResult
+
+log = logging.getLogger(__name__)
+
+
+def _has_inputs(path: str) -> bool:
+    """A map file with something in it (a file created and left empty counts as new)."""
+    if not os.path.exists(path) or not os.path.getsize(path):
+        return False
+    store = MapStore(path)
+    try:
+        return store.count_inputs() > 0
+    finally:
+        store.close()
+
+
+@dataclass
+class Taken:
+    """What became of one arriving keyframe message."""
+
+    merges: list[MergeResult]
+    taken: int = 0  # messages taken now (held ones included)
+    duplicate: bool = False
+    held: bool = False
+    stale: bool = False
+    rejected: list[str] | None = None  # reasons of messages the core refused
+
+
+class DurableServer:
+    """A :class:`TeamServer` whose accepted input is in a :class:`MapStore` first."""
+
+    def __init__(
+        self,
+        config: ServerConfig,
+        make_server: Callable[[ServerConfig], object],
+        store_path: str | None,
+        resume: bool = False,
+        load_path: str | None = None,
+        vocabulary_sha256: str = "",
+        progress: Callable[[int, int], None] | None = None,
+    ):
+        self.rebuilt: RebuildReport | None = None
+        self.loaded: RebuildReport | None = None
+        robots = list(config.robots)
+        source_resume = None
+        if store_path and resume and _has_inputs(store_path):
+            source_resume = MapStore(store_path)
+            robots = sorted(set(robots) | set(source_resume.robots))
+        elif store_path and _has_inputs(store_path):
+            raise MapStoreError(
+                f"map file {store_path} exists: resume from it (resume:=true), or give another "
+                "file (map:=...)"
+            )
+        source_load, remap = None, {}
+        if load_path:
+            if not os.path.isfile(load_path):
+                raise MapStoreError(f"map to load not found: {load_path}")
+            if source_resume is not None:
+                raise MapStoreError(
+                    "resume and load_map together: a resumed map already holds what was loaded"
+                )
+            source_load = MapStore(load_path)
+            remap = collision_free_ids(source_load.robots, robots)
+            robots = sorted(set(robots) | {remap.get(r, r) for r in source_load.robots})
+        config.robots = robots
+        self.server = make_server(config)
+        self.order = {r: InOrder() for r in robots}
+        if source_resume is not None:
+            self.store = source_resume
+            self.store.set_robots(robots)
+            self.rebuilt = rebuild(self.store, self.server, progress=progress)
+            for r, (session, seq) in self.store.acks().items():
+                if r in self.order:
+                    self.order[r].session, self.order[r].last = session, seq
+        elif store_path:
+            self.store = MapStore(store_path, robots, vocabulary_sha256)
+            self.store.set_robots(robots)  # a file created before and left empty
+        else:
+            self.store = None
+        if source_load is not None:
+            if remap:
+                log.warning(
+                    "loaded map: robot ids %s are running now; the loaded robots are %s here",
+                    sorted(remap),
+                    ", ".join(f"{a} -> {b}" for a, b in sorted(remap.items())),
+                )
+            self.loaded = rebuild(source_load, self.server, self.store, remap, progress)
+            source_load.close()
+
+    @property
+    def robots(self) -> list[int]:
+        return sorted(self.server.known_robots)
+
+    def acknowledged(self, robot_id: int) -> tuple[int, int]:
+        """(session, highest sequence stored) of a robot's client."""
+        o = self.order[robot_id]
+        return o.session, o.last
+
+    def last_ids(self) -> dict[int, tuple[int, int]]:
+        """robot -> (highest keyframe id, highest map segment) stored: a restarted client goes
+        on above them."""
+        return self.store.last_ids() if self.store is not None else {}
+
+    def keyframes_stored(self) -> dict[int, int]:
+        """robot -> keyframes taken (culled ones included): in the map file, else in memory."""
+        if self.store is not None:
+            return self.store.keyframes_logged()
+        return {
+            r: sum(len(self.server.store.keyframe_ids(m)) for m in self.server.segments.maps_of(r))
+            for r in self.robots
+        }
+
+    # --- inputs ---------------------------------------------------------------------------------
+    def add_keyframe(
+        self, rec: KeyframeRecord, session: int = UNSEQUENCED, sequence: int = 0
+    ) -> Taken:
+        order = self.order.get(rec.robot_id)
+        if order is None:
+            rec.validate(self.server.known_robots)  # names the robots the server knows
+            raise MapStoreError(f"robot {rec.robot_id} is unknown to the server")
+        v = order.arrive(session, sequence, (rec, sequence))
+        out = Taken([], duplicate=v.duplicate, held=v.held, stale=v.stale)
+        for item, seq in v.take:
+            try:
+                out.merges += self._take(lambda r=item: self.server.add_keyframe(r), item, seq)
+            except CoopSlamError as exc:
+                out.rejected = (out.rejected or []) + [str(exc)]
+            out.taken += 1
+        return out
+
+    def _take(self, apply, rec: KeyframeRecord, sequence: int):
+        """Apply one input and commit it (with the acknowledgement) in one transaction. A message
+        the core refuses is not logged, but acknowledged (sending it again changes nothing)."""
+        order = self.order[rec.robot_id]
+        if self.store is None:
+            try:
+                return apply()
+            finally:
+                if order.session != UNSEQUENCED:
+                    order.taken(sequence)
+        self.store.begin()
+        logged = False
+        try:
+            merges = apply()
+            self.store.log_keyframe(rec)
+            logged = True
+            moved = bool(merges) or self.server.map_moved
+            mid = self.server.segments.find(rec.robot_id, rec.map_segment)
+            self.store.write_state(self.server, None if moved else [(mid, rec.keyframe_id)])
+            return merges
+        except CoopSlamError:
+            raise
+        except Exception:
+            # The core failed part-way: its state may have changed, so the input is logged all
+            # the same (a rebuild repeats the same failure and reaches the same state).
+            if not logged:
+                self.store.log_keyframe(rec)
+            raise
+        finally:
+            if order.session != UNSEQUENCED:
+                order.taken(sequence)
+                self.store.set_ack(rec.robot_id, order.session, order.last)
+            self.store.commit()
+
+    def _call(self, kind: str, apply, **args):
+        if self.store is None:
+            return apply()
+        self.store.begin()
+        try:
+            return apply()
+        finally:
+            self.store.log_call(kind, **args)
+            self.store.write_state(self.server)
+            self.store.commit()
+
+    def sighting(self, observer, observed, stamp_s, T_camA_bodyB=None, T_body_cam=None):
+        return self._call(
+            KIND_SIGHTING,
+            lambda: self.server.sighting(observer, observed, stamp_s, T_camA_bodyB, T_body_cam),
+            robot_a=observer,
+            robot_b=observed,
+            stamp_s=stamp_s,
+            T_camA_bodyB=T_camA_bodyB,
+            T_body_cam=T_body_cam,
+        )
+
+    def request_rendezvous(
+        self, robot_a, robot_b, stamp_s=None, T_camA_bodyB=None, T_body_cam=None
+    ):
+        return self._call(
+            KIND_RENDEZVOUS,
+            lambda: self.server.request_rendezvous(
+                robot_a, robot_b, stamp_s, T_camA_bodyB, T_body_cam
+            ),
+            robot_a=robot_a,
+            robot_b=robot_b,
+            stamp_s=stamp_s,
+            T_camA_bodyB=T_camA_bodyB,
+            T_body_cam=T_body_cam,
+        )
+
+    def global_bundle_adjustment(self, robot_id: int | None = None):
+        return self._call(
+            KIND_GLOBAL_BA,
+            lambda: self.server.global_bundle_adjustment(robot_id),
+            robot_id=robot_id,
+        )
+
+    def save(self, path: str) -> str:
+        if self.store is None:
+            raise MapStoreError("the server keeps no map file (map:= empty): nothing to save")
+        self.store.save_copy(path)
+        return os.path.abspath(path)
+
+    def close(self) -> None:
+        if self.store is not None:
+            self.store.close()
+
+
+def poses_equal(a, b, tol_m: float = 1e-9) -> bool:
+    """Two servers' optimized keyframe poses are the same (robots, keyframes and positions)."""
+    for r in set(a.groups.robots) | set(b.groups.robots):  # map ids
+        pa, pb = a.optimized_keyframes(r), b.optimized_keyframes(r)
+        if pa.keys() != pb.keys():
+            return False
+        if any(np.abs(pa[k] - pb[k]).max() > tol_m for k in pa):
+            return False
+    return True

@@ -1,0 +1,220 @@
+"""The durable team map: the store's round trip, resume after a crash at any point, save/load
+into a later session, and in-order exactly-once delivery of keyframe messages."""
+
+import os
+import sqlite3
+
+import numpy as np
+import pytest
+
+from coop_slam.delivery import InOrder, Outbox
+from coop_slam.keyframe_record import KeyframeError
+from coop_slam.team.config import ServerConfig
+from coop_slam.team.durable import DurableServer, poses_equal
+from coop_slam.team.map_store import MapStore, MapStoreError, decode_record, encode_record
+from coop_slam.team.server import TeamServer
+from helpers import cylinder_world, make_keyframe, team_keyframes, team_vocabulary
+
+
+@pytest.fixture(scope="module")
+def team():
+    points, desc = cylinder_world(seed=3)
+    a = team_keyframes(1, np.linspace(0, 2 * np.pi, 24, endpoint=False), points, desc)
+    b = team_keyframes(
+        2, np.linspace(2.0, 3.0, 6), points, desc, offset=(0.2, 0.1), seed=100, t0=100.0
+    )
+    return a, b, team_vocabulary(a)
+
+
+def _config(robots):
+    cfg = ServerConfig(robots=list(robots))
+    cfg.global_ba.disparity_sigma_px = 0.05
+    return cfg
+
+
+def _durable(vocab, path, robots=(1, 2), **kw):
+    return DurableServer(_config(robots), lambda c: TeamServer(c, vocab), path, **kw)
+
+
+def _stream(kfs_a, kfs_b):
+    """(record, session, sequence) as two clients send them, robot 1 first."""
+    out = [(kf, 11, i + 1) for i, kf in enumerate(kfs_a)]
+    return out + [(kf, 22, i + 1) for i, kf in enumerate(kfs_b)]
+
+
+def test_record_round_trip():
+    rec = make_keyframe(n=40, robot_id=3, keyframe_id=7)
+    back = decode_record(encode_record(rec))
+    assert (back.robot_id, back.keyframe_id, back.stamp_s) == (3, 7, rec.stamp_s)
+    assert back.camera == rec.camera
+    np.testing.assert_array_equal(back.T_map_cam, rec.T_map_cam)
+    for name in ("keypoints", "descriptors", "depths_m", "map_point_ids", "map_points"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(rec, name))
+        assert getattr(back, name).dtype == getattr(rec, name).dtype
+    with pytest.raises(MapStoreError, match="corrupt"):
+        decode_record(b"not a record")
+
+
+def test_an_update_is_stored_without_what_the_keyframe_saw(tmp_path):
+    import dataclasses
+
+    from coop_slam.keyframe_record import ACTION_UPDATE
+
+    store = MapStore(str(tmp_path / "m.db"), [3])
+    new = make_keyframe(n=200, robot_id=3, keyframe_id=7)
+    moved = dataclasses.replace(new, action=ACTION_UPDATE, T_map_cam=new.T_map_cam.copy())
+    moved.T_map_cam[:3, 3] += 0.1
+    store.begin()
+    store.log_keyframe(new)
+    store.log_keyframe(moved)
+    store.commit()
+    sizes = [n for (n,) in store.db.execute("SELECT length(payload) FROM inputs ORDER BY seq")]
+    assert sizes[1] < sizes[0] / 3
+    first, second = (item.record for item in store.inputs())
+    np.testing.assert_array_equal(second.T_map_cam, moved.T_map_cam)
+    np.testing.assert_array_equal(second.descriptors, new.descriptors)
+    np.testing.assert_array_equal(second.keypoints, new.keypoints)
+    assert second.action == ACTION_UPDATE and first.action == new.action
+
+
+def test_resume_after_a_crash_at_any_point_equals_an_uninterrupted_server(team, tmp_path):
+    kfs_a, kfs_b, vocab = team
+    stream = _stream(kfs_a, kfs_b)
+    whole = _durable(vocab, str(tmp_path / "whole.db"))
+    for rec, session, seq in stream:
+        whole.add_keyframe(rec, session, seq)
+    assert whole.server.merges and whole.server.groups.groups() == [[1, 2]]
+    rng = np.random.default_rng(5)
+    for crash_at in sorted(rng.choice(np.arange(3, len(stream) - 1), 2, replace=False)):
+        path = str(tmp_path / f"crash{crash_at}.db")
+        first = _durable(vocab, path)
+        for rec, session, seq in stream[:crash_at]:
+            first.add_keyframe(rec, session, seq)
+        del first  # a kill -9: nothing closed, nothing flushed beyond the commits
+        resumed = _durable(vocab, path, resume=True)
+        assert resumed.rebuilt.inputs == crash_at and resumed.rebuilt.max_pose_diff_m < 1e-9
+        # The clients send again what was not acknowledged (and a bit more): duplicates.
+        acked = {r: resumed.acknowledged(r)[1] for r in (1, 2)}
+        for rec, session, seq in stream[max(0, crash_at - 3) :]:
+            out = resumed.add_keyframe(rec, session, seq)
+            assert out.duplicate == (seq <= acked[rec.robot_id])
+        assert poses_equal(resumed.server, whole.server)
+        assert [(m.robot_a, m.robot_b, m.keyframe_b) for m in resumed.server.merges] == [
+            (m.robot_a, m.robot_b, m.keyframe_b) for m in whole.server.merges
+        ]
+        resumed.close()
+    whole.close()
+
+
+def test_gaps_are_held_until_sent_again(team, tmp_path):
+    kfs_a, _, vocab = team
+    server = _durable(vocab, str(tmp_path / "gaps.db"), robots=(1,))
+    out = server.add_keyframe(kfs_a[0], 5, 1)
+    assert out.taken == 1
+    assert server.add_keyframe(kfs_a[2], 5, 3).held  # 2 was lost on the way
+    assert server.acknowledged(1) == (5, 1)
+    out = server.add_keyframe(kfs_a[1], 5, 2)  # sent again
+    assert out.taken == 2 and server.acknowledged(1) == (5, 3)
+    assert server.server.store.keyframe_ids(1) == [1, 2, 3]
+    stored = MapStore(str(tmp_path / "gaps.db"))
+    assert stored.acks() == {1: (5, 3)} and stored.count_inputs() == 3
+
+
+def test_a_refused_message_is_acknowledged_and_not_stored(team, tmp_path):
+    kfs_a, _, vocab = team
+    server = _durable(vocab, str(tmp_path / "refused.db"), robots=(1,))
+    server.add_keyframe(kfs_a[0], 5, 1)
+    out = server.add_keyframe(kfs_a[0], 5, 2)  # the same keyframe as new again
+    assert out.rejected and "already received" in out.rejected[0]
+    assert server.acknowledged(1) == (5, 2) and server.store.count_inputs() == 1
+    with pytest.raises(KeyframeError, match="unknown"):
+        server.add_keyframe(make_keyframe(robot_id=4), 5, 3)
+
+
+def test_save_and_load_into_a_later_session(team, tmp_path):
+    kfs_a, kfs_b, vocab = team
+    first = _durable(vocab, str(tmp_path / "day1.db"), robots=(1,))
+    for i, kf in enumerate(kfs_a):
+        first.add_keyframe(kf, 3, i + 1)
+    saved = first.save(str(tmp_path / "kitchen.map"))
+    with pytest.raises(MapStoreError, match="own live file"):
+        first.save(str(tmp_path / "day1.db"))
+    # Day 2: only robot 2 runs; the loaded robot 1 keeps its id, world frame and poses.
+    second = _durable(vocab, str(tmp_path / "day2.db"), robots=(2,), load_path=saved)
+    assert second.robots == [1, 2] and second.loaded.remapped == {}
+    assert poses_equal(second.server, first.server)
+    merges = []
+    for i, kf in enumerate(kfs_b):
+        merges += second.add_keyframe(kf, 9, i + 1).merges
+    assert [(m.robot_a, m.robot_b) for m in merges] == [(1, 2)]
+    # The new map file holds both sessions: it resumes alone.
+    second.close()
+    again = _durable(vocab, str(tmp_path / "day2.db"), robots=(2,), resume=True)
+    assert again.robots == [1, 2] and again.server.groups.groups() == [[1, 2]]
+
+
+def test_loaded_robot_ids_do_not_collide_with_running_ones(team, tmp_path):
+    kfs_a, _, vocab = team
+    first = _durable(vocab, str(tmp_path / "day1.db"), robots=(1,))
+    for i, kf in enumerate(kfs_a[:6]):
+        first.add_keyframe(kf, 3, i + 1)
+    saved = first.save(str(tmp_path / "old.map"))
+    second = _durable(vocab, None, robots=(1,), load_path=saved)
+    assert second.loaded.remapped == {1: 2} and second.robots == [1, 2]
+    assert second.server.store.keyframe_ids(2) == [1, 2, 3, 4, 5, 6]
+    assert second.server.store.keyframe_ids(1) == []
+
+
+def test_bad_map_files_are_named(team, tmp_path):
+    _, _, vocab = team
+    junk = tmp_path / "junk.db"
+    junk.write_bytes(b"this is no database" * 100)
+    with pytest.raises(MapStoreError, match="not a coop_slam map"):
+        MapStore(str(junk))
+    other = tmp_path / "other.db"
+    sqlite3.connect(str(other)).execute("CREATE TABLE t (x)").connection.commit()
+    with pytest.raises(MapStoreError, match="not a coop_slam map"):
+        MapStore(str(other))
+    newer = MapStore(str(tmp_path / "newer.db"), [1])
+    newer.db.execute("UPDATE meta SET value='99' WHERE key='schema_version'")
+    newer.close()
+    with pytest.raises(MapStoreError, match="schema 99"):
+        MapStore(str(tmp_path / "newer.db"))
+    existing = MapStore(str(tmp_path / "existing.db"), [1])
+    existing.begin()
+    existing.log_keyframe(make_keyframe())
+    existing.commit()
+    existing.close()
+    with pytest.raises(MapStoreError, match="resume"):
+        _durable(vocab, str(tmp_path / "existing.db"))
+    with pytest.raises(MapStoreError, match="not found"):
+        _durable(vocab, None, load_path=str(tmp_path / "missing.map"))
+    with pytest.raises(MapStoreError, match="does not exist"):
+        MapStore(os.path.join(str(tmp_path), "no", "such", "folder.db"))
+
+
+def test_in_order_takes_each_message_once():
+    o = InOrder(max_held=2)
+    assert o.arrive(7, 1, "a").take == ["a"]
+    o.taken(1)
+    assert o.arrive(7, 1, "a").duplicate
+    assert o.arrive(7, 3, "c").held and o.arrive(7, 4, "d").held
+    assert not o.arrive(7, 5, "e").held and o.held == 2  # the bound: sent again later
+    assert o.arrive(7, 2, "b").take == ["b", "c", "d"]
+    assert o.arrive(6, 9, "old").stale
+    assert o.arrive(8, 1, "new").take == ["new"]  # a restarted client
+    assert o.arrive(0, 0, "bag").take == ["bag"]
+
+
+def test_outbox_sends_again_what_is_not_acknowledged():
+    box = Outbox(max_unacked=3, resend_after_s=1.0)
+    seqs = [box.add(m)[1] for m in "abc"]
+    assert seqs == [1, 2, 3] and box.due(now=0.0) == []
+    assert box.ack(box.session, 1) == 1 and box.ack(box.session + 1, 3) == 0
+    import time
+
+    assert box.due(now=time.monotonic() + 2.0) == ["b", "c"] and box.resent == 2
+    *_, overflow = box.add("d")
+    assert not overflow
+    *_, overflow = box.add("e")
+    assert overflow and box.dropped == 1 and box.unacked == 3
