@@ -108,3 +108,53 @@ def test_ate_with_scale_correction_recovers_the_scale():
     res = ate(stamps, poses_est, stamps, poses_gt, correct_scale=True)
     assert res.rmse_m < 1e-6 and res.scale == pytest.approx(1 / UNITS_PER_M)
     assert ate(stamps, poses_est, stamps, poses_gt).rmse_m > 0.1
+
+
+# --- a marker sighting gives a monocular map its scale ----------------------------------------
+def test_marker_scale_estimate_with_a_moving_or_standing_observed_robot():
+    from coop_slam.geometry import se3_from_quat
+    from coop_slam.team.marker_scale import estimate_scale
+
+    rng = np.random.default_rng(0)
+    n, s_true = 10, 1 / UNITS_PER_M
+    T_A_B = se3_from_quat([1.0, -2.0, 0.3], [0, 0, 0.3, 1.0])
+    c_m = np.c_[np.linspace(0, 2, n), 0.3 * np.sin(np.linspace(0, 3, n)), np.zeros(n)]
+    for b in (
+        np.c_[np.linspace(3, 3.5, n), np.linspace(0, 1, n), np.zeros(n)],  # moving
+        np.tile([[3.0, 0.5, 0.0]], (n, 1)),  # standing
+    ):
+        q = (T_A_B[:3, :3] @ b.T).T + T_A_B[:3, 3] - c_m + rng.normal(0, 0.005, (n, 3))
+        scale, rms = estimate_scale(c_m / s_true, q, b)
+        assert scale == pytest.approx(s_true, rel=0.02) and rms < 0.02
+
+
+def test_sightings_of_a_metric_robots_marker_fix_a_monocular_maps_scale(world):
+    """Robot 2 (monocular) drives along a wall while it sights robot 1's marker: the server gives
+    its map metres without any feature match between the two."""
+    from coop_slam.geometry import se3_from_quat
+    from helpers import make_keyframe
+
+    _, _, _, vocab = world
+    server = TeamServer(_config(), vocab)
+    T_body_cam = se3_from_quat([0.1, 0.0, 0.3], [-0.5, 0.5, -0.5, 0.5])
+    T_world_map = {1: TEAM_T_WORLD_MAP[1], 2: TEAM_T_WORLD_MAP[2]}
+    poses = {}  # robot -> (stamps, T_map_cam metric)
+    for robot, path in (
+        (1, lambda t: [0.2 * t, 1.0, 0.0]),  # robot 1 creeps along
+        (2, lambda t: [0.3 * t, -1.0 + 0.05 * t, 0.0]),  # robot 2 drives past it
+    ):
+        stamps = np.arange(0.0, 10.0, 0.5)
+        T = [se3_from_quat(path(t), [0.0, 0.0, 0.05 * t, 1.0]) for t in stamps]
+        poses[robot] = (stamps, T)
+        for k, (t, T_map_cam) in enumerate(zip(stamps, T)):
+            kf = make_keyframe(n=60, robot_id=robot, keyframe_id=k + 1, seed=100 * robot + k)
+            kf.stamp_s, kf.T_map_cam = float(t), T_map_cam.copy()
+            server.add_keyframe(as_monocular(kf, UNITS_PER_M) if robot == 2 else kf)
+    assert not server.is_metric(2)
+    for k, t in enumerate(poses[2][0]):
+        T_world_camA = T_world_map[2] @ poses[2][1][k]
+        T_world_bodyB = T_world_map[1] @ poses[1][1][k] @ invert(T_body_cam)
+        T_camA_bodyB = invert(T_world_camA) @ T_world_bodyB
+        server.sighting(2, 1, float(t), T_camA_bodyB, T_body_cam)
+    assert server.is_metric(2) and server.groups.groups() == [[1], [2]]
+    assert server.map_scale(2) == pytest.approx(1 / UNITS_PER_M, rel=0.02)

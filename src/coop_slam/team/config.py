@@ -13,6 +13,7 @@ from ..config import require
 from ..registration.relative_pose import RegistrationConfig
 from .global_ba import GlobalBaConfig
 from .map_scale import MapScaleConfig
+from .marker_scale import MarkerScaleConfig
 from .overlap_links import OverlapLinkConfig
 from .pose_graph import PoseGraphConfig
 
@@ -138,6 +139,7 @@ class ServerConfig:
     global_ba: GlobalBaConfig = field(default_factory=GlobalBaConfig)
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     map_scale: MapScaleConfig = field(default_factory=MapScaleConfig)
+    marker_scale: MarkerScaleConfig = field(default_factory=MarkerScaleConfig)
     optimize_every: int = 5  # incremental (iSAM2) update every N keyframes; full after each merge
     cloud_voxel_m: float = 0.05  # voxel size of the stitched team cloud [m]
     fuse_radius_m: float = 0.03  # points of different robots closer than this become one [m]
@@ -157,3 +159,4 @@ class ServerConfig:
         self.links.validate()
         self.global_ba.validate()
         self.map_scale.validate()
+        self.marker_scale.validate()

@@ -122,6 +122,7 @@ class MapScales:
         self.config = config
         self.groups = groups
         self._mono: set[int] = set()
+        self._metric: set[int] = set()  # monocular maps given metres by other means (markers)
         self._scale: dict[int, float] = {}
         self._link_scales: dict[int, list[float]] = {}  # robot -> log scale corrections
 
@@ -136,7 +137,11 @@ class MapScales:
     def is_metric(self, robot_id: int) -> bool:
         """Whether the robot's map is in metres in the team map: it, or a robot of its group, has
         a camera with depth. Robots not heard from yet count as metric."""
-        return any(r not in self._mono for r in self.groups.members(robot_id))
+        return any(r not in self._mono or r in self._metric for r in self.groups.members(robot_id))
+
+    def mark_metric(self, robot_id: int) -> None:
+        """The robot's map was put in metres without a merge (a marker's scale)."""
+        self._metric.add(robot_id)
 
     def scale(self, robot_id: int) -> float:
         """``s_stored_own``: the robot's own map lengths times this are the server's."""
