@@ -47,6 +47,38 @@ def test_keyframe_round_trip_over_the_wire():
     assert back.stamp_s == pytest.approx(kf.stamp_s)
 
 
+def _size(msg) -> int:
+    import io
+
+    buf = io.BytesIO()
+    msg.serialize(buf)
+    return len(buf.getvalue())
+
+
+def test_a_delta_update_rebuilds_the_same_keyframe_as_a_full_one():
+    import dataclasses
+
+    from coop_slam.keyframe_record import ACTION_UPDATE
+
+    new = make_keyframe(n=60, robot_id=2, keyframe_id=9)
+    upd = dataclasses.replace(new, action=ACTION_UPDATE, T_map_cam=new.T_map_cam.copy())
+    upd.T_map_cam[:3, 3] += [0.1, 0.0, -0.05]
+    upd.map_points = upd.map_points + np.float32(0.01)
+    assert upd.static_digest() == new.static_digest()
+    full_msg, delta_msg = (_wire(keyframe_to_msg(upd, "robot_2/map", d)) for d in (False, True))
+    assert _size(delta_msg) < _size(full_msg) / 3
+    full = keyframe_from_msg(full_msg, {1, 2})
+    delta = keyframe_from_msg(delta_msg, {1, 2}, base=new)
+    for name in ("T_map_cam", "keypoints", "octaves", "descriptors", "depths_m", "map_points"):
+        np.testing.assert_array_equal(getattr(delta, name), getattr(full, name))
+    assert delta.static_digest() == full.static_digest() and delta.action == ACTION_UPDATE
+    with pytest.raises(MessageError, match="does not hold"):
+        keyframe_from_msg(delta_msg, {1, 2})
+    delta_msg.action = delta_msg.ACTION_NEW
+    with pytest.raises(MessageError, match="only an update"):
+        keyframe_from_msg(delta_msg, {1, 2}, base=new)
+
+
 def _remove_with_200k_keypoints(msg):
     msg.action = msg.ACTION_REMOVE
     msg.keypoints = [1.0] * (4 * 200_000)

@@ -8,6 +8,7 @@ node rejects bad input the same way and nothing malformed or absurd reaches a ma
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -18,6 +19,7 @@ from .errors import CoopSlamError
 from .geometry import GeometryError, check_se3
 
 ACTION_NEW, ACTION_UPDATE, ACTION_REMOVE = 0, 1, 2
+STATIC_ARRAYS = ("keypoints", "octaves", "descriptors", "depths_m")  # see static_digest
 
 # Physical bounds of a keyframe. Values beyond them are finite yet absurd (a corrupted or hostile
 # message): accepted, they poison the team map for the rest of the run (a focal length of 1e-300
@@ -65,6 +67,17 @@ class KeyframeRecord:
     covisible_weights: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint16))
     map_segment: int = 0
     action: int = ACTION_NEW
+
+    def static_digest(self) -> bytes:
+        """Digest of what the keyframe saw (keypoints, octaves, descriptors, depths), which an
+        update after local BA does not change: equal digests need not travel or be stored
+        again."""
+        h = hashlib.blake2b(digest_size=16)
+        for name in STATIC_ARRAYS:
+            a = np.ascontiguousarray(getattr(self, name))
+            h.update(f"{a.dtype.str}{a.shape}".encode())
+            h.update(a.tobytes())
+        return h.digest()
 
     @property
     def num_keypoints(self) -> int:

@@ -14,7 +14,13 @@ from sensor_msgs.msg import CameraInfo, Image
 from ..datasets.base import SENSORS, CameraModel, DatasetError
 from ..errors import CoopSlamError
 from ..geometry import GeometryError, quat_from_se3, se3_from_quat
-from ..keyframe_record import MAX_POSITION_M, KeyframeError, KeyframeRecord, camera_from_fields
+from ..keyframe_record import (
+    ACTION_UPDATE,
+    MAX_POSITION_M,
+    KeyframeError,
+    KeyframeRecord,
+    camera_from_fields,
+)
 
 
 class MessageError(CoopSlamError):
@@ -203,7 +209,9 @@ def camera_from_info(
 
 
 # --- keyframes ------------------------------------------------------------------------------------
-def keyframe_to_msg(kf: KeyframeRecord, frame_id: str):
+def keyframe_to_msg(kf: KeyframeRecord, frame_id: str, delta: bool = False):
+    """The KeyFrame message of a record; ``delta`` (an update): without keypoints, octaves,
+    descriptors and depths, which the server has from the keyframe's first message."""
     from coop_slam.msg import CameraModel as CameraModelMsg
     from coop_slam.msg import KeyFrame
 
@@ -226,10 +234,12 @@ def keyframe_to_msg(kf: KeyframeRecord, frame_id: str):
         baseline_m=cam.baseline_m,
     )
     msg.pose = pose_to_msg(kf.T_map_cam)
-    msg.keypoints = np.asarray(kf.keypoints, np.float32).ravel().tolist()
-    msg.octaves = np.asarray(kf.octaves, np.uint8).tobytes()
-    msg.descriptors = np.asarray(kf.descriptors, np.uint8).tobytes()
-    msg.depths_m = np.asarray(kf.depths_m, np.float32).tolist()
+    msg.delta = bool(delta)
+    if not delta:
+        msg.keypoints = np.asarray(kf.keypoints, np.float32).ravel().tolist()
+        msg.octaves = np.asarray(kf.octaves, np.uint8).tobytes()
+        msg.descriptors = np.asarray(kf.descriptors, np.uint8).tobytes()
+        msg.depths_m = np.asarray(kf.depths_m, np.float32).tolist()
     msg.map_point_ids = np.asarray(kf.map_point_ids, np.uint32).tolist()
     msg.map_points = np.asarray(kf.map_points, np.float32).ravel().tolist()
     msg.covisible_ids = np.asarray(kf.covisible_ids, np.uint32).tolist()
@@ -244,8 +254,12 @@ def _bytes(field) -> np.ndarray:
     return np.asarray(field, dtype=np.uint8)
 
 
-def keyframe_from_msg(msg, known_robots: set[int] | None = None) -> KeyframeRecord:
-    """Validated :class:`KeyframeRecord` from a KeyFrame message; raises MessageError."""
+def keyframe_from_msg(
+    msg, known_robots: set[int] | None = None, base: KeyframeRecord | None = None
+) -> KeyframeRecord:
+    """Validated :class:`KeyframeRecord` from a KeyFrame message; raises MessageError. A delta
+    update takes keypoints, octaves, descriptors and depths from ``base``, the keyframe as the
+    server holds it."""
     try:
         if msg.camera.sensor_type >= len(SENSORS):
             raise KeyframeError(f"camera sensor_type {msg.camera.sensor_type} unknown")
@@ -282,16 +296,29 @@ def keyframe_from_msg(msg, known_robots: set[int] | None = None) -> KeyframeReco
         p = msg.pose.position
         if not np.all(np.isfinite([p.x, p.y, p.z])):
             raise KeyframeError(f"{where}: pose position contains NaN or inf")
+        static = dict(
+            keypoints=keypoints.reshape(-1, 4),
+            octaves=_bytes(msg.octaves),
+            descriptors=descriptors.reshape(-1, 32),
+            depths_m=np.asarray(msg.depths_m, np.float32),
+        )
+        if getattr(msg, "delta", False):
+            if msg.action != ACTION_UPDATE:
+                raise KeyframeError(f"{where}: only an update may leave out what it saw (delta)")
+            if any(len(v) for v in static.values()):
+                raise KeyframeError(f"{where}: a delta update carries no keypoints or descriptors")
+            if base is None:
+                raise KeyframeError(
+                    f"{where}: a delta update of a keyframe the server does not hold"
+                )
+            static = {k: getattr(base, k) for k in static}
         rec = KeyframeRecord(
             robot_id=msg.robot_id,
             keyframe_id=msg.keyframe_id,
             stamp_s=msg.header.stamp.to_sec(),
             camera=cam,
             T_map_cam=se3_from_quat([p.x, p.y, p.z], q),
-            keypoints=keypoints.reshape(-1, 4),
-            octaves=_bytes(msg.octaves),
-            descriptors=descriptors.reshape(-1, 32),
-            depths_m=np.asarray(msg.depths_m, np.float32),
+            **static,
             map_point_ids=np.asarray(msg.map_point_ids, np.uint32),
             map_points=map_points.reshape(-1, 3),
             covisible_ids=np.asarray(msg.covisible_ids, np.uint32),

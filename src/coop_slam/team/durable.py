@@ -46,6 +46,16 @@ def _has_inputs(path: str) -> bool:
 
 
 @dataclass
+class PendingKeyframe:
+    """A keyframe message that becomes a record only when it is taken, in order: a delta update
+    needs the keyframe as the server holds it then. ``resolve()`` raises CoopSlamError when the
+    message cannot be taken."""
+
+    robot_id: int
+    resolve: Callable[[], KeyframeRecord]
+
+
+@dataclass
 class Taken:
     """What became of one arriving keyframe message."""
 
@@ -143,36 +153,47 @@ class DurableServer:
 
     # --- inputs ---------------------------------------------------------------------------------
     def add_keyframe(
-        self, rec: KeyframeRecord, session: int = UNSEQUENCED, sequence: int = 0
+        self,
+        rec: KeyframeRecord | PendingKeyframe,
+        session: int = UNSEQUENCED,
+        sequence: int = 0,
     ) -> Taken:
         order = self.order.get(rec.robot_id)
         if order is None:
-            rec.validate(self.server.known_robots)  # names the robots the server knows
-            raise MapStoreError(f"robot {rec.robot_id} is unknown to the server")
+            if isinstance(rec, KeyframeRecord):
+                rec.validate(self.server.known_robots)  # names the robots the server knows
+            raise MapStoreError(
+                f"robot {rec.robot_id} is unknown to the server (known: {self.robots})"
+            )
         v = order.arrive(session, sequence, (rec, sequence))
         out = Taken([], duplicate=v.duplicate, held=v.held, stale=v.stale)
         for item, seq in v.take:
             try:
-                out.merges += self._take(lambda r=item: self.server.add_keyframe(r), item, seq)
+                out.merges += self._take(item, seq)
             except CoopSlamError as exc:
                 out.rejected = (out.rejected or []) + [str(exc)]
             out.taken += 1
         return out
 
-    def _take(self, apply, rec: KeyframeRecord, sequence: int):
+    def _take(self, rec: KeyframeRecord | PendingKeyframe, sequence: int):
         """Apply one input and commit it (with the acknowledgement) in one transaction. A message
         the core refuses is not logged, but acknowledged (sending it again changes nothing)."""
         order = self.order[rec.robot_id]
         if self.store is None:
             try:
-                return apply()
+                if isinstance(rec, PendingKeyframe):
+                    rec = rec.resolve()
+                return self.server.add_keyframe(rec)
             finally:
                 if order.session != UNSEQUENCED:
                     order.taken(sequence)
+        robot_id = rec.robot_id
         self.store.begin()
         logged = False
         try:
-            merges = apply()
+            if isinstance(rec, PendingKeyframe):
+                rec = rec.resolve()
+            merges = self.server.add_keyframe(rec)
             self.store.log_keyframe(rec)
             logged = True
             moved = bool(merges) or self.server.map_moved
@@ -184,13 +205,13 @@ class DurableServer:
         except Exception:
             # The core failed part-way: its state may have changed, so the input is logged all
             # the same (a rebuild repeats the same failure and reaches the same state).
-            if not logged:
+            if not logged and isinstance(rec, KeyframeRecord):
                 self.store.log_keyframe(rec)
             raise
         finally:
             if order.session != UNSEQUENCED:
                 order.taken(sequence)
-                self.store.set_ack(rec.robot_id, order.session, order.last)
+                self.store.set_ack(robot_id, order.session, order.last)
             self.store.commit()
 
     def _call(self, kind: str, apply, **args):

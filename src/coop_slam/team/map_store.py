@@ -40,7 +40,6 @@ crash of the process (kill -9); a power cut may lose the last few.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import logging
 import os
@@ -53,7 +52,7 @@ import numpy as np
 
 from ..datasets.base import CameraModel
 from ..errors import CoopSlamError
-from ..keyframe_record import ACTION_REMOVE, ACTION_UPDATE, KeyframeRecord
+from ..keyframe_record import ACTION_REMOVE, ACTION_UPDATE, STATIC_ARRAYS, KeyframeRecord
 
 log = logging.getLogger(__name__)
 
@@ -79,16 +78,6 @@ _ARRAYS = (
 _POSE_MISMATCH_M = 1e-6
 
 _RECORD_MAGIC = b"CSKF1"
-_STATIC_ARRAYS = ("keypoints", "octaves", "descriptors", "depths_m")
-
-
-def _static_digest(rec: KeyframeRecord) -> bytes:
-    h = hashlib.blake2b(digest_size=16)
-    for name in _STATIC_ARRAYS:
-        a = np.ascontiguousarray(getattr(rec, name))
-        h.update(f"{a.dtype.str}{a.shape}".encode())
-        h.update(a.tobytes())
-    return h.digest()
 
 
 _SCHEMA = """
@@ -292,9 +281,9 @@ class MapStore:
         if rec.action != ACTION_REMOVE:
             # An update after local BA moves the pose and points; what the camera saw is the
             # same, and is not written again.
-            digest = _static_digest(rec)
+            digest = rec.static_digest()
             if rec.action == ACTION_UPDATE and self._static.get(key) == digest:
-                omit = _STATIC_ARRAYS
+                omit = STATIC_ARRAYS
             self._static[key] = digest
         self.db.execute(
             "INSERT INTO inputs (kind, robot_id, keyframe_id, action, stamp_s, payload) "
