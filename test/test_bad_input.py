@@ -12,6 +12,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
+from coop_slam.errors import CoopSlamError
 from coop_slam.keyframe_record import (
     ACTION_NEW,
     ACTION_REMOVE,
@@ -475,3 +476,47 @@ def test_reasons_tracked_are_bounded():
         counter.reject("/correction", f"reason {chr(65 + i % 26) * (1 + i // 26)}")
     assert len(counter.reason_counts) == MAX_REASONS + 1  # the last: all further reasons
     assert len(lines) == MAX_REASONS + 1 and counter.total == 3 * MAX_REASONS
+
+
+def _store_checksum(path: str) -> str:
+    """Digest of everything a map file holds (every table, every row)."""
+    import sqlite3
+
+    db = sqlite3.connect(path)
+    h = hashlib.sha256()
+    for (table,) in db.execute("SELECT name FROM sqlite_master WHERE type='table' ORDER BY name"):
+        for row in db.execute(f"SELECT * FROM {table} ORDER BY rowid"):
+            h.update(repr(row).encode())
+    db.close()
+    return h.hexdigest()
+
+
+def test_bad_keyframes_leave_the_map_file_unchanged(team, tmp_path):
+    """Through the durable server: a rejected message writes nothing to the map file, and the
+    file after the barrage rebuilds the team map of a server that never saw it."""
+    from coop_slam.team.durable import DurableServer, poses_equal
+
+    valid, vocab = team
+    path = str(tmp_path / "map.db")
+    durable = DurableServer(ServerConfig(robots=[1, 2]), lambda c: TeamServer(c, vocab), path)
+    rng = np.random.default_rng(SEED + 1)
+    for kf in valid:
+        before = _store_checksum(path)
+        for _ in range(8):
+            bad, what = bad_keyframe(valid, rng, sorted(durable.server.store.keys()))
+            try:
+                out = durable.add_keyframe(bad)
+            except (KeyframeError, ServerError, CoopSlamError):
+                pass
+            else:
+                assert out.rejected, f"accepted: {what}"
+            assert _store_checksum(path) == before, f"rejected message changed the file: {what}"
+        durable.add_keyframe(copy.deepcopy(kf))
+    durable.close()
+    resumed = DurableServer(
+        ServerConfig(robots=[1, 2]), lambda c: TeamServer(c, vocab), path, resume=True
+    )
+    reference = _server(vocab)
+    for kf in valid:
+        reference.add_keyframe(copy.deepcopy(kf))
+    assert resumed.rebuilt.max_pose_diff_m < 1e-9 and poses_equal(resumed.server, reference)

@@ -299,3 +299,23 @@ def test_rotation_gain_finds_rotations_scaled_about_the_image_axes():
         rotation_gain(est[:-1], truth, step=1)
     with pytest.raises(EvaluationError, match="at least 1 frame"):
         rotation_gain(est, truth, step=0)
+
+
+def test_a_robots_new_map_segment_merging_with_its_old_one_is_judged_at_both_keyframes():
+    """A merge of a robot with itself (a restarted client's new map segment with its old one):
+    each side's keyframe stamp is its own."""
+    from coop_slam.evaluation.run_report import _local_merge_error
+
+    stamps = np.arange(0.0, 10.0, 0.5)
+    gt = (stamps, np.array([se3_from_quat([0.3 * t, 0.0, 0.0], [0, 0, 0, 1]) for t in stamps]))
+    true = invert(gt[1][2]) @ gt[1][14]
+    m = {
+        "robot_a": 2,
+        "robot_b": 2,
+        "keyframe_a": 3,
+        "keyframe_b": 15,
+        "keyframe_stamps": {"a": 1.0, "b": 7.0},
+        "T_camA_camB": true,
+    }
+    t_err, r_err = _local_merge_error(m, None, {2: gt})
+    assert t_err < 1e-9 and r_err < 1e-6

@@ -14,6 +14,7 @@ from typing import Any
 ROBOT_KEYS = (
     "id",
     "frames",
+    "frames_dropped",  # frames a busy client skipped for a newer one (live playback)
     "keyframes",
     "path_length_m",
     "ate_rmse_m",

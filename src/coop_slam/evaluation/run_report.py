@@ -27,7 +27,8 @@ from .report import count_wrong_merges, new_report, write_report
 
 @dataclass
 class RobotRun:
-    frames: int = 0
+    frames: int = 0  # frames tracked
+    frames_dropped: int = 0  # frames the busy client skipped for a newer one
     lost_frames: int = 0
     track_ms: list = field(default_factory=list)
     keyframes: dict = field(default_factory=dict)  # id -> (stamp_s, T_map_cam), latest version
@@ -214,6 +215,7 @@ def evaluate_run(
         r = run.robots.get(rid, RobotRun())
         stamps_gt, poses_gt = gts[rid]
         entry["frames"] = r.frames
+        entry["frames_dropped"] = r.frames_dropped
         entry["path_length_m"] = path_length(poses_gt) if len(poses_gt) else None
         entry["keyframes"] = len(r.keyframes)
         entry["tracking_lost"] = r.lost_frames
@@ -351,8 +353,9 @@ def _local_merge_error(m: dict, run: RunData, gts: dict) -> tuple[float, float] 
     matched keyframes' cameras against their true relative pose. Odometry drift does not enter,
     nor do later local-BA moves of the keyframes (which the map transform was chained through)."""
     stamps = []
-    for robot, kf in ((m["robot_a"], m.get("keyframe_a")), (m["robot_b"], m.get("keyframe_b"))):
-        stamp = (m.get("keyframe_stamps") or {}).get(robot)
+    for side in "ab":
+        robot, kf = m[f"robot_{side}"], m.get(f"keyframe_{side}")
+        stamp = (m.get("keyframe_stamps") or {}).get(side)
         if stamp is None and robot in run.robots:
             stamp = run.robots[robot].keyframe_stamps.get(kf)
         if stamp is None or robot not in gts:

@@ -135,6 +135,11 @@ class ClientNode:
 
         self.pub_cloud = rospy.Publisher(f"{ns}/local_map", PointCloud2, queue_size=1, latch=True)
         self.pub_stats = rospy.Publisher(f"{ns}/frame_stats", FrameStats, queue_size=50)
+        from ..frame_slot import LatestFrame
+
+        self.slot = LatestFrame()
+        self._tracker = threading.Thread(target=self._track_frames, daemon=True)
+        self._tracker.start()
         from coop_slam.msg import RobotSighting
 
         self.pub_sighting = rospy.Publisher("/robot_sightings", RobotSighting, queue_size=10)
@@ -197,6 +202,9 @@ class ClientNode:
         )
         self._outbox_lock = threading.Lock()
         self.keyframes_sent = 0
+        # Updates leave out what the keyframe saw when the server has it (~delta_updates).
+        self.delta_updates = bool(rospy.get_param("~delta_updates", True))
+        self._sent_static: dict[int, bytes] = {}  # keyframe id -> digest sent with it as new
         self._bound_warned = False
         # A restarted client must not reuse the keyframe ids the server stored before: the
         # server's latched acknowledgement says how far they went.
@@ -336,6 +344,33 @@ class ClientNode:
                 self.pub_stats.publish(stats)
 
     def _on_frame(self, image_msg: Image, second_msg: Image | None = None) -> None:
+        """A camera frame (pair): handed to the tracking thread; one the tracker had not taken
+        yet is dropped (the newest frame wins, see coop_slam.frame_slot) and said so."""
+        from coop_slam.msg import FrameStats
+
+        stamp = image_msg.header.stamp
+        with self._watch_lock:
+            self._unpaired = [(t, s) for t, s in self._unpaired if s != stamp]
+            self._paired.append(stamp)
+        dropped = self.slot.put((image_msg, second_msg))
+        if dropped is not None:
+            stats = FrameStats(robot_id=self.robot_id, tracking_ok=False, dropped=True)
+            stats.header.stamp = dropped[0].header.stamp
+            self.pub_stats.publish(stats)
+            rospy.logwarn_throttle(
+                10.0,
+                "client %s: busy, %d frame(s) dropped so far (the newest frame is tracked)",
+                self.name,
+                self.slot.dropped,
+            )
+
+    def _track_frames(self) -> None:
+        while not rospy.is_shutdown():
+            item = self.slot.take(timeout_s=0.5)
+            if item is not None:
+                self._track(*item)
+
+    def _track(self, image_msg: Image, second_msg: Image | None) -> None:
         from coop_slam.msg import FrameStats
 
         from ..vo.types import STATE_INITIALIZING
@@ -343,9 +378,6 @@ class ClientNode:
         stamp = image_msg.header.stamp
         stats = FrameStats(robot_id=self.robot_id, tracking_ok=False)
         stats.header.stamp = stamp
-        with self._watch_lock:
-            self._unpaired = [(t, s) for t, s in self._unpaired if s != stamp]
-            self._paired.append(stamp)
         try:
             with self.lock:
                 if self.camera is None:
@@ -445,7 +477,7 @@ class ClientNode:
 
     # --- publishing -------------------------------------------------------------------------------
     def _publish_events(self) -> None:
-        from ..keyframe_record import ACTION_NEW, ACTION_REMOVE
+        from ..keyframe_record import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE
         from ..vo.outbox import event_record
         from ..vo.types import EVENT_NEW_SEGMENT, EVENT_WARNING, KEYFRAME_ACTIONS
 
@@ -471,7 +503,15 @@ class ClientNode:
                 else:
                     self.kf_poses[rec.keyframe_id] = (rec.stamp_s, rec.T_map_cam)
                 self.keyframes_sent += rec.action == ACTION_NEW
-                self._send_keyframe(keyframe_to_msg(rec, self.map_frame))
+                # An update whose keyframe saw the same as when it was new goes without that.
+                delta = False
+                if rec.action == ACTION_NEW:
+                    self._sent_static[rec.keyframe_id] = rec.static_digest()
+                elif rec.action == ACTION_UPDATE and self.delta_updates:
+                    delta = self._sent_static.get(rec.keyframe_id) == rec.static_digest()
+                else:
+                    self._sent_static.pop(rec.keyframe_id, None)
+                self._send_keyframe(keyframe_to_msg(rec, self.map_frame, delta))
                 changed = True
         if changed:
             self._publish_path()
@@ -513,13 +553,15 @@ class ClientNode:
         self.pub_cloud.publish(cloud_to_msg(pts, self.map_frame, stamp))
 
     def shutdown(self) -> None:
+        self.slot.close()
         with self.lock:
             if self.vo is not None:
                 self.vo.close()
         rospy.loginfo(
-            "client %s: %d frames, %d keyframes, %d rejected messages",
+            "client %s: %d frames, %d dropped (busy), %d keyframes, %d rejected messages",
             self.name,
             self.frames,
+            self.slot.dropped,
             len(self.kf_poses),
             self.rejects.total,
         )

@@ -93,6 +93,9 @@ class RunRecorder:
                     handler(msg, self.run.robots[robot_id], t_s, nbytes)
 
     def _on_frame_stats(self, msg, r: RobotRun, t_s, nbytes) -> None:
+        if getattr(msg, "dropped", False):  # busy client: a newer frame was tracked instead
+            r.frames_dropped += 1
+            return
         r.frames += 1
         sent = int(getattr(msg, "keyframes_sent", 0))
         if not r.keyframes_sent_sessions or sent < r.keyframes_sent_sessions[-1]:
@@ -124,7 +127,8 @@ class RunRecorder:
         stamp = msg.header.stamp.to_sec()
         r.sensor = SENSOR_NAMES.get(msg.camera.sensor_type, r.sensor)
         r.keyframes[msg.keyframe_id] = (stamp, T)
-        r.keyframe_points[msg.keyframe_id] = _points_cam(msg)
+        if not getattr(msg, "delta", False):  # a delta update saw the same (camera frame)
+            r.keyframe_points[msg.keyframe_id] = _points_cam(msg)
         r.keyframe_stamps[msg.keyframe_id] = stamp
         r.keyframe_segments[msg.keyframe_id] = int(msg.map_segment)
         if r.first_keyframe is None:
@@ -166,7 +170,8 @@ class RunRecorder:
                 }
             )
             return
-        stamps = {r: t for r, t in zip((msg.robot_a, msg.robot_b), stamps) if t is not None}
+        # Keyed by side: a robot's new map segment merges with its own older one (a == b).
+        stamps = {s: t for s, t in zip("ab", stamps) if t is not None}
         self.run.merges.append(
             {
                 "type": msg.type,

@@ -35,6 +35,7 @@ from ..errors import CoopSlamError
 from ..geometry import invert, se3_from_quat
 from ..keyframe_record import KeyframeRecord
 from ..team.config import ServerConfig
+from ..team.durable import PendingKeyframe
 from ..team.map_scale import scale_translation
 from ..team.results import TYPE_LINK, TYPE_LOOP, TYPE_OVERLAP
 from ..team.server import TeamServer
@@ -57,7 +58,8 @@ from .validation import RejectCounter
 
 @dataclass
 class _KeyframeJob:
-    record: KeyframeRecord
+    record: KeyframeRecord | PendingKeyframe  # pending: a delta update, completed when taken
+    stamp_s: float
     session: int = 0  # delivery (see coop_slam.delivery); 0 = unsequenced
     sequence: int = 0
 
@@ -274,17 +276,25 @@ class ServerNode:
 
     def _on_keyframe(self, msg, topic_robot: int) -> None:
         topic = f"/robot_{topic_robot}/keyframes"
-        try:
-            rec = keyframe_from_msg(msg, known_robots=self.server.known_robots)
-        except MessageError as exc:
-            self.rejects.reject(topic, str(exc))
-            return
-        if rec.robot_id != topic_robot:
+        if msg.robot_id != topic_robot:
             self.rejects.reject(
-                topic, f"keyframe of robot {rec.robot_id} on robot {topic_robot}'s topic"
+                topic, f"keyframe of robot {msg.robot_id} on robot {topic_robot}'s topic"
             )
             return
-        self.queue.put(_KeyframeJob(rec, msg.session, msg.sequence))
+        if msg.delta:  # needs the keyframe as the server holds it when its turn comes
+            rec = PendingKeyframe(msg.robot_id, lambda: self._delta_record(msg))
+        else:
+            try:
+                rec = keyframe_from_msg(msg, known_robots=self.server.known_robots)
+            except MessageError as exc:
+                self.rejects.reject(topic, str(exc))
+                return
+        self.queue.put(_KeyframeJob(rec, msg.header.stamp.to_sec(), msg.session, msg.sequence))
+
+    def _delta_record(self, msg) -> KeyframeRecord:
+        """A delta update completed from the stored keyframe (in the worker thread)."""
+        base = self.server.stored_record(msg.robot_id, msg.map_segment, msg.keyframe_id)
+        return keyframe_from_msg(msg, known_robots=self.server.known_robots, base=base)
 
     def _on_sighting(self, msg) -> None:
         """A marker sighting asks for a rendezvous check (at most once per pair and period)."""
@@ -482,6 +492,7 @@ class ServerNode:
         else:
             rec = item.record
             topic = f"/robot_{rec.robot_id}/keyframes"
+            stamp_s = item.stamp_s
             try:
                 taken = self.durable.add_keyframe(rec, item.session, item.sequence)
             except CoopSlamError as exc:
@@ -498,7 +509,6 @@ class ServerNode:
             if not taken.taken:
                 return
             merges = taken.merges
-            stamp_s = rec.stamp_s
         stamp_s = max(stamp_s, self._last_stamp_s)  # a late cue must not move the map back in time
         stamp = rospy.Time.from_sec(stamp_s)
         for m in merges:

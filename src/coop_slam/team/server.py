@@ -34,10 +34,12 @@ from ..keyframe_record import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE, Keyframe
 from .config import ServerConfig
 from .global_ba import GlobalBaError, GlobalBaResult, count_observations, global_bundle_adjustment
 from .groups import MergeGroups
-from .keyframe_store import KeyframeStore
+from .keyframe_store import KeyframeStore, track
 from .map_scale import MapScales, rescale_record, scale_translation
+from .marker_scale import MarkerScale
 from .overlap_links import OverlapLinks
 from .place_recognition import PlaceRecognition
+from .plausibility import interpolate_track
 from .pose_graph import PoseGraphError, TeamPoseGraph
 from .rendezvous import Rendezvous
 from .results import TYPE_PLACE_RECOGNITION, MergeResult, Verified, robot_pair
@@ -69,6 +71,7 @@ class TeamServer:
         self.graph = TeamPoseGraph(config.pose_graph)
         self._kf_count: dict[int, int] = {}  # keyframes received per robot
         self.scales = MapScales(config.map_scale, self.groups)
+        self.marker_scale = MarkerScale(config.marker_scale)
         self._due_rescale: dict[int, float] = {}  # robot -> factor its links asked for
         self.links = OverlapLinks(config.links, self.store, lambda key: self.T_group_cam(*key))
         self.stitcher = Stitcher(
@@ -186,6 +189,13 @@ class TeamServer:
     def robot_of(self, map_id: int) -> int:
         """The robot a map id belongs to (see .segments)."""
         return self.segments.robot_of(map_id)
+
+    def stored_record(self, robot_id: int, segment: int, keyframe_id: int):
+        """The keyframe as stored (None when the server does not hold it): what a delta update
+        leaves out comes from here."""
+        mid = self.segments.find(robot_id, segment)
+        key = (mid, int(keyframe_id))
+        return self.store.record(key) if mid is not None and key in self.store else None
 
     def map_name(self, map_id: int) -> str:
         """A map id as the user knows it: ``robot 2``, ``robot 2 (map segment 1)``."""
@@ -402,9 +412,56 @@ class TeamServer:
         """A marker sighting of robot ``observed`` by ``observer`` at ``stamp_s`` is a rendezvous
         request (see :meth:`request_rendezvous`), at most once per pair and
         ``rendezvous.sighting_period_s``; None when it is not one."""
+        if T_camA_bodyB is not None and T_bodyB_camB is not None:
+            self._marker_scale(observer, observed, stamp_s, T_camA_bodyB, T_bodyB_camB)
         if not self.rendezvous.sighting_due(observer, observed, stamp_s):
             return None
         return self.request_rendezvous(observer, observed, stamp_s, T_camA_bodyB, T_bodyB_camB)
+
+    def _pose_at(self, map_id: int, stamp_s: float) -> np.ndarray | None:
+        """A map's camera pose at a stamp: position on its keyframe track, rotation of the
+        nearest keyframe; None where its keyframes do not pin it down."""
+        recs = [self.store.record(k) for k in self.store.keys() if k[0] == map_id]
+        if not recs:
+            return None
+        stamps, positions = track(recs)
+        position = interpolate_track(stamps, positions, stamp_s)
+        if position is None:
+            return None
+        nearest = min(recs, key=lambda r: abs(r.stamp_s - stamp_s))
+        T = np.array(nearest.T_map_cam, dtype=float, copy=True)
+        T[:3, 3] = position
+        return T
+
+    def _marker_scale(self, observer, observed, stamp_s, T_camA_bodyB, T_bodyB_camB) -> None:
+        """A monocular observer not yet metric learns its scale from sightings of a metric
+        robot's marker (see .marker_scale); its map is then rescaled to metres."""
+        if not self.config.marker_scale.enabled:
+            return
+        ma, mb = self.current_map(observer), self.current_map(observed)
+        if not self.scales.is_mono(ma) or self.is_metric(ma) or not self.is_metric(mb):
+            return
+        T_map_camA, T_map_camB = self._pose_at(ma, stamp_s), self._pose_at(mb, stamp_s)
+        if T_map_camA is None or T_map_camB is None:
+            return
+        b_m = (T_map_camB @ invert(T_bodyB_camB))[:3, 3]
+        got = self.marker_scale.observe(ma, mb, T_map_camA, T_camA_bodyB[:3, 3], b_m)
+        if got is None:
+            return
+        scale, rms = got
+        members = self.groups.members(ma)
+        self._rescale(members, scale)
+        for m in members:
+            self.scales.mark_metric(m)
+        self.marker_scale.forget(ma)
+        self.stitcher.need_full = True
+        log.info(
+            "%s: metric scale %.4f m per map unit from sightings of %s's marker (fit %.3f m)",
+            self.map_name(ma),
+            scale,
+            self.map_name(mb),
+            rms,
+        )
 
     # --- team optimization ------------------------------------------------------------------------
     def optimize(self, full: bool = True) -> None:

@@ -43,7 +43,7 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
     from ..geometry import invert, se3_from_quat
     from ..keyframe_record import ACTION_REMOVE
     from ..ros.convert import MessageError, keyframe_from_msg, pose_from_msg
-    from ..team.durable import DurableServer
+    from ..team.durable import DurableServer, PendingKeyframe
     from ..team.server import TeamServer
 
     cfg = _server_config(config_path, info, overrides or {})
@@ -74,9 +74,19 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
                 )
                 continue
             try:
-                rec = keyframe_from_msg(msg, known_robots=server.known_robots)
-                if rec.action != ACTION_REMOVE:  # a removal carries no stamp
-                    stamps.setdefault((rec.robot_id, rec.keyframe_id), rec.stamp_s)
+                if getattr(msg, "delta", False):  # completed from the keyframe as stored then
+                    rec = PendingKeyframe(
+                        msg.robot_id,
+                        lambda m=msg: keyframe_from_msg(
+                            m,
+                            server.known_robots,
+                            server.stored_record(m.robot_id, m.map_segment, m.keyframe_id),
+                        ),
+                    )
+                else:
+                    rec = keyframe_from_msg(msg, known_robots=server.known_robots)
+                    if rec.action != ACTION_REMOVE:  # a removal carries no stamp
+                        stamps.setdefault((rec.robot_id, rec.keyframe_id), rec.stamp_s)
                 taken = durable.add_keyframe(
                     rec, getattr(msg, "session", 0), getattr(msg, "sequence", 0)
                 )
@@ -154,6 +164,9 @@ def judge(server, stamps: dict, gts: dict) -> dict:
     from ..evaluation.metrics import EvaluationError, ate, relative_pose_error, team_ate
 
     def error(key_a, key_b, T_camA_camB):
+        # Map ids to robots (a later map segment is its robot's); stamps are by robot.
+        key_a = (server.robot_of(key_a[0]), key_a[1])
+        key_b = (server.robot_of(key_b[0]), key_b[1])
         if key_a not in stamps or key_b not in stamps or key_a[0] not in gts or key_b[0] not in gts:
             return None
         err = relative_pose_error(
@@ -169,18 +182,28 @@ def judge(server, stamps: dict, gts: dict) -> dict:
         kind = "loop" if c.key_a[0] == c.key_b[0] else "link"
         out[f"{kind}_errors_cm_deg"].append(error(c.key_a, c.key_b, c.T_camA_camB))
     own, est = [], {}
-    for robot in server.store.robots():
-        keys = sorted(server.store.keyframe_ids(robot))
-        t = np.array([server.store.stamp((robot, k)) for k in keys])
+    for mid in server.store.robots():  # map ids: a robot's map segments apart
+        robot = server.robot_of(mid)
+        keys = sorted(server.store.keyframe_ids(mid))
+        t = np.array([server.store.stamp((mid, k)) for k in keys])
         if robot not in gts or len(gts[robot][0]) == 0 or len(keys) < 3:
             continue
         try:
-            res = ate(t, [server.store.record((robot, k)).T_map_cam for k in keys], *gts[robot])
+            # A monocular map is judged up to its scale (its own units, or the server's).
+            mono = server.scales.is_mono(mid)
+            poses = [server.store.record((mid, k)).T_map_cam for k in keys]
+            res = ate(t, poses, *gts[robot], correct_scale=mono)
             own.append((res.rmse_m, res.count))
         except EvaluationError:
             pass
-        if server.in_world(robot):
-            est[robot] = (t, np.array([server.T_group_cam(robot, k) for k in keys]))
+        if server.in_world(mid):
+            poses = np.array([server.T_group_cam(mid, k) for k in keys])
+            if robot in est:  # another segment of the robot in the world group
+                t = np.concatenate([est[robot][0], t])
+                poses = np.concatenate([est[robot][1], poses])
+                order = np.argsort(t, kind="stable")
+                t, poses = t[order], poses[order]
+            est[robot] = (t, poses)
     out["overlap_agreement_mm"] = agreement(server)
     n = sum(c for _, c in own)
     out["single_ate_pooled_cm"] = (
