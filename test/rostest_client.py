@@ -58,9 +58,12 @@ class ClientOutputsTest(unittest.TestCase):
         self.assertTrue(all(s.robot_id == 1 for s in got["stats"]))
         self.assertGreaterEqual(sum(s.tracking_ok for s in got["stats"]), 0.9 * len(got["stats"]))
         self.assertGreaterEqual(len(got["kf"]), 2)
+        seen = {}  # keyframe id -> as last received (a delta update completes from it)
         for m in got["kf"]:
             self.assertEqual(m.header.frame_id, "robot_1/map")
-            kf = keyframe_from_msg(m, known_robots={1})
+            kf = keyframe_from_msg(m, known_robots={1}, base=seen.get(m.keyframe_id))
+            seen[m.keyframe_id] = kf
+            self.assertTrue(m.sequence > 0 and m.session > 0)  # numbered for delivery
             if m.action != 2:
                 self.assertGreater(kf.num_keypoints, 100)
                 self.assertGreater(np.count_nonzero(kf.map_point_ids), 50)
