@@ -236,3 +236,16 @@ def test_fault_specs_are_read_and_bad_ones_named():
     ):
         with pytest.raises(FaultError, match=why):
             parse_faults(bad, [1, 2])
+
+
+def test_results_table_names_faults_sessions_and_live_runs():
+    from coop_slam.tools.results_table import describe
+
+    assert (
+        describe({"scenario": "team", "faults": "drop:0.1"})
+        == "`--scenario team --faults drop:0.1`"
+    )
+    assert describe({"scenario": "revisit", "only_robots": "2", "load_map": "/x.map"}) == (
+        "`--scenario revisit --only-robots 2 --load-map ...`"
+    )
+    assert describe({"dataset": "/d/rk", "rate": 1.0}) == "`--dataset rk --rate 1.0`"

@@ -191,6 +191,7 @@ def _write_run_info(
         "only_robots": args.only_robots,
         "load_map": os.path.abspath(args.load_map) if args.load_map else None,
         "faults": args.faults,
+        "rate": args.rate,  # None: lock-step
         "sensors": args.sensors,
         "ground_robots": ground,
         "commit": _commit(),

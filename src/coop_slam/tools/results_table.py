@@ -64,6 +64,11 @@ def describe(info: dict) -> str:
         what = f"--bag {os.path.basename(info.get('bag') or '?')}"
     if info.get("sensors"):
         what += f" --sensors {info['sensors']}"
+    for key in ("only_robots", "faults", "rate"):  # a session, injected faults, live playback
+        if info.get(key):
+            what += f" --{key.replace('_', '-')} {info[key]}"
+    if info.get("load_map"):
+        what += " --load-map ..."
     return f"`{what}`"
 
 
