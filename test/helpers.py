@@ -211,3 +211,20 @@ def as_monocular(kf: KeyframeRecord, units_per_m: float) -> KeyframeRecord:
         depths_m=np.zeros_like(kf.depths_m),
         map_points=(kf.map_points * units_per_m).astype(np.float32),
     )
+
+
+def team_world(n_keyframes: int = 36):
+    """The cylinder world (points, descriptors), robot 1 turning once round in it
+    (``n_keyframes`` keyframes) and a vocabulary of its words: the server tests' team."""
+    points, desc = cylinder_world(seed=3)
+    a = team_keyframes(1, np.linspace(0, 2 * np.pi, n_keyframes, endpoint=False), points, desc)
+    return points, desc, a, team_vocabulary(a)
+
+
+def team_server_config(robots=(1, 2)):
+    """A server configuration for the team helpers' keyframes."""
+    from coop_slam.team.config import ServerConfig
+
+    cfg = ServerConfig(robots=list(robots))
+    cfg.global_ba.disparity_sigma_px = 0.05  # the helpers' depth is near exact (0.3 % noise)
+    return cfg

@@ -17,6 +17,7 @@ from coop_slam.keyframe_record import (
     ACTION_NEW,
     ACTION_REMOVE,
     ACTION_UPDATE,
+    ARRAY_FIELDS,
     MAX_COVISIBLE,
     MAX_KEYPOINTS,
     KeyframeError,
@@ -54,17 +55,7 @@ def checksum(server: TeamServer) -> str:
     for key in sorted(server.store.keys()):
         rec = server.store.record(key)
         h.update(repr((key, rec.stamp_s, rec.action, rec.map_segment, rec.camera)).encode())
-        for name in (
-            "T_map_cam",
-            "keypoints",
-            "octaves",
-            "descriptors",
-            "depths_m",
-            "map_point_ids",
-            "map_points",
-            "covisible_ids",
-            "covisible_weights",
-        ):
+        for name in ("T_map_cam", *ARRAY_FIELDS):
             h.update(np.ascontiguousarray(getattr(rec, name)).tobytes())
     for robot in server.graph.robots:
         for k, T in sorted(server.graph.keyframe_poses(robot).items()):

@@ -9,31 +9,23 @@ import pytest
 
 from coop_slam.delivery import InOrder, Outbox
 from coop_slam.keyframe_record import KeyframeError
-from coop_slam.team.config import ServerConfig
 from coop_slam.team.durable import DurableServer, poses_equal
 from coop_slam.team.map_store import MapStore, MapStoreError, decode_record, encode_record
 from coop_slam.team.server import TeamServer
-from helpers import cylinder_world, make_keyframe, team_keyframes, team_vocabulary
+from helpers import make_keyframe, team_keyframes, team_server_config, team_world
 
 
 @pytest.fixture(scope="module")
 def team():
-    points, desc = cylinder_world(seed=3)
-    a = team_keyframes(1, np.linspace(0, 2 * np.pi, 24, endpoint=False), points, desc)
+    points, desc, a, vocab = team_world(24)
     b = team_keyframes(
         2, np.linspace(2.0, 3.0, 6), points, desc, offset=(0.2, 0.1), seed=100, t0=100.0
     )
-    return a, b, team_vocabulary(a)
-
-
-def _config(robots):
-    cfg = ServerConfig(robots=list(robots))
-    cfg.global_ba.disparity_sigma_px = 0.05
-    return cfg
+    return a, b, vocab
 
 
 def _durable(vocab, path, robots=(1, 2), **kw):
-    return DurableServer(_config(robots), lambda c: TeamServer(c, vocab), path, **kw)
+    return DurableServer(team_server_config(robots), lambda c: TeamServer(c, vocab), path, **kw)
 
 
 def _stream(kfs_a, kfs_b):

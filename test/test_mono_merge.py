@@ -6,24 +6,25 @@ import pytest
 
 from coop_slam.evaluation.metrics import ate
 from coop_slam.geometry import invert, transform_error
-from coop_slam.team.config import ServerConfig
 from coop_slam.team.server import TeamServer
-from helpers import TEAM_T_WORLD_MAP, as_monocular, cylinder_world, team_keyframes, team_vocabulary
+from helpers import (
+    TEAM_T_WORLD_MAP,
+    as_monocular,
+    cylinder_world,
+    team_keyframes,
+    team_server_config,
+    team_world,
+)
 
 UNITS_PER_M = 2.5  # the monocular map's own length unit: 0.4 m
 
 
-def _config():
-    cfg = ServerConfig(robots=[1, 2])
-    cfg.global_ba.disparity_sigma_px = 0.05  # the helpers' depth is near exact (0.3 % noise)
-    return cfg
+_config = team_server_config
 
 
 @pytest.fixture(scope="module")
 def world():
-    points, desc = cylinder_world(seed=3)
-    a = team_keyframes(1, np.linspace(0, 2 * np.pi, 36, endpoint=False), points, desc)
-    return points, desc, a, team_vocabulary(a)
+    return team_world()
 
 
 def _mono_b(points, desc, yaws, kid0=1, t0=100.0):

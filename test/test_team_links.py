@@ -13,14 +13,12 @@ from coop_slam.team.config import ServerConfig
 from coop_slam.team.overlap_links import shared_view
 from coop_slam.team.results import TYPE_OVERLAP, TYPE_PLACE_RECOGNITION, Verified
 from coop_slam.team.server import TeamServer
-from helpers import TEAM_T_WORLD_MAP, camera, cylinder_world, team_keyframes, team_vocabulary
+from helpers import TEAM_T_WORLD_MAP, camera, team_keyframes, team_world
 
 
 @pytest.fixture(scope="module")
 def world():
-    points, desc = cylinder_world(seed=3)
-    a = team_keyframes(1, np.linspace(0, 2 * np.pi, 36, endpoint=False), points, desc)
-    return points, desc, a, team_vocabulary(a)
+    return team_world()
 
 
 def _config(**links) -> ServerConfig:

@@ -6,7 +6,6 @@ import pytest
 from coop_slam.errors import ConfigError
 from coop_slam.geometry import invert, transform_error
 from coop_slam.keyframe_record import KeyframeError
-from coop_slam.team.config import ServerConfig
 from coop_slam.team.keyframe_store import track
 from coop_slam.team.plausibility import interpolate_track
 from coop_slam.team.server import TeamServer
@@ -15,24 +14,20 @@ from helpers import (
     cylinder_world,
     looking_out_pose,
     team_keyframes,
-    team_vocabulary,
+    team_server_config,
+    team_world,
 )
 
 T_WORLD_MAP = TEAM_T_WORLD_MAP
 _keyframes = team_keyframes
 
 
-def _config(robots):
-    cfg = ServerConfig(robots=robots)
-    cfg.global_ba.disparity_sigma_px = 0.05  # the helpers' depth is near exact (0.3 % noise)
-    return cfg
+_config = team_server_config
 
 
 @pytest.fixture(scope="module")
 def world():
-    points, desc = cylinder_world(seed=3)
-    a = _keyframes(1, np.linspace(0, 2 * np.pi, 36, endpoint=False), points, desc)
-    return points, desc, a, team_vocabulary(a)
+    return team_world()
 
 
 def test_revisit_merges_with_the_true_transform(world):

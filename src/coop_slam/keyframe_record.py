@@ -20,6 +20,13 @@ from .geometry import GeometryError, check_se3
 
 ACTION_NEW, ACTION_UPDATE, ACTION_REMOVE = 0, 1, 2
 STATIC_ARRAYS = ("keypoints", "octaves", "descriptors", "depths_m")  # see static_digest
+# Every array of a keyframe record, in field order
+ARRAY_FIELDS = STATIC_ARRAYS + (
+    "map_point_ids",
+    "map_points",
+    "covisible_ids",
+    "covisible_weights",
+)
 
 # Physical bounds of a keyframe. Values beyond them are finite yet absurd (a corrupted or hostile
 # message): accepted, they poison the team map for the rest of the run (a focal length of 1e-300

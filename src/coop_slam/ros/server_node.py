@@ -377,13 +377,13 @@ class ServerNode:
 
     def _map_file(self, job: _MapFileJob) -> None:
         """Save the team map, or load a saved one as the starting map (in the worker thread)."""
-        from ..team.map_store import MapStoreError
+        from ..team.map_store import MapStoreError, remove_map_file
 
         try:
             if not job.load:
                 path = self.durable.save(job.path)
                 result = True, f"team map saved to {path}", path
-            elif len(self.server.store):
+            elif any(self.durable.keyframes_stored().values()):
                 result = (
                     False,
                     "a map loads only before robots send keyframes (start the server with "
@@ -392,11 +392,8 @@ class ServerNode:
                 )
             else:
                 self.durable.close()
-                if self.map_path and os.path.exists(self.map_path):
-                    os.remove(self.map_path)  # nothing taken yet: the file starts again
-                    for extra in ("-wal", "-shm"):
-                        if os.path.exists(self.map_path + extra):
-                            os.remove(self.map_path + extra)
+                if self.map_path:
+                    remove_map_file(self.map_path)  # nothing taken yet: the file starts again
                 self.durable = self._open_map(False, job.path)
                 self.server = self.durable.server
                 self._robot_topics()
@@ -406,11 +403,10 @@ class ServerNode:
                 result = True, f"loaded {job.path}: robots {self.durable.robots}", job.path
         except MapStoreError as exc:
             result = False, str(exc), ""
-        (
+        if result[0]:
             rospy.loginfo("server: %s", result[1])
-            if result[0]
-            else rospy.logwarn("server: %s", result[1])
-        )
+        else:
+            rospy.logwarn("server: %s", result[1])
         job.reply.set_result(result)
 
     def _global_ba(self, job: _GlobalBaJob) -> None:

@@ -84,10 +84,11 @@ class DurableServer:
         self.loaded: RebuildReport | None = None
         robots = list(config.robots)
         source_resume = None
-        if store_path and resume and _has_inputs(store_path):
+        existing = bool(store_path) and _has_inputs(store_path)
+        if existing and resume:
             source_resume = MapStore(store_path)
             robots = sorted(set(robots) | set(source_resume.robots))
-        elif store_path and _has_inputs(store_path):
+        elif existing:
             raise MapStoreError(
                 f"map file {store_path} exists: resume from it (resume:=true), or give another "
                 "file (map:=...)"
@@ -127,6 +128,16 @@ class DurableServer:
                 )
             self.loaded = rebuild(source_load, self.server, self.store, remap, progress)
             source_load.close()
+        # robot -> (keyframe ids taken, highest map segment): what a restarted client continues
+        # above, kept here rather than asked of the file for every message.
+        self._logged: dict[int, tuple[set[int], int]] = {}
+        if self.store is not None:
+            self._logged = self.store.logged_keyframes()
+        else:  # a map loaded without a file of its own: the keyframes the server holds
+            for mid, kf in self.server.store.keys():
+                self._note_taken(
+                    self.server.robot_of(mid), kf, self.server.segments.segment_of(mid)
+                )
 
     @property
     def robots(self) -> list[int]:
@@ -138,18 +149,18 @@ class DurableServer:
         return o.session, o.last
 
     def last_ids(self) -> dict[int, tuple[int, int]]:
-        """robot -> (highest keyframe id, highest map segment) stored: a restarted client goes
+        """robot -> (highest keyframe id, highest map segment) taken: a restarted client goes
         on above them."""
-        return self.store.last_ids() if self.store is not None else {}
+        return {r: (max(ids), seg) for r, (ids, seg) in self._logged.items() if ids}
 
     def keyframes_stored(self) -> dict[int, int]:
-        """robot -> keyframes taken (culled ones included): in the map file, else in memory."""
-        if self.store is not None:
-            return self.store.keyframes_logged()
-        return {
-            r: sum(len(self.server.store.keyframe_ids(m)) for m in self.server.segments.maps_of(r))
-            for r in self.robots
-        }
+        """robot -> keyframes taken (culled ones included)."""
+        return {r: len(ids) for r, (ids, _) in self._logged.items()}
+
+    def _note_taken(self, robot_id: int, keyframe_id: int, segment: int) -> None:
+        ids, top = self._logged.get(robot_id, (set(), 0))
+        ids.add(keyframe_id)
+        self._logged[robot_id] = (ids, max(top, segment))
 
     # --- inputs ---------------------------------------------------------------------------------
     def add_keyframe(
@@ -178,41 +189,37 @@ class DurableServer:
     def _take(self, rec: KeyframeRecord | PendingKeyframe, sequence: int):
         """Apply one input and commit it (with the acknowledgement) in one transaction. A message
         the core refuses is not logged, but acknowledged (sending it again changes nothing)."""
-        order = self.order[rec.robot_id]
-        if self.store is None:
-            try:
-                if isinstance(rec, PendingKeyframe):
-                    rec = rec.resolve()
-                return self.server.add_keyframe(rec)
-            finally:
-                if order.session != UNSEQUENCED:
-                    order.taken(sequence)
-        robot_id = rec.robot_id
-        self.store.begin()
+        order, store, robot_id = self.order[rec.robot_id], self.store, rec.robot_id
+        if store is not None:
+            store.begin()
         logged = False
         try:
             if isinstance(rec, PendingKeyframe):
                 rec = rec.resolve()
             merges = self.server.add_keyframe(rec)
-            self.store.log_keyframe(rec)
-            logged = True
-            moved = bool(merges) or self.server.map_moved
-            mid = self.server.segments.find(rec.robot_id, rec.map_segment)
-            self.store.write_state(self.server, None if moved else [(mid, rec.keyframe_id)])
+            self._note_taken(rec.robot_id, rec.keyframe_id, rec.map_segment)
+            if store is not None:
+                store.log_keyframe(rec)
+                logged = True
+                moved = bool(merges) or self.server.map_moved
+                mid = self.server.segments.find(rec.robot_id, rec.map_segment)
+                store.write_state(self.server, None if moved else [(mid, rec.keyframe_id)])
             return merges
         except CoopSlamError:
             raise
         except Exception:
             # The core failed part-way: its state may have changed, so the input is logged all
             # the same (a rebuild repeats the same failure and reaches the same state).
-            if not logged and isinstance(rec, KeyframeRecord):
-                self.store.log_keyframe(rec)
+            if store is not None and not logged and isinstance(rec, KeyframeRecord):
+                store.log_keyframe(rec)
             raise
         finally:
             if order.session != UNSEQUENCED:
                 order.taken(sequence)
-                self.store.set_ack(robot_id, order.session, order.last)
-            self.store.commit()
+                if store is not None:
+                    store.set_ack(robot_id, order.session, order.last)
+            if store is not None:
+                store.commit()
 
     def _call(self, kind: str, apply, **args):
         if self.store is None:

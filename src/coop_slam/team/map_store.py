@@ -52,7 +52,13 @@ import numpy as np
 
 from ..datasets.base import CameraModel
 from ..errors import CoopSlamError
-from ..keyframe_record import ACTION_REMOVE, ACTION_UPDATE, STATIC_ARRAYS, KeyframeRecord
+from ..keyframe_record import (
+    ACTION_REMOVE,
+    ACTION_UPDATE,
+    ARRAY_FIELDS,
+    STATIC_ARRAYS,
+    KeyframeRecord,
+)
 
 log = logging.getLogger(__name__)
 
@@ -62,16 +68,6 @@ KIND_KEYFRAME, KIND_SIGHTING, KIND_RENDEZVOUS, KIND_GLOBAL_BA = (
     "sighting",
     "rendezvous",
     "global_ba",
-)
-_ARRAYS = (
-    "keypoints",
-    "octaves",
-    "descriptors",
-    "depths_m",
-    "map_point_ids",
-    "map_points",
-    "covisible_ids",
-    "covisible_weights",
 )
 # Rebuilt poses further than this from the stored ones mean the rebuild did not reproduce the
 # run (a different server version or configuration): said, not fatal.
@@ -121,7 +117,7 @@ def encode_record(rec: KeyframeRecord, omit: tuple[str, ...] = ()) -> bytes:
     left out because they equal the previous record of the same keyframe), then each array's raw
     bytes in header order."""
     arrays = [("T_map_cam", np.asarray(rec.T_map_cam, "<f8"))]
-    arrays += [(n, np.ascontiguousarray(getattr(rec, n))) for n in _ARRAYS if n not in omit]
+    arrays += [(n, np.ascontiguousarray(getattr(rec, n))) for n in ARRAY_FIELDS if n not in omit]
     header = {
         "omitted": list(omit),
         "robot_id": int(rec.robot_id),
@@ -390,29 +386,20 @@ class MapStore:
         """robot id -> (session, highest sequence stored)."""
         return {r: (s, q) for r, s, q in self.db.execute("SELECT * FROM acks")}
 
-    def last_ids(self) -> dict[int, tuple[int, int]]:
-        """robot id -> (highest keyframe id, highest map segment) ever logged for it."""
-        out: dict[int, tuple[int, int]] = {}
+    def logged_keyframes(self) -> dict[int, tuple[set[int], int]]:
+        """robot id -> (ids of every keyframe ever logged for it, culled ones included; highest
+        map segment of its stored keyframes)."""
+        out: dict[int, tuple[set[int], int]] = {}
         for r, kf in self.db.execute(
-            "SELECT robot_id, MAX(keyframe_id) FROM inputs WHERE kind=? GROUP BY robot_id",
-            (KIND_KEYFRAME,),
+            "SELECT DISTINCT robot_id, keyframe_id FROM inputs WHERE kind=?", (KIND_KEYFRAME,)
         ):
-            seg = self.db.execute(
-                "SELECT MAX(map_segment) FROM keyframes WHERE robot_id=?", (r,)
-            ).fetchone()[0]
-            out[int(r)] = (int(kf), int(seg or 0))
+            out.setdefault(int(r), (set(), 0))[0].add(int(kf))
+        for r, seg in self.db.execute(
+            "SELECT robot_id, MAX(map_segment) FROM keyframes GROUP BY robot_id"
+        ):
+            if int(r) in out:
+                out[int(r)] = (out[int(r)][0], int(seg or 0))
         return out
-
-    def keyframes_logged(self) -> dict[int, int]:
-        """robot id -> distinct keyframes ever logged (culled ones included)."""
-        return {
-            int(r): int(n)
-            for r, n in self.db.execute(
-                "SELECT robot_id, COUNT(DISTINCT keyframe_id) FROM inputs WHERE kind=? "
-                "GROUP BY robot_id",
-                (KIND_KEYFRAME,),
-            )
-        }
 
     def count_inputs(self) -> int:
         return self.db.execute("SELECT COUNT(*) FROM inputs").fetchone()[0]
@@ -460,6 +447,13 @@ class MapStore:
             os.replace(tmp, path)  # a reader never sees a half-written map
         except (sqlite3.Error, OSError) as exc:
             raise MapStoreError(f"cannot write map file {path}: {exc}") from exc
+
+
+def remove_map_file(path: str) -> None:
+    """Delete a (closed) map file with the WAL files SQLite keeps beside it."""
+    for name in (path, path + "-wal", path + "-shm"):
+        if os.path.exists(name):
+            os.remove(name)
 
 
 def apply_input(server, item: StoredInput) -> None:

@@ -477,7 +477,7 @@ def run(args: argparse.Namespace) -> int:
     sensors = inputs.sensors or ["rgbd"] * len(robot_ids)
     all_ids = robot_ids
     if args.only_robots:
-        from ..playback import PlaybackError, parse_robot_ids
+        from ..playback import PlaybackError, build_schedule, parse_robot_ids
 
         try:
             played = parse_robot_ids(args.only_robots)
@@ -485,8 +485,6 @@ def run(args: argparse.Namespace) -> int:
             raise CoopSlamError(f"--only-robots: {exc}") from None
         if set(played) - set(robot_ids):
             raise CoopSlamError(f"--only-robots {args.only_robots}: the source has {robot_ids}")
-        from ..playback import build_schedule
-
         schedule = build_schedule(
             [st for st in source.streams if st.robot_id in played], args.keep_timing
         )
@@ -553,10 +551,10 @@ def run(args: argparse.Namespace) -> int:
         else bool(args.scenario) and not _hand_held(args.scenario)
     )
     launch_args.append(f"ground_robots:={str(ground).lower()}")
+    from ..team.map_store import remove_map_file
+
     map_path = os.path.join(out, "team_map.db")
-    for stale in (map_path, map_path + "-wal", map_path + "-shm"):
-        if os.path.exists(stale):  # a results folder used again: this run's map starts empty
-            os.remove(stale)
+    remove_map_file(map_path)  # a results folder used again: this run's map starts empty
     launch_args.append(f"map:={map_path}")
     if args.load_map:
         launch_args.append(f"load_map:={os.path.abspath(args.load_map)}")
