@@ -319,3 +319,37 @@ def test_a_robots_new_map_segment_merging_with_its_old_one_is_judged_at_both_key
     }
     t_err, r_err = _local_merge_error(m, None, {2: gt})
     assert t_err < 1e-9 and r_err < 1e-6
+
+
+def test_frame_stats_count_dropped_frames_and_a_mapper_behind_the_camera():
+    """Per robot: frames tracked, frames a busy client skipped, and frames tracked while local
+    mapping held more than one keyframe (the mapper falling behind), with its largest backlog."""
+    from coop_slam.msg import FrameStats
+    from coop_slam.ros.run_recorder import RunRecorder
+
+    rec = RunRecorder([1])
+    for k, (dropped, backlog) in enumerate(
+        [(False, 0), (True, 0), (False, 1), (False, 3), (False, 2)]
+    ):
+        msg = FrameStats(robot_id=1, tracking_ok=True, track_ms=10.0, dropped=dropped)
+        msg.mapping_backlog = backlog
+        rec.feed("/robot_1/frame_stats", msg, 0.1 * k, 40)
+    r = rec.run.robots[1]
+    assert (r.frames, r.frames_dropped) == (4, 1)
+    assert (r.mapping_backlog_max, r.frames_mapping_behind) == (3, 2)
+
+
+def test_bandwidth_gives_uplink_and_downlink_per_robot():
+    """Uplink = a robot's keyframe messages; downlink = the server's corrections and acks to it."""
+    from coop_slam.evaluation.run_report import RobotRun, RunData, _bandwidth, _downlink_kBps
+
+    run = RunData(robots={1: RobotRun(), 2: RobotRun()}, duration_s=10.0)
+    run.robots[1].kf_bytes = [(0.5, 40_000), (1.5, 60_000)]
+    run.robots[2].kf_bytes = [(2.0, 20_000)]
+    run.topic_bytes["/robot_1/correction"] = [(3.0, 5_000), (4.0, 4_000)]
+    run.topic_bytes["/robot_1/keyframe_ack"] = [(3.0, 1_000)]
+    bw = _bandwidth(run)
+    assert bw["per_robot_kBps"] == pytest.approx((10.0 + 2.0) / 2)
+    assert _downlink_kBps(run, 1) == pytest.approx(1.0)
+    assert _downlink_kBps(run, 2) is None  # nothing recorded: unknown, not zero
+    assert bw["downlink_per_robot_kBps"] == pytest.approx(1.0)

@@ -6,6 +6,7 @@ accuracy.
 from __future__ import annotations
 
 import os
+import time
 
 import numpy as np
 import pytest
@@ -276,6 +277,30 @@ def test_threaded_mapping_tracks_and_stops(room_sequence):
         assert vo.mapping_stats["ba_runs"] >= 1
     assert all(r.ok for r in results)
     assert ate_rmse(stamps[:25], np.array([r.T_map_cam for r in results]), gt[:25]) < 0.01
+
+
+def test_mapping_backlog_counts_keyframes_a_slow_mapper_has_not_finished(room_sequence):
+    """A mapper slower than the camera is visible (mapping_backlog > 1), and flush() -- what a
+    lock-step client does after each frame -- waits until it has caught up."""
+    stamps, frames, _ = room_sequence
+    cfg = VoConfig(threaded=True, ba_enabled=False)
+    with VisualOdometry(cfg, helpers_vo.CAMERA) as vo:
+        slow = vo._mapper.process
+
+        def process(kf_id, run_ba):
+            time.sleep(0.3)
+            slow(kf_id, run_ba)
+
+        vo._mapper.process = process
+        backlog = []
+        for s, (img, d) in zip(stamps[:25], frames[:25]):
+            vo.track(s, img, d)
+            backlog.append(vo.mapping_backlog)
+        assert max(backlog) >= 2
+        vo.flush()
+        assert vo.mapping_backlog == 0
+        created = sum(e.kind == EVENT_KEYFRAME_NEW for e in vo.drain_events())
+        assert created == len(vo.keyframes()) + vo.mapping_stats["kf_culled"]
 
 
 def test_relocalizes_after_blackout_and_starts_segment_when_lost_long(room_sequence):

@@ -15,6 +15,8 @@ ROBOT_KEYS = (
     "id",
     "frames",
     "frames_dropped",  # frames a busy client skipped for a newer one (live playback)
+    "mapping_backlog_max",  # most keyframes local mapping had not finished at a frame
+    "frames_mapping_behind",  # frames tracked while local mapping held more than one keyframe
     "keyframes",
     "path_length_m",
     "ate_rmse_m",
@@ -22,6 +24,9 @@ ROBOT_KEYS = (
     "tracking_lost",
     "track_ms_mean",
     "track_ms_p95",
+    # Radio: robot -> server (keyframe messages) and server -> robot (corrections, acks) [kB/s]
+    "uplink_kBps",
+    "downlink_kBps",
     # Monocular robots (a map without metric scale; ate_rmse_m, an SE(3) alignment, is null):
     # the Sim(3)-aligned ATE of its own keyframes, and once the server placed it in a metric world
     # group, the server's scale of its map against the true one (relative, signed).
@@ -58,7 +63,13 @@ TOP_KEYS = (
     "overlap_agreement",
     "topics",
 )
-BANDWIDTH_KEYS = ("per_robot_kBps", "peak_kBps", "total_MB", "keyframe_bytes_mean")
+BANDWIDTH_KEYS = (
+    "per_robot_kBps",  # uplink: keyframe messages
+    "peak_kBps",
+    "total_MB",
+    "keyframe_bytes_mean",
+    "downlink_per_robot_kBps",  # server -> robot: corrections and acknowledgements
+)
 WRONG_MERGE_TRANS_M = 0.10  # a merge is wrong when its transform is off by more than this ...
 WRONG_MERGE_ROT_DEG = 5.0  # ... or this
 
@@ -178,7 +189,8 @@ def render_markdown(report: dict) -> str:
         f"- server time per keyframe: {_fmt(report.get('server_ms_per_keyframe'), 1)} ms",
         f"- bandwidth: per robot {_fmt(bw.get('per_robot_kBps'), 1)} kB/s, peak "
         f"{_fmt(bw.get('peak_kBps'), 1)} kB/s, total {_fmt(bw.get('total_MB'), 2)} MB, "
-        f"mean keyframe message {_fmt(bw.get('keyframe_bytes_mean'), 0)} B",
+        f"mean keyframe message {_fmt(bw.get('keyframe_bytes_mean'), 0)} B; downlink per robot "
+        f"{_fmt(bw.get('downlink_per_robot_kBps'), 1)} kB/s",
         f"- loop closures: {_fmt(report.get('loop_closures'))}",
         "",
     ]

@@ -29,6 +29,10 @@ from .report import count_wrong_merges, new_report, write_report
 class RobotRun:
     frames: int = 0  # frames tracked
     frames_dropped: int = 0  # frames the busy client skipped for a newer one
+    # Local mapping's backlog (keyframes not finished) when frames were tracked: its maximum and
+    # the frames tracked while it held more than one (mapping behind the camera)
+    mapping_backlog_max: int = 0
+    frames_mapping_behind: int = 0
     lost_frames: int = 0
     track_ms: list = field(default_factory=list)
     keyframes: dict = field(default_factory=dict)  # id -> (stamp_s, T_map_cam), latest version
@@ -216,6 +220,10 @@ def evaluate_run(
         stamps_gt, poses_gt = gts[rid]
         entry["frames"] = r.frames
         entry["frames_dropped"] = r.frames_dropped
+        entry["mapping_backlog_max"] = r.mapping_backlog_max
+        entry["uplink_kBps"] = _uplink_kBps(run, r)
+        entry["downlink_kBps"] = _downlink_kBps(run, rid)
+        entry["frames_mapping_behind"] = r.frames_mapping_behind
         entry["path_length_m"] = path_length(poses_gt) if len(poses_gt) else None
         entry["keyframes"] = len(r.keyframes)
         entry["tracking_lost"] = r.lost_frames
@@ -444,15 +452,32 @@ def _first_evidence(overlap: dict | None, kind: str, a: int, b: int) -> float | 
     return first if first is not None else second
 
 
+def _downlink_kBps(run: RunData, robot_id: int) -> float | None:
+    """Server -> robot: its corrections and acknowledgements, kB/s over the run (None when neither
+    was recorded)."""
+    from ..ros.run_recorder import DOWNLINK_TOPICS
+
+    entries = [
+        n for t in DOWNLINK_TOPICS for _, n in run.topic_bytes.get(f"/robot_{robot_id}/{t}", ())
+    ]
+    return sum(entries) / max(run.duration_s, 1e-9) / 1e3 if entries else None
+
+
+def _uplink_kBps(run: RunData, r: RobotRun) -> float | None:
+    """Robot -> server: its keyframe messages, kB/s over the run."""
+    return sum(n for _, n in r.kf_bytes) / max(run.duration_s, 1e-9) / 1e3 if r.kf_bytes else None
+
+
 def _bandwidth(run: RunData) -> dict:
     per_robot, peaks, total = [], [], 0
+    downlink = [d for d in (_downlink_kBps(run, rid) for rid in run.robots) if d is not None]
     for r in run.robots.values():
         if not r.kf_bytes:
             continue
         t = np.array([s for s, _ in r.kf_bytes])
         b = np.array([n for _, n in r.kf_bytes], float)
         total += b.sum()
-        per_robot.append(b.sum() / max(run.duration_s, 1e-9) / 1e3)
+        per_robot.append(_uplink_kBps(run, r))
         bins = np.floor(t - t.min()).astype(int)
         peaks.append(np.bincount(bins, weights=b).max() / 1e3)  # busiest second of sim time
     if not per_robot:
@@ -461,6 +486,7 @@ def _bandwidth(run: RunData) -> dict:
             "peak_kBps": None,
             "total_MB": None,
             "keyframe_bytes_mean": None,
+            "downlink_per_robot_kBps": float(np.mean(downlink)) if downlink else None,
         }
     sizes = [n for r in run.robots.values() for _, n in r.kf_bytes]
     return {
@@ -468,6 +494,7 @@ def _bandwidth(run: RunData) -> dict:
         "peak_kBps": float(max(peaks)),
         "total_MB": float(total / 1e6),
         "keyframe_bytes_mean": float(np.mean(sizes)),
+        "downlink_per_robot_kBps": float(np.mean(downlink)) if downlink else None,
     }
 
 

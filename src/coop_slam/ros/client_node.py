@@ -115,6 +115,11 @@ class ClientNode:
         # Marker sightings of other robots (rendezvous cue; their bodies are masked for the
         # odometry); 0 disables detection.
         self.marker_every = int(rospy.get_param("~marker_every_frames", 5))
+        # Lock-step playback: a frame is finished when local mapping has caught up too, so that
+        # results do not depend on how fast the machine maps. Live, the mapper runs beside
+        # tracking and a backlog is reported (FrameStats.mapping_backlog and a warning).
+        self.wait_for_mapping = bool(rospy.get_param("~wait_for_mapping", False))
+        self.mapping_behind_warn = int(rospy.get_param("~mapping_backlog_warn", 3))
         self.markers = MarkerDetector(
             load_yaml_config(MarkerConfig, config_file, "markers", rospy.get_param("~markers", {}))
         )
@@ -409,6 +414,17 @@ class ClientNode:
                     self.vo = self._VisualOdometry(self.vo_cfg, self.camera)
                 res = self.vo.track(stamp.to_sec(), image, second)
                 self.frames += 1
+                stats.mapping_backlog = min(self.vo.mapping_backlog, 65535)
+                if self.wait_for_mapping:
+                    self.vo.flush()
+                elif stats.mapping_backlog >= self.mapping_behind_warn:
+                    rospy.logwarn_throttle(
+                        10.0,
+                        "client %s: local mapping is %d keyframes behind the camera (the map "
+                        "is refined later than tracking needs it)",
+                        self.name,
+                        stats.mapping_backlog,
+                    )
                 if res.state == STATE_INITIALIZING:  # e.g. a monocular camera not moved yet
                     rospy.loginfo_throttle(5.0, "client %s: %s", self.name, res.message)
                 elif res.message.startswith("map initialized"):

@@ -316,7 +316,7 @@ class PlayerNode:
 # What the system itself publishes: a bag recorded on a running team may hold these, and replaying
 # them would fight the live clients and server.
 SYSTEM_OUTPUT_TOPICS = re.compile(
-    r"^/(robot_\d+/(keyframes|frame_stats|correction|pose|path|local_map)"
+    r"^/(robot_\d+/(keyframes|keyframe_ack|frame_stats|correction|pose|path|local_map)"
     r"|team_map/.*|merge_events|server/.*|robot_sightings|player/.*|clock|rosout(_agg)?|tf)$"
 )
 

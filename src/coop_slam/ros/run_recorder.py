@@ -35,7 +35,10 @@ ROBOT_TOPICS = {  # relative to /robot_k; the message type of each
     "pose": "geometry_msgs/PoseStamped",
     "path": "nav_msgs/Path",
     "local_map": "sensor_msgs/PointCloud2",
+    "keyframe_ack": "coop_slam/KeyframeAck",
 }
+# Server -> robot k (the downlink of its radio), relative to /robot_k
+DOWNLINK_TOPICS = ("correction", "keyframe_ack")
 # CameraModel.msg sensor_type -> the sensor's name
 SENSOR_NAMES = {0: "rgbd", 1: "stereo", 2: "mono"}
 TEAM_TOPICS = {
@@ -103,6 +106,9 @@ class RunRecorder:
         else:
             r.keyframes_sent_sessions[-1] = sent
         r.unacked = int(getattr(msg, "unacked", 0))
+        backlog = int(getattr(msg, "mapping_backlog", 0))
+        r.mapping_backlog_max = max(r.mapping_backlog_max, backlog)
+        r.frames_mapping_behind += backlog > 1
         if msg.track_ms > 0:
             r.track_ms.append(float(msg.track_ms))
         if not msg.tracking_ok and r.first_keyframe is not None:

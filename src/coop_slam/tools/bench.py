@@ -98,6 +98,12 @@ def bench_vo() -> Iterator[Figure]:
             "%",
         )
         yield (f"vo_{name}_lost_frames", float(np.count_nonzero(~run.ok)), "frames")
+        yield (f"vo_{name}_mapping_backlog_max", float(run.mapping_backlog.max()), "keyframes")
+        yield (
+            f"vo_{name}_frames_mapping_behind",
+            float(np.count_nonzero(run.mapping_backlog > 1)),
+            "frames",
+        )
         size = _keyframe_msg_bytes(run.keyframes, seq.camera)
         if size is not None:
             yield (f"vo_{name}_keyframe_msg_bytes_mean", size, "bytes")

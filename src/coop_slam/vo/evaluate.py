@@ -34,6 +34,7 @@ class VoRun:
     states: list[str]
     segments: np.ndarray  # (F,) map segment of each frame
     track_ms: np.ndarray  # (F,) wall time of track()
+    mapping_backlog: np.ndarray  # (F,) keyframes local mapping had not finished after track()
     cpu_ms: np.ndarray  # (F,) CPU time of the tracking thread in track()
     keyframes: list[MapKeyframe]  # final keyframes of the last segment (after local BA and culling)
     keyframes_created: int
@@ -80,6 +81,7 @@ def run_sequence(
     poses = np.full((n, 4, 4), np.nan)
     ok = np.zeros(n, bool)
     states, segments, track_ms, cpu_ms = [], np.zeros(n, int), np.zeros(n), np.zeros(n)
+    backlog = np.zeros(n, int)
     created = removed = 0
     t_start = time.perf_counter()
     try:
@@ -98,6 +100,7 @@ def run_sequence(
             segments[i] = res.map_segment
             track_ms[i] = res.track_ms
             cpu_ms[i] = res.cpu_ms
+            backlog[i] = vo.mapping_backlog
             ok[i] = res.ok
             if res.ok:
                 poses[i] = res.T_map_cam
@@ -122,6 +125,7 @@ def run_sequence(
         states=states,
         segments=segments,
         track_ms=track_ms,
+        mapping_backlog=backlog,
         cpu_ms=cpu_ms,
         keyframes=keyframes,
         keyframes_created=int(created),

@@ -111,6 +111,11 @@ class LocalMapper:
     def pending(self) -> int:
         return self._queue.qsize()
 
+    @property
+    def backlog(self) -> int:
+        """Keyframes handed over and not finished: queued, plus the one in process."""
+        return self._queue.unfinished_tasks
+
     def submit(self, kf_id: int) -> None:
         """Hand a new keyframe to local mapping (processed now unless threaded)."""
         if self._thread is None:
@@ -150,6 +155,8 @@ class LocalMapper:
                 self.process(kf_id, run_ba=self._queue.empty())
             except Exception:  # never let the mapping thread die silently
                 log.exception("local mapping failed on keyframe %d", kf_id)
+            finally:
+                self._queue.task_done()
             if self._queue.empty():
                 self._idle.set()
 

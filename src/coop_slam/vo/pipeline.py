@@ -225,6 +225,12 @@ class VisualOdometry:
         """Wait until local mapping has processed every keyframe (threaded mode)."""
         self._mapper.flush(timeout_s)
 
+    @property
+    def mapping_backlog(self) -> int:
+        """Keyframes local mapping has not finished (queued or in process); more than one means
+        it falls behind the camera."""
+        return self._mapper.backlog
+
     def reset(self) -> None:
         """Drop the map; the next frame starts a new map segment (keyframe/point ids keep
         growing)."""
