@@ -370,3 +370,39 @@ def test_a_new_map_segment_is_a_map_of_its_own_that_merges_back(world):
     assert transform_error(server.T_group_map(2), T_2)[0] < 0.03
     kfs = server.robot_keyframes(2)
     assert sorted(kfs)[:8] == list(range(1, 9)) and sorted(kfs)[8:] == list(range(100, 108))
+
+
+def test_pose_feedback_sends_only_keyframes_that_moved_since_last_sent():
+    """Incremental pose-graph sharing: at first against the client's own poses, then against
+    what was sent; the newest keyframe always goes (the client anchors map -> odom on it)."""
+    from coop_slam.geometry import se3
+    from coop_slam.team.pose_feedback import PoseFeedback, PoseFeedbackConfig
+
+    feedback = PoseFeedback(PoseFeedbackConfig(min_trans_m=0.005, min_rot_deg=0.2))
+    client = {k: se3(t=np.array([0.1 * k, 0.0, 0.0])) for k in range(1, 6)}
+    optimized = dict(client)
+    optimized[2] = se3(t=np.array([0.2, 0.01, 0.0]))  # moved 1 cm
+    optimized[3] = se3(t=np.array([0.3, 0.002, 0.0]))  # 2 mm: below the threshold
+    assert sorted(feedback.select(7, optimized, client)) == [2, 5]
+    assert sorted(feedback.select(7, optimized, client)) == [5]  # nothing moved since
+    optimized[3] = se3(t=np.array([0.3, 0.008, 0.0]))  # now 8 mm from the client's pose
+    del optimized[5]  # culled: the newest is now 4
+    assert sorted(feedback.select(7, optimized, client)) == [3, 4]
+    assert sorted(feedback.select(8, {}, {})) == []  # a map without optimized keyframes
+
+
+def test_server_pose_corrections_after_a_merge_are_incremental(world):
+    """After a merge a robot gets the keyframes the team map moved; the next call, with nothing
+    new optimized, only the newest."""
+    points, desc, kfs_a, vocab = world
+    server = TeamServer(_config(robots=[1, 2]), vocab)
+    for kf in kfs_a:
+        server.add_keyframe(kf)
+    for kf in _keyframes(
+        2, np.linspace(2.0, 3.0, 8), points, desc, offset=(0.2, 0.1), seed=100, t0=100.0
+    ):
+        server.add_keyframe(kf)
+    assert server.groups.groups() == [[1, 2]]
+    first = server.pose_corrections(2)
+    assert max(server.corrected_keyframes(2)) in first
+    assert sorted(server.pose_corrections(2)) == [max(first)]

@@ -20,6 +20,9 @@ ROBOT_KEYS = (
     "keyframes",
     "path_length_m",
     "ate_rmse_m",
+    # the server's optimized poses of the robot's keyframes, aligned alone like ate_rmse_m
+    # (Sim(3) for a monocular robot)
+    "server_ate_rmse_m",
     "rpe_rmse_m",
     "tracking_lost",
     "track_ms_mean",

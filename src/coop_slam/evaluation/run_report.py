@@ -257,6 +257,15 @@ def evaluate_run(
                     np.array([r.team_keyframes[k][0] for k in ids]),
                     np.array([r.team_keyframes[k][1] for k in ids]),
                 )
+                # The same alignment as the robot's own ATE: how much better the team map
+                # places this robot's keyframes than its own odometry (pose-graph sharing brings
+                # the client's own trajectory to it).
+                try:
+                    entry["server_ate_rmse_m"] = ate(
+                        *est_world[rid], stamps_gt, poses_gt, correct_scale=sensors[rid] == "mono"
+                    ).rmse_m
+                except EvaluationError:
+                    pass
             elif r.T_world_map is not None:  # client poses moved by the latest correction
                 est_world[rid] = (stamps, np.einsum("ij,njk->nik", r.T_world_map, poses))
             if rid in est_world and len(stamps_gt):

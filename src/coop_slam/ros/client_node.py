@@ -107,6 +107,11 @@ class ClientNode:
         self.lock = threading.Lock()
         self.rejects = RejectCounter(f"client {self.name}")
         self.T_map_odom = np.eye(4)  # server correction (REP-105 map -> odom)
+        # Pose-graph sharing: move our own map onto the team map's optimized keyframe poses (the
+        # odometry frame, odom, stays continuous: see coop_slam.vo.map_correction). Off by
+        # default: tracking in the corrected map made the team map worse on the team world.
+        self.apply_corrections = bool(rospy.get_param("~apply_corrections", False))
+        self.corrections_applied = 0
         self.T_world_map = None
         self.segment = 0
         self.kf_poses: dict[int, tuple[float, np.ndarray]] = {}  # id -> (stamp, T_map_cam)
@@ -434,7 +439,7 @@ class ClientNode:
                 stats.keyframes = len(self.kf_poses)
                 stats.keyframes_sent, stats.unacked = self.keyframes_sent, self.outbox.unacked
                 if res.ok:
-                    self._publish_pose(stamp, self.T_base_cam @ res.T_map_cam)
+                    self._publish_pose(stamp, self.T_base_cam @ self.vo.T_odo_map @ res.T_map_cam)
                 if self.marker_every and self.frames % self.marker_every == 0:
                     self._detect_markers(stamp, image, res)
                 if stamp.to_sec() - self.last_cloud_s >= self.cloud_period_s:
@@ -490,6 +495,14 @@ class ClientNode:
                 kid, T_map_cam_opt = max(known, key=lambda kv: kv[0])
                 T_odom_cam = self.kf_poses[kid][1]
                 self.T_map_odom = T_map_cam_opt @ invert(T_odom_cam)
+            if self.apply_corrections and self.vo is not None and known:
+                # Message poses: robot_k/map (base-aligned), ids from kf_id_base; the odometry's
+                # own: its camera-aligned map frame, its own ids.
+                T_cam_base = invert(self.T_base_cam)
+                corrected = {kid - self.kf_id_base: T_cam_base @ T for kid, T in known}
+                if self.vo.apply_corrections(corrected) is not None:
+                    self.corrections_applied += 1
+                    self._publish_path()
 
     # --- publishing -------------------------------------------------------------------------------
     def _publish_events(self) -> None:
@@ -546,10 +559,18 @@ class ClientNode:
         )
 
     def _publish_path(self) -> None:
+        """Our keyframes in robot_k/map: those of the current map segment as our own map has them
+        (corrected by the team map when corrections are applied), older ones as sent."""
         path = Path()
         path.header.frame_id = self.map_frame
-        for kid in sorted(self.kf_poses):
-            stamp_s, T_map_cam = self.kf_poses[kid]
+        poses = dict(self.kf_poses)
+        if self.vo is not None:
+            T_odom_vo = self.T_base_cam @ self.vo.T_odo_map
+            for k, T in self.vo.keyframe_poses().items():
+                if k + self.kf_id_base in poses:
+                    poses[k + self.kf_id_base] = (poses[k + self.kf_id_base][0], T_odom_vo @ T)
+        for kid in sorted(poses):
+            stamp_s, T_map_cam = poses[kid]
             ps = PoseStamped(
                 pose=pose_to_msg(self.T_map_odom @ T_map_cam @ invert(self.T_base_cam))
             )
@@ -562,7 +583,7 @@ class ClientNode:
     def _publish_cloud(self, stamp) -> None:
         _, xyz = self.vo.map_point_arrays()
         pts = (
-            transform_points(self.T_map_odom @ self.T_base_cam, xyz)
+            transform_points(self.T_map_odom @ self.T_base_cam @ self.vo.T_odo_map, xyz)
             if len(xyz)
             else np.zeros((0, 3))
         )
@@ -574,11 +595,13 @@ class ClientNode:
             if self.vo is not None:
                 self.vo.close()
         rospy.loginfo(
-            "client %s: %d frames, %d dropped (busy), %d keyframes, %d rejected messages",
+            "client %s: %d frames, %d dropped (busy), %d keyframes, %d corrections applied, %d "
+            "rejected messages",
             self.name,
             self.frames,
             self.slot.dropped,
             len(self.kf_poses),
+            self.corrections_applied,
             self.rejects.total,
         )
 

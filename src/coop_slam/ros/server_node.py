@@ -573,7 +573,7 @@ class ServerNode:
             scale = self.server.map_scale(m)
             corrected = {
                 k: scale_translation(P, 1.0 / scale)
-                for k, P in self.server.corrected_keyframes(m).items()
+                for k, P in self.server.pose_corrections(m).items()
             }
             corr = self._MapCorrection(
                 robot_id=r,

@@ -15,6 +15,7 @@ from .global_ba import GlobalBaConfig
 from .map_scale import MapScaleConfig
 from .marker_scale import MarkerScaleConfig
 from .overlap_links import OverlapLinkConfig
+from .pose_feedback import PoseFeedbackConfig
 from .pose_graph import PoseGraphConfig
 
 
@@ -140,6 +141,7 @@ class ServerConfig:
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     map_scale: MapScaleConfig = field(default_factory=MapScaleConfig)
     marker_scale: MarkerScaleConfig = field(default_factory=MarkerScaleConfig)
+    pose_feedback: PoseFeedbackConfig = field(default_factory=PoseFeedbackConfig)
     optimize_every: int = 5  # incremental (iSAM2) update every N keyframes; full after each merge
     cloud_voxel_m: float = 0.05  # voxel size of the stitched team cloud [m]
     fuse_radius_m: float = 0.03  # points of different robots closer than this become one [m]
@@ -160,3 +162,4 @@ class ServerConfig:
         self.global_ba.validate()
         self.map_scale.validate()
         self.marker_scale.validate()
+        self.pose_feedback.validate()

@@ -40,6 +40,7 @@ from .marker_scale import MarkerScale
 from .overlap_links import OverlapLinks
 from .place_recognition import PlaceRecognition
 from .plausibility import interpolate_track
+from .pose_feedback import PoseFeedback
 from .pose_graph import PoseGraphError, TeamPoseGraph
 from .rendezvous import Rendezvous
 from .results import TYPE_PLACE_RECOGNITION, MergeResult, Verified, robot_pair
@@ -94,6 +95,7 @@ class TeamServer:
             self.groups,
             self.scales,
         )
+        self.pose_feedback = PoseFeedback(config.pose_feedback)
         self.global_ba_runs: list[GlobalBaResult] = []
         self.keyframe_ms: list[float] = []  # server time per incoming keyframe
         self.optimize_ms: list[float] = []
@@ -575,14 +577,38 @@ class TeamServer:
         """keyframe id -> T_group_cam of every stored keyframe of a robot."""
         return {k: self.T_group_cam(robot_id, k) for k in self.store.keyframe_ids(robot_id)}
 
-    def corrected_keyframes(self, robot_id: int, last: int = 20) -> dict[int, np.ndarray]:
+    def corrected_keyframes(self, robot_id: int, last: int | None = 20) -> dict[int, np.ndarray]:
         """Optimized poses (in the robot's own map frame, its lengths times :meth:`map_scale`)
-        of its ``last`` newest keyframes."""
+        of its ``last`` newest keyframes (None: all)."""
         if robot_id not in self.graph.robots:
             return {}
         T_map_group = np.linalg.inv(self.groups.T_root_map(robot_id))
         poses = self.graph.keyframe_poses(robot_id)
-        return {k: T_map_group @ poses[k] for k in sorted(poses)[-last:]}
+        ids = sorted(poses) if last is None else sorted(poses)[-last:]
+        return {k: T_map_group @ poses[k] for k in ids}
+
+    def pose_corrections(self, map_id: int) -> dict[int, np.ndarray]:
+        """The optimized poses to send the robot of a map now, in its map frame: those that
+        moved since last sent, and the newest (see :mod:`.pose_feedback`).
+
+        The frame is read off at the newest keyframe's client pose as stored now, not from the
+        group transform of the last optimization: a re-anchored map frame moves every keyframe
+        rigidly, which is no correction, and a client applying it would slide its whole map
+        (and its current pose) at each optimization."""
+        if map_id not in self.graph.robots:
+            return {}
+        poses_group = self.graph.keyframe_poses(map_id)
+        client = {
+            k: self.store.record((map_id, k)).T_map_cam
+            for k in poses_group
+            if (map_id, k) in self.store
+        }
+        if not client:
+            return {}
+        newest = max(client)
+        T_map_group = client[newest] @ invert(poses_group[newest])
+        optimized = {k: T_map_group @ T for k, T in poses_group.items()}
+        return self.pose_feedback.select(map_id, optimized, client)
 
     def _offsets(self) -> dict[int, np.ndarray]:
         return view_offsets(self.groups, self.world_robot, self.config.unmerged_offset_m)

@@ -123,6 +123,13 @@ def parse_args(argv=None) -> argparse.Namespace:
         "by roslaunch), drop:P (a radio relay drops a share P of the keyframe messages); "
         "comma-separated, e.g. server-kill@25,drop:0.1",
     )
+    p.add_argument(
+        "--pose-sharing",
+        action="store_true",
+        help="clients move their own map onto the team map's optimized keyframe poses (pose-graph "
+        "sharing; experimental: on the team world it made the team map worse), instead of only "
+        "offsetting it by the server's correction (map -> odom)",
+    )
     p.add_argument("--out", help="results folder (default: results/<date>-<source>)")
     p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
     p.add_argument(
@@ -192,6 +199,7 @@ def _write_run_info(
         "load_map": os.path.abspath(args.load_map) if args.load_map else None,
         "faults": args.faults,
         "rate": args.rate,  # None: lock-step
+        "pose_sharing": args.pose_sharing,
         "sensors": args.sensors,
         "ground_robots": ground,
         "commit": _commit(),
@@ -562,6 +570,8 @@ def run(args: argparse.Namespace) -> int:
         launch_args += ["respawn:=true", "resume:=true"]
     if faults.drop:
         launch_args.append(f"radio_drop:={faults.drop}")
+    if args.pose_sharing:
+        launch_args.append("apply_corrections:=true")
     bag_path = os.path.join(out, "run.bag")
     launch_args.append(f"record_bag:={bag_path}")
     # A loaded map's robots do not run, but the server shows them: record them for the report.

@@ -178,10 +178,11 @@ class LocalMapper:
         if run_ba and self.config.ba_enabled:
             with vmap.lock:
                 problem = self.build_ba_problem(vmap, kf_id)
+                epoch = vmap.epoch
             if problem is not None:
                 result = self._run_ba(problem)
                 with vmap.lock:
-                    if vmap is self._get_map():
+                    if vmap is self._get_map() and vmap.epoch == epoch:
                         self.apply_ba_result(vmap, result)
         if self.config.kf_culling and vmap is self._get_map():
             self.cull_keyframes(vmap, kf_id)
@@ -593,7 +594,6 @@ class LocalMapper:
         )
 
     def apply_ba_result(self, vmap: Map, result: BaResult) -> None:
-        cfg = self.config
         self.stats["ba_runs"] += 1
         self.stats["ba_ms"].append(result.time_ms)
         if not result.ok or result.segment != vmap.segment:
@@ -615,13 +615,22 @@ class LocalMapper:
             pid, k = int(result.obs_point_ids[o]), int(result.obs_kf_ids[o])
             if pts.alive[pid] and k in pts.obs[pid]:
                 vmap.erase_observation(pid, k)
+        self.announce_moved(vmap, moved)
+
+    def announce_moved(self, vmap: Map, moved) -> None:
+        """UPDATE events for keyframes that moved beyond the update thresholds since they were
+        last sent (the caller holds ``vmap.lock``)."""
+        cfg = self.config
         # A keyframe tracking inserted after this BA's own can sit in its window before local
         # mapping announced it: its NEW (a snapshot taken later) carries the moved pose, and an
         # UPDATE first would reach the server as an unknown keyframe, its NEW then as a duplicate.
         for k in moved:
+            if k not in vmap.keyframes:
+                continue
             sent = self._sent_pose.get(k)
             if sent is not None:
-                trans_m, rot_deg = transform_error(vmap.keyframes[k].T_map_cam, sent)
+                kf = vmap.keyframes[k]  # sent in the odometry frame (see .map_correction)
+                trans_m, rot_deg = transform_error(kf.T_odo_map @ kf.T_map_cam, sent)
                 if trans_m >= cfg.update_min_trans_m or rot_deg >= cfg.update_min_rot_deg:
                     self._announce(EVENT_KEYFRAME_UPDATE, vmap, k)
 

@@ -1,0 +1,70 @@
+"""Incremental pose-graph sharing back to the robots: which optimized keyframe poses a robot's
+correction carries.
+
+After each optimization the server could send a robot every keyframe pose it holds; over a radio
+that is most of the downlink, and almost all of it unchanged. :class:`PoseFeedback` remembers what
+it last sent for each keyframe (at first: the client's own pose, as the client sent it) and selects
+only the keyframes whose optimized pose moved beyond a small threshold since, plus the robot's
+newest keyframe (the client anchors its ``map -> odom`` transform on it). A client that applies
+them (:mod:`coop_slam.vo.map_correction`) sends the keyframes again with the new poses, so what the
+server stores as the client's pose and what it last sent agree, and nothing is sent twice.
+
+Poses are in the robot's map frame, in the server's units for that map (metres, or a monocular
+map's units times its scale); the caller converts to the client's units.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import require
+from ..geometry import transform_error
+
+
+@dataclass
+class PoseFeedbackConfig:
+    min_trans_m: float = 0.005  # send a keyframe's pose when it moved this far since last sent [m]
+    min_rot_deg: float = 0.2  # ... or turned this much [deg]
+
+    def validate(self) -> None:
+        require(self.min_trans_m >= 0, "server: pose_feedback.min_trans_m must be >= 0")
+        require(self.min_rot_deg >= 0, "server: pose_feedback.min_rot_deg must be >= 0")
+
+
+class PoseFeedback:
+    """Per map (a robot's map segment id on the server): the poses last sent for its keyframes."""
+
+    def __init__(self, config: PoseFeedbackConfig | None = None):
+        self.config = config or PoseFeedbackConfig()
+        self.config.validate()
+        self._sent: dict[int, dict[int, np.ndarray]] = {}  # map id -> keyframe id -> T_map_cam
+
+    def select(
+        self,
+        map_id: int,
+        optimized: dict[int, np.ndarray],
+        client: dict[int, np.ndarray],
+    ) -> dict[int, np.ndarray]:
+        """The keyframes to send now, id -> optimized T_map_cam: those that moved beyond the
+        thresholds since last sent (at first: against ``client``, the client's own poses), and
+        the newest. Marks them sent."""
+        cfg = self.config
+        sent = self._sent.setdefault(map_id, {})
+        for k in set(sent) - set(optimized):  # culled keyframes
+            del sent[k]
+        out = {}
+        for k in sorted(optimized):
+            before = sent.get(k, client.get(k))
+            if before is None:
+                out[k] = optimized[k]
+                continue
+            trans_m, rot_deg = transform_error(optimized[k], before)
+            if trans_m >= cfg.min_trans_m or rot_deg >= cfg.min_rot_deg:
+                out[k] = optimized[k]
+        if optimized:
+            newest = max(optimized)
+            out.setdefault(newest, optimized[newest])
+        sent.update({k: np.array(T) for k, T in out.items()})
+        return out
