@@ -7,7 +7,7 @@ import sqlite3
 import numpy as np
 import pytest
 
-from coop_slam.delivery import InOrder, Outbox
+from coop_slam.delivery import DeliveryError, InOrder, Outbox
 from coop_slam.keyframe_record import KeyframeError
 from coop_slam.team.durable import DurableServer, poses_equal
 from coop_slam.team.map_store import MapStore, MapStoreError, decode_record, encode_record
@@ -210,3 +210,24 @@ def test_outbox_sends_again_what_is_not_acknowledged():
     assert not overflow
     *_, overflow = box.add("e")
     assert overflow and box.dropped == 1 and box.unacked == 3
+
+
+def test_outbox_backs_off_and_sends_the_oldest_first_while_the_server_lags():
+    """No acknowledgement: the oldest few go again after 1 s, then after 2 s, 4 s (at most the
+    cap); an acknowledgement resets the wait."""
+    box = Outbox(max_unacked=100, resend_after_s=1.0, resend_window=2, max_resend_after_s=4.0)
+    for m in "abcde":
+        box.add(m)
+    t0 = box._last_progress
+    assert box.due(now=t0 + 0.5) == []
+    assert box.due(now=t0 + 1.0) == ["a", "b"]
+    assert box.due(now=t0 + 2.5) == []  # waits 2 s now
+    assert box.due(now=t0 + 3.0) == ["a", "b"]
+    assert box.due(now=t0 + 6.5) == []  # 4 s
+    assert box.due(now=t0 + 7.0) == ["a", "b"]
+    assert box.due(now=t0 + 10.9) == [] and box.due(now=t0 + 11.0) == ["a", "b"]  # capped at 4 s
+    assert box.ack(box.session, 2) == 2
+    now = box._last_progress
+    assert box.due(now=now + 1.0) == ["c", "d"] and box.resent == 10
+    with pytest.raises(DeliveryError, match="max_resend_after_s"):
+        Outbox(resend_after_s=5.0, max_resend_after_s=1.0)

@@ -406,3 +406,19 @@ def test_server_pose_corrections_after_a_merge_are_incremental(world):
     first = server.pose_corrections(2)
     assert max(server.corrected_keyframes(2)) in first
     assert sorted(server.pose_corrections(2)) == [max(first)]
+
+
+def test_team_map_cadence_keeps_the_cloud_within_its_share_of_the_worker():
+    """After a merge or every period of data time, but a map that took c seconds to build is not
+    followed by the next within c * (1 / share - 1) seconds of wall time."""
+    from coop_slam.team.publish_cadence import PublishCadence, PublishCadenceConfig
+
+    cadence = PublishCadence(PublishCadenceConfig(period_s=2.0, max_busy_share=0.25))
+    assert cadence.due(stamp_s=0.0, merged=False, wall_s=0.0)
+    cadence.published(0.0, started_wall_s=0.0, ended_wall_s=1.0)  # took 1 s: next from 4 s on
+    assert not cadence.due(1.0, merged=False, wall_s=5.0)  # 1 s of data: not yet
+    assert not cadence.due(2.5, merged=True, wall_s=3.9)  # a merge, but over the budget
+    assert cadence.due(2.5, merged=True, wall_s=4.0)
+    assert cadence.due(2.0, merged=False, wall_s=4.0)
+    with pytest.raises(ConfigError, match="cloud_max_busy_share"):
+        PublishCadence(PublishCadenceConfig(max_busy_share=0.0))

@@ -88,18 +88,40 @@ class InOrder:
 
 
 class Outbox:
-    """The client side: messages sent and not yet acknowledged, to send again."""
+    """The client side: messages sent and not yet acknowledged, to send again.
 
-    def __init__(self, max_unacked: int = 1000, resend_after_s: float = 2.0):
+    Without progress (no acknowledgement) for ``resend_after_s`` it sends the oldest
+    ``resend_window`` unacknowledged messages again, then waits twice as long before the next
+    resend, up to ``max_resend_after_s``; an acknowledgement resets the wait. A server that lags
+    behind (its queue tens of seconds long with eight robots) acknowledges late, not never: sending
+    everything again every two seconds made a resend storm that buried it further. The server takes
+    a robot's messages in order, so the oldest missing ones are what it needs first."""
+
+    def __init__(
+        self,
+        max_unacked: int = 1000,
+        resend_after_s: float = 2.0,
+        resend_window: int = 20,
+        max_resend_after_s: float = 30.0,
+    ):
         if max_unacked < 1:
             raise DeliveryError(f"max_unacked must be >= 1, got {max_unacked}")
         if resend_after_s <= 0:
             raise DeliveryError(f"resend_after_s must be > 0, got {resend_after_s}")
+        if resend_window < 1:
+            raise DeliveryError(f"resend_window must be >= 1, got {resend_window}")
+        if max_resend_after_s < resend_after_s:
+            raise DeliveryError(
+                f"max_resend_after_s ({max_resend_after_s}) must be >= resend_after_s "
+                f"({resend_after_s})"
+            )
         self.max_unacked, self.resend_after_s = max_unacked, resend_after_s
+        self.resend_window, self.max_resend_after_s = resend_window, max_resend_after_s
         self.session = new_session()
         self.sequence = 0  # of the last message
         self._unacked: OrderedDict[int, Any] = OrderedDict()
         self._last_progress = time.monotonic()  # last send or acknowledgement
+        self._wait_s = resend_after_s  # before the next resend (doubles while no progress)
         self.dropped = 0  # unacknowledged messages given up because the bound was reached
         self.resent = 0
 
@@ -113,6 +135,7 @@ class Outbox:
             self.dropped += 1
         if len(self._unacked) == 1:
             self._last_progress = time.monotonic()
+            self._wait_s = self.resend_after_s
         return self.session, self.sequence, overflow
 
     def ack(self, session: int, sequence: int) -> int:
@@ -124,16 +147,19 @@ class Outbox:
             del self._unacked[s]
         if done:
             self._last_progress = time.monotonic()
+            self._wait_s = self.resend_after_s
         return len(done)
 
     def due(self, now: float | None = None) -> list[Any]:
-        """The messages to send again now (all unacknowledged, oldest first), or none."""
+        """The messages to send again now (the oldest unacknowledged ones), or none."""
         now = time.monotonic() if now is None else now
-        if not self._unacked or now - self._last_progress < self.resend_after_s:
+        if not self._unacked or now - self._last_progress < self._wait_s:
             return []
         self._last_progress = now
-        self.resent += len(self._unacked)
-        return list(self._unacked.values())
+        self._wait_s = min(2.0 * self._wait_s, self.max_resend_after_s)
+        batch = list(self._unacked.values())[: self.resend_window]
+        self.resent += len(batch)
+        return batch
 
     @property
     def unacked(self) -> int:

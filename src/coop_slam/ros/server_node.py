@@ -21,6 +21,7 @@ import json
 import os
 import queue
 import threading
+import time
 from concurrent.futures import Future
 from dataclasses import dataclass
 
@@ -108,6 +109,7 @@ class ServerNode:
             "vocabulary",
             "T_base_cam",
             "cloud_period_s",
+            "cloud_max_busy_share",
             "map",
             "resume",
             "load_map",
@@ -162,8 +164,14 @@ class ServerNode:
         from sensor_msgs.msg import PointCloud2
         from visualization_msgs.msg import MarkerArray
 
-        self.cloud_period_s = float(rospy.get_param("~cloud_period_s", 2.0))
-        self._last_cloud_s = -1e9
+        from ..team.publish_cadence import PublishCadence, PublishCadenceConfig
+
+        self.cadence = PublishCadence(
+            PublishCadenceConfig(
+                period_s=float(rospy.get_param("~cloud_period_s", 2.0)),
+                max_busy_share=float(rospy.get_param("~cloud_max_busy_share", 0.2)),
+            )
+        )
         self.pub_cloud = rospy.Publisher("/team_map/cloud", PointCloud2, queue_size=1, latch=True)
         self.pub_markers = rospy.Publisher(
             "/team_map/markers", MarkerArray, queue_size=1, latch=True
@@ -513,8 +521,7 @@ class ServerNode:
         if merges or self.server.map_moved:
             self._publish_tf(stamp)
         self._map_dirty, self._last_stamp_s = True, stamp_s
-        if merges or stamp_s - self._last_cloud_s >= self.cloud_period_s:
-            self._last_cloud_s = stamp_s
+        if self.cadence.due(stamp_s, bool(merges), time.monotonic()):
             self._publish_map(stamp)
         if len(self.server.keyframe_ms) % 10 == 0 or merges:
             self._publish_stats()
@@ -591,6 +598,13 @@ class ServerNode:
 
     def _publish_map(self, stamp) -> None:
         """Stitched team cloud and the markers (paths, merge edges, labels), in ``world``."""
+        started = time.monotonic()
+        try:
+            self._build_and_publish_map(stamp)
+        finally:
+            self.cadence.published(stamp.to_sec(), started, time.monotonic())
+
+    def _build_and_publish_map(self, stamp) -> None:
         self._map_dirty = False
         from geometry_msgs.msg import Point
         from std_msgs.msg import ColorRGBA

@@ -206,26 +206,53 @@ def bench_pose_graph() -> Iterator[Figure]:
     yield ("pose_graph_full_optimization_1000_keyframes", bench_full_optimization(1000, 4), "ms")
 
 
-REGISTRY: dict[str, Callable[[], Iterator[Figure]]] = {
+def bench_server_scale(run_dir=None, rate=1.0, out_dir=".") -> Iterator[Figure]:
+    from .bench_server_scale import bench_server_scale as bench
+
+    yield from bench(run_dir=run_dir, rate=rate, out_dir=out_dir)
+
+
+REGISTRY: dict[str, Callable[..., Iterator[Figure]]] = {
     "render": bench_render,
     "bow": bench_bow,
     "vo": bench_vo,
     "server": bench_server,
     "pose_graph": bench_pose_graph,
+    "server_scale": bench_server_scale,
 }
+# Only with --only: its first run synthesises eight robots' keyframe streams (about 20 minutes,
+# cached), every run replays 90 s of them in real time.
+NOT_BY_DEFAULT = {"server_scale"}
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="scripts/bench", description=__doc__.split("\n\n")[0])
     p.add_argument("--only", choices=sorted(REGISTRY), help="run one benchmark")
     p.add_argument("--out", default="bench.json", help="where to write the figures (JSON)")
+    p.add_argument(
+        "--run",
+        help="server_scale: replay this recorded demo run (RUN/run.bag) instead of the synthetic "
+        "8-robot multi streams",
+    )
+    p.add_argument(
+        "--rate", type=float, default=1.0, help="server_scale: replay at RATE x real time"
+    )
     args = p.parse_args(argv)
-    names = [args.only] if args.only else list(REGISTRY)
+    if args.rate <= 0:
+        p.error("--rate must be > 0")
+    names = [args.only] if args.only else [n for n in REGISTRY if n not in NOT_BY_DEFAULT]
+    options = {
+        "server_scale": {
+            "run_dir": args.run,
+            "rate": args.rate,
+            "out_dir": os.path.dirname(os.path.abspath(args.out)),
+        }
+    }
     figures = {}
     for name in names:
         t0 = time.monotonic()
         try:
-            for fig, value, unit in REGISTRY[name]():
+            for fig, value, unit in REGISTRY[name](**options.get(name, {})):
                 figures[fig] = {"value": value, "unit": unit}
                 print(f"{fig} {value:.4g} {unit}", flush=True)
         except ImportError as exc:
