@@ -422,3 +422,22 @@ def test_team_map_cadence_keeps_the_cloud_within_its_share_of_the_worker():
     assert cadence.due(2.0, merged=False, wall_s=4.0)
     with pytest.raises(ConfigError, match="cloud_max_busy_share"):
         PublishCadence(PublishCadenceConfig(max_busy_share=0.0))
+
+
+def test_co_observation_verifies_at_most_its_budget_per_keyframe(world):
+    """With several unmerged robots, a new keyframe is verified against at most
+    auto_max_verifications simultaneous keyframes of the others (here 1 of 4 candidates)."""
+    points, desc, kfs_a, vocab = world
+    cfg = _config(robots=[1, 2, 3])
+    cfg.rendezvous.auto_max_verifications = 1
+    cfg.place_recognition.enabled = False
+    server = TeamServer(cfg, vocab)
+    for robot in (2, 3):  # two keyframes each, taken at the time of robot 1's keyframe
+        for kf in _keyframes(robot, [0.0, 0.1], points, desc, seed=10 * robot, t0=5.0):
+            kf.stamp_s = 5.0 + 0.1 * kf.keyframe_id
+            server.add_keyframe(kf)
+    before = server.rendezvous.verifications
+    kf = kfs_a[0]
+    kf.stamp_s = 5.15
+    server.add_keyframe(kf)
+    assert server.rendezvous.verifications - before == 1

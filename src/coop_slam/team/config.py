@@ -55,6 +55,7 @@ class RendezvousConfig:
     # places pass any two-view check, so it merges only once this many verifications from
     # different keyframes of the joining robot agree on the map transform (within the tolerance).
     auto_confirmations: int = 2
+    auto_max_verifications: int = 4  # automatic test: 3D-3D verifications per new keyframe
     confirm_trans_m: float = 0.05
     confirm_rot_deg: float = 2.0
     confirm_scale_rel: float = 0.03  # and, for a monocular map, on its scale (relative)
@@ -76,6 +77,7 @@ class RendezvousConfig:
 
     def validate(self) -> None:
         require(self.window_s > 0, "rendezvous.window_s must be > 0")
+        require(self.auto_max_verifications >= 1, "rendezvous.auto_max_verifications must be >= 1")
         require(self.request_window_s > 0, "rendezvous.request_window_s must be > 0")
         require(self.sighting_period_s >= 0, "rendezvous.sighting_period_s must be >= 0")
         require(self.merge_min_inliers >= 1, "rendezvous.merge_min_inliers must be >= 1")

@@ -97,13 +97,25 @@ class Rendezvous:
     # --- automatic co-observation -----------------------------------------------------------------
     def co_observation(self, rec: KeyframeRecord) -> Verified | None:
         """The new keyframe against other unmerged robots' keyframes taken at (about) the same
-        time; the first verified match."""
+        time (the two nearest in time per robot; robots with the most similar keyframe first, at
+        most ``auto_max_verifications`` 3D-3D verifications per keyframe: with eight robots every
+        pair at every keyframe was most of the server's time); the first verified match."""
         key_b = (rec.robot_id, rec.keyframe_id)
+        bow_b = self.store.bow(key_b)
+        candidates = []
         for other in self.groups.robots:
             if self.groups.same_group(other, rec.robot_id):
                 continue
+            keys = self.store.near_in_time(other, rec.stamp_s, self.config.window_s)[:2]
+            if keys:
+                best = max(self.store.vocabulary.score(self.store.bow(k), bow_b) for k in keys)
+                candidates.append((-best, other, keys))
+        budget = self.verifications + self.config.auto_max_verifications
+        for _, other, keys in sorted(candidates):
             cued = self.together(other, rec.robot_id, rec.stamp_s)
-            for key_a in self.store.near_in_time(other, rec.stamp_s, self.config.window_s)[:2]:
+            for key_a in keys:
+                if self.verifications >= budget:
+                    return None
                 v = self._verify(key_a, key_b, rec.stamp_s, confirm=not cued)
                 if v is not None:
                     return v
