@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import os
 import signal
 import socket
@@ -25,6 +26,10 @@ from ..playback import load_run_source
 from .progress import throttled
 
 DEFAULT_SCENARIO = "team"
+# After the last frame the server may still be working off its queue: wait while its stats change
+# (quiet for SETTLE_QUIET_S), at most SETTLE_MAX_S [s].
+SETTLE_QUIET_S = 5.0
+SETTLE_MAX_S = 180.0
 
 
 def _operator_request(text: str) -> tuple[int, int, float]:
@@ -641,7 +646,7 @@ def run(args: argparse.Namespace) -> int:
                 last_line = time.monotonic()
                 print(line, flush=True)
             time.sleep(0.5)
-        time.sleep(args.settle)  # let clients and server finish the last keyframes
+        _settle(monitor, args.settle, say)
         if args.save_map:
             say(f"      saving the team map: {_save_map(args.save_map)}")
         if recorder is not None:
@@ -698,6 +703,28 @@ def run(args: argparse.Namespace) -> int:
             f"{os.path.join(out, 'video', 'map.png')})"
         )
     return 0
+
+
+def _settle(monitor, settle_s: float, say) -> None:
+    """After the last frame: wait ``settle_s`` for the last keyframes and merges, and longer (at
+    most ``SETTLE_MAX_S``) while the server is still working off keyframes it received (its stats
+    keep changing): a team of eight on two cores leaves it a backlog."""
+    t_end = time.monotonic() + settle_s
+    t_cap = time.monotonic() + max(settle_s, SETTLE_MAX_S)
+    last, changed = None, time.monotonic()
+    said = False
+    while time.monotonic() < t_cap:
+        now = time.monotonic()
+        stats = json.dumps(monitor.run.server_stats, sort_keys=True, default=str)
+        if stats != last:
+            last, changed = stats, now
+        if now >= t_end and now - changed >= SETTLE_QUIET_S:
+            return
+        if now >= t_end and not said:
+            say("      the server is still working off its queue: waiting for it")
+            said = True
+        time.sleep(0.5)
+    say(f"      the server was still busy after {max(settle_s, SETTLE_MAX_S):.0f} s: evaluating")
 
 
 def main(argv=None) -> int:
