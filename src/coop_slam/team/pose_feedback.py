@@ -20,7 +20,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import require
-from ..geometry import transform_error
 
 
 @dataclass
@@ -54,17 +53,21 @@ class PoseFeedback:
         sent = self._sent.setdefault(map_id, {})
         for k in set(sent) - set(optimized):  # culled keyframes
             del sent[k]
-        out = {}
-        for k in sorted(optimized):
-            before = sent.get(k, client.get(k))
-            if before is None:
-                out[k] = optimized[k]
-                continue
-            trans_m, rot_deg = transform_error(optimized[k], before)
-            if trans_m >= cfg.min_trans_m or rot_deg >= cfg.min_rot_deg:
-                out[k] = optimized[k]
-        if optimized:
-            newest = max(optimized)
-            out.setdefault(newest, optimized[newest])
+        ids = sorted(optimized)
+        if not ids:
+            return {}
+        # Vectorized: this runs for every robot after every optimization of the team map.
+        new = np.stack([optimized[k] for k in ids])
+        before = np.stack([sent.get(k, client.get(k, _UNKNOWN)) for k in ids])
+        trans_m = np.linalg.norm(new[:, :3, 3] - before[:, :3, 3], axis=1)
+        R_rel = np.einsum("nji,njk->nik", before[:, :3, :3], new[:, :3, :3])
+        cos = np.clip((np.trace(R_rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+        rot_deg = np.degrees(np.arccos(cos))
+        moved = ~(trans_m < cfg.min_trans_m) | ~(rot_deg < cfg.min_rot_deg)  # NaN: never sent
+        moved[-1] = True  # the newest always goes
+        out = {k: optimized[k] for k, m in zip(ids, moved) if m}
         sent.update({k: np.array(T) for k, T in out.items()})
         return out
+
+
+_UNKNOWN = np.full((4, 4), np.nan)  # a keyframe neither sent nor known as the client has it

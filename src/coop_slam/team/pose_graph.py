@@ -216,6 +216,7 @@ class TeamPoseGraph:
         self._chain: dict[int, list[int]] = {}  # robot -> sorted keyframe ids
         self._map_hint: dict[int, np.ndarray] = {}  # T_group_map for a robot's first keyframe
         self._factors: dict[int, _Factor] = {}
+        self._gtsam_cache: dict[int, tuple] = {}  # factor id -> (T_meas, sigmas, GTSAM factor)
         self._by_key: dict[Key, set[int]] = {}
         self._priors: dict[Key, int] = {}  # anchor keyframe -> prior factor id
         self._next_fid = 0
@@ -262,6 +263,7 @@ class TeamPoseGraph:
 
     def _drop_factor(self, fid: int) -> _Factor:
         f = self._factors.pop(fid)
+        self._gtsam_cache.pop(fid, None)
         for k in (f.key_i, f.key_j):
             if k is not None and k in self._by_key:
                 self._by_key[k].discard(fid)
@@ -300,7 +302,19 @@ class TeamPoseGraph:
             return gtsam.noiseModel.Robust.Create(kernel, base)
         return base
 
-    def _gtsam_factor(self, f: _Factor):
+    def _gtsam_factor(self, fid: int):
+        """The GTSAM factor of a factor id; kept until the factor goes or its measurement or
+        sigmas are replaced (every optimization rebuilds the graph from them, and converting
+        hundreds of factors each time was a tenth of an eight-robot server's time)."""
+        f = self._factors[fid]
+        cached = self._gtsam_cache.get(fid)
+        if cached is not None and cached[0] is f.T_meas and cached[1] == (f.sigmas, f.robust_k):
+            return cached[2]
+        factor = self._make_gtsam_factor(f)
+        self._gtsam_cache[fid] = (f.T_meas, (f.sigmas, f.robust_k), factor)
+        return factor
+
+    def _make_gtsam_factor(self, f: _Factor):
         noise = self._noise(f)
         if f.key_j is None:
             return gtsam.PriorFactorPose3(gtsam_key(*f.key_i), gtsam.Pose3(f.T_meas), noise)
@@ -631,7 +645,7 @@ class TeamPoseGraph:
     def _graph(self, fids) -> gtsam.NonlinearFactorGraph:
         graph = gtsam.NonlinearFactorGraph()
         for fid in fids:
-            graph.add(self._gtsam_factor(self._factors[fid]))
+            graph.add(self._gtsam_factor(fid))
         return graph
 
     def _gtsam_values(self, keys) -> gtsam.Values:
@@ -797,7 +811,7 @@ class TeamPoseGraph:
             if f.kind not in (KIND_LOOP, KIND_MERGE):
                 continue
             values = self._gtsam_values((f.key_i, f.key_j))
-            e = np.asarray(self._gtsam_factor(f).unwhitenedError(values), float)
+            e = np.asarray(self._gtsam_factor(fid).unwhitenedError(values), float)
             r, t = f.sigmas
             d = float(np.linalg.norm(e / np.array([r, r, r, t, t, t])))
             w = float(self._kernel.weight(d)) if self._kernel is not None else 1.0

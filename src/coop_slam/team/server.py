@@ -607,8 +607,9 @@ class TeamServer:
             return {}
         newest = max(client)
         T_map_group = client[newest] @ invert(poses_group[newest])
-        optimized = {k: T_map_group @ T for k, T in poses_group.items()}
-        return self.pose_feedback.select(map_id, optimized, client)
+        ids = list(poses_group)
+        moved = np.einsum("ij,njk->nik", T_map_group, np.stack([poses_group[k] for k in ids]))
+        return self.pose_feedback.select(map_id, dict(zip(ids, moved)), client)
 
     def _offsets(self) -> dict[int, np.ndarray]:
         return view_offsets(self.groups, self.world_robot, self.config.unmerged_offset_m)
