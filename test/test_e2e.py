@@ -249,3 +249,6 @@ def test_results_table_names_faults_sessions_and_live_runs():
         "`--scenario revisit --only-robots 2 --load-map ...`"
     )
     assert describe({"dataset": "/d/rk", "rate": 1.0}) == "`--dataset rk --rate 1.0`"
+    assert describe({"scenario": "team", "pose_sharing": True}) == (
+        "`--scenario team --pose-sharing`"
+    )

@@ -200,34 +200,34 @@ def test_in_order_takes_each_message_once():
 
 def test_outbox_sends_again_what_is_not_acknowledged():
     box = Outbox(max_unacked=3, resend_after_s=1.0)
-    seqs = [box.add(m)[1] for m in "abc"]
-    assert seqs == [1, 2, 3] and box.due(now=0.0) == []
+    seqs = [box.add(m, now=0.0)[1] for m in "abc"]
+    assert seqs == [1, 2, 3] and box.due(now=0.5) == []
     assert box.ack(box.session, 1) == 1 and box.ack(box.session + 1, 3) == 0
-    import time
-
-    assert box.due(now=time.monotonic() + 2.0) == ["b", "c"] and box.resent == 2
-    *_, overflow = box.add("d")
+    assert box.due(now=1.0) == ["b", "c"] and box.resent == 2
+    *_, overflow = box.add("d", now=1.0)
     assert not overflow
-    *_, overflow = box.add("e")
+    *_, overflow = box.add("e", now=1.0)
     assert overflow and box.dropped == 1 and box.unacked == 3
 
 
-def test_outbox_backs_off_and_sends_the_oldest_first_while_the_server_lags():
-    """No acknowledgement: the oldest few go again after 1 s, then after 2 s, 4 s (at most the
-    cap); an acknowledgement resets the wait."""
+def test_outbox_backs_off_per_message_while_the_server_lags():
+    """The oldest unacknowledged message (the one the server waits for) goes again every 1 s; any
+    other 1 s after it was sent, then 2 s, 4 s later (at most the cap); at most resend_window
+    messages per call, the oldest first."""
     box = Outbox(max_unacked=100, resend_after_s=1.0, resend_window=2, max_resend_after_s=4.0)
-    for m in "abcde":
-        box.add(m)
-    t0 = box._last_progress
-    assert box.due(now=t0 + 0.5) == []
-    assert box.due(now=t0 + 1.0) == ["a", "b"]
-    assert box.due(now=t0 + 2.5) == []  # waits 2 s now
-    assert box.due(now=t0 + 3.0) == ["a", "b"]
-    assert box.due(now=t0 + 6.5) == []  # 4 s
-    assert box.due(now=t0 + 7.0) == ["a", "b"]
-    assert box.due(now=t0 + 10.9) == [] and box.due(now=t0 + 11.0) == ["a", "b"]  # capped at 4 s
-    assert box.ack(box.session, 2) == 2
-    now = box._last_progress
-    assert box.due(now=now + 1.0) == ["c", "d"] and box.resent == 10
+    box.add("a", now=0.0)
+    box.add("b", now=0.0)
+    sent = {"a": [], "b": []}
+    for t in np.arange(0.0, 20.0, 0.5):
+        for m in box.due(now=float(t)):
+            sent[m].append(float(t))
+    assert sent["a"] == [float(t) for t in range(1, 20)]  # the oldest: every second
+    assert sent["b"] == [1.0, 3.0, 7.0, 11.0, 15.0, 19.0]  # waits 1, 2, 4, then capped at 4 s
+    assert box.ack(box.session, 1) == 1  # b is the oldest now: due 1 s after its last send
+    assert box.due(now=19.5) == [] and box.due(now=20.0) == ["b"] and box.due(now=21.0) == ["b"]
+    for m in "cde":
+        box.add(m, now=21.0)
+    assert box.due(now=22.0) == ["b", "c"]  # the window holds 2
+    assert box.due(now=22.0) == ["d", "e"]
     with pytest.raises(DeliveryError, match="max_resend_after_s"):
         Outbox(resend_after_s=5.0, max_resend_after_s=1.0)

@@ -90,18 +90,20 @@ class InOrder:
 class Outbox:
     """The client side: messages sent and not yet acknowledged, to send again.
 
-    Without progress (no acknowledgement) for ``resend_after_s`` it sends the oldest
-    ``resend_window`` unacknowledged messages again, then waits twice as long before the next
-    resend, up to ``max_resend_after_s``; an acknowledgement resets the wait. A server that lags
-    behind (its queue tens of seconds long with eight robots) acknowledges late, not never: sending
-    everything again every two seconds made a resend storm that buried it further. The server takes
-    a robot's messages in order, so the oldest missing ones are what it needs first."""
+    The server takes a robot's messages in order, so the oldest unacknowledged message is the one
+    it needs to make progress (a radio lost it, or it never arrived): it goes again every
+    ``resend_after_s``. Any other goes again ``resend_after_s`` after it was sent, then after
+    twice as long, up to ``max_resend_after_s``; at most ``resend_window`` messages per call. A
+    server that lags behind (its queue tens of seconds long with eight robots) thus gets each
+    waiting message a few times, not every two seconds: sending everything again every two
+    seconds made a resend storm that buried it further. Backing off the oldest message too
+    stalled delivery after a server restart."""
 
     def __init__(
         self,
         max_unacked: int = 1000,
         resend_after_s: float = 2.0,
-        resend_window: int = 20,
+        resend_window: int = 100,
         max_resend_after_s: float = 30.0,
     ):
         if max_unacked < 1:
@@ -119,23 +121,21 @@ class Outbox:
         self.resend_window, self.max_resend_after_s = resend_window, max_resend_after_s
         self.session = new_session()
         self.sequence = 0  # of the last message
-        self._unacked: OrderedDict[int, Any] = OrderedDict()
-        self._last_progress = time.monotonic()  # last send or acknowledgement
-        self._wait_s = resend_after_s  # before the next resend (doubles while no progress)
+        # sequence -> [message, when it was last sent, the wait before it goes again]
+        self._unacked: OrderedDict[int, list] = OrderedDict()
         self.dropped = 0  # unacknowledged messages given up because the bound was reached
         self.resent = 0
 
-    def add(self, message: Any) -> tuple[int, int, bool]:
-        """Number a new message: (session, sequence, whether an old message was given up)."""
+    def add(self, message: Any, now: float | None = None) -> tuple[int, int, bool]:
+        """Number a new message (sent now): (session, sequence, whether an old message was given
+        up)."""
+        now = time.monotonic() if now is None else now
         self.sequence += 1
-        self._unacked[self.sequence] = message
+        self._unacked[self.sequence] = [message, now, self.resend_after_s]
         overflow = len(self._unacked) > self.max_unacked
         if overflow:
             self._unacked.popitem(last=False)
             self.dropped += 1
-        if len(self._unacked) == 1:
-            self._last_progress = time.monotonic()
-            self._wait_s = self.resend_after_s
         return self.session, self.sequence, overflow
 
     def ack(self, session: int, sequence: int) -> int:
@@ -145,21 +145,23 @@ class Outbox:
         done = [s for s in self._unacked if s <= sequence]
         for s in done:
             del self._unacked[s]
-        if done:
-            self._last_progress = time.monotonic()
-            self._wait_s = self.resend_after_s
         return len(done)
 
     def due(self, now: float | None = None) -> list[Any]:
-        """The messages to send again now (the oldest unacknowledged ones), or none."""
+        """The messages to send again now (oldest first), or none."""
         now = time.monotonic() if now is None else now
-        if not self._unacked or now - self._last_progress < self._wait_s:
-            return []
-        self._last_progress = now
-        self._wait_s = min(2.0 * self._wait_s, self.max_resend_after_s)
-        batch = list(self._unacked.values())[: self.resend_window]
-        self.resent += len(batch)
-        return batch
+        out = []
+        for i, entry in enumerate(self._unacked.values()):
+            if len(out) >= self.resend_window:
+                break
+            oldest = i == 0  # what the server waits for: never backed off
+            if now - entry[1] >= (self.resend_after_s if oldest else entry[2]):
+                if not oldest:
+                    entry[2] = min(2.0 * entry[2], self.max_resend_after_s)
+                entry[1] = now
+                out.append(entry[0])
+        self.resent += len(out)
+        return out
 
     @property
     def unacked(self) -> int:

@@ -21,11 +21,11 @@ odometry's own map frame is the first camera frame; this node re-expresses every
 
 Keyframe messages are numbered (client session and sequence, :mod:`coop_slam.delivery`): the
 client keeps those the server has not acknowledged on ``/robot_k/keyframe_ack`` (at most
-``~max_unacked``) and sends the oldest of them (``~resend_window``) again after ``~resend_after_s``
-without an acknowledgement, backing off (doubling, up to ``~max_resend_after_s``) while the server
-lags, so a server that restarts or a radio that drops messages loses nothing. A restarted client
-continues above the keyframe ids and map segments the server has stored for its robot, in a new
-map segment.
+``~max_unacked``) and sends each again ``~resend_after_s`` after it was sent, then after twice
+as long, up to ``~max_resend_after_s`` (at most ``~resend_window`` at once), so a server that
+restarts or a radio that drops messages loses nothing and a lagging server is not flooded. A
+restarted client continues above the keyframe ids and map segments the server has stored for its
+robot, in a new map segment.
 """
 
 from __future__ import annotations
@@ -211,7 +211,7 @@ class ClientNode:
         self.outbox = Outbox(
             int(rospy.get_param("~max_unacked", 1000)),
             float(rospy.get_param("~resend_after_s", 2.0)),
-            int(rospy.get_param("~resend_window", 20)),
+            int(rospy.get_param("~resend_window", 100)),
             float(rospy.get_param("~max_resend_after_s", 30.0)),
         )
         self._outbox_lock = threading.Lock()

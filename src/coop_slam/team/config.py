@@ -118,12 +118,23 @@ class LoopClosureConfig:
     sigma_scale: float = 3.0
     min_sigma_trans_m: float = 0.01
     min_sigma_rot_deg: float = 0.3
+    # A constraint further than this from the current estimate makes the next optimization a full
+    # one (batch Levenberg-Marquardt over the team graph); a closer one, the common case for links
+    # between merged robots, is absorbed by the next incremental (iSAM2) update. A full run after
+    # every constraint grew with the team graph and bounded how many robots the server keeps up
+    # with (scripts/bench --only server_scale).
+    full_above_trans_m: float = 0.02
+    full_above_rot_deg: float = 1.0
 
     def validate(self) -> None:
         require(self.min_separation_s >= 0, "loops.min_separation_s must be >= 0")
         require(self.min_interval_kf >= 0, "loops.min_interval_kf must be >= 0")
         require(self.min_inliers >= 1, "loops.min_inliers must be >= 1")
         require(self.gate_trans_m > 0, "loops.gate_trans_m must be > 0")
+        require(
+            self.full_above_trans_m >= 0 and self.full_above_rot_deg >= 0,
+            "loops.full_above_trans_m and full_above_rot_deg must be >= 0",
+        )
         require(self.gate_rot_deg > 0, "loops.gate_rot_deg must be > 0")
         require(self.weak_gate_trans_m > 0, "loops.weak_gate_trans_m must be > 0")
         require(self.weak_gate_rot_deg > 0, "loops.weak_gate_rot_deg must be > 0")

@@ -210,7 +210,8 @@ class Stitcher:
             )
         )
         self._last_constraint[key_b[0]] = self._kf_count(key_b[0])
-        self.need_full = True
+        if dt > self.config.full_above_trans_m or dr > self.config.full_above_rot_deg:
+            self.need_full = True
         if self._on_constraint is not None:
             self._on_constraint(v)
         log.info(

@@ -69,6 +69,8 @@ def describe(info: dict) -> str:
             what += f" --{key.replace('_', '-')} {info[key]}"
     if info.get("load_map"):
         what += " --load-map ..."
+    if info.get("pose_sharing"):
+        what += " --pose-sharing"
     return f"`{what}`"
 
 
