@@ -441,3 +441,34 @@ def test_co_observation_verifies_at_most_its_budget_per_keyframe(world):
     kf.stamp_s = 5.15
     server.add_keyframe(kf)
     assert server.rendezvous.verifications - before == 1
+
+
+@pytest.mark.parametrize("full_above_m", [0.0, 0.02])
+def test_small_in_group_constraints_go_into_the_incremental_update(world, full_above_m):
+    """After the merge, constraints between the merged robots that agree with the estimate are
+    absorbed by iSAM2; only a constraint further than loops.full_above_trans_m asks for a full
+    optimization (0: every constraint does)."""
+    points, desc, kfs_a, vocab = world
+    cfg = _config(robots=[1, 2])
+    cfg.loops.full_above_trans_m = full_above_m
+    server = TeamServer(cfg, vocab)
+    for kf in kfs_a:
+        server.add_keyframe(kf)
+    kfs_b = _keyframes(
+        2, np.linspace(2.0, 5.0, 20), points, desc, offset=(0.2, 0.1), seed=100, t0=100.0
+    )
+    for kf in kfs_b[:8]:
+        server.add_keyframe(kf)
+    assert server.groups.groups() == [[1, 2]]
+    full = []
+    optimize_full = server.graph.optimize_full
+    server.graph.optimize_full = lambda: full.append(1) or optimize_full()
+    before = len(server.constraints)
+    for kf in kfs_b[8:]:
+        server.add_keyframe(kf)
+    added = len(server.constraints) - before
+    assert added >= 2
+    if full_above_m == 0.0:
+        assert len(full) >= added
+    else:
+        assert len(full) == 0
