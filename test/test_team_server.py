@@ -164,7 +164,8 @@ def test_unknown_robot_and_duplicates_are_rejected(world):
     assert len(server.store) == 1
 
 
-def test_merge_optimizes_the_team_and_stitches_one_cloud(world):
+def _merged_server(world) -> TeamServer:
+    """Robot 1's keyframes, then 8 of robot 2 looking at the same walls: a server that merged."""
     points, desc, kfs_a, vocab = world
     server = TeamServer(_config(robots=[1, 2]), vocab)
     for kf in kfs_a:
@@ -173,6 +174,11 @@ def test_merge_optimizes_the_team_and_stitches_one_cloud(world):
         2, np.linspace(2.0, 3.0, 8), points, desc, offset=(0.2, 0.1), seed=100, t0=100.0
     ):
         server.add_keyframe(kf)
+    return server
+
+
+def test_merge_optimizes_the_team_and_stitches_one_cloud(world):
+    server = _merged_server(world)
     assert server.groups.groups() == [[1, 2]] and server.optimize_ms
     T, merged = server.T_group_map(2), server.in_world(2)
     dt, dr = transform_error(T, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
@@ -394,14 +400,7 @@ def test_pose_feedback_sends_only_keyframes_that_moved_since_last_sent():
 def test_server_pose_corrections_after_a_merge_are_incremental(world):
     """After a merge a robot gets the keyframes the team map moved; the next call, with nothing
     new optimized, only the newest."""
-    points, desc, kfs_a, vocab = world
-    server = TeamServer(_config(robots=[1, 2]), vocab)
-    for kf in kfs_a:
-        server.add_keyframe(kf)
-    for kf in _keyframes(
-        2, np.linspace(2.0, 3.0, 8), points, desc, offset=(0.2, 0.1), seed=100, t0=100.0
-    ):
-        server.add_keyframe(kf)
+    server = _merged_server(world)
     assert server.groups.groups() == [[1, 2]]
     first = server.pose_corrections(2)
     assert max(server.corrected_keyframes(2)) in first

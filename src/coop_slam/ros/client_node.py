@@ -126,7 +126,7 @@ class ClientNode:
         # results do not depend on how fast the machine maps. Live, the mapper runs beside
         # tracking and a backlog is reported (FrameStats.mapping_backlog and a warning).
         self.wait_for_mapping = bool(rospy.get_param("~wait_for_mapping", False))
-        self.mapping_behind_warn = int(rospy.get_param("~mapping_backlog_warn", 3))
+        self.mapping_backlog_warn = int(rospy.get_param("~mapping_backlog_warn", 3))
         self.markers = MarkerDetector(
             load_yaml_config(MarkerConfig, config_file, "markers", rospy.get_param("~markers", {}))
         )
@@ -216,9 +216,10 @@ class ClientNode:
         )
         self._outbox_lock = threading.Lock()
         self.keyframes_sent = 0
+        from ..vo.outbox import DeltaUpdates
+
         # Updates leave out what the keyframe saw when the server has it (~delta_updates).
-        self.delta_updates = bool(rospy.get_param("~delta_updates", True))
-        self._sent_static: dict[int, bytes] = {}  # keyframe id -> digest sent with it as new
+        self.deltas = DeltaUpdates(bool(rospy.get_param("~delta_updates", True)))
         self._bound_warned = False
         # A restarted client must not reuse the keyframe ids the server stored before: the
         # server's latched acknowledgement says how far they went.
@@ -426,7 +427,7 @@ class ClientNode:
                 stats.mapping_backlog = min(self.vo.mapping_backlog, 65535)
                 if self.wait_for_mapping:
                     self.vo.flush()
-                elif stats.mapping_backlog >= self.mapping_behind_warn:
+                elif stats.mapping_backlog >= self.mapping_backlog_warn:
                     rospy.logwarn_throttle(
                         10.0,
                         "client %s: local mapping is %d keyframes behind the camera (the map "
@@ -510,7 +511,7 @@ class ClientNode:
 
     # --- publishing -------------------------------------------------------------------------------
     def _publish_events(self) -> None:
-        from ..keyframe_record import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE
+        from ..keyframe_record import ACTION_NEW, ACTION_REMOVE
         from ..vo.outbox import event_record
         from ..vo.types import EVENT_NEW_SEGMENT, EVENT_WARNING, KEYFRAME_ACTIONS
 
@@ -537,13 +538,7 @@ class ClientNode:
                     self.kf_poses[rec.keyframe_id] = (rec.stamp_s, rec.T_map_cam)
                 self.keyframes_sent += rec.action == ACTION_NEW
                 # An update whose keyframe saw the same as when it was new goes without that.
-                delta = False
-                if rec.action == ACTION_NEW:
-                    self._sent_static[rec.keyframe_id] = rec.static_digest()
-                elif rec.action == ACTION_UPDATE and self.delta_updates:
-                    delta = self._sent_static.get(rec.keyframe_id) == rec.static_digest()
-                else:
-                    self._sent_static.pop(rec.keyframe_id, None)
+                delta = self.deltas.delta(rec)
                 self._send_keyframe(keyframe_to_msg(rec, self.map_frame, delta))
                 changed = True
         if changed:

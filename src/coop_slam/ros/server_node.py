@@ -37,7 +37,6 @@ from ..geometry import invert, se3_from_quat
 from ..keyframe_record import KeyframeRecord
 from ..team.config import ServerConfig
 from ..team.durable import PendingKeyframe
-from ..team.map_scale import scale_translation
 from ..team.results import TYPE_LINK, TYPE_LOOP, TYPE_OVERLAP
 from ..team.server import TeamServer
 from ..team.view import marker_scale
@@ -576,19 +575,14 @@ class ServerNode:
             T, merged = self.server.T_group_map(m), self.server.in_world(m)
             if merged:
                 transforms.append(transform_stamped(T, "world", f"robot_{r}/map", stamp))
-            # The server holds a monocular map's lengths times its scale; the client its own.
-            scale = self.server.map_scale(m)
-            corrected = {
-                k: scale_translation(P, 1.0 / scale)
-                for k, P in self.server.pose_corrections(m).items()
-            }
+            corrected = self.server.pose_corrections(m)  # in the client's own units
             corr = self._MapCorrection(
                 robot_id=r,
                 merged=merged,
                 T_world_map=transform_to_msg(T),
                 keyframe_ids=list(corrected),
                 keyframe_poses=[pose_to_msg(P) for P in corrected.values()],
-                map_scale=scale,
+                map_scale=self.server.map_scale(m),
                 metric=self.server.is_metric(m),
             )
             corr.header.stamp, corr.header.frame_id = stamp, "world"

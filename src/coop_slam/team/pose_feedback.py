@@ -6,11 +6,11 @@ that is most of the downlink, and almost all of it unchanged. :class:`PoseFeedba
 it last sent for each keyframe (at first: the client's own pose, as the client sent it) and selects
 only the keyframes whose optimized pose moved beyond a small threshold since, plus the robot's
 newest keyframe (the client anchors its ``map -> odom`` transform on it). A client that applies
-them (:mod:`coop_slam.vo.map_correction`) sends the keyframes again with the new poses, so what the
-server stores as the client's pose and what it last sent agree, and nothing is sent twice.
+them (:mod:`coop_slam.vo.map_correction`) keeps sending its odometry-frame poses, so the
+comparison is always against what was sent, never against what the client made of it.
 
 Poses are in the robot's map frame, in the server's units for that map (metres, or a monocular
-map's units times its scale); the caller converts to the client's units.
+map's units times its scale).
 """
 
 from __future__ import annotations

@@ -577,19 +577,19 @@ class TeamServer:
         """keyframe id -> T_group_cam of every stored keyframe of a robot."""
         return {k: self.T_group_cam(robot_id, k) for k in self.store.keyframe_ids(robot_id)}
 
-    def corrected_keyframes(self, robot_id: int, last: int | None = 20) -> dict[int, np.ndarray]:
+    def corrected_keyframes(self, robot_id: int, last: int = 20) -> dict[int, np.ndarray]:
         """Optimized poses (in the robot's own map frame, its lengths times :meth:`map_scale`)
-        of its ``last`` newest keyframes (None: all)."""
+        of its ``last`` newest keyframes."""
         if robot_id not in self.graph.robots:
             return {}
         T_map_group = np.linalg.inv(self.groups.T_root_map(robot_id))
         poses = self.graph.keyframe_poses(robot_id)
-        ids = sorted(poses) if last is None else sorted(poses)[-last:]
-        return {k: T_map_group @ poses[k] for k in ids}
+        return {k: T_map_group @ poses[k] for k in sorted(poses)[-last:]}
 
     def pose_corrections(self, map_id: int) -> dict[int, np.ndarray]:
-        """The optimized poses to send the robot of a map now, in its map frame: those that
-        moved since last sent, and the newest (see :mod:`.pose_feedback`).
+        """The optimized poses to send the robot of a map now, in its map frame and its own
+        units (a monocular map's: lengths divided by :meth:`map_scale`): those that moved since
+        last sent, and the newest (see :mod:`.pose_feedback`).
 
         The frame is read off at the newest keyframe's client pose as stored now, not from the
         group transform of the last optimization: a re-anchored map frame moves every keyframe
@@ -609,7 +609,9 @@ class TeamServer:
         T_map_group = client[newest] @ invert(poses_group[newest])
         ids = list(poses_group)
         moved = np.einsum("ij,njk->nik", T_map_group, np.stack([poses_group[k] for k in ids]))
-        return self.pose_feedback.select(map_id, dict(zip(ids, moved)), client)
+        selected = self.pose_feedback.select(map_id, dict(zip(ids, moved)), client)
+        scale = self.map_scale(map_id)
+        return {k: scale_translation(T, 1.0 / scale) for k, T in selected.items()}
 
     def _offsets(self) -> dict[int, np.ndarray]:
         return view_offsets(self.groups, self.world_robot, self.config.unmerged_offset_m)

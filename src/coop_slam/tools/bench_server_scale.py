@@ -149,11 +149,12 @@ class ClientSender:
     message numbered in the client's session."""
 
     def __init__(self, robot_id: int, camera, T_base_cam: np.ndarray, delta_updates: bool = True):
+        from ..vo.outbox import DeltaUpdates
+
         self.robot_id, self.camera, self.T_base_cam = robot_id, camera, T_base_cam
-        self.delta_updates = delta_updates
+        self.deltas = DeltaUpdates(delta_updates)
         self.sequence = 0
         self.new_keyframes = 0
-        self._sent_static: dict[int, bytes] = {}  # keyframe id -> digest sent with it as new
 
     def send(self, events, t_s: float) -> list[Arrival]:
         from ..vo.outbox import event_record
@@ -164,14 +165,8 @@ class ClientSender:
             if ev.kind not in KEYFRAME_ACTIONS:  # warnings, new segments: nothing sent
                 continue
             rec = event_record(ev, self.robot_id, self.camera, self.T_base_cam)
-            delta = False
-            if rec.action == ACTION_NEW:
-                self._sent_static[rec.keyframe_id] = rec.static_digest()
-                self.new_keyframes += 1
-            elif rec.action == ACTION_UPDATE and self.delta_updates:
-                delta = self._sent_static.get(rec.keyframe_id) == rec.static_digest()
-            else:
-                self._sent_static.pop(rec.keyframe_id, None)
+            self.new_keyframes += rec.action == ACTION_NEW
+            delta = self.deltas.delta(rec)
             self.sequence += 1
             out.append(Arrival(t_s, self.robot_id, as_sent(rec, delta), SESSION, self.sequence))
         return out
@@ -397,15 +392,10 @@ class NodeWork:
     def _corrections(self) -> dict:
         """``ServerNode._publish_tf``: robot -> (T_group_map, merged, metric, corrected keyframe
         poses in the robot's own units), what the TF and correction messages carry."""
-        from ..team.map_scale import scale_translation
-
         server, out = self.server, {}
         for r in self.durable.robots:
             m = server.current_map(r)
-            scale = server.map_scale(m)
-            corrected = {
-                k: scale_translation(P, 1.0 / scale) for k, P in server.pose_corrections(m).items()
-            }
+            corrected = server.pose_corrections(m)
             out[r] = (server.T_group_map(m), server.in_world(m), server.is_metric(m), corrected)
         return out
 

@@ -594,6 +594,7 @@ class LocalMapper:
         )
 
     def apply_ba_result(self, vmap: Map, result: BaResult) -> None:
+        cfg = self.config
         self.stats["ba_runs"] += 1
         self.stats["ba_ms"].append(result.time_ms)
         if not result.ok or result.segment != vmap.segment:
@@ -615,18 +616,10 @@ class LocalMapper:
             pid, k = int(result.obs_point_ids[o]), int(result.obs_kf_ids[o])
             if pts.alive[pid] and k in pts.obs[pid]:
                 vmap.erase_observation(pid, k)
-        self.announce_moved(vmap, moved)
-
-    def announce_moved(self, vmap: Map, moved) -> None:
-        """UPDATE events for keyframes that moved beyond the update thresholds since they were
-        last sent (the caller holds ``vmap.lock``)."""
-        cfg = self.config
         # A keyframe tracking inserted after this BA's own can sit in its window before local
         # mapping announced it: its NEW (a snapshot taken later) carries the moved pose, and an
         # UPDATE first would reach the server as an unknown keyframe, its NEW then as a duplicate.
         for k in moved:
-            if k not in vmap.keyframes:
-                continue
             sent = self._sent_pose.get(k)
             if sent is not None:
                 kf = vmap.keyframes[k]  # sent in the odometry frame (see .map_correction)

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..datasets.base import CameraModel
 from ..geometry import transform_points
-from ..keyframe_record import ACTION_NEW, ACTION_REMOVE, KeyframeRecord
+from ..keyframe_record import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE, KeyframeRecord
 from .map import MapKeyframe
 from .types import KEYFRAME_ACTIONS, VoEvent
 
@@ -65,3 +65,23 @@ def event_record(
             action=action,
         )
     return keyframe_record(ev.keyframe, robot_id, camera, T_base_cam, action)
+
+
+class DeltaUpdates:
+    """Which updates go without what the keyframe saw (``KeyFrame.delta``): those whose keypoints,
+    octaves, descriptors and depths are the ones sent with the keyframe as new (the server has
+    them). ``enabled`` False: every update goes in full."""
+
+    def __init__(self, enabled: bool = True):
+        self.enabled = enabled
+        self._sent_static: dict[int, bytes] = {}  # keyframe id -> digest sent with it as new
+
+    def delta(self, rec: KeyframeRecord) -> bool:
+        """Whether ``rec`` (about to be sent) may leave out what the keyframe saw."""
+        if rec.action == ACTION_NEW:
+            self._sent_static[rec.keyframe_id] = rec.static_digest()
+            return False
+        if rec.action == ACTION_UPDATE and self.enabled:
+            return self._sent_static.get(rec.keyframe_id) == rec.static_digest()
+        self._sent_static.pop(rec.keyframe_id, None)
+        return False
