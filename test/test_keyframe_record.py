@@ -62,7 +62,7 @@ def _translate(t):
         (_set("stamp_s", 1e300), "stamp 1e.300 s is not a valid time"),
         (_set("stamp_s", -0.5), "not a valid time"),
         (_set("stamp_s", float("nan")), "not a valid time"),
-        (_edit("keypoints", lambda a: a.__setitem__((0, 2), 0.0)), r"sizes must be in \(0, 800\]"),
+        (_edit("keypoints", lambda a: a.__setitem__((0, 2), -1.0)), r"sizes must be in \[0, 800\]"),
         (_edit("keypoints", lambda a: a.__setitem__((0, 2), 1e30)), "sizes must be in"),
         (
             _edit("keypoints", lambda a: a.__setitem__((4, 3), 720.0)),

@@ -40,7 +40,9 @@ def test_keyframe_round_trip_over_the_wire():
     back = keyframe_from_msg(_wire(keyframe_to_msg(kf, "robot_2/map")), known_robots={1, 2})
     assert back.robot_id == 2 and back.keyframe_id == 9
     assert np.array_equal(back.descriptors, kf.descriptors)
-    assert np.allclose(back.keypoints, kf.keypoints)
+    assert np.allclose(back.keypoints[:, :2], kf.keypoints[:, :2])
+    # Their size and angle do not travel (the server does not use them).
+    assert np.all(back.keypoints[:, 2] == 0) and np.all(back.keypoints[:, 3] == -1)
     assert np.array_equal(back.map_point_ids, kf.map_point_ids)
     assert np.allclose(back.map_points, kf.map_points)
     assert np.allclose(back.T_map_cam, kf.T_map_cam, atol=1e-9)
@@ -60,11 +62,12 @@ def test_a_delta_update_rebuilds_the_same_keyframe_as_a_full_one():
 
     from coop_slam.keyframe_record import ACTION_UPDATE
 
-    new = make_keyframe(n=60, robot_id=2, keyframe_id=9)
-    upd = dataclasses.replace(new, action=ACTION_UPDATE, T_map_cam=new.T_map_cam.copy())
+    sent = make_keyframe(n=60, robot_id=2, keyframe_id=9)
+    new = keyframe_from_msg(_wire(keyframe_to_msg(sent, "robot_2/map")), {1, 2})  # as held
+    upd = dataclasses.replace(sent, action=ACTION_UPDATE, T_map_cam=sent.T_map_cam.copy())
     upd.T_map_cam[:3, 3] += [0.1, 0.0, -0.05]
     upd.map_points = upd.map_points + np.float32(0.01)
-    assert upd.static_digest() == new.static_digest()
+    assert upd.static_digest() == sent.static_digest()
     full_msg, delta_msg = (_wire(keyframe_to_msg(upd, "robot_2/map", d)) for d in (False, True))
     assert _size(delta_msg) < _size(full_msg) / 3
     full = keyframe_from_msg(full_msg, {1, 2})
@@ -79,6 +82,74 @@ def test_a_delta_update_rebuilds_the_same_keyframe_as_a_full_one():
         keyframe_from_msg(delta_msg, {1, 2}, base=new)
 
 
+def test_delta_updates_carry_only_the_observations_that_changed():
+    """A client's updates through DeltaUpdates, completed by the server from what it holds, give
+    the keyframe as a full message would -- within point_move_m for points that moved less."""
+    import dataclasses
+
+    from coop_slam.keyframe_record import ACTION_NEW, ACTION_UPDATE
+    from coop_slam.vo.outbox import DeltaUpdates, UplinkConfig
+
+    move_m = 0.002
+    deltas = DeltaUpdates(UplinkConfig(point_move_m=move_m))
+    rng = np.random.default_rng(3)
+    kf = make_keyframe(n=80, robot_id=2, keyframe_id=9)
+    out = deltas.prepare(kf)
+    assert out == (False, None)
+    held = keyframe_from_msg(_wire(keyframe_to_msg(kf, "robot_2/map", *out)), {1, 2})
+    sizes = []
+    for step in range(4):
+        upd = dataclasses.replace(
+            kf, action=ACTION_UPDATE, T_map_cam=kf.T_map_cam.copy(), map_point_ids=kf.map_point_ids
+        )
+        upd.T_map_cam[:3, 3] += 0.01 * (step + 1)
+        # Local BA: a few points move a lot, all of them a little (below the threshold).
+        per_kp = kf.map_points_per_keypoint()
+        per_kp += rng.uniform(-0.4, 0.4, per_kp.shape) * move_m / np.sqrt(3)
+        per_kp[rng.choice(len(per_kp), 10, replace=False)] += 0.05
+        ids = kf.map_point_ids.copy()
+        ids[5 * step + 1] = 1000 + step  # a keypoint now observes a map point (fused)
+        ids[5 * step + 2] = 0  # another lost its map point (culled)
+        per_kp[5 * step + 1] = [0.5, 0.5, 2.0]
+        upd.map_point_ids = ids
+        upd.map_points = per_kp[ids != 0].astype(np.float32)
+        out = deltas.prepare(upd)
+        assert out.delta and 0 < len(out.patched) < 25
+        msg = _wire(keyframe_to_msg(upd, "robot_2/map", *out))
+        sizes.append((_size(msg), _size(_wire(keyframe_to_msg(upd, "robot_2/map", True)))))
+        held = keyframe_from_msg(msg, {1, 2}, base=held)
+        np.testing.assert_array_equal(held.map_point_ids, upd.map_point_ids)
+        np.testing.assert_allclose(held.T_map_cam, upd.T_map_cam, atol=1e-6)
+        err = np.linalg.norm(held.map_points - upd.map_points, axis=1)
+        assert err.max() <= move_m + 1e-6
+        kf = upd
+    assert all(patch < whole / 2 for patch, whole in sizes)
+    # What the keyframe saw changed (a client re-extracted it): the update goes in full.
+    redone = dataclasses.replace(kf, descriptors=kf.descriptors[::-1].copy())
+    assert deltas.prepare(redone) == (False, None)
+    assert deltas.prepare(dataclasses.replace(kf, action=ACTION_NEW)) == (False, None)
+
+
+def test_malformed_patches_are_rejected():
+    sent = make_keyframe(n=20, robot_id=1, keyframe_id=4)
+    held = keyframe_from_msg(_wire(keyframe_to_msg(sent, "robot_1/map")), {1})
+    msg = _wire(keyframe_to_msg(sent, "robot_1/map"))
+    msg.action, msg.delta = msg.ACTION_UPDATE, True
+    msg.keypoints, msg.octaves, msg.descriptors, msg.depths_m = [], b"", b"", []
+    msg.patched, msg.map_point_ids, msg.map_points = [25], [3], [0.0, 0.0, 1.0]
+    with pytest.raises(MessageError, match="names keypoint 25 of a keyframe with 20"):
+        keyframe_from_msg(msg, {1}, base=held)
+    msg.patched, msg.map_point_ids, msg.map_points = [1, 1], [3, 4], [0.0] * 6
+    with pytest.raises(MessageError, match="names a keypoint twice"):
+        keyframe_from_msg(msg, {1}, base=held)
+    msg.patched, msg.map_point_ids, msg.map_points = [1, 2], [3, 0], [0.0] * 6
+    with pytest.raises(MessageError, match="gives 2 map points for 1 observed"):
+        keyframe_from_msg(msg, {1}, base=held)
+    msg.patched, msg.map_point_ids = [1, 2, 3], [3, 0]
+    with pytest.raises(MessageError, match="patched lists 3 keypoints"):
+        keyframe_from_msg(msg, {1}, base=held)
+
+
 def _remove_with_200k_keypoints(msg):
     msg.action = msg.ACTION_REMOVE
     msg.keypoints = [1.0] * (4 * 200_000)
@@ -91,7 +162,7 @@ def _remove_with_200k_keypoints(msg):
         (lambda m: setattr(m, "robot_id", 9), "unknown"),
         (lambda m: setattr(m.pose.orientation, "w", float("nan")), "unit quaternion"),
         (lambda m: setattr(m.pose.position, "x", float("inf")), "NaN or inf"),
-        (lambda m: setattr(m, "keypoints", list(m.keypoints)[:-1]), "4 per keypoint"),
+        (lambda m: setattr(m, "keypoints", list(m.keypoints)[:-1]), "2 per keypoint .u, v."),
         (lambda m: setattr(m, "depths_m", list(m.depths_m)[:-1]), "depths_m"),
         (lambda m: setattr(m.camera, "fx", 0.0), "camera model"),
         # Finite yet absurd, as a fuzzer sent them.

@@ -8,6 +8,7 @@ node rejects bad input the same way and nothing malformed or absurd reaches a ma
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from dataclasses import dataclass, field
 
@@ -62,7 +63,7 @@ class KeyframeRecord:
     T_map_cam: np.ndarray  # (4, 4) camera optical frame in the robot's map frame
     keypoints: np.ndarray = field(
         default_factory=lambda: np.zeros((0, 4), np.float32)
-    )  # u, v, size, angle
+    )  # u, v, size (0 = not given), angle (-1 = none)
     octaves: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint8))
     descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))
     depths_m: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))  # 0 = none
@@ -271,10 +272,11 @@ class KeyframeRecord:
         if uv.min() < -1 or uv[:, 0].max() > cam.width + 1 or uv[:, 1].max() > cam.height + 1:
             raise KeyframeError(f"{where}: keypoints outside the {cam.width}x{cam.height} image")
         diagonal = float(np.hypot(cam.width, cam.height))
-        if size.min() <= 0 or size.max() > diagonal:
+        if size.min() < 0 or size.max() > diagonal:
             raise KeyframeError(
-                f"{where}: keypoint sizes must be in (0, {diagonal:.0f}] px (the image "
-                f"diagonal), got [{float(size.min()):.3g}, {float(size.max()):.3g}]"
+                f"{where}: keypoint sizes must be in [0, {diagonal:.0f}] px (the image "
+                f"diagonal; 0 = not given), got [{float(size.min()):.3g}, "
+                f"{float(size.max()):.3g}]"
             )
         lo, hi = KEYPOINT_ANGLE_DEG
         if angle.min() < lo or angle.max() > hi:
@@ -282,6 +284,96 @@ class KeyframeRecord:
                 f"{where}: keypoint angles must be in [{lo:g}, {hi:g}] deg (-1 = none), got "
                 f"[{float(angle.min()):.3g}, {float(angle.max()):.3g}]"
             )
+
+
+def observation_patch(
+    held_ids: np.ndarray,
+    held_points: np.ndarray,
+    ids: np.ndarray,
+    points: np.ndarray,
+    min_move_m: float,
+) -> np.ndarray:
+    """Indices of the keypoints whose observation differs from what the server holds
+    (``held_ids``, ``held_points``: per keypoint, NaN rows where there is no map point): another
+    map point or none, or the same point moved more than ``min_move_m``. ``ids``/``points`` are
+    the keyframe's now, in the same per-keypoint form."""
+    changed = np.asarray(held_ids) != np.asarray(ids)
+    with np.errstate(invalid="ignore"):
+        moved = np.linalg.norm(np.asarray(points) - held_points, axis=1) > min_move_m
+    return np.flatnonzero(changed | moved).astype(np.uint32)
+
+
+def patch_of(rec: KeyframeRecord, patched: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What a patch of ``rec``'s observations carries for the keypoints ``patched``: their map
+    point ids and, in that order, the (M, 3) positions of the non-zero ones."""
+    patched = np.asarray(patched, np.int64)
+    ids = np.asarray(rec.map_point_ids, np.uint32)[patched]
+    return ids, rec.map_points_per_keypoint()[patched][ids != 0].astype(np.float32)
+
+
+def apply_observation_patch(
+    held_ids: np.ndarray,
+    held_points: np.ndarray,
+    patched: np.ndarray,
+    ids: np.ndarray,
+    points: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The observations after a patch: (ids, per-keypoint points, NaN rows where none). The patch
+    gives, for the keypoints ``patched``, their map point ids (0 = none now) and, in that order,
+    the positions of the non-zero ones. Raises KeyframeError when it does not fit."""
+    n = len(held_ids)
+    patched = np.asarray(patched, np.int64)
+    if len(ids) != len(patched):
+        raise KeyframeError(
+            f"an observation patch lists {len(patched)} keypoints but {len(ids)} map point ids"
+        )
+    if len(patched) and (patched.min() < 0 or patched.max() >= n):
+        raise KeyframeError(
+            f"an observation patch names keypoint {int(patched.max())} of a keyframe with {n}"
+        )
+    if len(np.unique(patched)) != len(patched):
+        raise KeyframeError("an observation patch names a keypoint twice")
+    seen = np.asarray(ids) != 0
+    if len(points) != int(seen.sum()):
+        raise KeyframeError(
+            f"an observation patch gives {len(points)} map points for {int(seen.sum())} observed "
+            "keypoints"
+        )
+    out_ids = np.array(held_ids, np.uint32, copy=True)
+    out_points = np.array(held_points, float, copy=True)
+    out_ids[patched] = ids
+    out_points[patched] = np.nan
+    out_points[patched[seen]] = points
+    return out_ids, out_points
+
+
+def complete_update(
+    sent: KeyframeRecord, base: KeyframeRecord, patched: np.ndarray | None = None
+) -> KeyframeRecord:
+    """A delta update as the server holds it: what the keyframe saw from ``base`` (the keyframe
+    as stored), and its observations from ``sent`` -- all of them (``patched`` None), or a patch
+    of ``base``'s (see :func:`apply_observation_patch`)."""
+    static = {k: getattr(base, k) for k in STATIC_ARRAYS}
+    if patched is None:
+        return dataclasses.replace(sent, **static)
+    if sent.keyframe_id != base.keyframe_id or sent.robot_id != base.robot_id:
+        raise KeyframeError(
+            f"keyframe {sent.keyframe_id} of robot {sent.robot_id}: patched against another "
+            f"keyframe ({base.keyframe_id} of robot {base.robot_id})"
+        )
+    ids, per_keypoint = apply_observation_patch(
+        base.map_point_ids,
+        base.map_points_per_keypoint(),
+        patched,
+        sent.map_point_ids,
+        np.asarray(sent.map_points).reshape(-1, 3),
+    )
+    return dataclasses.replace(
+        sent,
+        **static,
+        map_point_ids=ids,
+        map_points=per_keypoint[ids != 0].astype(np.float32),
+    )
 
 
 def _is_int(x) -> bool:

@@ -216,10 +216,17 @@ class ClientNode:
         )
         self._outbox_lock = threading.Lock()
         self.keyframes_sent = 0
-        from ..vo.outbox import DeltaUpdates
+        from ..vo.outbox import DeltaUpdates, UplinkConfig
 
-        # Updates leave out what the keyframe saw when the server has it (~delta_updates).
-        self.deltas = DeltaUpdates(bool(rospy.get_param("~delta_updates", True)))
+        # Updates carry what changed since the server got the keyframe (~uplink).
+        self.deltas = DeltaUpdates(
+            load_yaml_config(
+                UplinkConfig,
+                rospy.get_param("~config", ""),
+                "uplink",
+                rospy.get_param("~uplink", {}),
+            )
+        )
         self._bound_warned = False
         # A restarted client must not reuse the keyframe ids the server stored before: the
         # server's latched acknowledgement says how far they went.
@@ -537,9 +544,9 @@ class ClientNode:
                 else:
                     self.kf_poses[rec.keyframe_id] = (rec.stamp_s, rec.T_map_cam)
                 self.keyframes_sent += rec.action == ACTION_NEW
-                # An update whose keyframe saw the same as when it was new goes without that.
-                delta = self.deltas.delta(rec)
-                self._send_keyframe(keyframe_to_msg(rec, self.map_frame, delta))
+                # An update goes with what changed since the server got the keyframe.
+                out = self.deltas.prepare(rec)
+                self._send_keyframe(keyframe_to_msg(rec, self.map_frame, out.delta, out.patched))
                 changed = True
         if changed:
             self._publish_path()

@@ -20,6 +20,8 @@ from ..keyframe_record import (
     KeyframeError,
     KeyframeRecord,
     camera_from_fields,
+    complete_update,
+    patch_of,
 )
 
 
@@ -209,9 +211,12 @@ def camera_from_info(
 
 
 # --- keyframes ------------------------------------------------------------------------------------
-def keyframe_to_msg(kf: KeyframeRecord, frame_id: str, delta: bool = False):
+def keyframe_to_msg(
+    kf: KeyframeRecord, frame_id: str, delta: bool = False, patched: np.ndarray | None = None
+):
     """The KeyFrame message of a record; ``delta`` (an update): without keypoints, octaves,
-    descriptors and depths, which the server has from the keyframe's first message."""
+    descriptors and depths, which the server has from the keyframe's first message, and with
+    ``patched`` (not None) only those keypoints' observations."""
     from coop_slam.msg import CameraModel as CameraModelMsg
     from coop_slam.msg import KeyFrame
 
@@ -236,12 +241,16 @@ def keyframe_to_msg(kf: KeyframeRecord, frame_id: str, delta: bool = False):
     msg.pose = pose_to_msg(kf.T_map_cam)
     msg.delta = bool(delta)
     if not delta:
-        msg.keypoints = np.asarray(kf.keypoints, np.float32).ravel().tolist()
+        msg.keypoints = np.asarray(kf.keypoints, np.float32)[:, :2].ravel().tolist()
         msg.octaves = np.asarray(kf.octaves, np.uint8).tobytes()
         msg.descriptors = np.asarray(kf.descriptors, np.uint8).tobytes()
         msg.depths_m = np.asarray(kf.depths_m, np.float32).tolist()
-    msg.map_point_ids = np.asarray(kf.map_point_ids, np.uint32).tolist()
-    msg.map_points = np.asarray(kf.map_points, np.float32).ravel().tolist()
+    ids, points = np.asarray(kf.map_point_ids, np.uint32), np.asarray(kf.map_points, np.float32)
+    if delta and patched is not None:
+        ids, points = patch_of(kf, patched)
+        msg.patched = np.asarray(patched, np.uint32).tolist()
+    msg.map_point_ids = ids.tolist()
+    msg.map_points = np.asarray(points, np.float32).ravel().tolist()
     msg.covisible_ids = np.asarray(kf.covisible_ids, np.uint32).tolist()
     msg.covisible_weights = np.asarray(kf.covisible_weights, np.uint16).tolist()
     return msg
@@ -259,7 +268,7 @@ def keyframe_from_msg(
 ) -> KeyframeRecord:
     """Validated :class:`KeyframeRecord` from a KeyFrame message; raises MessageError. A delta
     update takes keypoints, octaves, descriptors and depths from ``base``, the keyframe as the
-    server holds it."""
+    server holds it, and, when it carries a patch, the observations it leaves out."""
     try:
         if msg.camera.sensor_type >= len(SENSORS):
             raise KeyframeError(f"camera sensor_type {msg.camera.sensor_type} unknown")
@@ -277,9 +286,15 @@ def keyframe_from_msg(
         descriptors = _bytes(msg.descriptors)
         map_points = np.asarray(msg.map_points, np.float32)
         where = f"keyframe {msg.keyframe_id} of robot {msg.robot_id}"
-        if keypoints.size % 4:
+        n = len(msg.octaves)
+        if n and keypoints.size == 2 * n:  # u, v: size not given, no angle
+            keypoints = np.column_stack(
+                [keypoints.reshape(-1, 2), np.zeros(n, np.float32), np.full(n, -1, np.float32)]
+            )
+        elif keypoints.size % 4:
             raise KeyframeError(
-                f"{where}: keypoints holds {keypoints.size} floats, not 4 per keypoint"
+                f"{where}: keypoints holds {keypoints.size} floats for {n} octaves: 2 per "
+                "keypoint (u, v), or 4 (u, v, size, angle)"
             )
         if descriptors.size % 32:
             raise KeyframeError(
@@ -311,7 +326,14 @@ def keyframe_from_msg(
                 raise KeyframeError(
                     f"{where}: a delta update of a keyframe the server does not hold"
                 )
-            static = {k: getattr(base, k) for k in static}
+        patched = np.asarray(getattr(msg, "patched", ()), np.int64)
+        ids = np.asarray(msg.map_point_ids, np.uint32)
+        is_patch = bool(getattr(msg, "delta", False)) and len(ids) == len(patched)
+        if len(patched) and not is_patch:
+            raise KeyframeError(
+                f"{where}: patched lists {len(patched)} keypoints but map_point_ids has "
+                f"{len(ids)} entries (a patch of a delta update has one per listed keypoint)"
+            )
         rec = KeyframeRecord(
             robot_id=msg.robot_id,
             keyframe_id=msg.keyframe_id,
@@ -319,13 +341,15 @@ def keyframe_from_msg(
             camera=cam,
             T_map_cam=se3_from_quat([p.x, p.y, p.z], q),
             **static,
-            map_point_ids=np.asarray(msg.map_point_ids, np.uint32),
+            map_point_ids=ids,
             map_points=map_points.reshape(-1, 3),
             covisible_ids=np.asarray(msg.covisible_ids, np.uint32),
             covisible_weights=np.asarray(msg.covisible_weights, np.uint16),
             map_segment=msg.map_segment,
             action=msg.action,
         )
+        if getattr(msg, "delta", False):
+            rec = complete_update(rec, base, patched if is_patch else None)
         return rec.validate(known_robots)
     except (KeyframeError, GeometryError) as exc:
         raise MessageError(str(exc)) from None

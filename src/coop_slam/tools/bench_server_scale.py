@@ -40,6 +40,8 @@ from ..keyframe_record import (
     STATIC_ARRAYS,
     KeyframeError,
     KeyframeRecord,
+    complete_update,
+    patch_of,
 )
 from ..team.publish_cadence import PublishCadence, PublishCadenceConfig
 
@@ -107,38 +109,47 @@ def header_stamp_s(item: KeyframeRecord | DeltaUpdate) -> float:
 
 
 def complete_stripped(
-    sent: KeyframeRecord, base: KeyframeRecord | None, known_robots: set
+    sent: KeyframeRecord,
+    base: KeyframeRecord | None,
+    known_robots: set,
+    patched: np.ndarray | None = None,
 ) -> KeyframeRecord:
-    """A delta update (``sent``, its static arrays empty) completed as ``keyframe_from_msg`` does
-    it: what the keyframe saw is taken from ``base``, the keyframe as the server holds it."""
+    """A delta update (``sent``, its static arrays empty, its observations a patch when
+    ``patched`` is given) completed as ``keyframe_from_msg`` does it: from ``base``, the keyframe
+    as the server holds it."""
     if base is None:
         raise KeyframeError(
             f"keyframe {sent.keyframe_id} of robot {sent.robot_id}: a delta update of a keyframe "
             "the server does not hold"
         )
-    return dataclasses.replace(sent, **{k: getattr(base, k) for k in STATIC_ARRAYS}).validate(
-        known_robots
-    )
+    return complete_update(sent, base, patched).validate(known_robots)
 
 
-def as_sent(rec: KeyframeRecord, delta: bool) -> KeyframeRecord | DeltaUpdate:
-    """The record as the server gets it from the wire: arrays in the message's dtypes, and for a
-    delta update without what the keyframe saw."""
+def as_sent(
+    rec: KeyframeRecord, delta: bool, patched: np.ndarray | None = None
+) -> KeyframeRecord | DeltaUpdate:
+    """The record as the server gets it from the wire: arrays in the message's dtypes, keypoints
+    without their size and angle, and for a delta update without what the keyframe saw (and with
+    only the ``patched`` keypoints' observations, when given)."""
     arrays = {k: np.asarray(getattr(rec, k), dtype) for k, dtype in _WIRE_DTYPES.items()}
-    arrays["keypoints"] = arrays["keypoints"].reshape(-1, 4)
+    keypoints = arrays["keypoints"].reshape(-1, 4).copy()
+    keypoints[:, 2], keypoints[:, 3] = 0.0, -1.0  # not sent
+    arrays["keypoints"] = keypoints
     arrays["descriptors"] = arrays["descriptors"].reshape(-1, 32)
     arrays["map_points"] = arrays["map_points"].reshape(-1, 3)
     rec = dataclasses.replace(rec, **arrays)
     if not delta:
         return rec
     empty = {k: np.zeros((0,) + getattr(rec, k).shape[1:], _WIRE_DTYPES[k]) for k in STATIC_ARRAYS}
+    if patched is not None:
+        empty["map_point_ids"], empty["map_points"] = patch_of(rec, patched)
     stripped = dataclasses.replace(rec, **empty)
     return DeltaUpdate(
         rec.robot_id,
         rec.map_segment,
         rec.keyframe_id,
         rec.stamp_s,
-        functools.partial(complete_stripped, stripped),
+        functools.partial(complete_stripped, stripped, patched=patched),
     )
 
 
@@ -148,11 +159,11 @@ class ClientSender:
     an update without what the keyframe saw when that is unchanged since it went as new, each
     message numbered in the client's session."""
 
-    def __init__(self, robot_id: int, camera, T_base_cam: np.ndarray, delta_updates: bool = True):
+    def __init__(self, robot_id: int, camera, T_base_cam: np.ndarray, uplink=None):
         from ..vo.outbox import DeltaUpdates
 
         self.robot_id, self.camera, self.T_base_cam = robot_id, camera, T_base_cam
-        self.deltas = DeltaUpdates(delta_updates)
+        self.deltas = DeltaUpdates(uplink)
         self.sequence = 0
         self.new_keyframes = 0
 
@@ -166,9 +177,11 @@ class ClientSender:
                 continue
             rec = event_record(ev, self.robot_id, self.camera, self.T_base_cam)
             self.new_keyframes += rec.action == ACTION_NEW
-            delta = self.deltas.delta(rec)
+            delta, patched = self.deltas.prepare(rec)
             self.sequence += 1
-            out.append(Arrival(t_s, self.robot_id, as_sent(rec, delta), SESSION, self.sequence))
+            out.append(
+                Arrival(t_s, self.robot_id, as_sent(rec, delta, patched), SESSION, self.sequence)
+            )
         return out
 
 
@@ -188,9 +201,12 @@ def client_vo_config(T_base_cam: np.ndarray, ground_robot: bool):
 def robot_stream(robot_id: int, seq, cfg, T_base_cam: np.ndarray, label: str = "") -> list[Arrival]:
     """One robot's keyframe messages: its odometry run offline over the sequence, every event
     arriving at the stamp of the frame it appeared at."""
+    from ..config import load_yaml_config
+    from ..vo.outbox import UplinkConfig
     from ..vo.pipeline import VisualOdometry
 
-    sender = ClientSender(robot_id, seq.camera, T_base_cam)
+    uplink = load_yaml_config(UplinkConfig, os.path.join(CONFIG_DIR, "client.yaml"), "uplink")
+    sender = ClientSender(robot_id, seq.camera, T_base_cam, uplink)
     vo = VisualOdometry(cfg, seq.camera)
     out: list[Arrival] = []
     t0, n = time.perf_counter(), len(seq)

@@ -7,11 +7,22 @@ body at start (z up, REP-103), so poses and points are moved by ``T_base_cam`` o
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import NamedTuple
+
 import numpy as np
 
+from ..config import require
 from ..datasets.base import CameraModel
 from ..geometry import transform_points
-from ..keyframe_record import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE, KeyframeRecord
+from ..keyframe_record import (
+    ACTION_NEW,
+    ACTION_REMOVE,
+    ACTION_UPDATE,
+    KeyframeRecord,
+    apply_observation_patch,
+    observation_patch,
+)
 from .map import MapKeyframe
 from .types import KEYFRAME_ACTIONS, VoEvent
 
@@ -67,21 +78,75 @@ def event_record(
     return keyframe_record(ev.keyframe, robot_id, camera, T_base_cam, action)
 
 
+@dataclass
+class UplinkConfig:
+    """What a client's keyframe messages carry (``config/client.yaml`` section ``uplink``)."""
+
+    # Updates leave out what the keyframe saw when the server has it, and carry only the
+    # observations that changed (false: every update in full, as a new keyframe).
+    delta_updates: bool = True
+    # A map point that moved less than this since it last went to the server is not sent
+    # again with an update [m]; 0 = every point that moved at all.
+    point_move_m: float = 0.0
+
+    def validate(self) -> None:
+        require(self.point_move_m >= 0, "uplink.point_move_m must be >= 0 [m]")
+
+
+class Outgoing(NamedTuple):
+    """How a keyframe record goes: ``delta`` without what the keyframe saw (``KeyFrame.delta``);
+    ``patched`` (delta updates only) the keypoints whose observations go, None for all."""
+
+    delta: bool
+    patched: np.ndarray | None = None
+
+
 class DeltaUpdates:
-    """Which updates go without what the keyframe saw (``KeyFrame.delta``): those whose keypoints,
-    octaves, descriptors and depths are the ones sent with the keyframe as new (the server has
-    them). ``enabled`` False: every update goes in full."""
+    """What an update must carry. It goes without what the keyframe saw (``KeyFrame.delta``) when
+    its keypoints, octaves, descriptors and depths are the ones sent with the keyframe as new (the
+    server has them), and then with only the observations that changed since they last went:
+    keypoints that observe another map point (or none), or whose map point moved more than
+    ``point_move_m`` (local BA moves most points of a keyframe a little, and an update that
+    sent them all was most of a client's traffic). ``delta_updates`` False: every update goes in
+    full.
 
-    def __init__(self, enabled: bool = True):
-        self.enabled = enabled
-        self._sent_static: dict[int, bytes] = {}  # keyframe id -> digest sent with it as new
+    It keeps, per keyframe, the observations as the server holds them (the messages reach the
+    server in order, and every one does: :class:`coop_slam.delivery.Outbox`)."""
 
-    def delta(self, rec: KeyframeRecord) -> bool:
-        """Whether ``rec`` (about to be sent) may leave out what the keyframe saw."""
+    def __init__(self, config: UplinkConfig | None = None):
+        config = config or UplinkConfig()
+        config.validate()
+        self.enabled, self.min_point_move_m = config.delta_updates, config.point_move_m
+        # keyframe id -> (digest sent with it as new, map point ids, per-keypoint points held)
+        self._held: dict[int, tuple[bytes, np.ndarray, np.ndarray]] = {}
+
+    def prepare(self, rec: KeyframeRecord) -> Outgoing:
+        """How ``rec`` (about to be sent) goes; remembers what the server will hold after it."""
         if rec.action == ACTION_NEW:
-            self._sent_static[rec.keyframe_id] = rec.static_digest()
-            return False
-        if rec.action == ACTION_UPDATE and self.enabled:
-            return self._sent_static.get(rec.keyframe_id) == rec.static_digest()
-        self._sent_static.pop(rec.keyframe_id, None)
-        return False
+            self._hold(rec.keyframe_id, rec.static_digest(), rec)
+            return Outgoing(False)
+        held = self._held.get(rec.keyframe_id)
+        if rec.action != ACTION_UPDATE or not self.enabled or held is None:
+            self._held.pop(rec.keyframe_id, None)
+            return Outgoing(False)
+        digest = rec.static_digest()
+        if held[0] != digest:  # what the keyframe saw changed: it goes in full
+            self._hold(rec.keyframe_id, digest, rec)
+            return Outgoing(False)
+        per_keypoint = rec.map_points_per_keypoint()
+        patched = observation_patch(
+            held[1], held[2], rec.map_point_ids, per_keypoint, self.min_point_move_m
+        )
+        ids = rec.map_point_ids[patched]
+        held_ids, held_points = apply_observation_patch(
+            held[1], held[2], patched, ids, per_keypoint[patched][ids != 0]
+        )
+        self._held[rec.keyframe_id] = (digest, held_ids, held_points)
+        return Outgoing(True, patched)
+
+    def _hold(self, keyframe_id: int, digest: bytes, rec: KeyframeRecord) -> None:
+        self._held[keyframe_id] = (
+            digest,
+            np.array(rec.map_point_ids, np.uint32),
+            rec.map_points_per_keypoint(),
+        )
