@@ -148,6 +148,8 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
     r = run.robots[2]
     assert sorted(r.keyframes) == [1, 2, 3, 4, 5] and len(r.kf_bytes) == 6  # with the update
     assert np.allclose(r.keyframes[4][1], moved.T_map_cam)
+    # Each keyframe's 3D from depth (the report's overlap agreement), one point per keypoint.
+    assert all(len(r.keyframe_points[k]) == 50 for k in (1, 2, 3, 5))
     assert sorted(r.team_keyframes) == [1, 2, 4, 5]  # the NaN pose is dropped, not stored
     assert run.merges[0]["type"] == "rendezvous" and run.merges[0]["stamp_s"] == 1.5
     assert len(run.topic_bytes["/robot_2/keyframes"]) == 6

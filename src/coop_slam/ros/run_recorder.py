@@ -197,8 +197,9 @@ def _points_cam(msg) -> np.ndarray:
     """(N, 3) float32 points of a KeyFrame message's keypoints with depth, in its camera frame
     (empty when the message is malformed: the report then leaves the keyframe out)."""
     try:
-        kp = np.asarray(msg.keypoints, np.float32).reshape(-1, 4)
         z = np.asarray(msg.depths_m, np.float32)
+        kp = np.asarray(msg.keypoints, np.float32)
+        kp = kp.reshape(-1, 2 if kp.size == 2 * len(z) else 4)  # u, v (or + size, angle)
         c = msg.camera
         ok = (z > 0) & np.isfinite(z)
         if len(z) != len(kp) or not (c.fx > 0 and c.fy > 0):
