@@ -149,7 +149,7 @@ def _not_finite(kf, rng, stored):
 
 
 def _keypoint_size_or_angle(kf, rng, stored):
-    col, value = [(2, 0.0), (2, -3.0), (2, 1e30), (3, 1e30), (3, -90.0), (3, 400.0)][
+    col, value = [(2, -0.5), (2, -3.0), (2, 1e30), (3, 1e30), (3, -90.0), (3, 400.0)][
         rng.integers(0, 6)
     ]
     kf.keypoints = kf.keypoints.copy()

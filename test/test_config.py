@@ -11,11 +11,12 @@ from coop_slam.errors import ConfigError
 from coop_slam.markers import MarkerConfig
 from coop_slam.team.config import ServerConfig
 from coop_slam.vo.config import VoConfig
+from coop_slam.vo.outbox import UplinkConfig
 from helpers import REPO
 
 SECTIONS = {  # file -> section -> config class
     "server.yaml": {"server": ServerConfig},
-    "client.yaml": {"vo": VoConfig, "markers": MarkerConfig},
+    "client.yaml": {"vo": VoConfig, "markers": MarkerConfig, "uplink": UplinkConfig},
 }
 
 

@@ -83,20 +83,20 @@ def test_a_delta_update_rebuilds_the_same_keyframe_as_a_full_one():
 
 
 def test_delta_updates_carry_only_the_observations_that_changed():
-    """A client's updates through DeltaUpdates, completed by the server from what it holds, give
+    """A client's updates through Uplink, completed by the server from what it holds, give
     the keyframe as a full message would -- within point_move_m for points that moved less."""
     import dataclasses
 
     from coop_slam.keyframe_record import ACTION_NEW, ACTION_UPDATE
-    from coop_slam.vo.outbox import DeltaUpdates, UplinkConfig
+    from coop_slam.vo.outbox import Uplink, UplinkConfig
 
     move_m = 0.002
-    deltas = DeltaUpdates(UplinkConfig(point_move_m=move_m))
+    deltas = Uplink(UplinkConfig(point_move_m=move_m))
     rng = np.random.default_rng(3)
     kf = make_keyframe(n=80, robot_id=2, keyframe_id=9)
     out = deltas.prepare(kf)
-    assert out == (False, None)
-    held = keyframe_from_msg(_wire(keyframe_to_msg(kf, "robot_2/map", *out)), {1, 2})
+    assert not out.delta and out.patched is None
+    held = keyframe_from_msg(_wire(keyframe_to_msg(kf, "robot_2/map")), {1, 2})
     sizes = []
     for step in range(4):
         upd = dataclasses.replace(
@@ -115,7 +115,7 @@ def test_delta_updates_carry_only_the_observations_that_changed():
         upd.map_points = per_kp[ids != 0].astype(np.float32)
         out = deltas.prepare(upd)
         assert out.delta and 0 < len(out.patched) < 25
-        msg = _wire(keyframe_to_msg(upd, "robot_2/map", *out))
+        msg = _wire(keyframe_to_msg(upd, "robot_2/map", out.delta, out.patched))
         sizes.append((_size(msg), _size(_wire(keyframe_to_msg(upd, "robot_2/map", True)))))
         held = keyframe_from_msg(msg, {1, 2}, base=held)
         np.testing.assert_array_equal(held.map_point_ids, upd.map_point_ids)
@@ -126,8 +126,8 @@ def test_delta_updates_carry_only_the_observations_that_changed():
     assert all(patch < whole / 2 for patch, whole in sizes)
     # What the keyframe saw changed (a client re-extracted it): the update goes in full.
     redone = dataclasses.replace(kf, descriptors=kf.descriptors[::-1].copy())
-    assert deltas.prepare(redone) == (False, None)
-    assert deltas.prepare(dataclasses.replace(kf, action=ACTION_NEW)) == (False, None)
+    assert not deltas.prepare(redone).delta
+    assert not deltas.prepare(dataclasses.replace(kf, action=ACTION_NEW)).delta
 
 
 def test_malformed_patches_are_rejected():
@@ -243,3 +243,26 @@ def test_stereo_camera_from_the_ros_stereo_camera_infos():
     )
     with pytest.raises(MessageError, match="differ in size"):
         stereo_camera_from_infos(left, small)
+
+
+def test_a_place_signature_round_trip_over_the_wire():
+    """Low-bandwidth mode: a new keyframe as its BoW vector only, a few kB instead of ~50."""
+    from coop_slam.bow.vocabulary import l1_score
+    from coop_slam.keyframe_record import PlaceSignature
+    from coop_slam.vo.outbox import signature_of
+    from helpers import team_world
+
+    _, _, kfs, vocab = team_world(4)
+    kf = kfs[1]
+    msg = _wire(keyframe_to_msg(signature_of(kf, vocab), "robot_1/map"))
+    back = keyframe_from_msg(msg, {1, 2})
+    assert isinstance(back, PlaceSignature) and back.keyframe_id == kf.keyframe_id
+    assert l1_score(back.bow, vocab.transform(kf.descriptors)[0]) > 0.99
+    np.testing.assert_allclose(back.record.T_map_cam, kf.T_map_cam, atol=1e-9)
+    assert _size(msg) < _size(_wire(keyframe_to_msg(kf, "robot_1/map"))) / 5
+    msg.action = msg.ACTION_UPDATE
+    with pytest.raises(MessageError, match="only a new keyframe"):
+        keyframe_from_msg(msg, {1, 2})
+    msg.action, msg.bow_weights = msg.ACTION_NEW, msg.bow_weights[:-1]
+    with pytest.raises(MessageError, match="words but"):
+        keyframe_from_msg(msg, {1, 2})

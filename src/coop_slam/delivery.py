@@ -100,11 +100,11 @@ class Outbox:
     stalled delivery after a server restart.
 
     A server acknowledges a message once it has taken it, which with a queue of work can be
-    seconds after it arrived. So the first wait adapts to how long acknowledgements take, as
-    TCP's retransmission timeout does (Jacobson's smoothed mean + 4 deviations, sampled only on
-    messages sent once, and doubled, up to 4x, each time the oldest message had to go again:
-    Karn), within ``resend_after_s`` .. ``max_resend_after_s``: a message the server has but not
-    yet taken is not sent again."""
+    seconds after it arrived. So the first wait of the others adapts to how long
+    acknowledgements take, as TCP's retransmission timeout does (Jacobson's smoothed mean + 4
+    deviations, sampled only on messages sent once, and doubled, up to 4x, each time such a
+    message had to go again: Karn), within ``resend_after_s`` .. ``max_resend_after_s``: a
+    message the server has but not yet taken is not sent again."""
 
     def __init__(
         self,
@@ -186,16 +186,15 @@ class Outbox:
     def due(self, now: float | None = None) -> list[Any]:
         """The messages to send again now (oldest first), or none."""
         now = time.monotonic() if now is None else now
-        out, first_wait = [], self.resend_timeout_s
+        out = []
         for i, (sequence, entry) in enumerate(self._unacked.items()):
             if len(out) >= self.resend_window:
                 break
             oldest = i == 0  # what the server waits for: never backed off
-            if now - entry[1] >= (first_wait if oldest else entry[2]):
-                if oldest:
-                    # At most 4x: a server back from a restart waits no longer than that.
-                    self._backoff = min(2.0 * self._backoff, 4.0)
-                else:
+            if now - entry[1] >= (self.resend_after_s if oldest else entry[2]):
+                if not oldest:
+                    if sequence in self._first_sent:  # its first wait was too short
+                        self._backoff = min(2.0 * self._backoff, 4.0)
                     entry[2] = min(2.0 * entry[2], self.max_resend_after_s)
                 entry[1] = now
                 self._first_sent.pop(sequence, None)  # its acknowledgement is no sample (Karn)

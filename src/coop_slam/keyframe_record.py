@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .bow.vocabulary import BowVector
 from .datasets.base import CameraModel, DatasetError
 from .descriptors import DESCRIPTOR_BYTES
 from .errors import CoopSlamError
@@ -284,6 +285,47 @@ class KeyframeRecord:
                 f"{where}: keypoint angles must be in [{lo:g}, {hi:g}] deg (-1 = none), got "
                 f"[{float(angle.min()):.3g}, {float(angle.max()):.3g}]"
             )
+
+
+@dataclass
+class PlaceSignature:
+    """A new keyframe in low-bandwidth mode (``uplink.mode: pull``): ``record`` without what the
+    keyframe saw (no keypoints; pose, stamp, camera, covisible keyframes) and the keyframe's BoW
+    vector. The server asks the robot for the whole keyframe when it needs it."""
+
+    record: KeyframeRecord
+    bow: BowVector
+
+    @property
+    def robot_id(self) -> int:
+        return self.record.robot_id
+
+    @property
+    def keyframe_id(self) -> int:
+        return self.record.keyframe_id
+
+    def validate(self, known_robots: set[int] | None = None) -> "PlaceSignature":
+        """As :meth:`KeyframeRecord.validate`, and the BoW vector's words and weights."""
+        rec = self.record
+        if rec.action != ACTION_NEW or rec.num_keypoints:
+            raise KeyframeError(
+                f"keyframe {rec.keyframe_id} of robot {rec.robot_id}: a place signature is a new "
+                "keyframe without keypoints"
+            )
+        rec.validate(known_robots)
+        words, weights = np.asarray(self.bow.words), np.asarray(self.bow.weights)
+        if (
+            len(words) != len(weights)
+            or (len(words) > 1 and np.any(np.diff(words) <= 0))
+            or (len(words) and words.min() < 0)
+            or not np.all(np.isfinite(weights))
+            or (len(weights) and weights.min() <= 0)
+        ):
+            raise KeyframeError(
+                f"keyframe {rec.keyframe_id} of robot {rec.robot_id}: its place signature needs "
+                "increasing word ids with positive weights"
+            )
+        return self
 
 
 def observation_patch(

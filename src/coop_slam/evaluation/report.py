@@ -41,6 +41,8 @@ ROBOT_KEYS = (
     "keyframes_sent",
     "keyframes_stored",
     "keyframes_lost",
+    # Low-bandwidth mode: keyframes the server asked for whole (the others: signatures only).
+    "keyframes_pulled",
 )
 MERGE_KEYS = (
     "type",

@@ -343,6 +343,8 @@ def evaluate_run(
             report["single_ate_pooled_m"] = float(np.sqrt(sum(e**2 * c for e, c in pooled) / n))
     report["server_ms_per_keyframe"] = run.server_stats.get("ms_per_keyframe_mean")
     stored = run.server_stats.get("keyframes_stored") or {}
+    pull = run.server_stats.get("pull")
+    report["pull"] = pull
     for entry, rid in zip(report["robots"], robot_ids):
         r = run.robots.get(rid, RobotRun())
         sent = int(sum(r.keyframes_sent_sessions))
@@ -352,6 +354,8 @@ def evaluate_run(
         entry["keyframes_lost"] = (
             max(0, sent - int(stored[str(rid)])) if str(rid) in stored and sent else None
         )
+        if pull:  # low-bandwidth mode: stored as signatures, these whole
+            entry["keyframes_pulled"] = int((pull.get("held") or {}).get(str(rid), 0))
     report["duplicates_received"] = run.server_stats.get("duplicates")
     report["loop_closures"] = run.server_stats.get("loops")
     report["links"] = _links(run, gts, report["groups"])

@@ -216,10 +216,11 @@ class ClientNode:
         )
         self._outbox_lock = threading.Lock()
         self.keyframes_sent = 0
-        from ..vo.outbox import DeltaUpdates, UplinkConfig
+        self.keyframes_pulled = 0  # sent whole because the server asked (low-bandwidth mode)
+        from ..vo.outbox import Uplink, UplinkConfig
 
         # Updates carry what changed since the server got the keyframe (~uplink).
-        self.deltas = DeltaUpdates(
+        self.deltas = Uplink(
             load_yaml_config(
                 UplinkConfig,
                 rospy.get_param("~config", ""),
@@ -227,6 +228,15 @@ class ClientNode:
                 rospy.get_param("~uplink", {}),
             )
         )
+        self.vocabulary = None  # low-bandwidth mode: the server's, for place signatures
+        self._request_seen = 0
+        if self.deltas.pull:
+            from coop_slam.msg import KeyframeRequest
+
+            self.vocabulary = self._server_vocabulary(float(rospy.get_param("~server_wait_s", 3.0)))
+            self.sub_request = rospy.Subscriber(
+                f"{ns}/keyframe_request", KeyframeRequest, self._on_request, queue_size=10
+            )
         self._bound_warned = False
         # A restarted client must not reuse the keyframe ids the server stored before: the
         # server's latched acknowledgement says how far they went.
@@ -254,6 +264,67 @@ class ClientNode:
         self.sub_ack = rospy.Subscriber(f"{ns}/keyframe_ack", KeyframeAck, self._on_ack)
         self._resender = threading.Thread(target=self._resend_loop, daemon=True)
         self._resender.start()
+
+    def _server_vocabulary(self, wait_s: float):
+        """The vocabulary the server publishes (its words are what place signatures name), else
+        the default one this machine has."""
+        import tempfile
+
+        from coop_slam.msg import Vocabulary as VocabularyMsg
+
+        from ..bow import Vocabulary
+        from ..bow.training import default_vocabulary_path
+
+        try:
+            msg = rospy.wait_for_message("/server/vocabulary", VocabularyMsg, timeout=wait_s)
+            suffix = ".npz" if msg.format == "coop_slam-npz" else ".txt"
+            with tempfile.NamedTemporaryFile(suffix=suffix) as fh:
+                fh.write(msg.data)
+                fh.flush()
+                vocabulary = Vocabulary.load(fh.name)
+            rospy.loginfo("client %s: place signatures in the server's vocabulary", self.name)
+            return vocabulary
+        except rospy.ROSException:
+            path = default_vocabulary_path()
+            rospy.logwarn(
+                "client %s: no /server/vocabulary within %.0f s: place signatures in %s (the "
+                "server must use the same vocabulary)",
+                self.name,
+                wait_s,
+                path,
+            )
+            return Vocabulary.load(path)
+
+    def _on_request(self, msg) -> None:
+        """The server asks for whole keyframes (low-bandwidth mode): each goes as new, in full;
+        keyframes this client no longer has are not sent (the server gives up on them)."""
+        from ..keyframe_record import ACTION_NEW
+        from ..vo.outbox import keyframe_record
+
+        if msg.robot_id != self.robot_id:
+            self.rejects.reject("keyframe_request", f"request for robot {msg.robot_id}")
+            return
+        if (msg.request and msg.request <= self._request_seen) or self.vo is None:
+            return  # latched: answered already (or no map yet)
+        self._request_seen = msg.request
+        for kid in msg.keyframe_ids:
+            kf = self.vo.keyframe(int(kid) - self.kf_id_base)
+            if kf is None:
+                rospy.loginfo("client %s: the server asks for keyframe %d, gone", self.name, kid)
+                continue
+            rec = self._as_sent(keyframe_record(kf, self.robot_id, self.camera, self.T_base_cam))
+            rec.action = ACTION_NEW
+            self.deltas.answer(rec)
+            self._send_keyframe(keyframe_to_msg(rec, self.map_frame))
+            self.keyframes_pulled += 1
+
+    def _as_sent(self, rec):
+        """A record with this client run's keyframe ids and map segments (after a restart they
+        go on above the server's)."""
+        rec.keyframe_id += self.kf_id_base
+        rec.covisible_ids = rec.covisible_ids + np.uint32(self.kf_id_base)
+        rec.map_segment += self.segment_base
+        return rec
 
     def _on_ack(self, msg) -> None:
         if msg.robot_id != self.robot_id:
@@ -519,7 +590,7 @@ class ClientNode:
     # --- publishing -------------------------------------------------------------------------------
     def _publish_events(self) -> None:
         from ..keyframe_record import ACTION_NEW, ACTION_REMOVE
-        from ..vo.outbox import event_record
+        from ..vo.outbox import event_record, signature_of
         from ..vo.types import EVENT_NEW_SEGMENT, EVENT_WARNING, KEYFRAME_ACTIONS
 
         changed = False
@@ -535,10 +606,7 @@ class ClientNode:
                 )
                 self.segment = ev.map_segment + self.segment_base
             elif ev.kind in KEYFRAME_ACTIONS:
-                rec = event_record(ev, self.robot_id, self.camera, self.T_base_cam)
-                rec.keyframe_id += self.kf_id_base
-                rec.covisible_ids = rec.covisible_ids + np.uint32(self.kf_id_base)
-                rec.map_segment += self.segment_base
+                rec = self._as_sent(event_record(ev, self.robot_id, self.camera, self.T_base_cam))
                 if rec.action == ACTION_REMOVE:
                     self.kf_poses.pop(rec.keyframe_id, None)
                 else:
@@ -546,7 +614,13 @@ class ClientNode:
                 self.keyframes_sent += rec.action == ACTION_NEW
                 # An update goes with what changed since the server got the keyframe.
                 out = self.deltas.prepare(rec)
-                self._send_keyframe(keyframe_to_msg(rec, self.map_frame, out.delta, out.patched))
+                if out.skip:
+                    continue
+                if out.signature:
+                    msg = keyframe_to_msg(signature_of(rec, self.vocabulary), self.map_frame)
+                else:
+                    msg = keyframe_to_msg(rec, self.map_frame, out.delta, out.patched)
+                self._send_keyframe(msg)
                 changed = True
         if changed:
             self._publish_path()

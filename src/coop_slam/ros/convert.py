@@ -11,14 +11,17 @@ import rospy
 from geometry_msgs.msg import Pose, Transform
 from sensor_msgs.msg import CameraInfo, Image
 
+from ..bow.signature import SignatureError, decode_signature, encode_signature
 from ..datasets.base import SENSORS, CameraModel, DatasetError
 from ..errors import CoopSlamError
 from ..geometry import GeometryError, quat_from_se3, se3_from_quat
 from ..keyframe_record import (
+    ACTION_NEW,
     ACTION_UPDATE,
     MAX_POSITION_M,
     KeyframeError,
     KeyframeRecord,
+    PlaceSignature,
     camera_from_fields,
     complete_update,
     patch_of,
@@ -212,14 +215,21 @@ def camera_from_info(
 
 # --- keyframes ------------------------------------------------------------------------------------
 def keyframe_to_msg(
-    kf: KeyframeRecord, frame_id: str, delta: bool = False, patched: np.ndarray | None = None
+    kf: KeyframeRecord | PlaceSignature,
+    frame_id: str,
+    delta: bool = False,
+    patched: np.ndarray | None = None,
 ):
     """The KeyFrame message of a record; ``delta`` (an update): without keypoints, octaves,
     descriptors and depths, which the server has from the keyframe's first message, and with
-    ``patched`` (not None) only those keypoints' observations."""
+    ``patched`` (not None) only those keypoints' observations. A place signature goes as a new
+    keyframe with only its BoW vector (``signature_only``)."""
     from coop_slam.msg import CameraModel as CameraModelMsg
     from coop_slam.msg import KeyFrame
 
+    signature = None
+    if isinstance(kf, PlaceSignature):
+        signature, kf = kf, kf.record
     msg = KeyFrame()
     msg.header.stamp = rospy.Time.from_sec(kf.stamp_s)
     msg.header.frame_id = frame_id
@@ -240,7 +250,12 @@ def keyframe_to_msg(
     )
     msg.pose = pose_to_msg(kf.T_map_cam)
     msg.delta = bool(delta)
-    if not delta:
+    if signature is not None:
+        gaps, weights, weight_max = encode_signature(signature.bow)
+        msg.signature_only = True
+        msg.bow_word_gaps, msg.bow_weights = gaps, weights
+        msg.bow_weight_max = weight_max
+    elif not delta:
         msg.keypoints = np.asarray(kf.keypoints, np.float32)[:, :2].ravel().tolist()
         msg.octaves = np.asarray(kf.octaves, np.uint8).tobytes()
         msg.descriptors = np.asarray(kf.descriptors, np.uint8).tobytes()
@@ -265,10 +280,11 @@ def _bytes(field) -> np.ndarray:
 
 def keyframe_from_msg(
     msg, known_robots: set[int] | None = None, base: KeyframeRecord | None = None
-) -> KeyframeRecord:
+) -> KeyframeRecord | PlaceSignature:
     """Validated :class:`KeyframeRecord` from a KeyFrame message; raises MessageError. A delta
     update takes keypoints, octaves, descriptors and depths from ``base``, the keyframe as the
-    server holds it, and, when it carries a patch, the observations it leaves out."""
+    server holds it, and, when it carries a patch, the observations it leaves out. A message
+    with ``signature_only`` gives a :class:`PlaceSignature`."""
     try:
         if msg.camera.sensor_type >= len(SENSORS):
             raise KeyframeError(f"camera sensor_type {msg.camera.sensor_type} unknown")
@@ -350,8 +366,17 @@ def keyframe_from_msg(
         )
         if getattr(msg, "delta", False):
             rec = complete_update(rec, base, patched if is_patch else None)
+        if getattr(msg, "signature_only", False):
+            if msg.action != ACTION_NEW or getattr(msg, "delta", False):
+                raise KeyframeError(f"{where}: only a new keyframe goes as a place signature")
+            bow = decode_signature(
+                _bytes(msg.bow_word_gaps).tobytes(),
+                _bytes(msg.bow_weights).tobytes(),
+                float(msg.bow_weight_max),
+            )
+            return PlaceSignature(rec, bow).validate(known_robots)
         return rec.validate(known_robots)
-    except (KeyframeError, GeometryError) as exc:
+    except (KeyframeError, GeometryError, SignatureError) as exc:
         raise MessageError(str(exc)) from None
 
 

@@ -179,6 +179,9 @@ class ServerNode:
 
         self._Path, self._KeyFrame = Path, KeyFrame
         self._MergeEvent, self._MapCorrection = MergeEvent, MapCorrection
+        from coop_slam.msg import KeyframeRequest
+
+        self._KeyframeRequest, self.pub_request, self._request_count = KeyframeRequest, {}, 0
         self.pub_path, self.pub_corr, self.pub_ack, self.subs = {}, {}, {}, []
         self._robot_topics()
         from coop_slam.msg import RobotSighting
@@ -253,6 +256,10 @@ class ServerNode:
             self.pub_ack[r] = rospy.Publisher(
                 f"/robot_{r}/keyframe_ack", KeyframeAck, queue_size=5, latch=True
             )
+            if self.durable.pull is not None:
+                self.pub_request[r] = rospy.Publisher(
+                    f"/robot_{r}/keyframe_request", self._KeyframeRequest, queue_size=10, latch=True
+                )
             self.subs.append(
                 rospy.Subscriber(
                     f"/robot_{r}/keyframes",
@@ -457,6 +464,8 @@ class ServerNode:
             try:
                 item = self.queue.get(timeout=0.5)
             except queue.Empty:
+                if self.durable.pull is not None:
+                    self.durable.pull.expire(time.monotonic())
                 if self._map_dirty:  # the queue drained: show the final state of the map
                     stamp = rospy.Time.from_sec(self._last_stamp_s)
                     self._publish_tf(stamp)
@@ -506,6 +515,7 @@ class ServerNode:
                     self._publish_ack(rec.robot_id)
             for why in taken.rejected or []:
                 self.rejects.reject(topic, why)
+            self._publish_requests()
             if taken.stale:
                 self.rejects.reject(topic, "message of an earlier client session (restarted?)")
             self.duplicates += taken.duplicate
@@ -524,6 +534,28 @@ class ServerNode:
             self._publish_map(stamp)
         if len(self.server.keyframe_ms) % 10 == 0 or merges:
             self._publish_stats()
+
+    def _publish_requests(self) -> None:
+        """Low-bandwidth mode: ask robots for the whole keyframes the pull planner wants."""
+        pull = self.durable.pull
+        if pull is None:
+            return
+        pull.expire(time.monotonic())
+        for robot, ids in pull.take_requests().items():
+            pub = self.pub_request.get(robot)
+            if pub is None:
+                continue
+            self._request_count += 1
+            rospy.loginfo(
+                "server: asking robot %d for whole keyframes %s (low-bandwidth mode)",
+                robot,
+                sorted(ids),
+            )
+            pub.publish(
+                self._KeyframeRequest(
+                    robot_id=robot, request=self._request_count, keyframe_ids=sorted(ids)
+                )
+            )
 
     def _publish_merge(self, m) -> None:
         msg = self._MergeEvent(
@@ -687,6 +719,7 @@ class ServerNode:
             "rejected": self.rejects.total,
             "duplicates": self.duplicates,
             "keyframes_stored": {str(r): n for r, n in self.durable.keyframes_stored().items()},
+            "pull": self.durable.pull.stats() if self.durable.pull is not None else None,
             "metric": {
                 str(r): self.server.is_metric(self.server.current_map(r))
                 for r in self.durable.robots

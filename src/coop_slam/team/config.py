@@ -17,6 +17,7 @@ from .marker_scale import MarkerScaleConfig
 from .overlap_links import OverlapLinkConfig
 from .pose_feedback import PoseFeedbackConfig
 from .pose_graph import PoseGraphConfig
+from .pull import PullConfig
 
 
 @dataclass
@@ -155,6 +156,7 @@ class ServerConfig:
     map_scale: MapScaleConfig = field(default_factory=MapScaleConfig)
     marker_scale: MarkerScaleConfig = field(default_factory=MarkerScaleConfig)
     pose_feedback: PoseFeedbackConfig = field(default_factory=PoseFeedbackConfig)
+    pull: PullConfig = field(default_factory=PullConfig)
     optimize_every: int = 5  # incremental (iSAM2) update every N keyframes; full after each merge
     cloud_voxel_m: float = 0.05  # voxel size of the stitched team cloud [m]
     fuse_radius_m: float = 0.03  # points of different robots closer than this become one [m]
@@ -176,3 +178,4 @@ class ServerConfig:
         self.map_scale.validate()
         self.marker_scale.validate()
         self.pose_feedback.validate()
+        self.pull.validate()

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 from dataclasses import dataclass
 from typing import Callable
 
@@ -17,7 +18,7 @@ import numpy as np
 
 from ..delivery import UNSEQUENCED, InOrder
 from ..errors import CoopSlamError
-from ..keyframe_record import KeyframeRecord
+from ..keyframe_record import ACTION_NEW, ACTION_REMOVE, KeyframeRecord, PlaceSignature
 from .config import ServerConfig
 from .map_store import (
     KIND_GLOBAL_BA,
@@ -29,6 +30,7 @@ from .map_store import (
     collision_free_ids,
     rebuild,
 )
+from .pull import PullPlanner
 from .results import MergeResult
 
 log = logging.getLogger(__name__)
@@ -79,6 +81,7 @@ class DurableServer:
         load_path: str | None = None,
         vocabulary_sha256: str = "",
         progress: Callable[[int, int], None] | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ):
         self.rebuilt: RebuildReport | None = None
         self.loaded: RebuildReport | None = None
@@ -105,7 +108,23 @@ class DurableServer:
             remap = collision_free_ids(source_load.robots, robots)
             robots = sorted(set(robots) | {remap.get(r, r) for r in source_load.robots})
         config.robots = robots
+        self.pull: PullPlanner | None = None
+        self.clock = clock
+        if config.pull.enabled:
+            # Low-bandwidth mode: place recognition's consistency check runs on the signatures
+            # (every keyframe), so the server verifies a pulled pair at once.
+            min_consecutive = config.place_recognition.min_consecutive
+            config.place_recognition.min_consecutive = 1
         self.server = make_server(config)
+        if config.pull.enabled:
+            server = self.server
+
+            def same_group(a: int, b: int) -> bool:
+                return server.groups.same_group(server.current_map(a), server.current_map(b))
+
+            self.pull = PullPlanner(
+                config.pull, config.place_recognition.database, min_consecutive, same_group
+            )
         self.order = {r: InOrder() for r in robots}
         if source_resume is not None:
             self.store = source_resume
@@ -138,6 +157,9 @@ class DurableServer:
                 self._note_taken(
                     self.server.robot_of(mid), kf, self.server.segments.segment_of(mid)
                 )
+        if self.pull is not None:  # signatures are not stored: only what the server holds
+            for mid, kf in self.server.store.keys():
+                self.pull.hold(self.server.robot_of(mid), kf)
 
     @property
     def robots(self) -> list[int]:
@@ -165,13 +187,13 @@ class DurableServer:
     # --- inputs ---------------------------------------------------------------------------------
     def add_keyframe(
         self,
-        rec: KeyframeRecord | PendingKeyframe,
+        rec: KeyframeRecord | PendingKeyframe | PlaceSignature,
         session: int = UNSEQUENCED,
         sequence: int = 0,
     ) -> Taken:
         order = self.order.get(rec.robot_id)
         if order is None:
-            if isinstance(rec, KeyframeRecord):
+            if isinstance(rec, (KeyframeRecord, PlaceSignature)):
                 rec.validate(self.server.known_robots)  # names the robots the server knows
             raise MapStoreError(
                 f"robot {rec.robot_id} is unknown to the server (known: {self.robots})"
@@ -186,9 +208,11 @@ class DurableServer:
             out.taken += 1
         return out
 
-    def _take(self, rec: KeyframeRecord | PendingKeyframe, sequence: int):
+    def _take(self, rec: KeyframeRecord | PendingKeyframe | PlaceSignature, sequence: int):
         """Apply one input and commit it (with the acknowledgement) in one transaction. A message
-        the core refuses is not logged, but acknowledged (sending it again changes nothing)."""
+        the core refuses is not logged, but acknowledged (sending it again changes nothing).
+        In low-bandwidth mode, signatures (and removals of keyframes the server never held) go to
+        the pull planner only: they are not stored."""
         order, store, robot_id = self.order[rec.robot_id], self.store, rec.robot_id
         if store is not None:
             store.begin()
@@ -196,7 +220,24 @@ class DurableServer:
         try:
             if isinstance(rec, PendingKeyframe):
                 rec = rec.resolve()
+            pull = self.pull
+            if isinstance(rec, PlaceSignature):
+                if pull is None:
+                    raise MapStoreError(
+                        f"robot {rec.robot_id} sends place signatures (uplink.mode pull), but the "
+                        "server is not in low-bandwidth mode (pull.enabled)"
+                    )
+                pull.add(rec.validate(self.server.known_robots), self.clock())
+                self._note_taken(rec.robot_id, rec.keyframe_id, rec.record.map_segment)
+                return []
+            if pull is not None and rec.action == ACTION_REMOVE:
+                held = pull.holds(rec.robot_id, rec.keyframe_id)
+                pull.remove(rec.robot_id, rec.keyframe_id)
+                if not held:
+                    return []
             merges = self.server.add_keyframe(rec)
+            if pull is not None and rec.action == ACTION_NEW:
+                pull.hold(rec.robot_id, rec.keyframe_id)
             self._note_taken(rec.robot_id, rec.keyframe_id, rec.map_segment)
             if store is not None:
                 store.log_keyframe(rec)

@@ -160,10 +160,10 @@ class ClientSender:
     message numbered in the client's session."""
 
     def __init__(self, robot_id: int, camera, T_base_cam: np.ndarray, uplink=None):
-        from ..vo.outbox import DeltaUpdates
+        from ..vo.outbox import Uplink
 
         self.robot_id, self.camera, self.T_base_cam = robot_id, camera, T_base_cam
-        self.deltas = DeltaUpdates(uplink)
+        self.deltas = Uplink(uplink)
         self.sequence = 0
         self.new_keyframes = 0
 
@@ -177,10 +177,12 @@ class ClientSender:
                 continue
             rec = event_record(ev, self.robot_id, self.camera, self.T_base_cam)
             self.new_keyframes += rec.action == ACTION_NEW
-            delta, patched = self.deltas.prepare(rec)
+            how = self.deltas.prepare(rec)
             self.sequence += 1
             out.append(
-                Arrival(t_s, self.robot_id, as_sent(rec, delta, patched), SESSION, self.sequence)
+                Arrival(
+                    t_s, self.robot_id, as_sent(rec, how.delta, how.patched), SESSION, self.sequence
+                )
             )
         return out
 

@@ -135,6 +135,13 @@ def parse_args(argv=None) -> argparse.Namespace:
         "sharing; experimental: on the team world it made the team map worse), instead of only "
         "offsetting it by the server's correction (map -> odom)",
     )
+    p.add_argument(
+        "--low-bandwidth",
+        action="store_true",
+        help="low-bandwidth mode: each new keyframe goes as its place signature (pose and BoW "
+        "vector), whole only when the server asks for it (a place recognition or rendezvous "
+        "candidate, a loop); server pull.* and client uplink.mode",
+    )
     p.add_argument("--out", help="results folder (default: results/<date>-<source>)")
     p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
     p.add_argument(
@@ -205,6 +212,7 @@ def _write_run_info(
         "faults": args.faults,
         "rate": args.rate,  # None: lock-step
         "pose_sharing": args.pose_sharing,
+        "low_bandwidth": args.low_bandwidth,
         "sensors": args.sensors,
         "ground_robots": ground,
         "commit": _commit(),
@@ -577,6 +585,8 @@ def run(args: argparse.Namespace) -> int:
         launch_args.append(f"radio_drop:={faults.drop}")
     if args.pose_sharing:
         launch_args.append("apply_corrections:=true")
+    if args.low_bandwidth:
+        launch_args.append("low_bandwidth:=true")
     bag_path = os.path.join(out, "run.bag")
     launch_args.append(f"record_bag:={bag_path}")
     # A loaded map's robots do not run, but the server shows them: record them for the report.

@@ -7,6 +7,7 @@ body at start (z up, REP-103), so poses and points are moved by ``T_base_cam`` o
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -20,11 +21,14 @@ from ..keyframe_record import (
     ACTION_REMOVE,
     ACTION_UPDATE,
     KeyframeRecord,
+    PlaceSignature,
     apply_observation_patch,
     observation_patch,
 )
 from .map import MapKeyframe
 from .types import KEYFRAME_ACTIONS, VoEvent
+
+UPLINK_MODES = ("full", "pull")
 
 
 def keyframe_record(
@@ -87,28 +91,57 @@ class UplinkConfig:
     delta_updates: bool = True
     # A map point that moved less than this since it last went to the server is not sent
     # again with an update [m]; 0 = every point that moved at all.
-    point_move_m: float = 0.0
+    point_move_m: float = 0.002
+    # full: every keyframe goes whole. pull (low-bandwidth mode, the server's pull.enabled): a
+    # new keyframe goes as its place signature; whole when the server asks for it, and only
+    # then its updates.
+    mode: str = "full"
 
     def validate(self) -> None:
         require(self.point_move_m >= 0, "uplink.point_move_m must be >= 0 [m]")
+        require(self.mode in UPLINK_MODES, f"uplink.mode must be one of {UPLINK_MODES}")
+
+
+def signature_of(rec: KeyframeRecord, vocabulary) -> PlaceSignature:
+    """The place signature of a new keyframe (low-bandwidth mode): its record without what it saw
+    and its BoW vector in ``vocabulary`` (the server's)."""
+    bow, _ = vocabulary.transform(rec.descriptors)
+    bare = dataclasses.replace(
+        rec,
+        keypoints=np.zeros((0, 4), np.float32),
+        octaves=np.zeros(0, np.uint8),
+        descriptors=np.zeros((0, 32), np.uint8),
+        depths_m=np.zeros(0, np.float32),
+        map_point_ids=np.zeros(0, np.uint32),
+        map_points=np.zeros((0, 3), np.float32),
+    )
+    return PlaceSignature(bare, bow)
 
 
 class Outgoing(NamedTuple):
     """How a keyframe record goes: ``delta`` without what the keyframe saw (``KeyFrame.delta``);
-    ``patched`` (delta updates only) the keypoints whose observations go, None for all."""
+    ``patched`` (delta updates only) the keypoints whose observations go, None for all;
+    ``signature`` as its place signature only; ``skip`` not at all."""
 
     delta: bool
     patched: np.ndarray | None = None
+    signature: bool = False
+    skip: bool = False
 
 
-class DeltaUpdates:
-    """What an update must carry. It goes without what the keyframe saw (``KeyFrame.delta``) when
-    its keypoints, octaves, descriptors and depths are the ones sent with the keyframe as new (the
-    server has them), and then with only the observations that changed since they last went:
+class Uplink:
+    """What each keyframe message carries. An update goes without what the keyframe saw
+    (``KeyFrame.delta``) when its keypoints, octaves, descriptors and depths are the ones sent with
+    the keyframe as new (the server has them), and then with only the observations that changed
+    since they last went:
     keypoints that observe another map point (or none), or whose map point moved more than
     ``point_move_m`` (local BA moves most points of a keyframe a little, and an update that
     sent them all was most of a client's traffic). ``delta_updates`` False: every update goes in
     full.
+
+    In pull mode a new keyframe goes as its place signature, and whole only when the server asks
+    (:meth:`answer`); updates of keyframes the server holds move their pose only (no points),
+    those of the others are not sent; removals are.
 
     It keeps, per keyframe, the observations as the server holds them (the messages reach the
     server in order, and every one does: :class:`coop_slam.delivery.Outbox`)."""
@@ -117,15 +150,20 @@ class DeltaUpdates:
         config = config or UplinkConfig()
         config.validate()
         self.enabled, self.min_point_move_m = config.delta_updates, config.point_move_m
+        self.pull = config.mode == "pull"
         # keyframe id -> (digest sent with it as new, map point ids, per-keypoint points held)
         self._held: dict[int, tuple[bytes, np.ndarray, np.ndarray]] = {}
 
     def prepare(self, rec: KeyframeRecord) -> Outgoing:
         """How ``rec`` (about to be sent) goes; remembers what the server will hold after it."""
         if rec.action == ACTION_NEW:
+            if self.pull:
+                return Outgoing(False, signature=True)
             self._hold(rec.keyframe_id, rec.static_digest(), rec)
             return Outgoing(False)
         held = self._held.get(rec.keyframe_id)
+        if self.pull and rec.action == ACTION_UPDATE and held is None:
+            return Outgoing(False, skip=True)
         if rec.action != ACTION_UPDATE or not self.enabled or held is None:
             self._held.pop(rec.keyframe_id, None)
             return Outgoing(False)
@@ -133,6 +171,8 @@ class DeltaUpdates:
         if held[0] != digest:  # what the keyframe saw changed: it goes in full
             self._hold(rec.keyframe_id, digest, rec)
             return Outgoing(False)
+        if self.pull:  # the radio's budget goes to whole keyframes: updates move the pose
+            return Outgoing(True, np.zeros(0, np.uint32))
         per_keypoint = rec.map_points_per_keypoint()
         patched = observation_patch(
             held[1], held[2], rec.map_point_ids, per_keypoint, self.min_point_move_m
@@ -143,6 +183,12 @@ class DeltaUpdates:
         )
         self._held[rec.keyframe_id] = (digest, held_ids, held_points)
         return Outgoing(True, patched)
+
+    def answer(self, rec: KeyframeRecord) -> Outgoing:
+        """A keyframe the server asked for (pull mode): it goes whole, as new, and its updates
+        from now on."""
+        self._hold(rec.keyframe_id, rec.static_digest(), rec)
+        return Outgoing(False)
 
     def _hold(self, keyframe_id: int, digest: bytes, rec: KeyframeRecord) -> None:
         self._held[keyframe_id] = (
