@@ -182,6 +182,19 @@ def test_demo_operator_requests_parse_and_bad_ones_are_named():
             parse_args(["--rendezvous", bad])
 
 
+def test_a_kidnapped_robot_relocalizes_in_the_team_map(tmp_path):
+    """Robot 2's camera goes dark while it drives into the east corridor, which only robot 1 has
+    mapped: the server sends the team's local map there and robot 2 carries on in its own map (no
+    new segment), placed right."""
+    report, log, out = _demo(tmp_path, "--scenario", "kidnap")
+    assert report["groups"] == [[1, 2]] and report["wrong_merges"] == 0
+    text = (out / "roslaunch.log").read_text(errors="replace")
+    assert "relocalized in the team map" in text and "new map segment" not in text
+    robot_2 = report["robots"][1]
+    # Its keyframes before the dark and after it, in one map: one SE(3) alignment fits them.
+    assert robot_2["ate_rmse_m"] < 0.03 and robot_2["keyframes_lost"] == 0
+
+
 def test_kill_restart_and_a_lossy_radio_lose_no_keyframe(tmp_path):
     """The server killed (-9) and resumed from its map file, robot 2's client killed and started
     again (a new map segment), 10 % of the keyframe messages dropped on the way: robot 1 loses no

@@ -471,3 +471,24 @@ def test_small_in_group_constraints_go_into_the_incremental_update(world, full_a
         assert len(full) >= added
     else:
         assert len(full) == 0
+
+
+def test_a_lost_robot_gets_the_teams_local_map_where_it_is_in_its_own_frame(world):
+    """Server-assisted relocalization: robot 2 (merged) is lost facing a wall only robot 1 has
+    mapped; its view's BoW finds robot 1's keyframe there, and the answer holds that keyframe's
+    (and its neighbours') map points in robot 2's map frame."""
+    from coop_slam.geometry import transform_points
+    from coop_slam.team.assisted_relocalization import AssistConfig, local_map_for
+
+    server = _merged_server(world)
+    _, _, kfs_a, vocab = world
+    seen = kfs_a[20]  # robot 2 looked at yaws 2-3 rad only; this one looks elsewhere
+    bow, _ = vocab.transform(seen.descriptors)
+    local = local_map_for(server, 2, bow, AssistConfig(keyframes=3))
+    assert local is not None and local.keyframes[0] == (1, seen.keyframe_id)
+    assert len(local.keyframes) == 3 and len(local.points_map) == len(local.descriptors)
+    truth = transform_points(invert(T_WORLD_MAP[2]) @ T_WORLD_MAP[1], seen.map_points)
+    first = local.points_map[: len(truth)]
+    assert np.percentile(np.linalg.norm(first - truth, axis=1), 90) < 0.02
+    # No place scores min_score: no local map.
+    assert local_map_for(server, 2, bow, AssistConfig(min_score=1.0)) is None

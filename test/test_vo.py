@@ -352,15 +352,58 @@ def test_relocalizes_after_blackout_and_starts_segment_when_lost_long(room_seque
         back = vo.track(stamps[11], *frames[11])
         assert back.ok and back.state == STATE_RELOCALIZED
         assert vo.track(stamps[12], *frames[12]).state == STATE_OK
-        # A long blackout: a new map segment, announced by an event, starts at the next usable
-        # frame.
+        # A long blackout does not end the map: a covered camera sees nothing to relocalize on.
         states = [vo.track(stamps[13] + 0.01 * i, black, no_depth).state for i in range(1, 7)]
+        assert set(states) == {STATE_LOST} and vo.map_segment == 0
+        # Views the map cannot place do: a new map segment, announced by an event, starts at the
+        # next frame with depth.
+        noise = np.random.default_rng(0).integers(0, 256, black.shape, dtype=np.uint8)
+        states = [vo.track(stamps[13] + 0.1 + 0.01 * i, noise, no_depth).state for i in range(6)]
         assert STATE_LOST in states and vo.map_segment == 1
         assert any(e.kind == EVENT_NEW_SEGMENT for e in vo.drain_events())
         restart = vo.track(stamps[20], *frames[20])
         assert restart.ok and restart.state == STATE_NEW_SEGMENT and restart.map_segment == 1
         assert np.allclose(restart.T_map_cam, np.eye(4))
         assert all(kf.map_segment == 1 for kf in vo.keyframes())
+
+
+def test_a_lost_camera_carries_on_in_its_map_from_the_teams_local_map(room_sequence):
+    """Server-assisted relocalization, client side: lost where its own keyframes do not place it
+    (here: its own relocalizer finds nothing), the odometry gives its view, takes the local map
+    the server sends (points in its map frame), relocalizes by PnP and carries on from a new
+    keyframe there -- in the same map segment, at the true pose."""
+    stamps, frames, gt = room_sequence
+    gt_map = [invert(gt[0]) @ T for T in gt]
+    black = np.zeros_like(frames[0][0])
+    with VisualOdometry(sync_config(max_lost_frames=3), helpers_vo.CAMERA) as vo:
+        for s, (img, d) in zip(stamps[:20], frames[:20]):
+            assert vo.track(s, img, d).ok
+        kfs = vo.keyframes()
+        assert vo.lost_view() is None  # tracking: nothing to ask
+        points = np.concatenate([kf.map_points_xyz for kf in kfs])
+        descriptors = np.concatenate([kf.descriptors[kf.map_point_ids > 0] for kf in kfs])
+        vo._relocalizer.try_frame = lambda *a: None  # its own map cannot place it
+        assert vo.track(stamps[20], black, np.zeros_like(frames[0][1])).state == STATE_LOST
+        lost = vo.track(stamps[24], *frames[24])
+        assert lost.state == STATE_LOST and vo.lost_view() is not None
+        vo.expect_local_map()
+        for i in (25, 26, 27):  # waiting for the server: no new segment yet
+            assert vo.track(stamps[i], *frames[i]).state == STATE_LOST
+        vo.offer_local_map(points, descriptors)
+        back = vo.track(stamps[28], *frames[28])
+        assert back.ok and back.state == STATE_RELOCALIZED and "team map" in back.message
+        assert vo.map_segment == 0 and back.new_keyframe_id > kfs[-1].keyframe_id
+        assert transform_error(back.T_map_cam, gt_map[28])[0] < 0.02
+        nxt = vo.track(stamps[29], *frames[29])
+        assert nxt.ok and transform_error(nxt.T_map_cam, gt_map[29])[0] < 0.02
+        # The server found no place: the usual new segment after max_lost_frames.
+        vo.track(stamps[30], black, np.zeros_like(frames[0][1]))
+        vo.expect_local_map()
+        vo.offer_local_map(None)
+        noise = np.random.default_rng(1).integers(0, 256, black.shape, dtype=np.uint8)
+        for i in range(5):
+            vo.track(stamps[30] + 0.01 * (i + 1), noise, np.zeros_like(frames[0][1]))
+        assert vo.map_segment == 1
 
 
 # --- bad input ------------------------------------------------------------------------------------

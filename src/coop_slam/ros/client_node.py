@@ -228,7 +228,8 @@ class ClientNode:
                 rospy.get_param("~uplink", {}),
             )
         )
-        self.vocabulary = None  # low-bandwidth mode: the server's, for place signatures
+        self.vocabulary = None  # the server's, for place signatures (low-bandwidth, lost)
+        self._assist_busy, self._assist_last_s = False, 0.0
         self._request_seen = 0
         if self.deltas.pull:
             from coop_slam.msg import KeyframeRequest
@@ -518,6 +519,9 @@ class ClientNode:
                 elif res.message.startswith("map initialized"):
                     rospy.loginfo("client %s: %s", self.name, res.message)
                 stats.track_ms, stats.tracking_ok = res.track_ms, bool(res.ok)
+                if res.message.startswith("relocalized in the team map"):
+                    rospy.loginfo("client %s: %s", self.name, res.message)
+                self._maybe_ask_server()
                 self._publish_events()
                 stats.keyframes = len(self.kf_poses)
                 stats.keyframes_sent, stats.unacked = self.keyframes_sent, self.outbox.unacked
@@ -532,6 +536,55 @@ class ClientNode:
             self.rejects.reject(self.topics["image"], str(exc))
         finally:
             self.pub_stats.publish(stats)
+
+    def _maybe_ask_server(self) -> None:
+        """Lost, and the own map does not place the camera: ask the server for the team's local
+        map where it is (at most one question a second, one at a time)."""
+        view = self.vo.lost_view()
+        if view is None or self._assist_busy or time.monotonic() - self._assist_last_s < 1.0:
+            return
+        self._assist_busy, self._assist_last_s = True, time.monotonic()
+        self.vo.expect_local_map()
+        segment = self.vo.map_segment
+        threading.Thread(target=self._ask_server, args=(view, segment), daemon=True).start()
+
+    def _ask_server(self, descriptors: np.ndarray, segment: int) -> None:
+        from coop_slam.srv import Relocalize
+
+        from ..bow.signature import encode_signature
+
+        points, desc = None, None
+        try:
+            if self.vocabulary is None:
+                self.vocabulary = self._server_vocabulary(3.0)
+            bow, _ = self.vocabulary.transform(descriptors)
+            gaps, weights, weight_max = encode_signature(bow)
+            ask = rospy.ServiceProxy("/server/relocalize", Relocalize)
+            ask.wait_for_service(timeout=2.0)
+            rep = ask(
+                robot_id=self.robot_id,
+                map_segment=segment + self.segment_base,
+                bow_word_gaps=gaps,
+                bow_weights=weights,
+                bow_weight_max=weight_max,
+            )
+            rospy.loginfo(
+                "client %s: lost; the server %s: %s",
+                self.name,
+                "sends the team's local map" if rep.found else "cannot place it",
+                rep.message,
+            )
+            if rep.found and self.vo is not None and self.vo.map_segment == segment:
+                pts = np.asarray(rep.points, float).reshape(-1, 3)
+                # Sent in robot_k/map; the odometry's map frame is its first camera frame.
+                points = transform_points(invert(self.T_base_cam), pts)
+                desc = np.frombuffer(rep.descriptors, np.uint8).reshape(-1, 32)
+        except (rospy.ROSException, rospy.ServiceException, CoopSlamError, ValueError) as exc:
+            rospy.logwarn("client %s: lost; asking the server failed: %s", self.name, exc)
+        finally:
+            if self.vo is not None:
+                self.vo.offer_local_map(points, desc)
+            self._assist_busy = False
 
     def _detect_markers(self, stamp, image, res) -> None:
         from coop_slam.msg import RobotSighting

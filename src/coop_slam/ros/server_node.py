@@ -81,6 +81,14 @@ class _GlobalBaJob:
 
 
 @dataclass
+class _RelocalizeJob:
+    robot_id: int
+    map_segment: int
+    bow: object  # BowVector of the lost robot's view
+    reply: Future  # (LocalMap or None, message)
+
+
+@dataclass
 class _MapFileJob:
     path: str
     load: bool  # load (else save)
@@ -200,6 +208,11 @@ class ServerNode:
 
         self.srv_save = rospy.Service("~save_map", SaveMap, self._on_save_map)
         self.srv_load = rospy.Service("~load_map", LoadMap, self._on_load_map)
+        from coop_slam.srv import Relocalize
+
+        # Answered before the keyframes waiting in the queue: a lost robot waits for it.
+        self.urgent: queue.Queue = queue.Queue()
+        self.srv_reloc = rospy.Service("~relocalize", Relocalize, self._on_relocalize)
         self._map_dirty, self._last_stamp_s = False, 0.0
         self.worker = threading.Thread(target=self._work, daemon=True)
         self.worker.start()
@@ -423,6 +436,64 @@ class ServerNode:
             rospy.logwarn("server: %s", result[1])
         job.reply.set_result(result)
 
+    def _on_relocalize(self, req):
+        """A lost robot's view -> the team's local map there (see
+        :mod:`coop_slam.team.assisted_relocalization`); runs in the worker thread."""
+        from coop_slam.srv import RelocalizeResponse
+
+        from ..bow.signature import SignatureError, decode_signature
+
+        try:
+            bow = decode_signature(
+                bytes(req.bow_word_gaps), bytes(req.bow_weights), float(req.bow_weight_max)
+            )
+        except SignatureError as exc:
+            self.rejects.reject("~relocalize", str(exc))
+            return RelocalizeResponse(found=False, message=str(exc))
+        if req.robot_id not in self.server.known_robots:
+            msg = f"robot {req.robot_id} is unknown to the server"
+            self.rejects.reject("~relocalize", msg)
+            return RelocalizeResponse(found=False, message=msg)
+        reply: Future = Future()
+        self.urgent.put(_RelocalizeJob(req.robot_id, req.map_segment, bow, reply))
+        self.queue.put(None)  # wakes the worker if it waits for keyframes
+        try:
+            local, message = reply.result(timeout=10.0)
+        except TimeoutError:
+            return RelocalizeResponse(found=False, message="server busy: timed out")
+        if local is None:
+            return RelocalizeResponse(found=False, message=message)
+        return RelocalizeResponse(
+            found=True,
+            message=message,
+            points=local.points_map.ravel().tolist(),
+            descriptors=local.descriptors.tobytes(),
+        )
+
+    def _relocalize(self, job: _RelocalizeJob) -> None:
+        from ..team.assisted_relocalization import local_map_for
+
+        cfg = self.cfg.assisted_relocalization
+        server = self.server
+        local, message = None, "assisted relocalization is off (assisted_relocalization.enabled)"
+        if cfg.enabled:
+            segment = server.segments.segment_of(server.current_map(job.robot_id))
+            if segment != job.map_segment:
+                message = (
+                    f"robot {job.robot_id} asks in map segment {job.map_segment}, the server "
+                    f"holds segment {segment} as its newest"
+                )
+            else:
+                local = local_map_for(server, job.robot_id, job.bow, cfg)
+                message = (
+                    "no place of its group matches its view"
+                    if local is None
+                    else f"{len(local.points_map)} points of keyframes {local.keyframes} "
+                    f"(BoW score {local.score:.3f})"
+                )
+        rospy.loginfo("server: relocalization for robot %d: %s", job.robot_id, message)
+        job.reply.set_result((local, message))
+
     def _global_ba(self, job: _GlobalBaJob) -> None:
         from ..team.global_ba import GlobalBaError
 
@@ -461,6 +532,13 @@ class ServerNode:
 
     def _work(self) -> None:
         while not rospy.is_shutdown():
+            while not self.urgent.empty():
+                job = self.urgent.get_nowait()
+                try:
+                    self._relocalize(job)
+                except Exception as exc:  # noqa: BLE001 -- the worker must live on
+                    rospy.logerr("server: relocalization failed (%s: %s)", type(exc).__name__, exc)
+                    job.reply.set_result((None, f"server error: {exc}"))
             try:
                 item = self.queue.get(timeout=0.5)
             except queue.Empty:
@@ -471,6 +549,8 @@ class ServerNode:
                     self._publish_tf(stamp)
                     self._publish_map(stamp)
                     self._publish_stats()
+                continue
+            if item is None:  # a wake-up: urgent work came
                 continue
             try:
                 self._do(item)
@@ -525,7 +605,7 @@ class ServerNode:
         stamp_s = max(stamp_s, self._last_stamp_s)  # a late cue must not move the map back in time
         stamp = rospy.Time.from_sec(stamp_s)
         for m in merges:
-            self._publish_merge(m)
+            self._publish_merge(m, stamp_s)
         self._publish_constraints(stamp)
         if merges or self.server.map_moved:
             self._publish_tf(stamp)
@@ -557,7 +637,9 @@ class ServerNode:
                 )
             )
 
-    def _publish_merge(self, m) -> None:
+    def _publish_merge(self, m, now_s: float = 0.0) -> None:
+        """A merge event, stamped when it happened: the newest input's time (in low-bandwidth
+        mode a pulled keyframe may be much older than the merge)."""
         msg = self._MergeEvent(
             type=m.type,
             robot_a=self.server.robot_of(m.robot_a),
@@ -570,7 +652,7 @@ class ServerNode:
             residual_px=m.residual_px,
             group=sorted({self.server.robot_of(r) for r in m.group}),
         )
-        msg.header.stamp = rospy.Time.from_sec(m.stamp_s)
+        msg.header.stamp = rospy.Time.from_sec(max(m.stamp_s, now_s))
         msg.header.frame_id = "world"
         self.pub_merge.publish(msg)  # the core logged the merge
 

@@ -73,6 +73,8 @@ def _params(scenario: Scenario, noise: bool, camera: CameraModel) -> dict:
         "routes_sha1": _routes_digest(scenario),
         "layout": scenario.layout,
     }
+    if scenario.meta.get("dark"):  # frames of a covered camera: another world
+        params["dark"] = scenario.meta["dark"]
     if scenario.noise != NoiseConfig():
         # A scenario's own sensor profile (all of it): worlds with the default profile keep the
         # keys they had before profiles existed, so their cached folders stay valid.
@@ -154,6 +156,7 @@ def _render_frames(scenario, noise, camera, out_dir, robot_id, frames) -> int:
         cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
     ]
     scale = camera.depth_scale
+    dark = (scenario.meta.get("dark") or {}).get(str(robot_id))
     for k in frames:
         T_world_cam = me.poses_se3[k] @ scenario.T_base_cam
         others = [  # hand-held cameras have no robot body for the others to see
@@ -171,6 +174,8 @@ def _render_frames(scenario, noise, camera, out_dir, robot_id, frames) -> int:
         bgr, depth = renderer.render(
             T_world_cam, others, noise_seed=seed, pose_at=pose_at, gain=float(gains[k])
         )
+        if dark and dark[0] <= me.stamps_s[k] <= dark[1]:  # the camera is covered
+            bgr, depth = np.zeros_like(bgr), np.zeros_like(depth)
         raw = np.round(depth * scale)
         raw[raw > 65535] = 0  # out of the 16-bit range: no measurement rather than a wrong one
         name = _frame_name(me.stamps_s[k])

@@ -387,6 +387,32 @@ def team(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenario:
     return _scenario("team", seed, "ring", rate_hz, duration_s, routes, team.__doc__)
 
 
+def kidnap(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenario:
+    """Robot 1 drives the south and east corridors; robot 2 follows it along the south corridor
+    (they merge), then its camera goes dark (covered, no image, no depth) while it drives round the
+    corner into the east corridor, which only robot 1 has mapped: robot 2's own map cannot place
+    it there, the team map can (server-assisted relocalization)."""
+    rng = np.random.default_rng(seed)
+    va, vb = _speeds(rng, 2)
+    a = Route(2.5 + _jitter(rng), 1.0, 0.0, va).drive((11.0, 1.0), (11.0, 7.0))
+    b = Route(1.2 + _jitter(rng), 1.0, 0.0, vb).wait(3.0).drive((9.6, 1.0))
+    dark_from = b.time_s
+    b.drive((11.0, 1.0), (11.0, 2.4))
+    dark_until = b.time_s
+    b.drive((11.0, 5.0))
+    return _scenario(
+        "kidnap",
+        seed,
+        "ring",
+        rate_hz,
+        duration_s,
+        [a, b],
+        kidnap.__doc__,
+        # robot id -> [from, until] stamps [s] of frames with a dark camera
+        dark={"2": [START_STAMP_S + dark_from, START_STAMP_S + dark_until]},
+    )
+
+
 def _ring_loop(lane: float, clockwise: bool) -> list[np.ndarray]:
     """Corners of the corridor loop offset by ``lane`` metres towards the outer walls."""
     lo, hi_x, hi_y = 1.0 - lane, 11.0 + lane, 7.0 + lane
@@ -691,6 +717,7 @@ SCENARIOS = {
     "disjoint": ScenarioSpec(disjoint, 2, 2, 2, 30.0),
     "aliasing": ScenarioSpec(aliasing, 2, 2, 2, 32.0),
     "team": ScenarioSpec(team, 2, 2, 4, 56.0),
+    "kidnap": ScenarioSpec(kidnap, 2, 2, 2, 40.0),
     "multi": ScenarioSpec(multi, 4, 2, 8, 90.0),
     "kitchen": ScenarioSpec(kitchen, 2, 2, 3, 28.0, KITCHEN_RATE_HZ, hand_held=True),
 }

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from ..bow.database import DatabaseConfig
 from ..config import require
 from ..registration.relative_pose import RegistrationConfig
+from .assisted_relocalization import AssistConfig
 from .global_ba import GlobalBaConfig
 from .map_scale import MapScaleConfig
 from .marker_scale import MarkerScaleConfig
@@ -157,6 +158,7 @@ class ServerConfig:
     marker_scale: MarkerScaleConfig = field(default_factory=MarkerScaleConfig)
     pose_feedback: PoseFeedbackConfig = field(default_factory=PoseFeedbackConfig)
     pull: PullConfig = field(default_factory=PullConfig)
+    assisted_relocalization: AssistConfig = field(default_factory=AssistConfig)
     optimize_every: int = 5  # incremental (iSAM2) update every N keyframes; full after each merge
     cloud_voxel_m: float = 0.05  # voxel size of the stitched team cloud [m]
     fuse_radius_m: float = 0.03  # points of different robots closer than this become one [m]
@@ -179,3 +181,4 @@ class ServerConfig:
         self.marker_scale.validate()
         self.pose_feedback.validate()
         self.pull.validate()
+        self.assisted_relocalization.validate()

@@ -586,6 +586,19 @@ class TeamServer:
         poses = self.graph.keyframe_poses(robot_id)
         return {k: T_map_group @ poses[k] for k in sorted(poses)[-last:]}
 
+    def client_frame(self, map_id: int) -> np.ndarray | None:
+        """``T_map_group``: the group frame in the map's own frame as its client has it now, read
+        off at its newest keyframe (stored client pose against the optimized one); None when the
+        pose graph holds none of its keyframes."""
+        if map_id not in self.graph.robots:
+            return None
+        poses_group = self.graph.keyframe_poses(map_id)
+        stored = [k for k in poses_group if (map_id, k) in self.store]
+        if not stored:
+            return None
+        newest = max(stored)
+        return self.store.record((map_id, newest)).T_map_cam @ invert(poses_group[newest])
+
     def pose_corrections(self, map_id: int) -> dict[int, np.ndarray]:
         """The optimized poses to send the robot of a map now, in its map frame and its own
         units (a monocular map's: lengths divided by :meth:`map_scale`): those that moved since
@@ -595,7 +608,8 @@ class TeamServer:
         group transform of the last optimization: a re-anchored map frame moves every keyframe
         rigidly, which is no correction, and a client applying it would slide its whole map
         (and its current pose) at each optimization."""
-        if map_id not in self.graph.robots:
+        T_map_group = self.client_frame(map_id)
+        if T_map_group is None:
             return {}
         poses_group = self.graph.keyframe_poses(map_id)
         client = {
@@ -603,10 +617,6 @@ class TeamServer:
             for k in poses_group
             if (map_id, k) in self.store
         }
-        if not client:
-            return {}
-        newest = max(client)
-        T_map_group = client[newest] @ invert(poses_group[newest])
         ids = list(poses_group)
         moved = np.einsum("ij,njk->nik", T_map_group, np.stack([poses_group[k] for k in ids]))
         selected = self.pose_feedback.select(map_id, dict(zip(ids, moved)), client)

@@ -84,6 +84,8 @@ class VoConfig:
     reloc_keyframes_per_frame: int = 5  # keyframes tried per lost frame (bounds the time per frame)
     reloc_min_inliers: int = 50  # pose inliers needed to accept a relocalization
     max_lost_frames: int = 10  # lost frames before a new map segment is started
+    # ... more while a server-assisted relocalization is under way (the team's local map asked)
+    assist_wait_frames: int = 30
 
     # --- keyframes --------------------------------------------------------------------------------
     # Keypoints with depth needed to start a map (monocular: points the two views triangulate).
@@ -206,6 +208,7 @@ class VoConfig:
         )
         require(0 < self.keyframe_ref_ratio <= 1.0, "vo.keyframe_ref_ratio must be in (0, 1]")
         require(self.max_lost_frames >= 0, "vo.max_lost_frames must be >= 0")
+        require(self.assist_wait_frames >= 0, "vo.assist_wait_frames must be >= 0")
         require(
             self.max_speed_m_s > 0 and self.max_turn_rate_deg_s > 0,
             "vo.max_speed_m_s and vo.max_turn_rate_deg_s must be > 0",

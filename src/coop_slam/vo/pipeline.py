@@ -57,7 +57,7 @@ from .keyframes import KeyframePolicy, add_keyframe
 from .local_mapping import LocalMapper
 from .map import Map, MapKeyframe
 from .map_correction import apply_keyframe_corrections
-from .relocalization import Relocalizer, pnp_against_keyframe
+from .relocalization import Relocalizer, pnp_against_keyframe, pnp_against_points
 from .sensor import make_sensor
 from .tracking import LocalMapTracker, Tracked
 from .types import (
@@ -194,6 +194,26 @@ class VisualOdometry:
             keep &= ~((u >= u0) & (u <= u1) & (v >= v0) & (v <= v1))
         return feats if keep.all() else feats.subset(keep)
 
+    def lost_view(self) -> np.ndarray | None:
+        """While lost: the descriptors of the newest frame (what the camera sees), for a
+        server-assisted relocalization (see :meth:`offer_local_map`); None when tracking."""
+        return self._lost_view if self._state == STATE_LOST else None
+
+    def expect_local_map(self) -> None:
+        """A local map was asked of the server: keep trying for up to ``assist_wait_frames`` more
+        lost frames before starting a new map segment."""
+        self._awaiting_map = True
+
+    def offer_local_map(self, points_map: np.ndarray | None, descriptors=None) -> None:
+        """The server's local map around where a lost camera is (points in this odometry's map
+        frame, and their descriptors), or None (it found no place). The next lost frames try PnP
+        against it; a pose found carries the map on from a new keyframe there, in this map
+        segment (RGB-D and stereo: the keyframe's points come from depth)."""
+        self._awaiting_map = False
+        self._offered = None
+        if points_map is not None and len(points_map):
+            self._offered = (np.asarray(points_map, float), np.asarray(descriptors, np.uint8))
+
     def keyframes(self) -> list[MapKeyframe]:
         """Snapshots of the current segment's keyframes, by id (with map_points_xyz filled in)."""
         with self._map.lock:
@@ -314,6 +334,9 @@ class VisualOdometry:
         self._frames_since_kf = 0
         self._lost_count = 0
         self._init_ref = None
+        self._lost_view: np.ndarray | None = None  # descriptors of the newest lost frame
+        self._offered: tuple[np.ndarray, np.ndarray] | None = None  # a team local map
+        self._awaiting_map = False
         self._relocalizer.reset()
         self._keyframe_policy.reset()
 
@@ -501,7 +524,18 @@ class VisualOdometry:
 
     def _relocalize_or_restart(self, stamp_s: float, feats: FrameFeatures) -> TrackResult:
         cfg = self.config
+        if len(feats) < cfg.pnp_min_inliers:
+            # A covered or black camera: it can neither relocalize nor start a map, so its
+            # frames do not count towards a new segment.
+            return self._result(
+                stamp_s, False, STATE_LOST, message=f"lost: the camera sees {len(feats)} features"
+            )
+        self._lost_view = feats.descriptors
         found = self._relocalizer.try_frame(self._map, feats, self._ref_kf_id)
+        if found is None and self._offered is not None:
+            result = self._relocalize_in_offered(stamp_s, feats)
+            if result is not None:
+                return result
         if found is not None:
             tracked, kf_id = found
             self._velocity = np.eye(4)
@@ -517,7 +551,8 @@ class VisualOdometry:
                 message=f"relocalized against keyframe {kf_id}",
             )
         self._lost_count += 1
-        if self._lost_count > cfg.max_lost_frames:
+        limit = cfg.max_lost_frames + (cfg.assist_wait_frames if self._awaiting_map else 0)
+        if self._lost_count > limit:
             # reset() announces the new segment (EVENT_NEW_SEGMENT); the node logs it.
             self.reset()
             result = self._initialize(stamp_s, feats, STATE_NEW_SEGMENT)
@@ -526,6 +561,31 @@ class VisualOdometry:
             return result
         return self._result(
             stamp_s, False, STATE_LOST, message=f"lost for {self._lost_count} frames"
+        )
+
+    def _relocalize_in_offered(self, stamp_s: float, feats: FrameFeatures) -> TrackResult | None:
+        """PnP against the server's local map; a pose found starts a keyframe there."""
+        if self._sensor.monocular:  # no depth for the new keyframe's points
+            return None
+        xyz, desc = self._offered
+        T_map_cam, matched = pnp_against_points(feats, xyz, desc, self.config, self._sensor)
+        if T_map_cam is None:
+            return None
+        self._offered = None
+        self._T_map_cam = T_map_cam
+        kf_id = self._insert_keyframe(stamp_s, feats, T_map_cam, np.zeros(0, int), np.zeros(0, int))
+        kf = self._map.keyframes[kf_id]
+        self._last_point_ids = kf.map_point_ids[kf.map_point_ids > 0].astype(np.int64)
+        self._velocity = np.eye(4)
+        self._lost_count = 0
+        self._state = STATE_OK
+        return self._result(
+            stamp_s,
+            True,
+            STATE_RELOCALIZED,
+            kf_id=kf_id,
+            message=f"relocalized in the team map ({len(matched)} points of the server's local "
+            "map)",
         )
 
     def _accept(self, tracked: Tracked) -> None:

@@ -24,7 +24,6 @@ def pnp_against_keyframe(
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
     """(T_map_cam, matched map point ids) of the frame from a keyframe's map points, or
     (None, None)."""
-    cfg = config
     with vmap.lock:
         kf = vmap.keyframes.get(kf_id)
         if kf is None:
@@ -35,14 +34,25 @@ def pnp_against_keyframe(
         idx, pids = idx[alive], pids[alive]
         xyz = vmap.points.xyz[pids].copy()
         desc = kf.descriptors[idx]
-    if len(pids) < cfg.pnp_min_inliers or len(feats) < cfg.pnp_min_inliers:
+    T_map_cam, matched = pnp_against_points(feats, xyz, desc, config, sensor)
+    return (None, None) if T_map_cam is None else (T_map_cam, pids[matched])
+
+
+def pnp_against_points(
+    feats: FrameFeatures, xyz: np.ndarray, desc: np.ndarray, config: VoConfig, sensor: Sensor
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(T_map_cam, indices of the points it matched) of the frame from 3D points in a map frame
+    and their descriptors, or (None, None): brute-force matching, EPnP RANSAC, pose
+    optimization."""
+    cfg = config
+    if len(xyz) < cfg.pnp_min_inliers or len(feats) < cfg.pnp_min_inliers:
         return None, None
     m = match_ratio(
         feats.descriptors, desc, ratio=cfg.pnp_ratio, max_distance=cfg.max_descriptor_distance
     )
     if len(m) < cfg.pnp_min_inliers:
         return None, None
-    obj = xyz[m[:, 1]].astype(np.float64)
+    obj = np.asarray(xyz, np.float64)[m[:, 1]]
     img = feats.uv_px[m[:, 0]].astype(np.float64)
     K = sensor.camera.K
     try:
@@ -74,7 +84,7 @@ def pnp_against_keyframe(
     )
     if good.sum() < cfg.pnp_min_inliers:
         return None, None
-    return invert(T_cam_map), pids[m[inl[good], 1]]
+    return invert(T_cam_map), m[inl[good], 1]
 
 
 class Relocalizer:
