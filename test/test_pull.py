@@ -186,3 +186,19 @@ def test_the_client_uplink_in_pull_mode():
 @pytest.fixture(scope="module")
 def world():
     return team_world()
+
+
+def test_robots_seen_together_match_at_once():
+    """A marker sighting: the two robots' alike views are asked for at the first query, without
+    waiting for consistency over consecutive keyframes; after the window, as before."""
+    rng = np.random.default_rng(4)
+    place = rng.choice(10**5, 200, replace=False)
+    for together, expect_first in ((True, True), (False, False)):
+        planner = PullPlanner(PullConfig(rendezvous_window_s=10.0))
+        views = _views(rng, place, 4)
+        planner.add(_sig(1, 1, views[0]), 0.0)
+        planner.add(_sig(1, 2, views[1], covisible=[1]), 0.5)
+        if together:
+            planner.seen_together(2, 1, 0.6)
+        asked = planner.add(_sig(2, 1, views[2]), 1.0)
+        assert bool(asked) == expect_first

@@ -575,6 +575,7 @@ class ServerNode:
             return
         if isinstance(item, _RendezvousJob):
             merges = self._rendezvous(item)
+            self._publish_requests()  # low-bandwidth mode: the pair's newest keyframes
             if merges is None:
                 return
             stamp_s = merges[0].stamp_s if merges else (item.stamp_s or self._last_stamp_s)

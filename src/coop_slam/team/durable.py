@@ -273,7 +273,13 @@ class DurableServer:
             self.store.write_state(self.server)
             self.store.commit()
 
+    def _seen_together(self, robot_a: int, robot_b: int) -> None:
+        """Low-bandwidth mode: robots seen together -- their alike views are a rendezvous."""
+        if self.pull is not None and robot_a in self.order and robot_b in self.order:
+            self.pull.seen_together(robot_a, robot_b, self.clock())
+
     def sighting(self, observer, observed, stamp_s, T_camA_bodyB=None, T_body_cam=None):
+        self._seen_together(observer, observed)
         return self._call(
             KIND_SIGHTING,
             lambda: self.server.sighting(observer, observed, stamp_s, T_camA_bodyB, T_body_cam),
@@ -287,6 +293,7 @@ class DurableServer:
     def request_rendezvous(
         self, robot_a, robot_b, stamp_s=None, T_camA_bodyB=None, T_body_cam=None
     ):
+        self._seen_together(robot_a, robot_b)
         return self._call(
             KIND_RENDEZVOUS,
             lambda: self.server.request_rendezvous(

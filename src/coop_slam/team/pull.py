@@ -41,6 +41,9 @@ class PullConfig:
     # keyframe do: a whole keyframe costs 50-60 kB, so only views that resemble each other as
     # much as two neighbouring views of one place are worth asking for.
     min_score_ratio: float = 0.8
+    # Robots seen together (a marker sighting): their alike signatures match at once for this
+    # long [s] (the rendezvous; otherwise place recognition's consistency over keyframes).
+    rendezvous_window_s: float = 10.0
 
     def validate(self) -> None:
         require(self.keyframes_per_min > 0, "pull.keyframes_per_min must be > 0")
@@ -48,6 +51,7 @@ class PullConfig:
         require(self.timeout_s > 0, "pull.timeout_s must be > 0 [s]")
         require(self.loop_min_keyframes >= 1, "pull.loop_min_keyframes must be >= 1")
         require(self.min_score_ratio >= 0, "pull.min_score_ratio must be >= 0")
+        require(self.rendezvous_window_s >= 0, "pull.rendezvous_window_s must be >= 0 [s]")
 
 
 class PullPlanner:
@@ -73,10 +77,12 @@ class PullPlanner:
         self.timeouts = 0  # requests given up
         self.over_budget = 0  # consistent candidates left because a robot's budget was spent
         self._last: dict[int, Key] = {}  # robot -> its newest keyframe's key
+        self._together: dict[tuple[int, int], float] = {}  # robot pair -> when seen together
 
     # --- inputs -----------------------------------------------------------------------------------
     def add(self, sig: PlaceSignature, now_s: float) -> list[Key]:
         """One new keyframe's signature; returns the keyframes this asks for (maybe none)."""
+        self.expire(now_s)
         rec = sig.record
         robot, kf = int(rec.robot_id), int(rec.keyframe_id)
         key = (robot, kf)
@@ -97,6 +103,9 @@ class PullPlanner:
             if (c.key[0] != robot or abs(c.key[1] - kf) >= gap) and c.score >= floor
         ]
         consistent = set(self.consistency.check(robot, candidates, self.db))
+        window = self.config.rendezvous_window_s
+        partners = {b for (a, b), t in self._together.items() if a == robot and now_s - t <= window}
+        consistent |= {c.key for c in candidates if c.key[0] in partners}
         # Another group's place first (a merge), then the best score.
         ranked = sorted(
             (c for c in candidates if c.key in consistent),
@@ -106,15 +115,27 @@ class PullPlanner:
             want = [k for k in (key, cand.key) if k not in self.held and k not in self.pending]
             if not want:
                 continue
-            if not self._spend(want, now_s):
-                self.over_budget += 1
-                continue
-            for k in want:
-                self.pending[k] = now_s
-                self._out.setdefault(k[0], []).append(k[1])
-            self.requested += len(want)
-            return want
+            if self._ask(want, now_s):
+                return want
         return []
+
+    def seen_together(self, robot_a: int, robot_b: int, now_s: float) -> None:
+        """Robots seen together (a marker sighting, a rendezvous request): for the next
+        ``rendezvous_window_s`` their signatures alike enough count as a match at once, without
+        waiting for consistency over consecutive keyframes (the sighting is the evidence)."""
+        self._together[(int(robot_a), int(robot_b))] = now_s
+        self._together[(int(robot_b), int(robot_a))] = now_s
+
+    def _ask(self, want: list[Key], now_s: float) -> bool:
+        """Ask for these keyframes if the robots' budgets allow all of them."""
+        if not self._spend(want, now_s):
+            self.over_budget += 1
+            return False
+        for k in want:
+            self.pending[k] = now_s
+            self._out.setdefault(k[0], []).append(k[1])
+        self.requested += len(want)
+        return True
 
     def hold(self, robot_id: int, keyframe_id: int) -> None:
         """The server now holds this keyframe whole."""
