@@ -98,6 +98,26 @@ def test_resume_after_a_crash_at_any_point_equals_an_uninterrupted_server(team, 
     whole.close()
 
 
+def test_a_deferred_global_ba_runs_when_called_and_a_resume_repeats_it(team, tmp_path):
+    """The node defers the global BA after a merge (off the keyframe messages' path) and runs it
+    when no message waits: it is logged as a call, so a resumed server reaches the same map."""
+    kfs_a, kfs_b, vocab = team
+    path = str(tmp_path / "gba.db")
+    live = _durable(vocab, path, defer_global_ba=True)
+    for rec, session, seq in _stream(kfs_a, kfs_b):
+        live.add_keyframe(rec, session, seq)
+        if live.server.global_ba_due is not None:
+            assert not live.server.global_ba_runs  # not on the message's path
+            break
+    assert live.server.merges and live.server.global_ba_due is not None
+    assert live.run_due_global_ba() and len(live.server.global_ba_runs) == 1
+    assert live.server.global_ba_due is None and not live.run_due_global_ba()
+    del live
+    resumed = _durable(vocab, path, resume=True, defer_global_ba=True)
+    assert resumed.rebuilt.max_pose_diff_m < 1e-9 and len(resumed.server.global_ba_runs) == 1
+    resumed.close()
+
+
 def test_gaps_are_held_until_sent_again(team, tmp_path):
     kfs_a, _, vocab = team
     server = _durable(vocab, str(tmp_path / "gaps.db"), robots=(1,))

@@ -240,6 +240,7 @@ class ServerNode:
             load_path=load_path or None,
             vocabulary_sha256=self.vocab_sha256,
             progress=progress,
+            defer_global_ba=True,  # after a merge: when no keyframe message waits (_work)
         )
         for name, rep in (("resumed", durable.rebuilt), ("loaded", durable.loaded)):
             if rep is not None:
@@ -544,6 +545,11 @@ class ServerNode:
             except queue.Empty:
                 if self.durable.pull is not None:
                     self.durable.pull.expire(time.monotonic())
+                try:
+                    if self.durable.run_due_global_ba():
+                        self._map_dirty = True
+                except Exception as exc:  # noqa: BLE001 -- the worker must live on
+                    rospy.logerr("server: global BA failed (%s: %s)", type(exc).__name__, exc)
                 if self._map_dirty:  # the queue drained: show the final state of the map
                     stamp = rospy.Time.from_sec(self._last_stamp_s)
                     self._publish_tf(stamp)

@@ -20,6 +20,7 @@ from ..delivery import UNSEQUENCED, InOrder
 from ..errors import CoopSlamError
 from ..keyframe_record import ACTION_NEW, ACTION_REMOVE, KeyframeRecord, PlaceSignature
 from .config import ServerConfig
+from .global_ba import GlobalBaError
 from .map_store import (
     KIND_GLOBAL_BA,
     KIND_RENDEZVOUS,
@@ -82,6 +83,7 @@ class DurableServer:
         vocabulary_sha256: str = "",
         progress: Callable[[int, int], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        defer_global_ba: bool = False,
     ):
         self.rebuilt: RebuildReport | None = None
         self.loaded: RebuildReport | None = None
@@ -116,6 +118,8 @@ class DurableServer:
             min_consecutive = config.place_recognition.min_consecutive
             config.place_recognition.min_consecutive = 1
         self.server = make_server(config)
+        # Before a rebuild: a deferred global BA is in the file as a call of its own.
+        self.server.defer_global_ba = defer_global_ba
         if config.pull.enabled:
             server = self.server
 
@@ -305,6 +309,19 @@ class DurableServer:
             T_camA_bodyB=T_camA_bodyB,
             T_body_cam=T_body_cam,
         )
+
+    def run_due_global_ba(self) -> bool:
+        """The global BA a merge left due (``defer_global_ba``), now, as a logged call; whether
+        it ran. The server node calls it when no message waits."""
+        robot = self.server.global_ba_due
+        self.server.global_ba_due = None
+        if robot is None or not self.server.global_ba_is_cheap(robot):
+            return False
+        try:
+            self.global_bundle_adjustment(robot)
+        except GlobalBaError as exc:
+            log.warning("global BA after the merge: %s", exc)
+        return True
 
     def global_bundle_adjustment(self, robot_id: int | None = None):
         return self._call(

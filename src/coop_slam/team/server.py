@@ -100,6 +100,10 @@ class TeamServer:
         self.keyframe_ms: list[float] = []  # server time per incoming keyframe
         self.optimize_ms: list[float] = []
         self.map_moved = False  # the last call optimized the team map (robots' maps moved)
+        # The global BA after a merge: at once (False), or left for the caller to run when it has
+        # time (True; :attr:`global_ba_due` names the group), off the keyframe messages' path.
+        self.defer_global_ba = False
+        self.global_ba_due: int | None = None
         self._since_optimize = 0
 
     # --- what the stages found --------------------------------------------------------------------
@@ -486,16 +490,21 @@ class TeamServer:
         its transforms as the optimization placed the maps, which rests on all its pairs."""
         self.optimize(full=True)
         if self.config.global_ba.after_merge:
-            self._global_ba_if_cheap(merges[-1].robot_a)
+            if self.defer_global_ba:
+                self.global_ba_due = merges[-1].robot_a
+            else:
+                self._global_ba_if_cheap(merges[-1].robot_a)
         for m in merges:
             key_a, key_b = (m.robot_a, m.keyframe_a), (m.robot_b, m.keyframe_b)
             if key_a in self.store and key_b in self.store:
                 m.T_camA_camB = invert(self.T_group_cam(*key_a)) @ self.T_group_cam(*key_b)
             m.T_mapA_mapB = invert(self.T_group_map(m.robot_a)) @ self.T_group_map(m.robot_b)
 
-    def _global_ba_if_cheap(self, robot_id: int) -> None:
+    def global_ba_is_cheap(self, robot_id: int) -> bool:
+        """Whether the automatic global BA after a merge runs for this robot's group: metric,
+        and at most ``global_ba.auto_max_observations`` observations."""
         if not self.is_metric(robot_id):
-            return  # monocular maps only: nothing would hold the group's scale
+            return False  # monocular maps only: nothing would hold the group's scale
         members = set(self.groups.members(robot_id))
         n = count_observations(r for r in self.store.records() if r.robot_id in members)
         if n > self.config.global_ba.auto_max_observations:
@@ -504,6 +513,11 @@ class TeamServer:
                 n,
                 self.config.global_ba.auto_max_observations,
             )
+            return False
+        return True
+
+    def _global_ba_if_cheap(self, robot_id: int) -> None:
+        if not self.global_ba_is_cheap(robot_id):
             return
         try:
             self.global_bundle_adjustment(robot_id)

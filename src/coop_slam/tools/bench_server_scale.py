@@ -348,8 +348,8 @@ class NodeWork:
     branch): the durable server takes the message; then the core work behind the node's
     publishing -- the robots' corrections and TF after a merge or an optimization, the team map
     (cloud, paths, merge edges) when its cadence allows (:mod:`coop_slam.team.publish_cadence`),
-    and both again when the queue has been empty for 0.5 s. Building and serialising the ROS
-    messages is left out."""
+    and when the queue has been empty for 0.5 s the global BA a merge left due, then both again.
+    Building and serialising the ROS messages is left out."""
 
     def __init__(self, durable, cadence: PublishCadenceConfig | None = None):
         self.durable = durable
@@ -400,7 +400,10 @@ class NodeWork:
         return merges, decided
 
     def idle(self) -> bool:
-        """The queue drained: the final state of the map (when it changed); True if work done."""
+        """The queue drained: the global BA a merge left due, then the final state of the map
+        (when it changed); True if work done."""
+        if self.durable.run_due_global_ba():
+            self._dirty = True
         if not self._dirty:
             return False
         self._corrections()
@@ -699,7 +702,10 @@ def bench_server_scale(
     with tempfile.TemporaryDirectory() as tmp:
         # The node keeps a map file by default (server.launch map:=): so does the replay.
         durable = DurableServer(
-            cfg, lambda c: TeamServer(c, vocab), os.path.join(tmp, "team_map.db")
+            cfg,
+            lambda c: TeamServer(c, vocab),
+            os.path.join(tmp, "team_map.db"),
+            defer_global_ba=True,  # as the node: when no message waits
         )
         try:
             t = time.perf_counter()
