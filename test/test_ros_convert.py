@@ -124,6 +124,9 @@ def test_delta_updates_carry_only_the_observations_that_changed():
         assert err.max() <= move_m + 1e-6
         kf = upd
     assert all(patch < whole / 2 for patch, whole in sizes)
+    # A later map segment's keyframe: the server holds it under the segment's map id.
+    again = keyframe_from_msg(msg, {1, 2}, base=dataclasses.replace(held, robot_id=3))
+    np.testing.assert_array_equal(again.map_point_ids, held.map_point_ids)
     # What the keyframe saw changed (a client re-extracted it): the update goes in full.
     redone = dataclasses.replace(kf, descriptors=kf.descriptors[::-1].copy())
     assert not deltas.prepare(redone).delta

@@ -398,10 +398,10 @@ def complete_update(
     static = {k: getattr(base, k) for k in STATIC_ARRAYS}
     if patched is None:
         return dataclasses.replace(sent, **static)
-    if sent.keyframe_id != base.keyframe_id or sent.robot_id != base.robot_id:
+    if sent.keyframe_id != base.keyframe_id:  # (the server holds it under its map's id)
         raise KeyframeError(
-            f"keyframe {sent.keyframe_id} of robot {sent.robot_id}: patched against another "
-            f"keyframe ({base.keyframe_id} of robot {base.robot_id})"
+            f"keyframe {sent.keyframe_id} of robot {sent.robot_id}: patched against keyframe "
+            f"{base.keyframe_id}"
         )
     ids, per_keypoint = apply_observation_patch(
         base.map_point_ids,
