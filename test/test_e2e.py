@@ -265,3 +265,6 @@ def test_results_table_names_faults_sessions_and_live_runs():
     assert describe({"scenario": "team", "pose_sharing": True}) == (
         "`--scenario team --pose-sharing`"
     )
+    assert describe({"scenario": "team", "low_bandwidth": True}) == (
+        "`--scenario team --low-bandwidth`"
+    )

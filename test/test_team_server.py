@@ -492,3 +492,25 @@ def test_a_lost_robot_gets_the_teams_local_map_where_it_is_in_its_own_frame(worl
     assert np.percentile(np.linalg.norm(first - truth, axis=1), 90) < 0.02
     # No place scores min_score: no local map.
     assert local_map_for(server, 2, bow, AssistConfig(min_score=1.0)) is None
+
+
+def test_updates_wait_for_an_incremental_optimization_of_their_own_count(world):
+    """A client sends several updates per keyframe (local BA): the team graph takes each at once
+    but optimizes incrementally after optimize_every_updates of them (or optimize_every new
+    keyframes), not after every few messages."""
+    import dataclasses
+
+    from coop_slam.keyframe_record import ACTION_UPDATE
+
+    server = _merged_server(world)
+    server.optimize(full=False)  # start counting from here
+    runs = len(server.optimize_ms)
+    kf = server.store.record((2, max(server.store.keyframe_ids(2))))
+    every = server.config.optimize_every_updates
+    for k in range(every):
+        moved = dataclasses.replace(
+            kf, robot_id=2, action=ACTION_UPDATE, T_map_cam=kf.T_map_cam.copy()
+        )
+        moved.T_map_cam[0, 3] += 1e-4 * (k + 1)
+        server.add_keyframe(moved)
+        assert len(server.optimize_ms) == runs + (k + 1 == every), k

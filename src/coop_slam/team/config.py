@@ -160,12 +160,16 @@ class ServerConfig:
     pull: PullConfig = field(default_factory=PullConfig)
     assisted_relocalization: AssistConfig = field(default_factory=AssistConfig)
     optimize_every: int = 5  # incremental (iSAM2) update every N keyframes; full after each merge
+    # ... or every N updates of keyframes (local BA moved them a little): a client sends several
+    # per keyframe, and an incremental update after each 5 messages grew with the team graph
+    optimize_every_updates: int = 40
     cloud_voxel_m: float = 0.05  # voxel size of the stitched team cloud [m]
     fuse_radius_m: float = 0.03  # points of different robots closer than this become one [m]
     unmerged_offset_m: float = 30.0  # unmerged groups are shown this far apart along x [m]
 
     def validate(self) -> None:
         require(self.optimize_every >= 1, "server: optimize_every must be >= 1")
+        require(self.optimize_every_updates >= 1, "server: optimize_every_updates must be >= 1")
         require(self.cloud_voxel_m > 0, "server: cloud_voxel_m must be > 0")
         require(self.fuse_radius_m >= 0, "server: fuse_radius_m must be >= 0")
         self.pose_graph.validate()

@@ -104,7 +104,7 @@ class TeamServer:
         # time (True; :attr:`global_ba_due` names the group), off the keyframe messages' path.
         self.defer_global_ba = False
         self.global_ba_due: int | None = None
-        self._since_optimize = 0
+        self._since_optimize = self._updates_since = 0
 
     # --- what the stages found --------------------------------------------------------------------
     @property
@@ -168,12 +168,18 @@ class TeamServer:
             self._rescale([robot], factor, about_maps=True)
             self.stitcher.need_full = True
         self._due_rescale.clear()
-        self._since_optimize += 1
+        if rec.action == ACTION_UPDATE:
+            self._updates_since += 1
+        else:
+            self._since_optimize += 1
         if merges:
             self._settle(merges)
         elif self.stitcher.need_full:
             self.optimize(full=True)
-        elif self._since_optimize >= self.config.optimize_every:
+        elif (
+            self._since_optimize >= self.config.optimize_every
+            or self._updates_since >= self.config.optimize_every_updates
+        ):
             self.optimize(full=False)
         self.keyframe_ms.append(1e3 * (time.perf_counter() - t0))
         return merges
@@ -472,7 +478,7 @@ class TeamServer:
     # --- team optimization ------------------------------------------------------------------------
     def optimize(self, full: bool = True) -> None:
         """Optimize the team pose graph and move every robot's map to its optimized place."""
-        self._since_optimize = 0
+        self._since_optimize = self._updates_since = 0
         self.stitcher.need_full = False
         self.map_moved = True
         try:

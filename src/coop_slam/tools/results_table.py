@@ -69,8 +69,9 @@ def describe(info: dict) -> str:
             what += f" --{key.replace('_', '-')} {info[key]}"
     if info.get("load_map"):
         what += " --load-map ..."
-    if info.get("pose_sharing"):
-        what += " --pose-sharing"
+    for key in ("pose_sharing", "low_bandwidth"):
+        if info.get(key):
+            what += f" --{key.replace('_', '-')}"
     return f"`{what}`"
 
 
