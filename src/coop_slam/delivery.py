@@ -97,14 +97,7 @@ class Outbox:
     server that lags behind (its queue tens of seconds long with eight robots) thus gets each
     waiting message a few times, not every two seconds: sending everything again every two
     seconds made a resend storm that buried it further. Backing off the oldest message too
-    stalled delivery after a server restart.
-
-    A server acknowledges a message once it has taken it, which with a queue of work can be
-    seconds after it arrived. So the first wait of the others adapts to how long
-    acknowledgements take, as TCP's retransmission timeout does (Jacobson's smoothed mean + 4
-    deviations, sampled only on messages sent once, and doubled, up to 4x, each time such a
-    message had to go again: Karn), within ``resend_after_s`` .. ``max_resend_after_s``: a
-    message the server has but not yet taken is not sent again."""
+    stalled delivery after a server restart."""
 
     def __init__(
         self,
@@ -132,72 +125,40 @@ class Outbox:
         self._unacked: OrderedDict[int, list] = OrderedDict()
         self.dropped = 0  # unacknowledged messages given up because the bound was reached
         self.resent = 0
-        self._srtt_s: float | None = None  # smoothed acknowledgement delay, and its deviation
-        self._rttvar_s = 0.0
-        self._backoff = 1.0  # doubled while the oldest message goes again, 1 after a sample
-        self._first_sent: dict[int, float] = {}  # sequence -> when sent, for messages sent once
-
-    @property
-    def resend_timeout_s(self) -> float:
-        """The wait before a message goes again: from the acknowledgement delays seen so far."""
-        rto = self.resend_after_s
-        if self._srtt_s is not None:
-            rto = max(rto, self._srtt_s + 4.0 * self._rttvar_s)
-        return min(rto * self._backoff, self.max_resend_after_s)
-
-    def _sample(self, delay_s: float) -> None:
-        self._backoff = 1.0
-        if self._srtt_s is None:
-            self._srtt_s, self._rttvar_s = delay_s, delay_s / 2.0
-        else:
-            self._rttvar_s = 0.75 * self._rttvar_s + 0.25 * abs(self._srtt_s - delay_s)
-            self._srtt_s = 0.875 * self._srtt_s + 0.125 * delay_s
 
     def add(self, message: Any, now: float | None = None) -> tuple[int, int, bool]:
         """Number a new message (sent now): (session, sequence, whether an old message was given
         up)."""
         now = time.monotonic() if now is None else now
         self.sequence += 1
-        self._unacked[self.sequence] = [message, now, self.resend_timeout_s]
-        self._first_sent[self.sequence] = now
+        self._unacked[self.sequence] = [message, now, self.resend_after_s]
         overflow = len(self._unacked) > self.max_unacked
         if overflow:
-            gone, _ = self._unacked.popitem(last=False)
-            self._first_sent.pop(gone, None)
+            self._unacked.popitem(last=False)
             self.dropped += 1
         return self.session, self.sequence, overflow
 
-    def ack(self, session: int, sequence: int, now: float | None = None) -> int:
+    def ack(self, session: int, sequence: int) -> int:
         """The server stored everything up to ``sequence``: forget those; returns how many."""
         if session != self.session:
             return 0
-        now = time.monotonic() if now is None else now
         done = [s for s in self._unacked if s <= sequence]
         for s in done:
             del self._unacked[s]
-        # One sample per acknowledgement: the newest message it covers that went once.
-        once = [s for s in done if s in self._first_sent]
-        if once:
-            self._sample(max(0.0, now - self._first_sent[once[-1]]))
-        for s in done:
-            self._first_sent.pop(s, None)
         return len(done)
 
     def due(self, now: float | None = None) -> list[Any]:
         """The messages to send again now (oldest first), or none."""
         now = time.monotonic() if now is None else now
         out = []
-        for i, (sequence, entry) in enumerate(self._unacked.items()):
+        for i, entry in enumerate(self._unacked.values()):
             if len(out) >= self.resend_window:
                 break
             oldest = i == 0  # what the server waits for: never backed off
             if now - entry[1] >= (self.resend_after_s if oldest else entry[2]):
                 if not oldest:
-                    if sequence in self._first_sent:  # its first wait was too short
-                        self._backoff = min(2.0 * self._backoff, 4.0)
                     entry[2] = min(2.0 * entry[2], self.max_resend_after_s)
                 entry[1] = now
-                self._first_sent.pop(sequence, None)  # its acknowledgement is no sample (Karn)
                 out.append(entry[0])
         self.resent += len(out)
         return out
