@@ -202,3 +202,28 @@ def test_robots_seen_together_match_at_once():
             planner.seen_together(2, 1, 0.6)
         asked = planner.add(_sig(2, 1, views[2]), 1.0)
         assert bool(asked) == expect_first
+
+
+def test_a_lost_robots_view_has_the_matching_keyframe_asked_for():
+    """Assisted relocalization in low-bandwidth mode: the place a lost robot sees is a signature
+    of its teammate's; the planner asks for that keyframe (once), and when the server holds it
+    leaves the answer to the server's own keyframes."""
+    rng = np.random.default_rng(5)
+    place_a, place_b = rng.choice(10**5, 200, replace=False), rng.choice(10**5, 200) + 10**5
+    planner = PullPlanner(PullConfig(burst=1), same_group=lambda a, b: True)
+    for k, words in enumerate(_views(rng, place_a, 3), start=1):
+        planner.add(_sig(1, k, words, covisible=[k - 1] if k > 1 else []), k)
+    planner.add(_sig(2, 1, _views(rng, place_b, 1)[0]), 4.0)
+    planner._spend([(1, 0)], 4.0)  # robot 1's budget is spent: a lost robot goes first anyway
+    planner.take_requests()
+    view = _sig(2, 99, _views(rng, place_a, 1)[0]).bow
+    key = planner.ask_for_view(2, view, 5.0)
+    assert key is not None and key[0] == 1
+    assert planner.take_requests() == {1: [key[1]]}
+    assert planner.ask_for_view(2, view, 5.5) == key and planner.take_requests() == {}
+    planner.hold(*key)
+    assert planner.ask_for_view(2, view, 6.0) is None  # the server holds it: its map answers
+    alone = PullPlanner(PullConfig(), same_group=lambda a, b: a == b)
+    for k, words in enumerate(_views(rng, place_a, 3), start=1):
+        alone.add(_sig(1, k, words), k)
+    assert alone.ask_for_view(2, view, 5.0) is None  # robot 1 is not in robot 2's group

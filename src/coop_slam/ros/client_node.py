@@ -553,7 +553,7 @@ class ClientNode:
 
         from ..bow.signature import encode_signature
 
-        points, desc = None, None
+        points, desc, pending = None, None, False
         try:
             if self.vocabulary is None:
                 self.vocabulary = self._server_vocabulary(3.0)
@@ -568,10 +568,15 @@ class ClientNode:
                 bow_weights=weights,
                 bow_weight_max=weight_max,
             )
+            pending = bool(getattr(rep, "pending", False))
             rospy.loginfo(
                 "client %s: lost; the server %s: %s",
                 self.name,
-                "sends the team's local map" if rep.found else "cannot place it",
+                (
+                    "sends the team's local map"
+                    if rep.found
+                    else ("fetches it" if pending else "cannot place it")
+                ),
                 rep.message,
             )
             if rep.found and self.vo is not None and self.vo.map_segment == segment:
@@ -582,7 +587,9 @@ class ClientNode:
         except (rospy.ROSException, rospy.ServiceException, CoopSlamError, ValueError) as exc:
             rospy.logwarn("client %s: lost; asking the server failed: %s", self.name, exc)
         finally:
-            if self.vo is not None:
+            if pending:  # keep waiting, and ask again soon
+                self._assist_last_s = time.monotonic() - 0.7
+            elif self.vo is not None:
                 self.vo.offer_local_map(points, desc)
             self._assist_busy = False
 

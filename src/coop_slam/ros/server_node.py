@@ -459,11 +459,11 @@ class ServerNode:
         self.urgent.put(_RelocalizeJob(req.robot_id, req.map_segment, bow, reply))
         self.queue.put(None)  # wakes the worker if it waits for keyframes
         try:
-            local, message = reply.result(timeout=10.0)
+            local, message, pending = reply.result(timeout=10.0)
         except TimeoutError:
             return RelocalizeResponse(found=False, message="server busy: timed out")
         if local is None:
-            return RelocalizeResponse(found=False, message=message)
+            return RelocalizeResponse(found=False, pending=pending, message=message)
         return RelocalizeResponse(
             found=True,
             message=message,
@@ -477,6 +477,9 @@ class ServerNode:
         cfg = self.cfg.assisted_relocalization
         server = self.server
         local, message = None, "assisted relocalization is off (assisted_relocalization.enabled)"
+        pending = None
+        if cfg.enabled and self.durable.pull is not None:  # the place's keyframe may be a signature
+            pending = self.durable.pull.ask_for_view(job.robot_id, job.bow, time.monotonic())
         if cfg.enabled:
             segment = server.segments.segment_of(server.current_map(job.robot_id))
             if segment != job.map_segment:
@@ -484,6 +487,12 @@ class ServerNode:
                     f"robot {job.robot_id} asks in map segment {job.map_segment}, the server "
                     f"holds segment {segment} as its newest"
                 )
+            elif pending is not None:
+                message = (
+                    f"asked robot {pending[0]} for keyframe {pending[1]}, the best match of its "
+                    "view (low-bandwidth mode): ask again"
+                )
+                self._publish_requests()
             else:
                 local = local_map_for(server, job.robot_id, job.bow, cfg)
                 message = (
@@ -493,7 +502,7 @@ class ServerNode:
                     f"(BoW score {local.score:.3f})"
                 )
         rospy.loginfo("server: relocalization for robot %d: %s", job.robot_id, message)
-        job.reply.set_result((local, message))
+        job.reply.set_result((local, message, pending is not None and local is None))
 
     def _global_ba(self, job: _GlobalBaJob) -> None:
         from ..team.global_ba import GlobalBaError
@@ -539,7 +548,7 @@ class ServerNode:
                     self._relocalize(job)
                 except Exception as exc:  # noqa: BLE001 -- the worker must live on
                     rospy.logerr("server: relocalization failed (%s: %s)", type(exc).__name__, exc)
-                    job.reply.set_result((None, f"server error: {exc}"))
+                    job.reply.set_result((None, f"server error: {exc}", False))
             try:
                 item = self.queue.get(timeout=0.5)
             except queue.Empty:

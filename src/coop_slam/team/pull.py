@@ -119,6 +119,27 @@ class PullPlanner:
                 return want
         return []
 
+    def ask_for_view(self, robot_id: int, bow, now_s: float) -> Key | None:
+        """A lost robot's view (server-assisted relocalization): the best-matching signature of
+        the robots of its group. Asks for that keyframe when the server does not hold it (within
+        the budget); returns its key while it is asked for, None when the server holds it (its
+        own keyframes answer) or nothing matches."""
+        self.expire(now_s)
+        candidates = [
+            c
+            for c in self.db.query(bow, robot_id, 0, covisible=(), other_robots_only=False)
+            if self.same_group(robot_id, c.key[0])
+        ]
+        if not candidates:
+            return None
+        best = max(candidates, key=lambda c: c.score).key
+        if best in self.held:
+            return None
+        # A lost robot goes first: asked for even over its budget (later pulls wait the longer).
+        if best in self.pending or self._ask([best], now_s, force=True):
+            return best
+        return None
+
     def seen_together(self, robot_a: int, robot_b: int, now_s: float) -> None:
         """Robots seen together (a marker sighting, a rendezvous request): for the next
         ``rendezvous_window_s`` their signatures alike enough count as a match at once, without
@@ -126,9 +147,10 @@ class PullPlanner:
         self._together[(int(robot_a), int(robot_b))] = now_s
         self._together[(int(robot_b), int(robot_a))] = now_s
 
-    def _ask(self, want: list[Key], now_s: float) -> bool:
-        """Ask for these keyframes if the robots' budgets allow all of them."""
-        if not self._spend(want, now_s):
+    def _ask(self, want: list[Key], now_s: float, force: bool = False) -> bool:
+        """Ask for these keyframes if the robots' budgets allow all of them (``force``: in any
+        case, the budgets going below zero)."""
+        if not self._spend(want, now_s, force):
             self.over_budget += 1
             return False
         for k in want:
@@ -181,7 +203,7 @@ class PullPlanner:
         self.timeouts += len(late)
         return late
 
-    def _spend(self, keys: list[Key], now_s: float) -> bool:
+    def _spend(self, keys: list[Key], now_s: float, force: bool = False) -> bool:
         """Take one token per keyframe from its robot's bucket, all or none."""
         rate = self.config.keyframes_per_min / 60.0
         burst = float(self.config.burst)
@@ -192,7 +214,7 @@ class PullPlanner:
         for robot, n in need.items():
             tokens, at = self._tokens.get(robot, (burst, now_s))
             tokens = min(burst, tokens + max(0.0, now_s - at) * rate)
-            if tokens < n:
+            if tokens < n and not force:
                 return False
             level[robot] = tokens - n
         for robot, tokens in level.items():
