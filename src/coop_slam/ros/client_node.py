@@ -216,11 +216,10 @@ class ClientNode:
         )
         self._outbox_lock = threading.Lock()
         self.keyframes_sent = 0
-        self.keyframes_pulled = 0  # sent whole because the server asked (low-bandwidth mode)
         from ..vo.outbox import Uplink, UplinkConfig
 
         # Updates carry what changed since the server got the keyframe (~uplink).
-        self.deltas = Uplink(
+        self.uplink = Uplink(
             load_yaml_config(
                 UplinkConfig,
                 rospy.get_param("~config", ""),
@@ -231,7 +230,7 @@ class ClientNode:
         self.vocabulary = None  # the server's, for place signatures (low-bandwidth, lost)
         self._assist_busy, self._assist_last_s = False, 0.0
         self._request_seen = 0
-        if self.deltas.pull:
+        if self.uplink.pull:
             from coop_slam.msg import KeyframeRequest
 
             self.vocabulary = self._server_vocabulary(float(rospy.get_param("~server_wait_s", 3.0)))
@@ -315,9 +314,8 @@ class ClientNode:
                 continue
             rec = self._as_sent(keyframe_record(kf, self.robot_id, self.camera, self.T_base_cam))
             rec.action = ACTION_NEW
-            self.deltas.answer(rec)
+            self.uplink.answer(rec)
             self._send_keyframe(keyframe_to_msg(rec, self.map_frame))
-            self.keyframes_pulled += 1
 
     def _as_sent(self, rec):
         """A record with this client run's keyframe ids and map segments (after a restart they
@@ -673,7 +671,7 @@ class ClientNode:
                     self.kf_poses[rec.keyframe_id] = (rec.stamp_s, rec.T_map_cam)
                 self.keyframes_sent += rec.action == ACTION_NEW
                 # An update goes with what changed since the server got the keyframe.
-                out = self.deltas.prepare(rec)
+                out = self.uplink.prepare(rec)
                 if out.skip:
                     continue
                 if out.signature:

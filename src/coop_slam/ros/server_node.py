@@ -478,16 +478,17 @@ class ServerNode:
         server = self.server
         local, message = None, "assisted relocalization is off (assisted_relocalization.enabled)"
         pending = None
-        if cfg.enabled and self.durable.pull is not None:  # the place's keyframe may be a signature
-            pending = self.durable.pull.ask_for_view(job.robot_id, job.bow, time.monotonic())
         if cfg.enabled:
             segment = server.segments.segment_of(server.current_map(job.robot_id))
+            pull = self.durable.pull
             if segment != job.map_segment:
                 message = (
                     f"robot {job.robot_id} asks in map segment {job.map_segment}, the server "
                     f"holds segment {segment} as its newest"
                 )
-            elif pending is not None:
+            elif pull is not None and (  # the place's keyframe may be a signature only
+                pending := pull.ask_for_view(job.robot_id, job.bow, time.monotonic())
+            ):
                 message = (
                     f"asked robot {pending[0]} for keyframe {pending[1]}, the best match of its "
                     "view (low-bandwidth mode): ask again"
@@ -502,7 +503,7 @@ class ServerNode:
                     f"(BoW score {local.score:.3f})"
                 )
         rospy.loginfo("server: relocalization for robot %d: %s", job.robot_id, message)
-        job.reply.set_result((local, message, pending is not None and local is None))
+        job.reply.set_result((local, message, pending is not None))
 
     def _global_ba(self, job: _GlobalBaJob) -> None:
         from ..team.global_ba import GlobalBaError
@@ -636,7 +637,6 @@ class ServerNode:
         pull = self.durable.pull
         if pull is None:
             return
-        pull.expire(time.monotonic())
         for robot, ids in pull.take_requests().items():
             pub = self.pub_request.get(robot)
             if pub is None:

@@ -60,9 +60,8 @@ def local_map_for(server, robot_id: int, bow: BowVector, config: AssistConfig) -
     candidates = [
         c
         for c in db.query(bow, cur, 0, covisible=(), other_robots_only=False, min_score=0.0)
-        if server.groups.same_group(c.key[0], cur)
+        if server.groups.same_group(c.key[0], cur) and c.score >= config.min_score
     ]
-    candidates = [c for c in candidates if c.score >= config.min_score]
     if not candidates:
         return None
     best = max(candidates, key=lambda c: c.score)

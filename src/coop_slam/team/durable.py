@@ -112,10 +112,10 @@ class DurableServer:
         config.robots = robots
         self.pull: PullPlanner | None = None
         self.clock = clock
+        min_consecutive = config.place_recognition.min_consecutive
         if config.pull.enabled:
             # Low-bandwidth mode: place recognition's consistency check runs on the signatures
             # (every keyframe), so the server verifies a pulled pair at once.
-            min_consecutive = config.place_recognition.min_consecutive
             config.place_recognition.min_consecutive = 1
         self.server = make_server(config)
         # Before a rebuild: a deferred global BA is in the file as a call of its own.

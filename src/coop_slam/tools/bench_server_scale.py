@@ -163,7 +163,7 @@ class ClientSender:
         from ..vo.outbox import Uplink
 
         self.robot_id, self.camera, self.T_base_cam = robot_id, camera, T_base_cam
-        self.deltas = Uplink(uplink)
+        self.uplink = Uplink(uplink)
         self.sequence = 0
         self.new_keyframes = 0
 
@@ -177,7 +177,7 @@ class ClientSender:
                 continue
             rec = event_record(ev, self.robot_id, self.camera, self.T_base_cam)
             self.new_keyframes += rec.action == ACTION_NEW
-            how = self.deltas.prepare(rec)
+            how = self.uplink.prepare(rec)
             self.sequence += 1
             out.append(
                 Arrival(
