@@ -144,6 +144,10 @@ class VoConfig:
     # its scale (Sim(3) ATE 38 cm; waiting for 1.5 deg: 3.6 cm).
     mono_init_min_parallax_homography_deg: float = 1.5
     keyframe_ref_ratio_mono: float = 0.9  # ORB-SLAM2's monocular keyframe_ref_ratio
+    # A monocular keyframe waits for local mapping to be free (ORB-SLAM2), and at least this many
+    # frames after the last one: in lock-step local mapping is always free by the next frame, and
+    # without a floor every other frame became a keyframe (baselines too short to triangulate).
+    keyframe_min_frames_mono: int = 4
     # Points seen by fewer keyframes 2 keyframes after their creation are removed (ORB-SLAM2's
     # monocular 3: a point triangulated from 2 keyframes that no third one sees is suspect).
     cull_min_observations_mono: int = 3
@@ -234,6 +238,9 @@ class VoConfig:
         )
         require(
             0 < self.keyframe_ref_ratio_mono <= 1.0, "vo.keyframe_ref_ratio_mono must be in (0, 1]"
+        )
+        require(
+            self.keyframe_min_frames_mono >= 0, "vo.keyframe_min_frames_mono must be >= 0 [frames]"
         )
         require(self.cull_min_observations_mono >= 2, "vo.cull_min_observations_mono must be >= 2")
         require(self.triangulation_neighbors >= 1, "vo.triangulation_neighbors must be >= 1")

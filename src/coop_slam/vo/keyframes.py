@@ -22,7 +22,8 @@ class KeyframePolicy:
     ``monocular`` (no depth): ORB-SLAM2's monocular rules. There are no close points; the
     reference keyframe's points count when 3 keyframes see them (2 while the map has 2
     keyframes); a frame tracking fewer than ``keyframe_ref_ratio_mono`` of them becomes a
-    keyframe when ``keyframe_max_frames`` passed or local mapping is free. The floor
+    keyframe when ``keyframe_max_frames`` passed or local mapping is free and
+    ``keyframe_min_frames_mono`` passed. The floor
     ``keyframe_min_tracked`` does not apply: every weakly tracked frame would become a keyframe,
     with baselines too short to triangulate from."""
 
@@ -72,7 +73,8 @@ class KeyframePolicy:
             c2 = tracked.n < cfg.keyframe_ref_ratio_mono * n_ref and (
                 tracked.n > cfg.keyframe_min_inliers
             )
-            return (c1a or mapping_free) and c2
+            c1b = mapping_free and frames_since_kf + 1 >= cfg.keyframe_min_frames_mono
+            return (c1a or c1b) and c2
         d = feats.depths_m
         close = (d > 0) & (d <= self.close_depth_m)
         tracked_mask = np.zeros(len(feats), bool)
