@@ -70,6 +70,23 @@ def test_monocular_robot_merges_with_a_metric_one_by_a_similarity(world):
         assert dt < 0.03 and dr < 0.5, (kf.keyframe_id, dt, dr)
 
 
+@pytest.mark.parametrize("similarity_inliers", [40, 10_000])
+def test_a_merge_by_a_similarity_has_its_own_inlier_count(world, similarity_inliers):
+    """Place recognition holds a similarity (a monocular side: 3D-3D inliers on the points its
+    local mapping triangulated) to merge_min_inliers_similarity, not to the rigid count."""
+    points, desc, kfs_a, vocab = world
+    cfg = _config()
+    cfg.place_recognition.merge_min_inliers = 10_000  # no rigid merge could pass
+    cfg.place_recognition.merge_min_inliers_similarity = similarity_inliers
+    cfg.rendezvous.auto = False  # place recognition alone
+    server = TeamServer(cfg, vocab)
+    for kf in kfs_a:
+        server.add_keyframe(kf)
+    for kf in _mono_b(points, desc, np.linspace(2.0, 3.0, 8)):
+        server.add_keyframe(kf)
+    assert len(server.merges) == (1 if similarity_inliers == 40 else 0)
+
+
 def test_monocular_keyframes_never_merge_with_an_unrelated_place(world):
     _, _, kfs_a, vocab = world
     other_points, other_desc = cylinder_world(seed=99)  # a different building

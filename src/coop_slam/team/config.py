@@ -29,6 +29,10 @@ class PlaceRecognitionConfig:
     # A merge joins two maps on one constraint, so it needs more support than a loop / in-group
     # link (which the pose graph weighs against the rest); the next keyframes usually bring it.
     merge_min_inliers: int = 60
+    # ... when a side is monocular (a similarity): its keyframes hold fewer 3D points (only what
+    # local mapping triangulated), 3D-3D inliers are counted on them alone; ORB-SLAM accepts a
+    # monocular loop on 40.
+    merge_min_inliers_similarity: int = 40
     database: DatabaseConfig = field(default_factory=DatabaseConfig)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
 
@@ -36,6 +40,10 @@ class PlaceRecognitionConfig:
         require(self.min_consecutive >= 1, "place_recognition.min_consecutive must be >= 1")
         require(self.max_verifications >= 1, "place_recognition.max_verifications must be >= 1")
         require(self.merge_min_inliers >= 1, "place_recognition.merge_min_inliers must be >= 1")
+        require(
+            self.merge_min_inliers_similarity >= 1,
+            "place_recognition.merge_min_inliers_similarity must be >= 1",
+        )
         self.database.validate()
         self.registration.validate()
 

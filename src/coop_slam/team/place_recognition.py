@@ -90,13 +90,18 @@ class PlaceRecognition:
                 continue
             budget -= 1
             res = self.verify(cand_key, key_b)
-            if res.accepted and res.n_inliers < self.config.merge_min_inliers:
+            need = (
+                self.config.merge_min_inliers
+                if res.scale == 1.0
+                else self.config.merge_min_inliers_similarity
+            )
+            if res.accepted and res.n_inliers < need:
                 log.info(
                     "place recognition %s - %s: %d inliers, fewer than a merge needs (%d)",
                     cand_key,
                     key_b,
                     res.n_inliers,
-                    self.config.merge_min_inliers,
+                    need,
                 )
             elif res.accepted and not match_is_look_alike(
                 self.store, self.rendezvous, self.scales, "place recognition", cand_key, key_b, res
