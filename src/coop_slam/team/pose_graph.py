@@ -49,6 +49,13 @@ from ..geometry import check_se3, exp_so3, invert
 from ..registration.camera import RegistrationError
 from ..registration.umeyama import umeyama
 from .map_scale import scale_translation
+from .scale_drift import (
+    SCALE_BIT,
+    is_scale_key,
+    scale_key,
+    scale_prior_factor,
+    scaled_between_factor,
+)
 
 log = logging.getLogger(__name__)
 
@@ -57,11 +64,12 @@ KIND_COVISIBLE = "covisible"
 KIND_LOOP = "loop"
 KIND_MERGE = "merge"
 KIND_PRIOR = "prior"
+KIND_SCALE_PRIOR = "scale_prior"  # a drifting map's scale at its first keyframe
 _CLIENT_KINDS = (KIND_ODOMETRY, KIND_COVISIBLE)  # measured from the client's poses
 _ROBUST_KERNELS = ("huber", "cauchy", "none")
 _MAP_ANCHORS = ("latest", "umeyama")
 _MAX_ROBOT_ID = 255 - ord("a")  # gtsam.Symbol holds one byte for the character
-_MAX_KEYFRAME_ID = (1 << 56) - 1  # and 56 bits for the index
+_MAX_KEYFRAME_ID = SCALE_BIT - 1  # and 56 bits for the index, the top one for scale variables
 
 Key = tuple[int, int]  # (robot_id, keyframe_id)
 
@@ -91,6 +99,14 @@ class PoseGraphConfig:
     isam_relinearize_threshold: float = 0.01
     isam_relinearize_skip: int = 1
     isam_extra_updates: int = 1  # extra iSAM2 iterations per incremental call
+    # Monocular maps in a metric group (see set_scale_drift and .scale_drift): a log-scale
+    # variable per keyframe; the drift between two keyframes has sigma scale_drift_sigma plus
+    # scale_drift_sigma_per_m per metre between them; the map's first keyframe is held at the
+    # map's own scale with scale_prior_sigma.
+    scale_drift: bool = True
+    scale_drift_sigma: float = 0.002
+    scale_drift_sigma_per_m: float = 0.1
+    scale_prior_sigma: float = 0.1
 
     def validate(self) -> None:
         for name in (
@@ -102,9 +118,11 @@ class PoseGraphConfig:
             "merge_trans_sigma_m",
             "prior_sigma",
             "robust_k",
+            "scale_drift_sigma",
+            "scale_prior_sigma",
         ):
             require(getattr(self, name) > 0, f"pose_graph.{name} must be > 0")
-        for name in ("odom_rot_sigma_per_m", "odom_trans_sigma_per_m"):
+        for name in ("odom_rot_sigma_per_m", "odom_trans_sigma_per_m", "scale_drift_sigma_per_m"):
             require(getattr(self, name) >= 0, f"pose_graph.{name} must be >= 0")
         require(self.max_covisible_factors >= 0, "pose_graph.max_covisible_factors must be >= 0")
         require(
@@ -171,7 +189,7 @@ def _key_of(gkey: int) -> Key:
 
 def _poses_from_values(values: gtsam.Values) -> dict[Key, np.ndarray]:
     """All Pose3 values as 4x4 arrays, converted in one call (rows follow the key order)."""
-    keys = [_key_of(k) for k in values.keys()]  # noqa: SIM118 (gtsam.Values is not iterable)
+    keys = [_key_of(k) for k in values.keys() if not is_scale_key(k)]  # noqa: SIM118 (not iterable)
     rows = gtsam.utilities.extractPose3(values)
     T = np.tile(np.eye(4), (len(keys), 1, 1))
     T[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
@@ -213,12 +231,16 @@ class TeamPoseGraph:
         self._fresh: set[Key] = set()  # keyframes no optimisation has seen yet
         self._refined: dict[Key, np.ndarray] = {}  # pose from global BA, until the client moves it
         self._values: dict[Key, np.ndarray] = {}  # current estimate T_group_cam
+        # Monocular maps whose scale may drift (see set_scale_drift): keyframe -> log scale
+        self._scale_drift: set[int] = set()
+        self._log_scale: dict[Key, float] = {}
         self._chain: dict[int, list[int]] = {}  # robot -> sorted keyframe ids
         self._map_hint: dict[int, np.ndarray] = {}  # T_group_map for a robot's first keyframe
         self._factors: dict[int, _Factor] = {}
         self._gtsam_cache: dict[int, tuple] = {}  # factor id -> (T_meas, sigmas, GTSAM factor)
         self._by_key: dict[Key, set[int]] = {}
         self._priors: dict[Key, int] = {}  # anchor keyframe -> prior factor id
+        self._scale_priors: dict[Key, int] = {}  # a drifting map's first keyframe -> factor id
         self._next_fid = 0
         # iSAM2 state: factor id -> iSAM2 slot, keys it holds, slots to remove at the next update.
         self._isam: gtsam.ISAM2 | None = None
@@ -308,13 +330,32 @@ class TeamPoseGraph:
         hundreds of factors each time was a tenth of an eight-robot server's time)."""
         f = self._factors[fid]
         cached = self._gtsam_cache.get(fid)
-        if cached is not None and cached[0] is f.T_meas and cached[1] == (f.sigmas, f.robust_k):
+        version = (f.sigmas, f.robust_k, self._drifts(f))
+        if cached is not None and cached[0] is f.T_meas and cached[1] == version:
             return cached[2]
         factor = self._make_gtsam_factor(f)
-        self._gtsam_cache[fid] = (f.T_meas, (f.sigmas, f.robust_k), factor)
+        self._gtsam_cache[fid] = (f.T_meas, version, factor)
         return factor
 
+    def _drifts(self, f: _Factor) -> bool:
+        """Whether a factor is a client factor of a map whose scale may drift."""
+        return f.kind in _CLIENT_KINDS and f.key_i[0] in self._scale_drift
+
     def _make_gtsam_factor(self, f: _Factor):
+        if self._drifts(f):
+            cfg = self.config
+            dist_m = float(np.linalg.norm(f.T_meas[:3, 3]))
+            return scaled_between_factor(
+                gtsam_key(*f.key_i),
+                gtsam_key(*f.key_j),
+                scale_key(*f.key_i),
+                scale_key(*f.key_j),
+                f.T_meas,
+                *f.sigmas,
+                cfg.scale_drift_sigma + cfg.scale_drift_sigma_per_m * dist_m,
+            )
+        if f.kind == KIND_SCALE_PRIOR:
+            return scale_prior_factor(scale_key(*f.key_i), f.sigmas[0])
         noise = self._noise(f)
         if f.key_j is None:
             return gtsam.PriorFactorPose3(gtsam_key(*f.key_i), gtsam.Pose3(f.T_meas), noise)
@@ -352,7 +393,7 @@ class TeamPoseGraph:
         if not 0 <= robot_id <= _MAX_ROBOT_ID:
             raise PoseGraphError(f"robot id {robot_id} must be in [0, {_MAX_ROBOT_ID}]")
         if not 0 <= keyframe_id <= _MAX_KEYFRAME_ID:
-            raise PoseGraphError(f"keyframe id {keyframe_id} must be in [0, 2^56)")
+            raise PoseGraphError(f"keyframe id {keyframe_id} must be in [0, 2^55)")
         key = (robot_id, keyframe_id)
         if key in self._values:
             raise PoseGraphError(
@@ -391,7 +432,11 @@ class TeamPoseGraph:
         ``ref``'s estimate (already in the graph's frame) by their client poses; without one, from
         the robot's map hint."""
         if ref is not None:
-            self._values[key] = self._values[ref] @ invert(self._client[ref]) @ self._client[key]
+            T_ref_key = invert(self._client[ref]) @ self._client[key]
+            if key[0] in self._scale_drift:
+                self._log_scale[key] = s = self._log_scale.get(ref, 0.0)
+                T_ref_key = scale_translation(T_ref_key, float(np.exp(s)))
+            self._values[key] = self._values[ref] @ T_ref_key
         else:
             self._values[key] = self._map_hint.get(key[0], np.eye(4)) @ self._client[key]
         self._fresh.add(key)
@@ -449,10 +494,12 @@ class TeamPoseGraph:
             self._client_factor(KIND_ODOMETRY, prev, nxt)
         chain.pop(pos)
         del self._values[key], self._client[key]
+        self._log_scale.pop(key, None)
         self._fresh.discard(key)
         self._refined.pop(key, None)
         self._by_key.pop(key, None)
         self._priors.pop(key, None)
+        self._scale_priors.pop(key, None)
         # iSAM2 cannot drop a variable: rebuild it at the next optimisation.
         self._rebuild = True
 
@@ -509,10 +556,32 @@ class TeamPoseGraph:
                 self._client_factor(f.kind, f.key_i, f.key_j)
             elif f.kind == KIND_PRIOR:
                 f.T_meas = self._values[f.key_i].copy()
+            elif f.kind == KIND_SCALE_PRIOR:
+                continue
             elif f.key_j[0] in robots and (f.kind == KIND_LOOP or not about_maps):
                 f.T_meas = scale_translation(f.T_meas, factor)
                 f.sigmas = (f.sigmas[0], f.sigmas[1] * factor)
         self._rebuild = True
+
+    def set_scale_drift(self, robot_id: int, on: bool) -> None:
+        """Whether a robot's map may drift in scale (a monocular map placed in a metric group, see
+        :mod:`.scale_drift`); off by config (``scale_drift``). Turning it off keeps the local
+        scales the optimizations found in the estimate, not in later measurements."""
+        robot_id = int(robot_id)
+        on = bool(on) and self.config.scale_drift
+        if on == (robot_id in self._scale_drift):
+            return
+        if on:
+            self._scale_drift.add(robot_id)
+        else:
+            self._scale_drift.discard(robot_id)
+            for k in [k for k in self._log_scale if k[0] == robot_id]:
+                del self._log_scale[k]
+        self._rebuild = True
+
+    def local_scale(self, robot_id: int, keyframe_id: int) -> float:
+        """A keyframe's map lengths in the graph against its map's (1 unless its scale drifts)."""
+        return float(np.exp(self._log_scale.get(self._check_key(robot_id, keyframe_id), 0.0)))
 
     # --- constraints ------------------------------------------------------------------------------
     def _sigmas(self, rot, trans, default_rot, default_trans) -> tuple[float, float]:
@@ -639,6 +708,15 @@ class TeamPoseGraph:
             self._priors[k] = self._add_factor(
                 _Factor(KIND_PRIOR, k, None, self._values[k].copy(), (s, s))
             )
+        wanted = {(r, self._chain[r][0]) for r in self._scale_drift if self._chain.get(r)}
+        for k in [k for k in self._scale_priors if k not in wanted]:
+            self._drop_factor(self._scale_priors.pop(k))
+            removed = True
+        s = self.config.scale_prior_sigma
+        for k in wanted - set(self._scale_priors):
+            self._scale_priors[k] = self._add_factor(
+                _Factor(KIND_SCALE_PRIOR, k, None, None, (s, s))
+            )
         return removed
 
     # --- optimisation -----------------------------------------------------------------------------
@@ -652,7 +730,17 @@ class TeamPoseGraph:
         values = gtsam.Values()
         for k in keys:
             values.insert(gtsam_key(*k), gtsam.Pose3(self._values[k]))
+            if k[0] in self._scale_drift:
+                values.insert(scale_key(*k), float(self._log_scale.get(k, 0.0)))
         return values
+
+    def _read_log_scales(self, values: gtsam.Values) -> None:
+        for k in self._values:
+            if k[0] in self._scale_drift:
+                s = values.atDouble(scale_key(*k))
+                if not np.isfinite(s):
+                    raise RuntimeError(f"the result holds a non-finite scale (keyframe {k})")
+                self._log_scale[k] = float(s)
 
     def optimize_full(self) -> OptimizationStats:
         """Batch Levenberg-Marquardt over the whole graph from the current estimate (after a merge
@@ -674,6 +762,7 @@ class TeamPoseGraph:
                 stats.error_before = _finite_error(graph.error(initial), "before")
                 stats.error_after = _finite_error(graph.error(result), "after")
                 poses = _finite_poses(result)
+                self._read_log_scales(result)
             except RuntimeError as exc:  # GTSAM's exceptions arrive as RuntimeError
                 self._step_failed("full", exc)
             stats.iterations = int(optimizer.iterations())
@@ -713,7 +802,9 @@ class TeamPoseGraph:
                 stats.error_after = _finite_error(result.getErrorAfter(), "after")
                 for _ in range(self.config.isam_extra_updates):
                     stats.error_after = _finite_error(self._isam.update().getErrorAfter(), "after")
-                poses = _finite_poses(self._isam.calculateEstimate())
+                estimate = self._isam.calculateEstimate()
+                poses = _finite_poses(estimate)
+                self._read_log_scales(estimate)
             except RuntimeError as exc:
                 self._step_failed("incremental", exc)
             for fid, slot in zip(new_fids, result.getNewFactorsIndices()):

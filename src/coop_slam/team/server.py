@@ -481,6 +481,9 @@ class TeamServer:
         self._since_optimize = self._updates_since = 0
         self.stitcher.need_full = False
         self.map_moved = True
+        for m in self.graph.robots:
+            # Metres reach a monocular map's keyframes through its links: its scale may drift.
+            self.graph.set_scale_drift(m, self.scales.is_mono(m) and self.scales.is_metric(m))
         try:
             stats = self.graph.optimize_full() if full else self.graph.optimize_incremental()
         except (PoseGraphError, RuntimeError) as exc:
