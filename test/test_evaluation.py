@@ -355,3 +355,45 @@ def test_bandwidth_gives_uplink_and_downlink_per_robot():
     assert _downlink_kBps(run, 1) == pytest.approx(1.0)
     assert _downlink_kBps(run, 2) is None  # nothing recorded: unknown, not zero
     assert bw["downlink_per_robot_kBps"] == pytest.approx(1.0)
+
+
+def test_a_similarity_merge_is_judged_against_the_maps_scale_around_its_keyframes():
+    """Two monocular maps: robot 1's unit is 2 m; robot 2's scale drifts from 1 to 1.5 m per unit
+    along its path. A merge whose scale is the true ratio at the matched keyframes is right
+    there (local_scale_err), while the whole paths' ratio holds robot 2's drift (scale_err)."""
+    pytest.importorskip("rosbag")
+    from coop_slam.evaluation.run_report import RobotRun, RunData, evaluate_run
+
+    stamps, gt = _circle(40)
+    metres_per_unit = {1: np.full(40, 2.0), 2: np.linspace(1.0, 1.5, 40)}
+    run, gts = RunData(), {}
+    for rid, unit in metres_per_unit.items():
+        est = gt.copy()
+        est[:, :3, 3] /= unit[:, None]
+        kfs = {k: (stamps[k], est[k]) for k in range(40)}
+        run.robots[rid] = RobotRun(
+            frames=40, keyframes=kfs, keyframe_stamps=dict(enumerate(stamps)), sensor="mono"
+        )
+        gts[rid] = (stamps, gt)
+    k1, k2 = 5, 30
+    run.merges.append(
+        {
+            "type": "place_recognition",
+            "robot_a": 1,
+            "robot_b": 2,
+            "keyframe_a": k1,
+            "keyframe_b": k2,
+            "keyframe_stamps": {"a": stamps[k1], "b": stamps[k2]},
+            "stamp_s": stamps[k2],
+            "T_mapA_mapB": np.eye(4),
+            "T_camA_camB": np.eye(4),
+            "scale": metres_per_unit[2][k2] / metres_per_unit[1][k1],
+        }
+    )
+    merge = evaluate_run(run, gts)["merges"][0]
+    assert abs(merge["local_scale_err"]) < 0.01, merge
+    assert merge["scale_err"] > 0.05, merge  # robot 2's whole path is on average smaller
+    # A merge off by 4 % at its keyframes is seen as such.
+    run.merges[0]["scale"] *= 1.04
+    merge = evaluate_run(run, gts)["merges"][0]
+    assert merge["local_scale_err"] == pytest.approx(0.04, abs=0.01)

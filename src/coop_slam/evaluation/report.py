@@ -53,6 +53,10 @@ MERGE_KEYS = (
     "latency_s",
     "local_trans_err_m",
     "local_rot_err_deg",
+    # A merge by a similarity (a monocular side): its scale against the true ratio of the two
+    # maps' units over their whole paths, and around the matched keyframes (relative, signed)
+    "scale_err",
+    "local_scale_err",
 )
 TOP_KEYS = (
     "robots",
@@ -173,7 +177,10 @@ def render_markdown(report: dict) -> str:
             "keyframes' relative pose); `latency_s` from the first co-observation of one scene "
             "(rendezvous) or first revisit (place recognition) in the ground truth, whose view "
             "model counts a surface as shared only when seen from similar directions (within "
-            "about 22 deg): a negative latency is a verified merge on a view it does not count.",
+            "about 22 deg): a negative latency is a verified merge on a view it does not count. "
+            "`scale_err` / `local_scale_err` of a merge by a similarity (a monocular side): its "
+            "scale against the true ratio of the maps' units over their whole paths / around the "
+            "matched keyframes.",
             "",
             "| " + " | ".join(MERGE_KEYS) + " |",
             "|" + "---|" * len(MERGE_KEYS),

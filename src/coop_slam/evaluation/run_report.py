@@ -160,24 +160,71 @@ def _robot_accuracy(entry: dict, r: RobotRun, rid: int, gts: dict, world_metric:
     return None, res
 
 
-def _merge_units(run: RunData, sensors: dict) -> list[float | None]:
-    """Per merge (in order), the true length of one unit of its ``T_camA_camB``: 1 when either
-    side had a robot with depth (the server rescales a monocular side into metres), else the
-    metric scale of the first side's units (its unit robot's Sim(3) scale to ground truth) when
-    known; the server keeps a group of monocular maps in the units of the first side's group."""
-    unit_robot = {r: r for r in run.robots}  # robot -> robot whose own units its group uses
+def _merge_units(run: RunData, sensors: dict) -> list[tuple]:
+    """Per merge (in order), the true length (metres) of one unit of its ``T_camA_camB`` and of
+    each side's map just before it, as ``1.0`` (metres) or ``("unit", robot)`` (that monocular
+    robot's own units, whose length its Sim(3) ATE gives): a group with a robot with depth is
+    metric (the server rescales a monocular side into metres), a group of monocular maps keeps
+    the units of the first side's group. Rescales by marker sightings are not followed."""
+    units = {r: 1.0 if sensors.get(r) != "mono" else ("unit", r) for r in run.robots}
     group = {r: {r} for r in run.robots}
     out = []
     for m in run.merges:
         a, b = m["robot_a"], m["robot_b"]
         ga, gb = group.get(a, {a}), group.get(b, {b})
-        metric = any(sensors.get(x) != "mono" for x in ga | gb)
-        out.append(1.0 if metric else ("unit", unit_robot.get(a, a)))
+        unit_a = units.get(a, 1.0 if sensors.get(a) != "mono" else ("unit", a))
+        unit_b = units.get(b, 1.0 if sensors.get(b) != "mono" else ("unit", b))
+        after = 1.0 if 1.0 in (unit_a, unit_b) else unit_a
+        out.append((after, unit_a, unit_b))
         merged = ga | gb
         for x in merged:
             group[x] = merged
-            unit_robot[x] = unit_robot.get(a, a)
+            units[x] = after
     return out
+
+
+def _merge_scale_errors(m: dict, unit_a, unit_b, run: RunData, gts: dict, true_scale: dict):
+    """A similarity merge's scale (b's lengths into a's) against the true ratio of the two maps'
+    units (see :func:`_merge_units`): their whole paths' (scale drift inside a map enters) and
+    around the matched keyframes; each None when unknown."""
+
+    def length(unit, side: str, local: bool) -> float | None:
+        if unit == 1.0:
+            return 1.0
+        robot = m[f"robot_{side}"]
+        if not local:
+            return true_scale.get(unit[1])
+        if unit[1] != robot or robot not in gts:
+            return None  # the units are another robot's: no local truth at this keyframe
+        r = run.robots.get(robot, RobotRun())
+        return _local_scale(r, gts[robot], m[f"keyframe_{side}"], MERGE_SCALE_HALF_WINDOW)
+
+    out = []
+    for local in (False, True):
+        la, lb = length(unit_a, "a", local), length(unit_b, "b", local)
+        out.append(m["scale"] * la / lb - 1.0 if la and lb else None)
+    return tuple(out)
+
+
+# Keyframes each side of a merge's matched keyframe whose alignment gives the map's true local scale
+MERGE_SCALE_HALF_WINDOW = 7
+
+
+def _local_scale(r: RobotRun, gt: tuple, keyframe_id: int, half_window: int) -> float | None:
+    """True metres per unit of a monocular map around one of its keyframes: the Sim(3) alignment
+    of its ``2 half_window + 1`` keyframes nearest in time to ground truth. A merge's similarity
+    comes from the map points around its matched keyframes, so scale drift elsewhere in the map
+    does not enter its error."""
+    stamp = r.keyframe_stamps.get(keyframe_id)
+    if stamp is None or not r.keyframes:
+        return None
+    stamps, poses = _kf_arrays(r)
+    i = int(np.searchsorted(stamps, stamp))
+    lo, hi = max(0, i - half_window), min(len(stamps), i + half_window + 1)
+    try:
+        return ate(stamps[lo:hi], poses[lo:hi], *gt, correct_scale=True).scale
+    except EvaluationError:
+        return None
 
 
 def evaluate_run(
@@ -293,6 +340,8 @@ def evaluate_run(
             "trans_err_m": None,
             "rot_err_deg": None,
             "latency_s": None,
+            "scale_err": None,
+            "local_scale_err": None,
         }
         # A map transform is judged for robots' first map segments (their maps as placed
         # against ground truth); a later segment's merge at its keyframes (local) only.
@@ -304,10 +353,18 @@ def evaluate_run(
             entry["trans_err_m"], entry["rot_err_deg"] = merge_error(
                 m["T_mapA_mapB"], T_world_map_gt[a], T_world_map_gt[b]
             )
+        unit, unit_a, unit_b = unit
+        if m.get("scale") is not None and (unit_a != 1.0 or unit_b != 1.0):
+            entry["scale_err"], entry["local_scale_err"] = _merge_scale_errors(
+                m, unit_a, unit_b, run, gts, true_scale
+            )
+        metric = m
         if unit != 1.0:  # between monocular maps only: in the first side's units
             unit = true_scale.get(unit[1])
-            m = dict(m, T_camA_camB=scale_translation(m["T_camA_camB"], unit)) if unit else None
-        local = _local_merge_error(m, run, gts) if m is not None else None
+            metric = (
+                dict(m, T_camA_camB=scale_translation(m["T_camA_camB"], unit)) if unit else None
+            )
+        local = _local_merge_error(metric, run, gts) if metric is not None else None
         entry["local_trans_err_m"], entry["local_rot_err_deg"] = local if local else (None, None)
         first = _first_evidence(overlap, m["type"], a, b)
         if first is not None:

@@ -189,6 +189,7 @@ class RunRecorder:
                 "stamp_s": msg.header.stamp.to_sec(),
                 "T_mapA_mapB": transform_from_msg(msg.T_mapA_mapB),
                 "T_camA_camB": transform_from_msg(msg.T_camA_camB),
+                "scale": getattr(msg, "scale", None),  # not in bags recorded before it
             }
         )
 

@@ -666,6 +666,7 @@ class ServerNode:
             T_camA_camB=transform_to_msg(m.T_camA_camB),
             inliers=m.inliers,
             residual_px=m.residual_px,
+            scale=m.scale,
             group=sorted({self.server.robot_of(r) for r in m.group}),
         )
         msg.header.stamp = rospy.Time.from_sec(max(m.stamp_s, now_s))
@@ -692,6 +693,7 @@ class ServerNode:
                 T_camA_camB=transform_to_msg(c.T_camA_camB),
                 inliers=c.inliers,
                 residual_px=c.residual_px,
+                scale=1.0,
                 group=sorted({self.server.robot_of(r) for r in self.server.groups.members(ra)}),
             )
             msg.header.stamp = stamp

@@ -107,6 +107,7 @@ def summary(server, rejected: int = 0) -> dict:
                 "keyframes": [m.keyframe_a, m.keyframe_b],
                 "inliers": m.inliers,
                 "stamp_s": round(m.stamp_s, 3),
+                "scale": round(m.scale, 5),
             }
             for m in server.merges
         ],
@@ -182,6 +183,7 @@ def judge(server, stamps: dict, gts: dict) -> dict:
         kind = "loop" if c.key_a[0] == c.key_b[0] else "link"
         out[f"{kind}_errors_cm_deg"].append(error(c.key_a, c.key_b, c.T_camA_camB))
     own, est = [], {}
+    metric = False  # a world of monocular maps only has no metric scale (aligned with Sim(3))
     for mid in server.store.robots():  # map ids: a robot's map segments apart
         robot = server.robot_of(mid)
         keys = sorted(server.store.keyframe_ids(mid))
@@ -197,6 +199,7 @@ def judge(server, stamps: dict, gts: dict) -> dict:
         except EvaluationError:
             pass
         if server.in_world(mid):
+            metric = metric or server.is_metric(mid)
             poses = np.array([server.T_group_cam(mid, k) for k in keys])
             if robot in est:  # another segment of the robot in the world group
                 t = np.concatenate([est[robot][0], t])
@@ -210,7 +213,8 @@ def judge(server, stamps: dict, gts: dict) -> dict:
         round(100 * float(np.sqrt(sum(e**2 * c for e, c in own) / n)), 2) if n else None
     )
     try:
-        out["team_ate_cm"] = round(100 * team_ate(est, gts).rmse_m, 2) if est else None
+        team = team_ate(est, gts, correct_scale=not metric) if est else None
+        out["team_ate_cm"] = round(100 * team.rmse_m, 2) if team else None
     except EvaluationError:
         out["team_ate_cm"] = None
     return out
@@ -269,7 +273,7 @@ def main(argv=None) -> int:
     for m in result["merges"]:
         print(
             f"[replay] merge {m['type']}: robots {m['robots']} keyframes {m['keyframes']} "
-            f"({m['inliers']} inliers) at {m['stamp_s']:.2f} s"
+            f"({m['inliers']} inliers, scale {m.get('scale', 1.0):.4f}) at {m['stamp_s']:.2f} s"
         )
     print(
         f"[replay] {len(result['constraints'])} constraints "
