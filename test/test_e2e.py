@@ -82,6 +82,22 @@ def test_a_stereo_and_an_rgbd_robot_build_one_map(tmp_path):
     assert rgbd[0] == SENSORS.index("rgbd")
 
 
+def test_a_monocular_robot_joins_an_rgbd_one_in_metres(tmp_path):
+    """A mixed team on the revisit world: robot 1 carries a monocular camera (a map without
+    metric scale), robot 2 an RGB-D one. They merge by a similarity; the server then holds robot
+    1's map in metres (its scale within 2 %) and the team map is metric."""
+    report, log, _ = _demo(tmp_path, "--scenario", "revisit", "--sensors", "mono,rgbd")
+    assert report["groups"] == [[1, 2]], log
+    assert report["wrong_merges"] == 0
+    merge = report["merges"][0]
+    assert abs(merge["scale_err"]) < 0.03, merge  # the similarity, before any link refined it
+    mono, rgbd = report["robots"]
+    assert (mono["sensor"], rgbd["sensor"]) == ("mono", "rgbd")
+    assert mono["ate_rmse_m"] is None and mono["ate_sim3_rmse_m"] < 0.01 * mono["path_length_m"]
+    assert abs(mono["scale_error"]) < 0.02, mono
+    assert report["team_ate_rmse_m"] < 0.02
+
+
 def _server_config(tmp_path, **sections) -> str:
     import yaml
 
