@@ -284,3 +284,28 @@ def test_results_table_names_faults_sessions_and_live_runs():
     assert describe({"scenario": "team", "low_bandwidth": True}) == (
         "`--scenario team --low-bandwidth`"
     )
+
+
+def test_results_table_gives_a_monocular_robots_sim3_ate_and_scale_errors():
+    from coop_slam.tools.results_table import row
+
+    report = {
+        "robots": [
+            {"sensor": "rgbd", "ate_rmse_m": 0.003},
+            {"sensor": "mono", "ate_rmse_m": None, "ate_sim3_rmse_m": 0.008, "scale_error": 0.0073},
+        ],
+        "merges": [
+            {
+                "type": "place_recognition",
+                "robots": [1, 2],
+                "latency_s": 1.6,
+                "local_trans_err_m": 0.02,
+                "local_rot_err_deg": 0.25,
+                "scale_err": -0.0074,
+                "local_scale_err": 0.012,
+            }
+        ],
+    }
+    cells = row(report, {"scenario": "team"})
+    assert cells[3] == "0.30 / 0.80 (Sim3, scale +0.7 %)"
+    assert cells[6].endswith("scale -0.7 % (+1.2 % local)")

@@ -75,6 +75,17 @@ def describe(info: dict) -> str:
     return f"`{what}`"
 
 
+def _robot_ate(robot: dict) -> str:
+    """A robot's own ATE [cm]; a monocular robot's Sim(3)-aligned one, with its map's scale error
+    in the team map once it has one."""
+    if robot.get("sensor") != "mono":
+        return _cm(robot.get("ate_rmse_m"))
+    out = f"{_cm(robot.get('ate_sim3_rmse_m'))} (Sim3"
+    if robot.get("scale_error") is not None:
+        out += f", scale {100 * robot['scale_error']:+.1f} %"
+    return out + ")"
+
+
 def row(report: dict, info: dict) -> list[str]:
     robots = report.get("robots") or []
     merges = []
@@ -84,6 +95,11 @@ def row(report: dict, info: dict) -> list[str]:
             if m.get("local_trans_err_m") is not None
             else "–"
         )
+        if m.get("scale_err") is not None:  # a similarity: its scale error (local where known)
+            local = m.get("local_scale_err")
+            err += f", scale {100 * m['scale_err']:+.1f} %" + (
+                f" ({100 * local:+.1f} % local)" if local is not None else ""
+            )
         merges.append(f"{m['type']} {m['robots']}: {_num(m.get('latency_s'))}, {err}")
     means = [r.get("track_ms_mean") for r in robots if r.get("track_ms_mean") is not None]
     p95s = [r.get("track_ms_p95") for r in robots if r.get("track_ms_p95") is not None]
@@ -93,7 +109,7 @@ def row(report: dict, info: dict) -> list[str]:
         describe(info),
         info.get("commit") or "–",
         str(len(robots)),
-        " / ".join(_cm(r.get("ate_rmse_m")) for r in robots),
+        " / ".join(_robot_ate(r) for r in robots),
         _cm(report.get("single_ate_pooled_m")),
         _cm(report.get("team_ate_rmse_m")),
         "<br>".join(merges) or "none",
