@@ -176,3 +176,32 @@ def test_sightings_of_a_metric_robots_marker_fix_a_monocular_maps_scale(world):
         server.sighting(2, 1, float(t), T_camA_bodyB, T_body_cam)
     assert server.is_metric(2) and server.groups.groups() == [[1], [2]]
     assert server.map_scale(2) == pytest.approx(1 / UNITS_PER_M, rel=0.02)
+
+
+def test_the_team_cloud_follows_a_monocular_keyframes_local_scale(world):
+    """Once a monocular map is metric its scale may drift in the team graph: each keyframe's
+    points are drawn at its local scale about its camera."""
+    points, desc, kfs_a, vocab = world
+    cfg = _config()
+    cfg.fuse_radius_m = 0.0  # robot 2's points stay its own (fused ones are drawn once)
+    server = TeamServer(cfg, vocab)
+    for kf in kfs_a:
+        server.add_keyframe(kf)
+    for kf in _mono_b(points, desc, np.linspace(2.0, 3.0, 8)):
+        server.add_keyframe(kf)
+    assert server.groups.groups() == [[1, 2]]
+    server.optimize()
+    assert server.graph._scale_drift == {2}  # metric by the merge: its scale may now drift
+
+    def camera_distances():
+        cloud, _, robots = server.team_cloud()
+        centres = np.array(
+            [server.T_group_cam(*k)[:3, 3] for k in server.store.keys() if k[0] == 2]
+        )
+        mine = cloud[robots == 2]
+        return np.median(np.min(np.linalg.norm(mine[:, None] - centres[None], axis=2), axis=1))
+
+    before = camera_distances()
+    for key in [k for k in server.store.keys() if k[0] == 2]:
+        server.graph._log_scale[key] = np.log(0.5)
+    assert camera_distances() == pytest.approx(0.5 * before, rel=0.15)

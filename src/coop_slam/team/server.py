@@ -596,6 +596,14 @@ class TeamServer:
             rec = self.store.record((robot_id, keyframe_id))
             return self.groups.T_root_map(robot_id) @ rec.T_map_cam
 
+    def local_scale(self, robot_id: int, keyframe_id: int) -> float:
+        """A keyframe's lengths in the team map against its map's (see
+        :meth:`.pose_graph.TeamPoseGraph.local_scale`; 1 outside the pose graph)."""
+        try:
+            return self.graph.local_scale(robot_id, keyframe_id)
+        except PoseGraphError:
+            return 1.0
+
     def optimized_keyframes(self, robot_id: int) -> dict[int, np.ndarray]:
         """keyframe id -> T_group_cam of every stored keyframe of a robot."""
         return {k: self.T_group_cam(robot_id, k) for k in self.store.keyframe_ids(robot_id)}
@@ -665,4 +673,5 @@ class TeamServer:
             self.T_group_cam,
             cfg.fuse_radius_m,
             cfg.cloud_voxel_m,
+            self.local_scale,
         )

@@ -68,15 +68,20 @@ def team_cloud(
     T_group_cam: PoseOf,
     fuse_radius_m: float,
     voxel_m: float,
+    local_scale: Callable[[int, int], float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Stitched cloud: points (N, 3) in the view frame, rgb (N, 3) uint8 per robot, robot ids
-    (N,). Each keyframe's points move with its optimized pose, duplicates of overlapping maps are
-    fused, the result voxel-downsampled."""
+    (N,). Each keyframe's points move with its optimized pose (and, for a monocular map whose
+    scale the team graph lets drift, with its ``local_scale`` about the camera), duplicates of
+    overlapping maps are fused, the result voxel-downsampled."""
     if not records:
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int64)
 
     def T_view_map_of(rec):
         T = T_group_cam(rec.robot_id, rec.keyframe_id)
+        s = 1.0 if local_scale is None else local_scale(rec.robot_id, rec.keyframe_id)
+        if s != 1.0:
+            T = T @ np.diag([s, s, s, 1.0])
         return offsets[rec.robot_id] @ T @ invert(rec.T_map_cam)
 
     points, robots, ids = gather_map_points(records, T_view_map_of, per_keyframe=True)
