@@ -8,8 +8,8 @@ its smallest robot id, matching :mod:`coop_slam.team.groups`, so the component h
 ``world``. Variable keys are ``gtsam.Symbol(chr(ord('a') + robot_id), keyframe_id)``, so all robots
 live in one graph.
 
-Factors (all ``BetweenFactorPose3`` measuring ``T_cami_camj = X_i^-1 X_j``, sigmas rotation first
-as in GTSAM's Pose3 tangent space):
+Factors (``BetweenFactorPose3`` measuring ``T_cami_camj = X_i^-1 X_j`` unless said, sigmas
+rotation first as in GTSAM's Pose3 tangent space):
 
 - odometry: between a robot's keyframes that are neighbours in keyframe-id order, measured from
   the client's poses ``T_map_cam_i^-1 T_map_cam_j``; sigmas grow with the distance between them.
@@ -17,6 +17,9 @@ as in GTSAM's Pose3 tangent space):
   client's local structure. Both are rebuilt whenever the client moves a keyframe (local BA).
 - loop (intra-robot) and merge (inter-robot) constraints from place recognition / rendezvous, with
   a robust kernel (Cauchy by default) so one wrong constraint cannot wreck the map.
+- a monocular map placed in a metric group (``set_scale_drift``) has one more variable per
+  keyframe, its log scale, and its odometry / covisible factors measure the translation times the
+  local scale, with a random walk of the scale (see :mod:`.scale_drift`; one weak prior per map).
 - gauge priors: one stiff prior per connected component, on the first keyframe of its smallest
   robot, at that keyframe's estimate when the prior was created (for a component's first keyframe
   that is ``T_group_map_hint @ T_map_cam``, i.e. the client's own pose for a group root).
