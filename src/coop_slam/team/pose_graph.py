@@ -303,6 +303,10 @@ class TeamPoseGraph:
         cfg = self.config
         if key_i in self._refined and key_j in self._refined:
             T_i_j = invert(self._refined[key_i]) @ self._refined[key_j]
+            if key_i[0] in self._scale_drift:
+                # Refined poses hold the local scale; the factor applies it to map units.
+                s = 0.5 * (self._log_scale.get(key_i, 0.0) + self._log_scale.get(key_j, 0.0))
+                T_i_j = scale_translation(T_i_j, float(np.exp(-s)))
         else:
             T_i_j = invert(self._client[key_i]) @ self._client[key_j]
         dist_m = float(np.linalg.norm(T_i_j[:3, 3]))
