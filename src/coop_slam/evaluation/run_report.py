@@ -166,14 +166,17 @@ def _merge_units(run: RunData, sensors: dict) -> list[tuple]:
     robot's own units, whose length its Sim(3) ATE gives): a group with a robot with depth is
     metric (the server rescales a monocular side into metres), a group of monocular maps keeps
     the units of the first side's group. Rescales by marker sightings are not followed."""
-    units = {r: 1.0 if sensors.get(r) != "mono" else ("unit", r) for r in run.robots}
+
+    def own(robot):
+        return 1.0 if sensors.get(robot) != "mono" else ("unit", robot)
+
+    units = {r: own(r) for r in run.robots}
     group = {r: {r} for r in run.robots}
     out = []
     for m in run.merges:
         a, b = m["robot_a"], m["robot_b"]
         ga, gb = group.get(a, {a}), group.get(b, {b})
-        unit_a = units.get(a, 1.0 if sensors.get(a) != "mono" else ("unit", a))
-        unit_b = units.get(b, 1.0 if sensors.get(b) != "mono" else ("unit", b))
+        unit_a, unit_b = units.get(a, own(a)), units.get(b, own(b))
         after = 1.0 if 1.0 in (unit_a, unit_b) else unit_a
         out.append((after, unit_a, unit_b))
         merged = ga | gb

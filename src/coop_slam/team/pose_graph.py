@@ -705,26 +705,32 @@ class TeamPoseGraph:
             a = anchors.get(c)
             if a is None or k < a:  # (robot, keyframe) order: smallest robot, then first keyframe
                 anchors[c] = k
-        wanted = set(anchors.values())
-        removed = False
-        for k in [k for k in self._priors if k not in wanted]:
-            self._drop_factor(self._priors.pop(k))
-            removed = True
         s = self.config.prior_sigma
-        for k in wanted - set(self._priors):
-            self._priors[k] = self._add_factor(
-                _Factor(KIND_PRIOR, k, None, self._values[k].copy(), (s, s))
+        removed = self._sync_anchored(
+            self._priors,
+            set(anchors.values()),
+            lambda k: _Factor(KIND_PRIOR, k, None, self._values[k].copy(), (s, s)),
+        )
+        # A drifting map's scale: held at its first keyframe.
+        s_scale = self.config.scale_prior_sigma
+        return (
+            self._sync_anchored(
+                self._scale_priors,
+                {(r, self._chain[r][0]) for r in self._scale_drift if self._chain.get(r)},
+                lambda k: _Factor(KIND_SCALE_PRIOR, k, None, None, (s_scale, s_scale)),
             )
-        wanted = {(r, self._chain[r][0]) for r in self._scale_drift if self._chain.get(r)}
-        for k in [k for k in self._scale_priors if k not in wanted]:
-            self._drop_factor(self._scale_priors.pop(k))
-            removed = True
-        s = self.config.scale_prior_sigma
-        for k in wanted - set(self._scale_priors):
-            self._scale_priors[k] = self._add_factor(
-                _Factor(KIND_SCALE_PRIOR, k, None, None, (s, s))
-            )
-        return removed
+            or removed
+        )
+
+    def _sync_anchored(self, priors: dict[Key, int], wanted: set[Key], make) -> bool:
+        """Prior factors (anchor keyframe -> factor id) on exactly the ``wanted`` keyframes, new
+        ones from ``make(key)``; True if one had to go."""
+        gone = [k for k in priors if k not in wanted]
+        for k in gone:
+            self._drop_factor(priors.pop(k))
+        for k in wanted - set(priors):
+            priors[k] = self._add_factor(make(k))
+        return bool(gone)
 
     # --- optimisation -----------------------------------------------------------------------------
     def _graph(self, fids) -> gtsam.NonlinearFactorGraph:
@@ -741,13 +747,16 @@ class TeamPoseGraph:
                 values.insert(scale_key(*k), float(self._log_scale.get(k, 0.0)))
         return values
 
-    def _read_log_scales(self, values: gtsam.Values) -> None:
+    def _read_log_scales(self, values: gtsam.Values) -> dict[Key, float]:
+        """The drifting maps' log scales of an optimizer's result; RuntimeError if one is not
+        finite (as :func:`_finite_poses`)."""
+        out = {}
         for k in self._values:
             if k[0] in self._scale_drift:
-                s = values.atDouble(scale_key(*k))
-                if not np.isfinite(s):
+                out[k] = float(values.atDouble(scale_key(*k)))
+                if not np.isfinite(out[k]):
                     raise RuntimeError(f"the result holds a non-finite scale (keyframe {k})")
-                self._log_scale[k] = float(s)
+        return out
 
     def optimize_full(self) -> OptimizationStats:
         """Batch Levenberg-Marquardt over the whole graph from the current estimate (after a merge
@@ -769,11 +778,12 @@ class TeamPoseGraph:
                 stats.error_before = _finite_error(graph.error(initial), "before")
                 stats.error_after = _finite_error(graph.error(result), "after")
                 poses = _finite_poses(result)
-                self._read_log_scales(result)
+                log_scales = self._read_log_scales(result)
             except RuntimeError as exc:  # GTSAM's exceptions arrive as RuntimeError
                 self._step_failed("full", exc)
             stats.iterations = int(optimizer.iterations())
             self._values.update(poses)
+            self._log_scale.update(log_scales)
         self._fresh.clear()
         self._reset_isam()
         self._rebuild = False
@@ -811,7 +821,7 @@ class TeamPoseGraph:
                     stats.error_after = _finite_error(self._isam.update().getErrorAfter(), "after")
                 estimate = self._isam.calculateEstimate()
                 poses = _finite_poses(estimate)
-                self._read_log_scales(estimate)
+                log_scales = self._read_log_scales(estimate)
             except RuntimeError as exc:
                 self._step_failed("incremental", exc)
             for fid, slot in zip(new_fids, result.getNewFactorsIndices()):
@@ -821,6 +831,7 @@ class TeamPoseGraph:
             self._isam_remove.clear()
             stats.iterations = 1 + self.config.isam_extra_updates
             self._values.update(poses)
+            self._log_scale.update(log_scales)
         stats.time_ms = 1e3 * (time.perf_counter() - t0)
         self.stats = stats
         return stats
