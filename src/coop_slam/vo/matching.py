@@ -134,8 +134,9 @@ def search_by_projection(
     if len(pi) == 0:
         return empty
     dist = hamming_rows(point_desc[proj.index[pi]], frame.descriptors[kj])
-    # Best and second best keypoint of each point.
-    order = np.lexsort((dist, pi))
+    # Best and second best keypoint of each point: pairs by point, then distance (a stable sort of
+    # one integer key: the same order as lexsort((dist, pi)), twice as fast).
+    order = np.argsort(pi * 1024 + dist, kind="stable")
     pi, kj, dist = pi[order], kj[order], dist[order]
     first = np.r_[True, pi[1:] != pi[:-1]]
     has_second = np.r_[~first[1:], False]  # the next pair belongs to the same point

@@ -4,22 +4,16 @@ Residuals are (u, v) for keypoints without depth and (u, v, u_right) for keypoin
 ``u_right = u - bf / z`` is the column in a virtual right camera (``bf`` = fx * virtual baseline),
 so depth enters as a pixel-like residual with the same octave-dependent weight. A Huber kernel in
 the first rounds, then outliers are classified by a chi-square gate after each round and left out of
-the next one (they can come back). A few hundred correspondences take well under a millisecond per
-Gauss-Newton iteration because the normal equations are built with one einsum.
+the next one (they can come back). Tracking calls it twice per frame, so the Gauss-Newton step is
+built for the interpreter's sake: all residual rows (u of every keypoint, v of every keypoint,
+u_right of those with depth) in one array, the Jacobian rows filled in place into one
+preallocated matrix, and the normal equations from one weighted product.
 """
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
-
-
-def _rodrigues(phi: np.ndarray) -> np.ndarray:
-    theta = float(np.linalg.norm(phi))
-    if theta < 1e-12:
-        return np.eye(3)
-    k = phi / theta
-    Kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(theta) * Kx + (1.0 - np.cos(theta)) * (Kx @ Kx)
 
 
 def optimize_pose(
@@ -45,64 +39,71 @@ def optimize_pose(
     if n < 3:
         return T, np.zeros(n, bool)
     P = np.asarray(points_map, dtype=float)
-    mu, mv = uv_px[:, 0].astype(float), uv_px[:, 1].astype(float)
-    stereo = np.isfinite(u_right_px)
-    s3 = stereo.astype(float)
-    mur = np.where(stereo, u_right_px, 0.0)
-    chi2 = np.where(stereo, chi2_stereo, chi2_mono)
+    uv = np.asarray(uv_px, dtype=float)
+    u_right = np.asarray(u_right_px, dtype=float)
+    info = np.asarray(info, dtype=float)
+    st = np.flatnonzero(np.isfinite(u_right))  # keypoints with depth: a third residual row
+    measured = np.concatenate([uv[:, 0], uv[:, 1], u_right[st]])
+    chi2 = np.full(n, chi2_mono)
+    chi2[st] = chi2_stereo
     delta = np.sqrt(chi2)
     inlier = np.ones(n, bool)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    rows = 2 * n + len(st)
+    J = np.zeros((rows, 6))  # d(u; v; u_right) / d xi, xi = (rho, phi): T <- Exp(xi) T
+    Ju, Jv, Jr = J[:n], J[n : 2 * n], J[2 * n :]
+    predicted = np.empty(rows)
+    w_rows = np.empty(rows)
+    R, t = T[:3, :3].copy(), T[:3, 3].copy()
 
-    def residuals(T):
-        pc = P @ T[:3, :3].T + T[:3, 3]
+    def residuals(R, t):
+        pc = P @ R.T
+        pc += t
         front = pc[:, 2] > 1e-6
         iz = 1.0 / np.where(front, pc[:, 2], 1e-6)
-        u = fx * pc[:, 0] * iz + cx
-        v = fy * pc[:, 1] * iz + cy
-        r0, r1 = u - mu, v - mv
-        r2 = (u - bf * iz - mur) * s3
-        return pc, iz, r0, r1, r2, front
+        xn, yn = pc[:, 0] * iz, pc[:, 1] * iz
+        np.multiply(xn, fx, out=predicted[:n])
+        predicted[:n] += cx
+        np.multiply(yn, fy, out=predicted[n : 2 * n])
+        predicted[n : 2 * n] += cy
+        predicted[2 * n :] = predicted[st] - bf * iz[st]
+        r = predicted - measured
+        e2 = r[:n] ** 2 + r[n : 2 * n] ** 2  # info-weighted squared error per keypoint
+        e2[st] += r[2 * n :] ** 2
+        e2 *= info
+        return xn, yn, iz, r, e2, front
 
     for rnd in range(rounds):
         robust = rnd < 2
         for _ in range(iterations):
-            pc, iz, r0, r1, r2, front = residuals(T)
+            xn, yn, iz, r, e2, front = residuals(R, t)
             w = info * (inlier & front)
-            if robust:
-                e = np.sqrt(np.maximum(info * (r0 * r0 + r1 * r1 + r2 * r2), 1e-12))
-                w = w * np.where(e <= delta, 1.0, delta / e)
-            x, y = pc[:, 0], pc[:, 1]
-            iz2 = iz * iz
-            # Rows of d(u, v, u_right) / d xi for T_cam_map <- Exp(xi) T_cam_map, xi = (rho, phi).
-            J0 = np.column_stack(
-                [
-                    fx * iz,
-                    np.zeros(n),
-                    -fx * x * iz2,
-                    -fx * x * y * iz2,
-                    fx + fx * x * x * iz2,
-                    -fx * y * iz,
-                ]
-            )
-            J1 = np.column_stack(
-                [
-                    np.zeros(n),
-                    fy * iz,
-                    -fy * y * iz2,
-                    -fy - fy * y * y * iz2,
-                    fy * x * y * iz2,
-                    fy * x * iz,
-                ]
-            )
-            bz = bf * iz2
-            J2 = J0.copy()
-            J2[:, 2] += bz
-            J2[:, 3] += bz * y
-            J2[:, 4] -= bz * x
-            w2 = w * s3
-            H = (J0.T * w) @ J0 + (J1.T * w) @ J1 + (J2.T * w2) @ J2
-            g = J0.T @ (w * r0) + J1.T @ (w * r1) + J2.T @ (w2 * r2)
+            if robust:  # Huber
+                w *= np.minimum(1.0, delta / np.sqrt(np.maximum(e2, 1e-12)))
+            xy = xn * yn
+            Ju[:, 0] = fx * iz
+            Ju[:, 2] = -fx * xn * iz
+            Ju[:, 3] = -fx * xy
+            Ju[:, 4] = fx + fx * xn * xn
+            Ju[:, 5] = -fx * yn
+            Jv[:, 1] = fy * iz
+            Jv[:, 2] = -fy * yn * iz
+            Jv[:, 3] = -fy - fy * yn * yn
+            Jv[:, 4] = fy * xy
+            Jv[:, 5] = fy * xn
+            w_rows[:n] = w
+            w_rows[n : 2 * n] = w
+            if len(st):
+                # u_right = u - bf / z: the u row plus bf / z^2 times dz / d xi.
+                bz = bf * iz[st]
+                Jr[:] = Ju[st]
+                Jr[:, 2] += bz * iz[st]
+                Jr[:, 3] += bz * yn[st]
+                Jr[:, 4] -= bz * xn[st]
+                w_rows[2 * n :] = w[st]
+            Jw = J.T * w_rows
+            H = Jw @ J
+            g = Jw @ r
             H[np.diag_indices(6)] += 1e-9 + 1e-6 * np.diag(H)
             try:
                 dx = -np.linalg.solve(H, g)
@@ -110,17 +111,17 @@ def optimize_pose(
                 break
             if not np.all(np.isfinite(dx)):
                 break
-            dT = np.eye(4)
-            dT[:3, :3] = _rodrigues(dx[3:])
-            dT[:3, 3] = dx[:3]
-            T = dT @ T
+            dR = cv2.Rodrigues(dx[3:])[0]
+            R = dR @ R
+            t = dR @ t + dx[:3]
             if np.abs(dx).max() < 1e-6:
                 break
-        _, _, r0, r1, r2, front = residuals(T)
-        inlier = (info * (r0 * r0 + r1 * r1 + r2 * r2) <= chi2) & front
+        *_, e2, front = residuals(R, t)
+        inlier = (e2 <= chi2) & front
         if inlier.sum() < 3:
             break
     # Re-orthonormalize against round-off accumulated over the updates.
-    U, _, Vt = np.linalg.svd(T[:3, :3])
+    U, _, Vt = np.linalg.svd(R)
     T[:3, :3] = U @ Vt
+    T[:3, 3] = t
     return T, inlier
