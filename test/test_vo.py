@@ -6,6 +6,7 @@ accuracy.
 from __future__ import annotations
 
 import os
+import threading
 import time
 
 import numpy as np
@@ -301,6 +302,34 @@ def test_mapping_backlog_counts_keyframes_a_slow_mapper_has_not_finished(room_se
         assert vo.mapping_backlog == 0
         created = sum(e.kind == EVENT_KEYFRAME_NEW for e in vo.drain_events())
         assert created == len(vo.keyframes()) + vo.mapping_stats["kf_culled"]
+
+
+def test_mapping_steps_wait_for_the_frame_being_tracked(room_sequence):
+    """Local mapping's steps do not run beside a frame being tracked (one interpreter: they would
+    take its time), but never wait for it longer than ``mapping_yield_max_s``."""
+    stamps, frames, _ = room_sequence
+    for wait_s, blocked in ((30.0, True), (0.05, False)):
+        cfg = VoConfig(threaded=True, ba_enabled=False, mapping_yield_max_s=wait_s)
+        with VisualOdometry(cfg, helpers_vo.CAMERA) as vo:
+            for s, (img, d) in zip(stamps[:3], frames[:3]):
+                vo.track(s, img, d)
+            vo.flush()
+            mapper, vmap = vo._mapper, vo.vo_map
+            entered = threading.Event()
+
+            def process(kf_id, run_ba, mapper=mapper, vmap=vmap, entered=entered):
+                with mapper._step(vmap):
+                    entered.set()
+
+            mapper.process = process
+            mapper.frame_started()  # a frame in progress (as track() marks it)
+            mapper.submit(max(vmap.keyframes))
+            if blocked:
+                assert not entered.wait(0.3), "a mapping step ran beside the frame"
+                mapper.frame_finished()
+            assert entered.wait(10.0)
+            vo.flush()
+            assert vo.mapping_backlog == 0
 
 
 def test_server_corrections_move_the_map_and_tracking_goes_on_in_it(room_sequence):

@@ -101,6 +101,8 @@ class VoConfig:
 
     # --- local mapping ----------------------------------------------------------------------------
     threaded: bool = True  # local mapping in a background thread, BA in a worker process
+    # Mapping steps wait for the frame being tracked, at most this long [s] (see local_mapping).
+    mapping_yield_max_s: float = 0.1
     new_points_max: int = 600  # new map points created per keyframe from depth (closest first)
     fuse_neighbors: int = 10  # covisible keyframes searched to fuse duplicate points
     fuse_radius_px: float = 3.0  # projection search radius for fusion [px], scaled by octave
@@ -212,6 +214,7 @@ class VoConfig:
         )
         require(0 < self.keyframe_ref_ratio <= 1.0, "vo.keyframe_ref_ratio must be in (0, 1]")
         require(self.max_lost_frames >= 0, "vo.max_lost_frames must be >= 0")
+        require(self.mapping_yield_max_s >= 0, "vo.mapping_yield_max_s must be >= 0 [s]")
         require(self.assist_wait_frames >= 0, "vo.assist_wait_frames must be >= 0")
         require(
             self.max_speed_m_s > 0 and self.max_turn_rate_deg_s > 0,

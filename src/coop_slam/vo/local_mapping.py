@@ -10,12 +10,15 @@ monocular camera measures no depth, so its new points come from ORB-SLAM's Creat
 from here, so a NEW keyframe is sent after its points were fused and its covisibility is known.
 
 With ``threaded`` the steps run in a background thread and the BA itself in a worker process (GTSAM
-holds the GIL); every map access holds ``Map.lock`` for a short, bounded section. Without it,
-:meth:`LocalMapper.process` runs synchronously, which makes results deterministic (tests).
+holds the GIL); every map access holds ``Map.lock`` for a short, bounded section, and each such step
+first lets the frame being tracked finish (tracking comes first, as in ORB-SLAM: the camera does not
+wait; mapping catches up between frames). Without it, :meth:`LocalMapper.process` runs
+synchronously, which makes results deterministic (tests).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import pickle
 import queue
@@ -88,6 +91,10 @@ class LocalMapper:
         self._sent_pose: dict[int, np.ndarray] = {}
         self._idle = threading.Event()
         self._idle.set()
+        # Cleared while tracking works on a frame: the mapping thread's steps wait for it (see
+        # _step).
+        self._frame_done = threading.Event()
+        self._frame_done.set()
         self._stop = False
         self._thread: threading.Thread | None = None
         self._worker: BaWorker | None = None
@@ -128,9 +135,31 @@ class LocalMapper:
         """Wait until every queued keyframe is processed (threaded mode)."""
         if self._thread is None:
             return
+        in_frame = not self._frame_done.is_set()
+        self._frame_done.set()  # the caller waits for mapping: nothing to yield to
         t_end = time.monotonic() + timeout_s
         while not (self._queue.empty() and self._idle.is_set()) and time.monotonic() < t_end:
             time.sleep(0.005)
+        if in_frame:
+            self._frame_done.clear()
+
+    def frame_started(self) -> None:
+        """Tracking works on a frame: mapping steps wait until :meth:`frame_finished`."""
+        self._frame_done.clear()
+
+    def frame_finished(self) -> None:
+        self._frame_done.set()
+
+    @contextlib.contextmanager
+    def _step(self, vmap: Map):
+        """One bounded step of mapping work under the map lock. In the mapping thread it first
+        waits (at most ``mapping_yield_max_s``) for the frame being tracked: both are Python in
+        one interpreter, so a step running beside tracking takes the interpreter lock from it
+        in 5 ms slices, and a frame's time doubled whenever a keyframe was being mapped."""
+        if self._thread is not None and threading.current_thread() is self._thread:
+            self._frame_done.wait(self.config.mapping_yield_max_s)
+        with vmap.lock:
+            yield
 
     def close(self) -> None:
         self._stop = True
@@ -170,18 +199,18 @@ class LocalMapper:
         if kf_id not in vmap.keyframes:
             return
         self._process_new_keyframe(vmap, kf_id)
-        with vmap.lock:
+        with self._step(vmap):
             self._cull_points(vmap)
             if kf_id not in vmap.keyframes:
                 return
             self._announce(EVENT_KEYFRAME_NEW, vmap, kf_id)
         if run_ba and self.config.ba_enabled:
-            with vmap.lock:
+            with self._step(vmap):
                 problem = self.build_ba_problem(vmap, kf_id)
                 epoch = vmap.epoch
             if problem is not None:
                 result = self._run_ba(problem)
-                with vmap.lock:
+                with self._step(vmap):
                     if vmap is self._get_map() and vmap.epoch == epoch:
                         self.apply_ba_result(vmap, result)
         if self.config.kf_culling and vmap is self._get_map():
@@ -199,7 +228,7 @@ class LocalMapper:
         return run_local_ba(problem)
 
     def _process_new_keyframe(self, vmap: Map, kf_id: int) -> None:
-        with vmap.lock:
+        with self._step(vmap):
             kf = vmap.keyframes[kf_id]
             vmap.update_covisibility(kf_id, propagate=False)
             neighbours = vmap.best_covisible(kf_id, self.config.fuse_neighbors)
@@ -210,9 +239,9 @@ class LocalMapper:
             touched |= self._fuse(vmap, kf, neighbours)
         touched_ids = np.array(sorted(touched), dtype=np.int64)
         for chunk in np.array_split(touched_ids, max(1, len(touched_ids) // 256)):
-            with vmap.lock:  # in chunks: see process()
+            with self._step(vmap):  # in chunks: see process()
                 vmap.update_point_stats(chunk, self.scales)
-        with vmap.lock:
+        with self._step(vmap):
             if kf_id in vmap.keyframes:
                 vmap.update_covisibility(kf_id)
 
@@ -220,7 +249,7 @@ class LocalMapper:
         """Project points between the keyframe and its neighbours; merge duplicates, add
         observations."""
         touched: set[int] = set()
-        with vmap.lock:
+        with self._step(vmap):
             pts = vmap.points
             own = kf.map_point_ids[kf.map_point_ids > 0].astype(np.int64)
             others = np.unique(
@@ -232,7 +261,7 @@ class LocalMapper:
             others = np.setdiff1d(others, own)
             targets = [(vmap.keyframes[n], own) for n in neighbours] + [(kf, others)]
         for target, pids in targets:
-            with vmap.lock:
+            with self._step(vmap):
                 touched |= self._fuse_into(vmap, target, pids)
         return touched  # may hold points fused away since: update_point_stats skips dead ones
 
@@ -297,14 +326,14 @@ class LocalMapper:
         waits (threaded), as ORB-SLAM: tracking needs the next keyframe's points more."""
         cfg = self.config
         created: set[int] = set()
-        with vmap.lock:
+        with self._step(vmap):
             if kf_id not in vmap.keyframes:
                 return created
             neighbours = vmap.best_covisible(kf_id, cfg.triangulation_neighbors)
         for i, other in enumerate(neighbours):
             if i > 0 and self._thread is not None and not self._queue.empty():
                 break
-            with vmap.lock:
+            with self._step(vmap):
                 if kf_id not in vmap.keyframes or other not in vmap.keyframes:
                     continue
                 views = [self._triangulation_view(vmap, k) for k in (kf_id, other)]
@@ -312,7 +341,7 @@ class LocalMapper:
             if found is None:
                 continue
             i1, i2, xyz = found
-            with vmap.lock:
+            with self._step(vmap):
                 kf1, kf2 = vmap.keyframes.get(kf_id), vmap.keyframes.get(other)
                 if kf1 is None or kf2 is None:
                     continue
@@ -637,12 +666,12 @@ class LocalMapper:
         """Remove covisible keyframes whose close points (monocular: all points) are >= 90 % seen
         by >= 3 other keyframes at the same or a finer scale (ORB-SLAM's KeyFrameCulling)."""
         removed = []
-        with vmap.lock:
+        with self._step(vmap):
             if kf_id not in vmap.keyframes:
                 return removed
             candidates = vmap.best_covisible(kf_id, 2 * self.config.ba_window)
         for c in candidates:
-            with vmap.lock:  # one candidate at a time: see process()
+            with self._step(vmap):  # one candidate at a time: see process()
                 if self._cull_keyframe(vmap, kf_id, c):
                     removed.append(c)
         return removed

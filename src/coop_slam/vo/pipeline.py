@@ -119,6 +119,13 @@ class VisualOdometry:
     ) -> TrackResult:
         """Track one frame (``second``: depth or right image, None for a monocular camera). Raises
         VoError on malformed input; a frame it cannot use is a lost result."""
+        self._mapper.frame_started()
+        try:
+            return self._track(stamp_s, image, second)
+        finally:
+            self._mapper.frame_finished()
+
+    def _track(self, stamp_s: float, image: np.ndarray, second: np.ndarray | None) -> TrackResult:
         t0 = time.perf_counter()
         c0 = time.thread_time()
         try:
