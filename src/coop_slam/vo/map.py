@@ -215,13 +215,20 @@ class Map:
         return np.repeat(np.arange(len(dicts), dtype=np.int64), counts), kf_ids, idx
 
     def gather(self, kf_ids: np.ndarray, idx: np.ndarray, attr: str) -> np.ndarray:
-        """``keyframes[kf_ids[j]].<attr>[idx[j]]`` for all j, one fancy index per keyframe."""
-        uniq, inv = np.unique(kf_ids, return_inverse=True)
-        first = getattr(self.keyframes[int(uniq[0])], attr) if len(uniq) else np.zeros(0)
+        """``keyframes[kf_ids[j]].<attr>[idx[j]]`` for all j, one fancy index per keyframe (the
+        rows grouped by one sort: a mask per keyframe costs keyframes x rows)."""
+        kf_ids = np.asarray(kf_ids)
+        order = np.argsort(kf_ids, kind="stable")
+        sorted_ids = kf_ids[order]
+        starts = (
+            np.flatnonzero(np.r_[True, sorted_ids[1:] != sorted_ids[:-1]]) if len(order) else []
+        )
+        first = getattr(self.keyframes[int(sorted_ids[0])], attr) if len(order) else np.zeros(0)
         out = np.empty((len(kf_ids),) + first.shape[1:], dtype=first.dtype)
-        for j, k in enumerate(uniq.tolist()):
-            sel = inv == j
-            out[sel] = getattr(self.keyframes[k], attr)[idx[sel]]
+        bounds = np.r_[starts, len(order)].astype(int).tolist()
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            rows = order[a:b]
+            out[rows] = getattr(self.keyframes[int(sorted_ids[a])], attr)[idx[rows]]
         return out
 
     def best_covisible(self, kf_id: int, n: int, min_weight: int = 1) -> list[int]:
