@@ -305,8 +305,9 @@ def test_mapping_backlog_counts_keyframes_a_slow_mapper_has_not_finished(room_se
 
 
 def test_mapping_steps_wait_for_the_frame_being_tracked(room_sequence):
-    """Local mapping's steps do not run beside a frame being tracked (one interpreter: they would
-    take its time), but never wait for it longer than ``mapping_yield_max_s``."""
+    """Local mapping's steps do not run beside a frame's work (one interpreter: they would take
+    its time) -- ``track``, and what a caller encloses with it in ``frame_in_progress`` -- but
+    never wait for it longer than ``mapping_yield_max_s``."""
     stamps, frames, _ = room_sequence
     for wait_s, blocked in ((30.0, True), (0.05, False)):
         cfg = VoConfig(threaded=True, ba_enabled=False, mapping_yield_max_s=wait_s)
@@ -322,11 +323,13 @@ def test_mapping_steps_wait_for_the_frame_being_tracked(room_sequence):
                     entered.set()
 
             mapper.process = process
-            mapper.frame_started()  # a frame in progress (as track() marks it)
-            mapper.submit(max(vmap.keyframes))
-            if blocked:
-                assert not entered.wait(0.3), "a mapping step ran beside the frame"
-                mapper.frame_finished()
+            with vo.frame_in_progress():  # e.g. a node converting a frame and publishing
+                vo.track(stamps[3], *frames[3])  # marks its own frame inside the caller's
+                mapper.submit(max(vmap.keyframes))
+                if blocked:
+                    assert not entered.wait(0.3), "a mapping step ran beside the frame"
+                else:
+                    assert entered.wait(10.0)
             assert entered.wait(10.0)
             vo.flush()
             assert vo.mapping_backlog == 0

@@ -95,6 +95,7 @@ class LocalMapper:
         # _step).
         self._frame_done = threading.Event()
         self._frame_done.set()
+        self._frames_open = 0
         self._stop = False
         self._thread: threading.Thread | None = None
         self._worker: BaWorker | None = None
@@ -144,11 +145,15 @@ class LocalMapper:
             self._frame_done.clear()
 
     def frame_started(self) -> None:
-        """Tracking works on a frame: mapping steps wait until :meth:`frame_finished`."""
+        """Tracking works on a frame: mapping steps wait until the matching
+        :meth:`frame_finished` (calls nest). Both from the tracking thread."""
+        self._frames_open += 1
         self._frame_done.clear()
 
     def frame_finished(self) -> None:
-        self._frame_done.set()
+        self._frames_open = max(0, self._frames_open - 1)
+        if self._frames_open == 0:
+            self._frame_done.set()
 
     @contextlib.contextmanager
     def _step(self, vmap: Map):

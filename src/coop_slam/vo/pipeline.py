@@ -35,6 +35,7 @@ map frame, ``map_segment`` + 1, EVENT_NEW_SEGMENT). It never reports a pose it d
 from __future__ import annotations
 
 import collections
+import contextlib
 import threading
 import time
 from typing import Self
@@ -119,9 +120,16 @@ class VisualOdometry:
     ) -> TrackResult:
         """Track one frame (``second``: depth or right image, None for a monocular camera). Raises
         VoError on malformed input; a frame it cannot use is a lost result."""
+        with self.frame_in_progress():
+            return self._track(stamp_s, image, second)
+
+    @contextlib.contextmanager
+    def frame_in_progress(self):
+        """Marks a frame's work: local mapping's steps wait until it is done, at most
+        ``mapping_yield_max_s`` (tracking comes first; see :mod:`.local_mapping`)."""
         self._mapper.frame_started()
         try:
-            return self._track(stamp_s, image, second)
+            yield
         finally:
             self._mapper.frame_finished()
 
