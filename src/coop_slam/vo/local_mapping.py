@@ -136,12 +136,11 @@ class LocalMapper:
         """Wait until every queued keyframe is processed (threaded mode)."""
         if self._thread is None:
             return
-        in_frame = not self._frame_done.is_set()
         self._frame_done.set()  # the caller waits for mapping: nothing to yield to
         t_end = time.monotonic() + timeout_s
         while not (self._queue.empty() and self._idle.is_set()) and time.monotonic() < t_end:
             time.sleep(0.005)
-        if in_frame:
+        if self._frames_open:  # called within a frame (a reset while tracking)
             self._frame_done.clear()
 
     def frame_started(self) -> None:

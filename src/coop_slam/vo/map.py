@@ -218,15 +218,14 @@ class Map:
         """``keyframes[kf_ids[j]].<attr>[idx[j]]`` for all j, one fancy index per keyframe (the
         rows grouped by one sort: a mask per keyframe costs keyframes x rows)."""
         kf_ids = np.asarray(kf_ids)
+        if len(kf_ids) == 0:
+            return np.zeros(0)
         order = np.argsort(kf_ids, kind="stable")
         sorted_ids = kf_ids[order]
-        starts = (
-            np.flatnonzero(np.r_[True, sorted_ids[1:] != sorted_ids[:-1]]) if len(order) else []
-        )
-        first = getattr(self.keyframes[int(sorted_ids[0])], attr) if len(order) else np.zeros(0)
+        starts = np.flatnonzero(np.r_[True, sorted_ids[1:] != sorted_ids[:-1]])
+        first = getattr(self.keyframes[int(sorted_ids[0])], attr)
         out = np.empty((len(kf_ids),) + first.shape[1:], dtype=first.dtype)
-        bounds = np.r_[starts, len(order)].astype(int).tolist()
-        for a, b in zip(bounds[:-1], bounds[1:]):
+        for a, b in zip(starts.tolist(), np.r_[starts[1:], len(order)].tolist()):
             rows = order[a:b]
             out[rows] = getattr(self.keyframes[int(sorted_ids[a])], attr)[idx[rows]]
         return out
