@@ -1,32 +1,38 @@
-"""Two-view bundle adjustment (GTSAM, Levenberg-Marquardt) refining ``T_camA_camB``.
+"""Two-view bundle adjustment (Levenberg-Marquardt, Schur complement) refining ``T_camA_camB``.
 
-Variables: the pose of camera A (held at identity by a tight prior, so the problem is expressed in
-camera A's frame), the pose of camera B (= ``T_camA_camB``) and one 3D point per correspondence.
-Cost: the sum over both images of ``||u - pi(K, T, X)||^2`` (GenericProjectionFactorCal3_S2) under
-a Huber m-estimator, plus, where a keypoint has depth, a weak range factor from that camera (its
-sigma grows with depth^2) that fixes the scale and keeps points near their measured depth, plus an
-optional weak prior on ``T_camA_camB`` (e.g. from a marker sighting). Correspondences whose error
-exceeds the inlier threshold in either image after a round are dropped and the problem re-solved.
+Variables: the pose of camera B in camera A's frame (= ``T_camA_camB``; camera A is the frame of
+the problem and fixed) and one 3D point per correspondence. Cost: the sum over both images of
+``||u - pi(K, T, X)||^2`` under a Huber m-estimator, plus, where a keypoint has depth, a weak range
+residual from that camera (its sigma grows with depth^2) that fixes the scale and keeps points
+near their measured depth, plus an optional weak prior on ``T_camA_camB`` (e.g. from a marker
+sighting). Correspondences whose error exceeds the inlier threshold in either image after a round
+are dropped and the problem re-solved.
 
-Graph construction adds per-point factors in Python (GTSAM has no batch API for priors or range
-factors); projection factors use the batch helper ``utilities.insertProjectionFactors``.
+The solver is numpy, not GTSAM: with two cameras every point is independent given camera B, so
+each step eliminates the points (3x3 blocks) and solves one 6x6 system. It reproduces GTSAM's
+factor graph of the same cost (projection, range and prior factors, the same LM schedule) --
+the same inliers and covariances on recorded server problems -- without building thousands of
+factors in Python for each verification. The covariance of camera B is GTSAM's tangent of Pose3
+(rotation first, in B's frame).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
-import gtsam
+import cv2
 import numpy as np
 
 from ..errors import GeometryError
-from ..geometry import check_se3, invert, transform_points
-from .camera import RegistrationError, check_intrinsics, check_points, project, ray_norms
-
-# Plain integer keys (not gtsam.symbol): insertProjectionFactors takes point keys as float64, which
-# cannot hold symbol keys exactly.
-KEY_CAM_A, KEY_CAM_B, KEY_POINT0 = 0, 1, 2
-_FIX_SIGMA = 1e-6  # camera A prior: effectively a constant, but keeps the Cholesky solve regular
+from ..geometry import check_se3, exp_so3, invert, skew, transform_points
+from .camera import (
+    RegistrationError,
+    check_intrinsics,
+    check_points,
+    project,
+    projection_jacobian,
+    ray_norms,
+)
 
 
 @dataclass
@@ -112,8 +118,8 @@ class _Problem:
 
 @dataclass
 class _Settings:
-    cal_a: gtsam.Cal3_S2
-    cal_b: gtsam.Cal3_S2
+    K_a: np.ndarray
+    K_b: np.ndarray
     sigma_px: float
     huber_k: float
     T_prior: np.ndarray | None
@@ -122,58 +128,224 @@ class _Settings:
     relative_tol: float
 
 
+# Levenberg-Marquardt schedule (GTSAM's defaults, which this solver replaced)
+_LAMBDA_INITIAL, _LAMBDA_FACTOR, _LAMBDA_MAX, _MIN_MODEL_FIDELITY = 1e-5, 10.0, 1e5, 1e-3
+
+
+def huber(e: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
+    """(cost, IRLS weight) of whitened error norms under Huber's m-estimator."""
+    cost = np.where(e <= k, 0.5 * e**2, k * e - 0.5 * k**2)
+    weight = np.where(e <= k, 1.0, k / np.maximum(e, 1e-300))
+    return cost, weight
+
+
+@dataclass
+class _Block:
+    """One kind of residual for every point: whitened residuals (n, d), which points have it
+    (n,), and, for the normal equations, whitened Jacobians by the pose of B (n, d, 6; None for
+    terms of camera A alone) and by the point (n, d, 3)."""
+
+    r: np.ndarray
+    has: np.ndarray
+    J_pose: np.ndarray | None = None
+    J_point: np.ndarray | None = None
+
+
+def _projection_block(points_cam, uv, K, sigma_px, dcam_dpoint, dcam_dpose, jacobians) -> _Block:
+    """Pixel residuals of camera-frame points. A point behind the camera gets GTSAM's answer for
+    it: a constant error of 2 fx per coordinate and no gradient, so a step there is refused."""
+    n = len(points_cam)
+    front = points_cam[:, 2] > 1e-9
+    z = np.where(front, points_cam[:, 2], 1.0)
+    uv_hat = np.c_[
+        (K[0, 0] * points_cam[:, 0] + K[0, 1] * points_cam[:, 1]) / z + K[0, 2],
+        K[1, 1] * points_cam[:, 1] / z + K[1, 2],
+    ]
+    r = np.where(front[:, None], (uv_hat - uv) / sigma_px, 2.0 * K[0, 0] / sigma_px)
+    if not jacobians:
+        return _Block(r, np.ones(n, dtype=bool))
+    P = projection_jacobian(points_cam, K) * (front / sigma_px)[:, None, None]
+    J_pose = None if dcam_dpose is None else np.einsum("nij,njk->nik", P, dcam_dpose)
+    J_point = P if dcam_dpoint is None else P @ dcam_dpoint
+    return _Block(r, np.ones(n, dtype=bool), J_pose, J_point)
+
+
+def _range_block(points_cam, ranges, sigmas, dcam_dpoint, dcam_dpose, jacobians) -> _Block:
+    """Range residuals ``|point| - range`` of the points that have a range (0: none)."""
+    has = ranges > 0
+    norm = np.linalg.norm(points_cam, axis=1)
+    r = np.where(has, (norm - ranges) / sigmas, 0.0)[:, None]
+    if not jacobians:
+        return _Block(r, has)
+    d = (points_cam / np.maximum(norm, 1e-12)[:, None] * (has / sigmas)[:, None])[:, None, :]
+    J_pose = None if dcam_dpose is None else np.einsum("nij,njk->nik", d, dcam_dpose)
+    J_point = d if dcam_dpoint is None else d @ dcam_dpoint
+    return _Block(r, has, J_pose, J_point)
+
+
+def _blocks(problem: _Problem, R, t, points, cfg: _Settings, jacobians: bool) -> list[_Block]:
+    """Every residual at pose (R, t) of camera B in A and points in A."""
+    points_b = (points - t) @ R  # R^T (X - t), row-wise
+    # Camera B moves as T exp(xi), xi = (w, v): d points_b = [points_b]x w - v, d points_b / d X
+    # = R^T, so the covariance is in GTSAM's tangent of Pose3 (rotation first, in B's frame).
+    dpose = dpoint_b = None
+    if jacobians:
+        dpose = np.concatenate(
+            [skew(points_b), np.broadcast_to(-np.eye(3), (len(points), 3, 3))], axis=2
+        )
+        dpoint_b = R.T
+    return [
+        _projection_block(points, problem.uv_a, cfg.K_a, cfg.sigma_px, None, None, jacobians),
+        _projection_block(
+            points_b, problem.uv_b, cfg.K_b, cfg.sigma_px, dpoint_b, dpose, jacobians
+        ),
+        _range_block(points, problem.range_a, problem.range_sigma_a, None, None, jacobians),
+        _range_block(points_b, problem.range_b, problem.range_sigma_b, dpoint_b, dpose, jacobians),
+    ]
+
+
+def _prior_residual(R, t, cfg: _Settings) -> np.ndarray:
+    """Whitened error of camera B against the pose prior: Pose3's logarithm of the prior's
+    inverse times the pose, as GTSAM's prior factor has it."""
+    dR = cfg.T_prior[:3, :3].T @ R
+    dt = cfg.T_prior[:3, :3].T @ (t - cfg.T_prior[:3, 3])
+    w = cv2.Rodrigues(dR)[0].ravel()
+    theta = float(np.linalg.norm(w))
+    W = skew(w)
+    # the translation part of SE(3)'s log: V(w)^-1 dt
+    c = 1.0 / 12.0 if theta < 1e-6 else (1.0 - theta / (2.0 * np.tan(theta / 2.0))) / theta**2
+    v = dt - 0.5 * W @ dt + c * W @ (W @ dt)
+    return np.r_[w, v] / cfg.prior_sigmas
+
+
+def _cost(blocks: list[_Block], prior_r: np.ndarray | None, huber_k: float) -> float:
+    total = 0.0
+    for b in blocks:
+        total += float(huber(np.linalg.norm(b.r, axis=1), huber_k)[0][b.has].sum())
+    if prior_r is not None:
+        total += 0.5 * float(prior_r @ prior_r)
+    return total
+
+
+@dataclass
+class _Normal:
+    """The normal equations of the IRLS-weighted problem, points apart (Schur form)."""
+
+    H_cc: np.ndarray  # (6, 6) pose of B
+    H_cp: np.ndarray  # (n, 6, 3)
+    H_pp: np.ndarray  # (n, 3, 3)
+    g_c: np.ndarray  # (6,)
+    g_p: np.ndarray  # (n, 3)
+
+    def step(self, lam: float) -> tuple[np.ndarray, np.ndarray]:
+        """(pose step, point steps) of the system damped by lam * I (GTSAM's LM damping); the
+        points are eliminated first, as their blocks are independent given the pose."""
+        H_pp = self.H_pp + lam * np.eye(3)
+        H_pp_inv = np.linalg.inv(H_pp)
+        HcpHinv = self.H_cp @ H_pp_inv  # (n, 6, 3)
+        S = self.H_cc + lam * np.eye(6) - np.einsum("nij,nkj->ik", HcpHinv, self.H_cp)
+        b = self.g_c - np.einsum("nij,nj->i", HcpHinv, self.g_p)
+        d_pose = np.linalg.solve(S, -b)
+        rhs = -self.g_p - np.einsum("nji,j->ni", self.H_cp, d_pose)
+        return d_pose, np.einsum("nij,nj->ni", H_pp_inv, rhs)
+
+    def pose_covariance(self) -> np.ndarray:
+        """Marginal covariance of B's pose (the inverse Schur complement), inf if singular."""
+        try:
+            H_pp_inv = np.linalg.inv(self.H_pp)
+            S = self.H_cc - np.einsum("nij,njk,nlk->il", self.H_cp, H_pp_inv, self.H_cp)
+            if not np.all(np.isfinite(S)) or np.linalg.cond(S) > 1e14:
+                return np.full((6, 6), np.inf)
+            return np.linalg.inv(S)
+        except np.linalg.LinAlgError:
+            return np.full((6, 6), np.inf)
+
+
+def _normal(blocks: list[_Block], prior_r, cfg: _Settings, n: int) -> _Normal:
+    # All residual rows of a point side by side, IRLS-weighted per block, camera A's with a zero
+    # pose Jacobian: one batched product per block of the normal equations.
+    w_rows, J_point, J_pose, r = [], [], [], []
+    for b in blocks:
+        w = np.where(b.has, huber(np.linalg.norm(b.r, axis=1), cfg.huber_k)[1], 0.0)
+        d = b.r.shape[1]
+        w_rows.append(np.repeat(w[:, None], d, axis=1))
+        J_point.append(b.J_point)
+        J_pose.append(np.zeros((n, d, 6)) if b.J_pose is None else b.J_pose)
+        r.append(b.r)
+    w_rows, r = np.concatenate(w_rows, axis=1), np.concatenate(r, axis=1)
+    J_point, J_pose = np.concatenate(J_point, axis=1), np.concatenate(J_pose, axis=1)
+    Jp_w = J_point.transpose(0, 2, 1) * w_rows[:, None, :]  # (n, 3, rows)
+    Jc_w = J_pose.transpose(0, 2, 1) * w_rows[:, None, :]  # (n, 6, rows)
+    wr = (w_rows * r)[:, :, None]
+    H_cc = Jc_w.transpose(1, 0, 2).reshape(6, -1) @ J_pose.reshape(-1, 6)
+    g_c = (J_pose * wr).sum(axis=(0, 1))
+    if prior_r is not None:  # d residual / d xi is ~identity / sigma for a small error
+        H_cc += np.diag(cfg.prior_sigmas**-2.0)
+        g_c += prior_r / cfg.prior_sigmas
+    return _Normal(H_cc, Jc_w @ J_point, Jp_w @ J_point, g_c, (J_point * wr).sum(axis=1))
+
+
 def _solve(problem: _Problem, points0: np.ndarray, T0: np.ndarray, cfg: _Settings):
-    """One LM solve -> (T_camA_camB, points_camA, iterations, covariance of camera B)."""
-    n = len(problem.uv_a)
-    graph = gtsam.NonlinearFactorGraph()
-    # Huber's k is in whitened units, i.e. it bends at huber_k * sigma_px pixels.
-    pixel_noise = gtsam.noiseModel.Robust.Create(
-        gtsam.noiseModel.mEstimator.Huber.Create(cfg.huber_k),
-        gtsam.noiseModel.Isotropic.Sigma(2, cfg.sigma_px),
-    )
-    point_keys = (KEY_POINT0 + np.arange(n)).astype(float)
-    for cam_key, uv, cal in (
-        (KEY_CAM_A, problem.uv_a, cfg.cal_a),
-        (KEY_CAM_B, problem.uv_b, cfg.cal_b),
-    ):
-        gtsam.utilities.insertProjectionFactors(graph, cam_key, point_keys, uv.T, pixel_noise, cal)
-    fix_noise = gtsam.noiseModel.Isotropic.Sigma(6, _FIX_SIGMA)
-    graph.add(gtsam.PriorFactorPose3(KEY_CAM_A, gtsam.Pose3(), fix_noise))
-    if cfg.T_prior is not None:
-        prior_noise = gtsam.noiseModel.Diagonal.Sigmas(cfg.prior_sigmas)
-        graph.add(gtsam.PriorFactorPose3(KEY_CAM_B, gtsam.Pose3(cfg.T_prior), prior_noise))
-    huber_range = gtsam.noiseModel.mEstimator.Huber.Create(cfg.huber_k)
-    for cam_key, ranges, sigmas in (
-        (KEY_CAM_A, problem.range_a, problem.range_sigma_a),
-        (KEY_CAM_B, problem.range_b, problem.range_sigma_b),
-    ):
-        for i in np.flatnonzero(ranges > 0):  # depth is a per-point measurement: one factor each
-            noise = gtsam.noiseModel.Robust.Create(
-                huber_range, gtsam.noiseModel.Isotropic.Sigma(1, float(sigmas[i]))
+    """One LM solve -> (T_camA_camB, points_camA, iterations, covariance of camera B).
+
+    Camera A is the frame of the problem and stays fixed; camera B's pose and the points are the
+    variables. The points are eliminated from each step's normal equations (Schur complement), so
+    a step costs a few numpy products over the points and one 6x6 solve.
+    """
+    R, t, points = T0[:3, :3].copy(), T0[:3, 3].copy(), points0.copy()
+
+    def evaluate(R, t, points, jacobians):
+        blocks = _blocks(problem, R, t, points, cfg, jacobians)
+        prior_r = None if cfg.T_prior is None else _prior_residual(R, t, cfg)
+        return blocks, prior_r, _cost(blocks, prior_r, cfg.huber_k)
+
+    blocks, prior_r, cost = evaluate(R, t, points, True)
+    lam, iterations = _LAMBDA_INITIAL, 0
+    while iterations < cfg.max_iterations:
+        normal = _normal(blocks, prior_r, cfg, len(points))
+        accepted = False
+        while lam <= _LAMBDA_MAX:
+            try:
+                d_pose, d_points = normal.step(lam)
+            except np.linalg.LinAlgError:
+                lam *= _LAMBDA_FACTOR
+                continue
+            R_new = R @ exp_so3(d_pose[:3])
+            t_new = t + R @ d_pose[3:]
+            points_new = points + d_points
+            cost_new = evaluate(R_new, t_new, points_new, False)[2]
+            # the decrease the linearised (Gauss-Newton) model predicts for this step
+            predicted = -(
+                normal.g_c @ d_pose
+                + np.einsum("ni,ni->", normal.g_p, d_points)
+                + 0.5 * _quadratic(normal, d_pose, d_points)
             )
-            graph.add(gtsam.RangeFactor3D(cam_key, KEY_POINT0 + int(i), float(ranges[i]), noise))
-    values = gtsam.Values()
-    values.insert(KEY_CAM_A, gtsam.Pose3())
-    values.insert(KEY_CAM_B, gtsam.Pose3(T0))
-    for i in range(n):
-        values.insert_point3(KEY_POINT0 + i, points0[i])
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(int(cfg.max_iterations))
-    params.setRelativeErrorTol(cfg.relative_tol)
-    params.setAbsoluteErrorTol(1e-9)
-    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    result = optimizer.optimize()
-    # Express everything relative to the optimised camera A (it moves by ~_FIX_SIGMA at most).
-    T_a_w = invert(result.atPose3(KEY_CAM_A).matrix())
-    T_camA_camB = T_a_w @ result.atPose3(KEY_CAM_B).matrix()
-    points = gtsam.utilities.extractPoint3(result)  # rows in key order = correspondence order
-    try:
-        # Camera A is pinned, so B's marginal is the covariance of the relative pose: it exposes
-        # ill-conditioned solutions (all inliers on one small object) that residuals cannot.
-        covariance = gtsam.Marginals(graph, result).marginalCovariance(KEY_CAM_B)
-    except RuntimeError:  # indeterminant system
-        covariance = np.full((6, 6), np.inf)
-    return T_camA_camB, transform_points(T_a_w, points), optimizer.iterations(), covariance
+            if predicted > 0 and (cost - cost_new) / predicted > _MIN_MODEL_FIDELITY:
+                accepted = True
+                break
+            lam *= _LAMBDA_FACTOR
+        if not accepted:
+            break
+        iterations += 1
+        decrease = cost - cost_new
+        R, t, points = R_new, t_new, points_new
+        lam = lam / _LAMBDA_FACTOR
+        blocks, prior_r, cost = evaluate(R, t, points, True)
+        if decrease <= cfg.relative_tol * (cost + decrease) or decrease <= 1e-9:
+            break
+    covariance = _normal(blocks, prior_r, cfg, len(points)).pose_covariance()
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T, points, iterations, covariance
+
+
+def _quadratic(normal: _Normal, d_pose: np.ndarray, d_points: np.ndarray) -> float:
+    """d^T H d of the undamped normal equations."""
+    return float(
+        d_pose @ normal.H_cc @ d_pose
+        + 2.0 * np.einsum("i,nij,nj->", d_pose, normal.H_cp, d_points)
+        + np.einsum("ni,nij,nj->", d_points, normal.H_pp, d_points)
+    )
 
 
 def two_view_ba(
@@ -246,8 +418,8 @@ def two_view_ba(
         *ranges(depths_b_m, depth_sigma_b_m, uv_b, K_b, "depths_b_m"),
     )
     settings = _Settings(
-        gtsam.Cal3_S2(K_a[0, 0], K_a[1, 1], K_a[0, 1], K_a[0, 2], K_a[1, 2]),
-        gtsam.Cal3_S2(K_b[0, 0], K_b[1, 1], K_b[0, 1], K_b[0, 2], K_b[1, 2]),
+        K_a,
+        K_b,
         sigma_px,
         huber_k,
         T_prior,

@@ -70,3 +70,16 @@ def ray_norms(uv_px: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Length of the viewing ray per unit depth: range = depth * ray_norm (for range factors)."""
     rays = backproject(uv_px, np.ones(len(uv_px)), K)
     return np.linalg.norm(rays, axis=1)
+
+
+def projection_jacobian(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(N, 2, 3) d(pixel)/d(point) of the pinhole projection."""
+    x, y, z = points_cam[:, 0], points_cam[:, 1], points_cam[:, 2]
+    z = np.where(z > 1e-9, z, 1.0)  # rows behind the camera get zero weight anyway
+    J = np.zeros((len(points_cam), 2, 3))
+    J[:, 0, 0] = K[0, 0] / z
+    J[:, 0, 1] = K[0, 1] / z
+    J[:, 0, 2] = -(K[0, 0] * x + K[0, 1] * y) / z**2
+    J[:, 1, 1] = K[1, 1] / z
+    J[:, 1, 2] = -K[1, 1] * y / z**2
+    return J

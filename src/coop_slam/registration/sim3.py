@@ -34,8 +34,8 @@ import numpy as np
 
 from ..config import require
 from ..geometry import exp_so3, skew
-from .ba import rms_both, worst_sigma
-from .camera import RegistrationError, check_intrinsics, check_points
+from .ba import huber, rms_both, worst_sigma
+from .camera import RegistrationError, check_intrinsics, check_points, projection_jacobian
 from .ransac import required_iterations
 from .umeyama import umeyama_batch
 
@@ -434,19 +434,6 @@ class Sim3RefineResult:
         return float(np.sqrt(var)) if np.isfinite(var) else float("inf")
 
 
-def _projection_jacobian(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(N, 2, 3) d(pixel)/d(point) of the pinhole projection."""
-    x, y, z = points_cam[:, 0], points_cam[:, 1], points_cam[:, 2]
-    z = np.where(z > _MIN_DEPTH, z, 1.0)  # rows behind the camera get zero weight anyway
-    J = np.zeros((len(points_cam), 2, 3))
-    J[:, 0, 0] = K[0, 0] / z
-    J[:, 0, 1] = K[0, 1] / z
-    J[:, 0, 2] = -(K[0, 0] * x + K[0, 1] * y) / z**2
-    J[:, 1, 1] = K[1, 1] / z
-    J[:, 1, 2] = -K[1, 1] * y / z**2
-    return J
-
-
 @dataclass
 class _Sim3:
     R: np.ndarray
@@ -524,8 +511,8 @@ class _Problem:
         dp_src[:, :, :3] = np.einsum("ji,njk->nik", R, skew(a)) / s
         dp_src[:, :, 3:6] = -R.T / s
         dp_src[:, :, 6] = -moved_src
-        J_dst = np.einsum("nij,njk->nik", _projection_jacobian(moved_dst, d.K_dst), dp_dst)
-        J_src = np.einsum("nij,njk->nik", _projection_jacobian(moved_src, d.K_src), dp_src)
+        J_dst = np.einsum("nij,njk->nik", projection_jacobian(moved_dst, d.K_dst), dp_dst)
+        J_src = np.einsum("nij,njk->nik", projection_jacobian(moved_src, d.K_src), dp_src)
         J = [J_dst / self.sig_dst[:, None, None], J_src / self.sig_src[:, None, None]]
         if self.depth_sigma_rel > 0:
             for dp, sig_z in ((dp_dst, sig_z_dst), (dp_src, sig_z_src)):
@@ -535,23 +522,16 @@ class _Problem:
         return r, valid, np.stack(J)
 
 
-def _huber(e: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
-    """(cost, IRLS weight) of whitened error norms under Huber's m-estimator."""
-    cost = np.where(e <= k, 0.5 * e**2, k * e - 0.5 * k**2)
-    weight = np.where(e <= k, 1.0, k / np.maximum(e, 1e-300))
-    return cost, weight
-
-
 def _robust_cost(r: np.ndarray, valid: np.ndarray, huber_k: float) -> float:
     # A point pushed behind a camera costs like a huge error, so such steps are refused.
     e = np.where(valid, np.linalg.norm(r, axis=2), _BEHIND_WHITENED)
-    return float(_huber(e, huber_k)[0].sum())
+    return float(huber(e, huber_k)[0].sum())
 
 
 def _normal_equations(r, valid, J, huber_k, n_params):
     """(H, g, weighted squared error sum, residual dimensions) of the IRLS-weighted problem."""
     e = np.linalg.norm(r, axis=2)
-    w = np.where(valid, _huber(e, huber_k)[1], 0.0)
+    w = np.where(valid, huber(e, huber_k)[1], 0.0)
     # one (rows, params) matrix product instead of a 4-index einsum
     J = J[..., :n_params].reshape(-1, n_params)
     w_rows = np.repeat(w.reshape(-1), 2)
