@@ -138,3 +138,48 @@ def test_gather_map_points_from_keyframes():
     np.testing.assert_allclose(points[k], a2.map_points[0], rtol=1e-6)  # latest keyframe wins
     np.testing.assert_allclose(points[robots == 2], b1.map_points + [10, 0, 0], rtol=1e-6)
     assert gather_map_points([], T_world_map)[0].shape == (0, 3)
+
+
+def _fuse_from_scratch(points, robots, ids, radius):
+    """Reference: every round searches every point's nearest point of another robot anew."""
+    weights = np.ones(len(points))
+    while True:
+        best_d, best_j = np.full(len(points), np.inf), np.full(len(points), -1)
+        for r in np.unique(robots):
+            own = robots == r
+            idx_r, others = np.nonzero(own)[0], np.nonzero(~own)[0]
+            d, k = cKDTree(points[own]).query(points[others], distance_upper_bound=radius)
+            better = (d < radius) & (d < best_d[others])
+            best_d[others[better]], best_j[others[better]] = d[better], idx_r[k[better]]
+        i = np.nonzero(best_j >= 0)[0]
+        mutual = (best_j[best_j[i]] == i) & (i < best_j[i])
+        i, j = i[mutual], best_j[i][mutual]
+        if not len(i):
+            return points, ids, robots
+        labels = np.arange(len(points))
+        labels[j] = i
+        _, labels = np.unique(labels, return_inverse=True)
+        total = np.bincount(labels, weights=weights)
+        points = (
+            np.stack([np.bincount(labels, weights=points[:, c] * weights) for c in range(3)], 1)
+            / total[:, None]
+        )
+        first = np.lexsort((robots, labels))
+        take = first[np.unique(labels[first], return_index=True)[1]]
+        weights, robots, ids = total, robots[take], ids[take]
+
+
+def test_fusion_rounds_equal_searching_everything_each_round():
+    """Four robots' noisy copies of one dense surface take many rounds of mutual pairs: keeping
+    each point's nearest between rounds gives exactly the from-scratch result."""
+    rng = np.random.default_rng(5)
+    surface = rng.uniform(0, 0.5, (1500, 3)) * [1, 1, 0.02]
+    points = np.vstack([surface + rng.normal(0, 0.006, surface.shape) for _ in range(4)])
+    robots = np.repeat(np.arange(1, 5), len(surface))
+    ids = np.tile(np.arange(1, len(surface) + 1), 4)
+    ref_points, ref_ids, ref_robots = _fuse_from_scratch(points, robots, ids, RADIUS)
+    fused, fused_ids, fused_robots = fuse_points(points, robots, ids, radius_m=RADIUS)
+    assert len(ref_points) < 0.6 * len(points)  # a case where fusion does much
+    np.testing.assert_allclose(fused, ref_points, atol=1e-12)
+    np.testing.assert_array_equal(fused_ids, ref_ids)
+    np.testing.assert_array_equal(fused_robots, ref_robots)

@@ -99,26 +99,87 @@ def _merge_groups(labels, n_groups, points, weights, robots, ids):
     return means, np.bincount(labels, weights=weights, minlength=n_groups), robots[take], ids[take]
 
 
-def _mutual_cross_robot_pairs(points: np.ndarray, robots: np.ndarray, radius_m: float):
-    """Pairs (i, j), i < j, of points of different robots closer than radius_m that are each
-    other's nearest point among the other's robot (no chaining: every point is in one pair)."""
-    n = len(points)
-    best_d = np.full(n, np.inf)
-    best_j = np.full(n, -1)
+def _trees(points: np.ndarray, robots: np.ndarray) -> list[tuple[int, np.ndarray, cKDTree]]:
+    """(robot, its point indices, KD-tree of its points) per robot."""
+    out = []
     for r in np.unique(robots):
-        own = robots == r
-        if own.all():
+        idx = np.nonzero(robots == r)[0]
+        out.append((r, idx, cKDTree(points[idx], balanced_tree=False, compact_nodes=False)))
+    return out
+
+
+def _nearest_other_robot(points, robots, trees, query, radius_m, best_d, best_j) -> None:
+    """Set best_d / best_j of the points ``query`` to their nearest point of another robot
+    closer than radius_m (inf / -1: none); robots in tree order, the first wins a tie."""
+    best_d[query], best_j[query] = np.inf, -1
+    for r, idx_r, tree in trees:
+        others = query[robots[query] != r]
+        if not len(others):
             continue
-        idx_r = np.nonzero(own)[0]
-        others = np.nonzero(~own)[0]
-        d, k = cKDTree(points[own]).query(points[others], distance_upper_bound=radius_m)
+        d, k = tree.query(points[others], distance_upper_bound=radius_m)
         better = (d < radius_m) & (d < best_d[others])
         best_d[others[better]] = d[better]
         best_j[others[better]] = idx_r[k[better]]
+
+
+def _mutual_pairs(best_j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (i, j), i < j, that are each other's best."""
     i = np.nonzero(best_j >= 0)[0]
     j = best_j[i]
     mutual = (best_j[j] == i) & (i < j)
     return i[mutual], j[mutual]
+
+
+def _fuse_cross_robot(points, weights, robots, ids, radius_m: float):
+    """Merge points of different robots closer than radius_m in rounds of mutual-nearest pairs.
+
+    Each point's nearest point of another robot is kept from round to round and searched again
+    only for the merged points and the points whose nearest was merged; every other point saw no
+    candidate move or vanish, only the new means appear, so its nearest is the nearer of the old
+    one and the nearest new mean. Later rounds, which merge few pairs, then cost little. The
+    result is that of searching every point again in every round."""
+    n = len(points)
+    best_d, best_j = np.full(n, np.inf), np.full(n, -1)
+    trees = _trees(points, robots)
+    _nearest_other_robot(points, robots, trees, np.arange(n), radius_m, best_d, best_j)
+    for _ in range(_MAX_FUSION_ROUNDS):
+        i, j = _mutual_pairs(best_j)
+        if len(i) == 0:
+            break
+        labels = np.arange(len(points))
+        labels[j] = i
+        # Relabel to 0..G-1 keeping order, then collapse each pair.
+        _, labels = np.unique(labels, return_inverse=True)
+        merged_old = np.zeros(len(points), bool)
+        merged_old[i] = merged_old[j] = True
+        stale = merged_old | ((best_j >= 0) & merged_old[np.maximum(best_j, 0)])
+        points, weights, robots, ids = _merge_groups(
+            labels, labels.max() + 1, points, weights, robots, ids
+        )
+        # the kept points' best in the new numbering (rows of stale points are recomputed)
+        new_best_d, new_best_j = np.full(len(points), np.inf), np.full(len(points), -1)
+        keep = ~merged_old
+        keep[i] = True  # a pair's first point's row becomes the pair's mean
+        new_best_d[labels[keep]] = best_d[keep]
+        has = keep & (best_j >= 0)
+        new_best_j[labels[has]] = labels[best_j[has]]
+        best_d, best_j = new_best_d, new_best_j
+        means = np.unique(labels[i])
+        # Everyone else only gained candidates, the new means: the nearer of its old best and the
+        # nearest mean of another robot.
+        for r in np.unique(robots):
+            other_means = means[robots[means] != r]
+            if not len(other_means):
+                continue
+            idx_r = np.nonzero(robots == r)[0]
+            d, k = cKDTree(points[other_means]).query(points[idx_r], distance_upper_bound=radius_m)
+            better = (d < radius_m) & (d < best_d[idx_r])
+            best_d[idx_r[better]] = d[better]
+            best_j[idx_r[better]] = other_means[k[better]]
+        trees = _trees(points, robots)
+        query = np.unique(np.concatenate([means, labels[stale]]))
+        _nearest_other_robot(points, robots, trees, query, radius_m, best_d, best_j)
+    return points, weights, robots, ids
 
 
 def fuse_points(
@@ -154,18 +215,8 @@ def fuse_points(
         adj = coo_matrix((np.ones(len(m)), (m[:, 0], m[:, 1])), shape=(n, n))
         n_groups, labels = connected_components(adj, directed=False)
         points, weights, robots, ids = _merge_groups(labels, n_groups, points, weights, robots, ids)
-    if radius_m > 0:
-        for _ in range(_MAX_FUSION_ROUNDS):
-            i, j = _mutual_cross_robot_pairs(points, robots, radius_m)
-            if len(i) == 0:
-                break
-            labels = np.arange(len(points))
-            labels[j] = i
-            # Relabel to 0..G-1 keeping order, then collapse each pair.
-            _, labels = np.unique(labels, return_inverse=True)
-            points, weights, robots, ids = _merge_groups(
-                labels, labels.max() + 1, points, weights, robots, ids
-            )
+    if radius_m > 0 and len(points):
+        points, weights, robots, ids = _fuse_cross_robot(points, weights, robots, ids, radius_m)
     return points, ids, robots
 
 
