@@ -429,6 +429,7 @@ def test_co_observation_verifies_at_most_its_budget_per_keyframe(world):
     points, desc, kfs_a, vocab = world
     cfg = _config(robots=[1, 2, 3])
     cfg.rendezvous.auto_max_verifications = 1
+    cfg.rendezvous.auto_verifications_per_s = 0.0  # the team-wide budget: the next test
     cfg.place_recognition.enabled = False
     server = TeamServer(cfg, vocab)
     for robot in (2, 3):  # two keyframes each, taken at the time of robot 1's keyframe
@@ -440,6 +441,39 @@ def test_co_observation_verifies_at_most_its_budget_per_keyframe(world):
     kf.stamp_s = 5.15
     server.add_keyframe(kf)
     assert server.rendezvous.verifications - before == 1
+
+
+@pytest.mark.parametrize("per_s", [0.0, 1.0])
+def test_co_observation_budget_is_shared_by_the_team_per_second_of_data(world, per_s):
+    """Keyframes arriving close together in data time share auto_verifications_per_s: a burst
+    spends the budget (2 x auto_max_verifications), data time refills it; 0 is no limit."""
+    points, desc, _, vocab = world
+    cfg = _config(robots=[1, 2, 3])
+    cfg.rendezvous.auto_verifications_per_s = 0.0  # robots 2 and 3 leave the budget full
+    cfg.place_recognition.enabled = False
+    cfg.links.enabled = False
+    server = TeamServer(cfg, vocab)
+    for robot in (2, 3):  # keyframes near t = 5 s and near t = 15 s
+        kfs = _keyframes(robot, [0.0, 0.1, 3.0, 3.1], points, desc, seed=10 * robot)
+        for kf, stamp in zip(kfs, (5.0, 5.1, 15.0, 15.1)):
+            kf.stamp_s = stamp
+            server.add_keyframe(kf)
+    cfg.rendezvous.auto_verifications_per_s = per_s
+    burst = _keyframes(1, np.linspace(1.5, 1.6, 6), points, desc, seed=1)
+    before = server.rendezvous.verifications
+    for k, kf in enumerate(burst):  # six keyframes within 0.05 s, each with 4 candidates
+        kf.stamp_s = 5.15 + 0.01 * k
+        server.add_keyframe(kf)
+    spent = server.rendezvous.verifications - before
+    later = _keyframes(1, [4.5], points, desc, kid0=7, seed=2)[0]
+    later.stamp_s = 15.05
+    before = server.rendezvous.verifications
+    server.add_keyframe(later)
+    if per_s == 0:
+        assert spent == 6 * 4  # each keyframe its own 4
+    else:
+        assert spent == 2 * cfg.rendezvous.auto_max_verifications
+    assert server.rendezvous.verifications - before == 4  # 10 s of data refilled the budget
 
 
 @pytest.mark.parametrize("full_above_m", [0.0, 0.02])

@@ -66,6 +66,11 @@ class RendezvousConfig:
     # different keyframes of the joining robot agree on the map transform (within the tolerance).
     auto_confirmations: int = 2
     auto_max_verifications: int = 4  # automatic test: 3D-3D verifications per new keyframe
+    # ... and at most this many per second of data time over the whole team (a budget that
+    # refills with the keyframes' stamps, holding 2 x auto_max_verifications): eight unmerged
+    # robots at 4 per keyframe spent half the server's time on it. Data time, not wall time, so
+    # lock-step results do not depend on the machine's speed. 0 = no limit [1/s]
+    auto_verifications_per_s: float = 8.0
     confirm_trans_m: float = 0.05
     confirm_rot_deg: float = 2.0
     confirm_scale_rel: float = 0.03  # and, for a monocular map, on its scale (relative)
@@ -88,6 +93,10 @@ class RendezvousConfig:
     def validate(self) -> None:
         require(self.window_s > 0, "rendezvous.window_s must be > 0")
         require(self.auto_max_verifications >= 1, "rendezvous.auto_max_verifications must be >= 1")
+        require(
+            self.auto_verifications_per_s >= 0,
+            "rendezvous.auto_verifications_per_s must be >= 0 (0: no limit)",
+        )
         require(self.request_window_s > 0, "rendezvous.request_window_s must be > 0")
         require(self.sighting_period_s >= 0, "rendezvous.sighting_period_s must be >= 0")
         require(self.merge_min_inliers >= 1, "rendezvous.merge_min_inliers must be >= 1")

@@ -69,6 +69,8 @@ class Rendezvous:
         # co-observations, for their confirmation (a similarity as its 4x4 matrix)
         self._co_observations: dict[tuple[int, int], list] = {}
         self._last_sighting: dict[tuple[int, int], float] = {}  # (observer, observed) -> [s]
+        # automatic verifications the team-wide budget allows now, and the stamp it last refilled
+        self._auto_tokens, self._auto_stamp_s = float(2 * config.auto_max_verifications), None
 
     # --- cues -------------------------------------------------------------------------------------
     def sighting_due(self, observer: int, observed: int, stamp_s: float) -> bool:
@@ -99,7 +101,8 @@ class Rendezvous:
         """The new keyframe against other unmerged robots' keyframes taken at (about) the same
         time (the two nearest in time per robot; robots with the most similar keyframe first, at
         most ``auto_max_verifications`` 3D-3D verifications per keyframe: with eight robots every
-        pair at every keyframe was most of the server's time); the first verified match."""
+        pair at every keyframe was most of the server's time; and at most
+        ``auto_verifications_per_s`` over the team); the first verified match."""
         key_b = (rec.robot_id, rec.keyframe_id)
         bow_b = self.store.bow(key_b)
         candidates = []
@@ -110,16 +113,33 @@ class Rendezvous:
             if keys:
                 best = max(self.store.vocabulary.score(self.store.bow(k), bow_b) for k in keys)
                 candidates.append((-best, other, keys))
-        budget = self.verifications + self.config.auto_max_verifications
+        budget = self.verifications + self._auto_budget(rec.stamp_s)
         for _, other, keys in sorted(candidates):
             cued = self.together(other, rec.robot_id, rec.stamp_s)
             for key_a in keys:
                 if self.verifications >= budget:
                     return None
+                tried = self.verifications
                 v = self._verify(key_a, key_b, rec.stamp_s, confirm=not cued)
+                if self.config.auto_verifications_per_s > 0:
+                    self._auto_tokens -= self.verifications - tried
                 if v is not None:
                     return v
         return None
+
+    def _auto_budget(self, stamp_s: float) -> int:
+        """Automatic verifications a new keyframe of this stamp may make: at most
+        ``auto_max_verifications``, and what the team-wide budget holds after refilling it at
+        ``auto_verifications_per_s`` for the data time since the last keyframe."""
+        cfg = self.config
+        if cfg.auto_verifications_per_s <= 0:
+            return cfg.auto_max_verifications
+        if self._auto_stamp_s is not None:  # keyframes of several robots: stamps may go back
+            gained = max(stamp_s - self._auto_stamp_s, 0.0) * cfg.auto_verifications_per_s
+            self._auto_tokens = min(self._auto_tokens + gained, 2.0 * cfg.auto_max_verifications)
+        if self._auto_stamp_s is None or stamp_s > self._auto_stamp_s:
+            self._auto_stamp_s = stamp_s
+        return min(cfg.auto_max_verifications, int(self._auto_tokens))
 
     def _confirmed(self, key_a, key_b, res: RelativePoseResult) -> bool:
         """Whether earlier automatic verifications of this robot pair (either direction, other
