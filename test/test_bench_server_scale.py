@@ -65,15 +65,18 @@ def replayed(tmp_path_factory):
     arrivals = _stream(kfs_a, kfs_b)
     path = str(tmp_path_factory.mktemp("scale") / "team_map.db")
     durable = DurableServer(team_server_config(), lambda c: TeamServer(c, vocab), path)
+    work = NodeWork(durable)
     try:
-        run = replay_at_rate(arrivals, NodeWork(durable), RATE)
-        yield arrivals, run, durable.server, kfs_a
+        run = replay_at_rate(arrivals, work, RATE)
+        assert work.builder.wait_idle(60.0)
+        yield arrivals, run, durable.server, kfs_a, work
     finally:
+        work.close()
         durable.close()
 
 
 def test_every_message_is_processed_once_in_arrival_order(replayed):
-    arrivals, run, server, kfs_a = replayed
+    arrivals, run, server, kfs_a, _ = replayed
     assert [(m.robot_id, m.kind) for m in run.messages] == [
         (a.robot_id, "update" if isinstance(a.item, DeltaUpdate) else m.kind)
         for a, m in zip(arrivals, run.messages)
@@ -94,7 +97,8 @@ def test_every_message_is_processed_once_in_arrival_order(replayed):
 
 
 def test_backlog_and_merges_agree_with_the_server(replayed):
-    arrivals, run, server, _ = replayed
+    arrivals, run, server, _, work = replayed
+    assert work.builder.built >= 1 and work.builder.failed == 0  # team clouds, beside the worker
     arr = run.arrays()
     t = np.linspace(0.0, arr["end_s"][-1], 500)
     backlog = backlog_at(run, t)
@@ -111,7 +115,7 @@ def test_backlog_and_merges_agree_with_the_server(replayed):
 
 
 def test_figures_are_consistent(replayed, tmp_path):
-    arrivals, run, server, _ = replayed
+    arrivals, run, server, _, _ = replayed
     figures = {name: (value, unit) for name, value, unit in scale_figures(run)}
     assert all(name.startswith("server_scale_") for name in figures)
     assert all(np.isfinite(v) for v, _ in figures.values())

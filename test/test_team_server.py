@@ -423,6 +423,38 @@ def test_team_map_cadence_keeps_the_cloud_within_its_share_of_the_worker():
         PublishCadence(PublishCadenceConfig(max_busy_share=0.0))
 
 
+def test_map_builder_builds_one_cloud_at_a_time_beside_the_worker():
+    """The worker hands over a cloud job; while it is built the builder takes no other (the map
+    stays due, never a queue of stale clouds); the cost reaches the cadence; a build that fails
+    is counted and the builder carries on."""
+    import threading
+
+    from coop_slam.team.map_builder import TeamMapBuilder
+    from coop_slam.team.publish_cadence import PublishCadence, PublishCadenceConfig
+
+    cadence = PublishCadence(PublishCadenceConfig(period_s=1.0, max_busy_share=1.0))
+    got, gate = [], threading.Event()
+    builder = TeamMapBuilder(lambda cloud, stamp_s: got.append((cloud, stamp_s)), cadence)
+    try:
+        assert builder.submit(lambda: gate.wait(10.0) and "first", 1.0)
+        assert builder.busy
+        assert not builder.submit(lambda: "second", 2.0)
+        gate.set()
+        assert builder.wait_idle(10.0) and not builder.busy
+        assert got == [("first", 1.0)]
+        assert not cadence.due(1.5, merged=False, wall_s=1e9)  # published at data time 1.0
+        assert cadence.due(2.5, merged=False, wall_s=1e9)
+        assert builder.submit(lambda: 1 / 0, 3.0)
+        assert builder.wait_idle(10.0)
+        assert builder.submit(lambda: "after", 4.0)
+        assert builder.wait_idle(10.0)
+        assert got[-1] == ("after", 4.0)
+        assert (builder.built, builder.failed) == (2, 1)
+    finally:
+        builder.close()
+    assert not builder.submit(lambda: "closed", 5.0)
+
+
 def test_co_observation_verifies_at_most_its_budget_per_keyframe(world):
     """With several unmerged robots, a new keyframe is verified against at most
     auto_max_verifications simultaneous keyframes of the others (here 1 of 4 candidates)."""

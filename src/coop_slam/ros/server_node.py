@@ -171,6 +171,7 @@ class ServerNode:
         from sensor_msgs.msg import PointCloud2
         from visualization_msgs.msg import MarkerArray
 
+        from ..team.map_builder import TeamMapBuilder
         from ..team.publish_cadence import PublishCadence, PublishCadenceConfig
 
         self.cadence = PublishCadence(
@@ -179,6 +180,9 @@ class ServerNode:
                 max_busy_share=float(rospy.get_param("~cloud_max_busy_share", 0.2)),
             )
         )
+        # The stitched cloud is built beside the worker (see team/map_builder.py).
+        self.map_builder = TeamMapBuilder(self._publish_cloud, self.cadence)
+        self._merge_unshown = False  # a merge the team map has not shown yet
         self.pub_cloud = rospy.Publisher("/team_map/cloud", PointCloud2, queue_size=1, latch=True)
         self.pub_markers = rospy.Publisher(
             "/team_map/markers", MarkerArray, queue_size=1, latch=True
@@ -560,7 +564,8 @@ class ServerNode:
                         self._map_dirty = True
                 except Exception as exc:  # noqa: BLE001 -- the worker must live on
                     rospy.logerr("server: global BA failed (%s: %s)", type(exc).__name__, exc)
-                if self._map_dirty:  # the queue drained: show the final state of the map
+                # The queue drained: show the final state of the map (once the builder is free).
+                if self._map_dirty and not self.map_builder.busy:
                     stamp = rospy.Time.from_sec(self._last_stamp_s)
                     self._publish_tf(stamp)
                     self._publish_map(stamp)
@@ -627,7 +632,8 @@ class ServerNode:
         if merges or self.server.map_moved:
             self._publish_tf(stamp)
         self._map_dirty, self._last_stamp_s = True, stamp_s
-        if self.cadence.due(stamp_s, bool(merges), time.monotonic()):
+        self._merge_unshown |= bool(merges)
+        if self.cadence.due(stamp_s, self._merge_unshown, time.monotonic()):
             self._publish_map(stamp)
         if len(self.server.keyframe_ms) % 10 == 0 or merges:
             self._publish_stats()
@@ -723,23 +729,29 @@ class ServerNode:
             self.tf.sendTransform(transforms)
 
     def _publish_map(self, stamp) -> None:
-        """Stitched team cloud and the markers (paths, merge edges, labels), in ``world``."""
-        started = time.monotonic()
-        try:
-            self._build_and_publish_map(stamp)
-        finally:
-            self.cadence.published(stamp.to_sec(), started, time.monotonic())
+        """The team map in ``world``: the markers (paths, merge edges, labels) now, the stitched
+        cloud from the map builder. While the builder is busy the map stays due: the worker
+        hands over a newer state when it is free (the next message, or idle)."""
+        if self.map_builder.busy:
+            return
+        self._map_dirty = self._merge_unshown = False
+        self.map_builder.submit(self.server.team_cloud_job(), stamp.to_sec())
+        self._publish_paths_and_markers(stamp)
 
-    def _build_and_publish_map(self, stamp) -> None:
-        self._map_dirty = False
+    def _publish_cloud(self, cloud, stamp_s: float) -> None:
+        """In the map builder's thread: a built cloud goes out."""
+        if rospy.is_shutdown():  # built while the node stopped: nowhere to go
+            return
+        points, rgb, _ = cloud
+        self.pub_cloud.publish(cloud_to_msg(points, "world", rospy.Time.from_sec(stamp_s), rgb))
+
+    def _publish_paths_and_markers(self, stamp) -> None:
         from geometry_msgs.msg import Point
         from std_msgs.msg import ColorRGBA
         from visualization_msgs.msg import Marker, MarkerArray
 
         from ..team.fusion import robot_colours
 
-        points, rgb, _ = self.server.team_cloud()
-        self.pub_cloud.publish(cloud_to_msg(points, "world", stamp, rgb))
         for r in self.durable.robots:
             poses = self.server.robot_keyframes(r)
             if not poses:

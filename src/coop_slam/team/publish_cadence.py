@@ -1,10 +1,10 @@
 """When the server publishes the stitched team map (cloud, paths, merge edges).
 
-The stitched cloud fuses every robot's points; its cost grows with the team map, to seconds per
-call with eight robots (``scripts/bench --only server_scale``), time the server's one worker does
-not spend on keyframes. The map is shown after a merge and every
-``period_s`` of data time, as before, but never takes more than ``max_busy_share`` of the
-worker's wall time: after a map that took ``c`` seconds to build, the next waits at least
+The stitched cloud fuses every robot's points; its cost grows with the team map, to a second or
+more per build with eight robots (``scripts/bench --only server_scale``). It is built beside the
+server's worker (:mod:`.map_builder`), but on the same cores. The map is shown after a merge and
+every ``period_s`` of data time, but the builder never takes more than ``max_busy_share`` of the
+wall time: after a cloud that took ``c`` seconds to build, the next waits at least
 ``c * (1 / max_busy_share - 1)`` seconds. When the server is idle (its queue drained) the final
 state is always shown.
 """
@@ -19,7 +19,7 @@ from ..config import require
 @dataclass
 class PublishCadenceConfig:
     period_s: float = 2.0  # data time between two team maps [s]
-    max_busy_share: float = 0.2  # of the worker's wall time spent on the team map, at most
+    max_busy_share: float = 0.2  # of the wall time spent building team clouds, at most
 
     def validate(self) -> None:
         require(self.period_s > 0, "server: cloud_period_s must be > 0")

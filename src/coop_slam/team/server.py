@@ -22,8 +22,10 @@ smallest robot; the group holding the team's smallest robot id is the one publis
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import time
+from typing import Callable
 
 import numpy as np
 
@@ -46,7 +48,7 @@ from .rendezvous import Rendezvous
 from .results import TYPE_PLACE_RECOGNITION, MergeResult, Verified, robot_pair
 from .segments import MapSegments
 from .stitching import Stitcher, graph_call
-from .view import team_cloud, team_paths_and_edges, view_offsets
+from .view import build_cloud, cloud_snapshot, team_paths_and_edges, view_offsets
 
 log = logging.getLogger(__name__)
 
@@ -665,13 +667,15 @@ class TeamServer:
         )
 
     def team_cloud(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The stitched cloud as drawn (see :func:`.view.team_cloud`)."""
-        cfg = self.config
-        return team_cloud(
-            self.store.records(),
-            self._offsets(),
-            self.T_group_cam,
-            cfg.fuse_radius_m,
-            cfg.cloud_voxel_m,
-            self.local_scale,
+        """The stitched cloud as drawn (see :func:`.view.build_cloud`)."""
+        return self.team_cloud_job()()
+
+    def team_cloud_job(self) -> Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """The stitched cloud of the team map as it is now, to build later or in another thread
+        (the slow part: fusing duplicates), while the server takes further keyframes."""
+        snapshot = cloud_snapshot(
+            self.store.records(), self._offsets(), self.T_group_cam, self.local_scale
+        )
+        return functools.partial(
+            build_cloud, snapshot, self.config.fuse_radius_m, self.config.cloud_voxel_m
         )

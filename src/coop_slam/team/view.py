@@ -62,29 +62,42 @@ def team_paths_and_edges(
     return paths, edges
 
 
-def team_cloud(
+CloudSnapshot = list[tuple[KeyframeRecord, np.ndarray]]  # (keyframe, T_view_map of its points)
+
+
+def cloud_snapshot(
     records: list[KeyframeRecord],
     offsets: dict[int, np.ndarray],
     T_group_cam: PoseOf,
-    fuse_radius_m: float,
-    voxel_m: float,
     local_scale: Callable[[int, int], float] | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Stitched cloud: points (N, 3) in the view frame, rgb (N, 3) uint8 per robot, robot ids
-    (N,). Each keyframe's points move with its optimized pose (and, for a monocular map whose
-    scale the team graph lets drift, with its ``local_scale`` about the camera), duplicates of
-    overlapping maps are fused, the result voxel-downsampled."""
-    if not records:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int64)
-
-    def T_view_map_of(rec):
+) -> CloudSnapshot:
+    """What the stitched cloud is built from, fixed now: each keyframe with the transform that
+    moves its map points to where the team map has them on screen -- its optimized pose (and,
+    for a monocular map whose scale the team graph lets drift, its ``local_scale`` about the
+    camera) in its group's place. The records are not copied: the server replaces a record on
+    every change, never alters one, so the snapshot can be built while the server goes on."""
+    out = []
+    for rec in records:
         T = T_group_cam(rec.robot_id, rec.keyframe_id)
         s = 1.0 if local_scale is None else local_scale(rec.robot_id, rec.keyframe_id)
         if s != 1.0:
             T = T @ np.diag([s, s, s, 1.0])
-        return offsets[rec.robot_id] @ T @ invert(rec.T_map_cam)
+        out.append((rec, offsets[rec.robot_id] @ T @ invert(rec.T_map_cam)))
+    return out
 
-    points, robots, ids = gather_map_points(records, T_view_map_of, per_keyframe=True)
+
+def build_cloud(
+    snapshot: CloudSnapshot, fuse_radius_m: float, voxel_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stitched cloud of a snapshot: points (N, 3) in the view frame, rgb (N, 3) uint8 per robot,
+    robot ids (N,). Each keyframe's points move with its own transform, duplicates of
+    overlapping maps are fused, the result voxel-downsampled."""
+    if not snapshot:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int64)
+    T_of = {id(rec): T for rec, T in snapshot}
+    points, robots, ids = gather_map_points(
+        [rec for rec, _ in snapshot], lambda rec: T_of[id(rec)], per_keyframe=True
+    )
     points, ids, robots = fuse_points(points, robots, ids, radius_m=fuse_radius_m)
     points, robots = voxel_downsample(points, robots, voxel_m)
     return points, robot_colours(robots), robots

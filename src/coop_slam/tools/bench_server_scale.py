@@ -43,6 +43,7 @@ from ..keyframe_record import (
     complete_update,
     patch_of,
 )
+from ..team.map_builder import TeamMapBuilder
 from ..team.publish_cadence import PublishCadence, PublishCadenceConfig
 
 Figure = tuple[str, float, str]
@@ -347,16 +348,22 @@ class NodeWork:
     """The server node's worker without ROS (``ServerNode._do`` for a keyframe job, and its idle
     branch): the durable server takes the message; then the core work behind the node's
     publishing -- the robots' corrections and TF after a merge or an optimization, the team map
-    (cloud, paths, merge edges) when its cadence allows (:mod:`coop_slam.team.publish_cadence`),
-    and when the queue has been empty for 0.5 s the global BA a merge left due, then both again.
-    Building and serialising the ROS messages is left out."""
+    (paths and merge edges here, the cloud in the map builder's thread,
+    :mod:`coop_slam.team.map_builder`) when its cadence allows
+    (:mod:`coop_slam.team.publish_cadence`), and when the queue has been empty for 0.5 s the
+    global BA a merge left due, then both again. Building and serialising the ROS messages is left
+    out. ``close()`` stops the builder."""
 
     def __init__(self, durable, cadence: PublishCadenceConfig | None = None):
         self.durable = durable
         self.cadence = PublishCadence(cadence)
+        self.builder = TeamMapBuilder(lambda cloud, stamp_s: None, self.cadence)
         self.rejected = 0  # messages the server refused
         self.ack: tuple | None = None  # the last acknowledgement's content
-        self._last_stamp_s, self._dirty = 0.0, False
+        self._last_stamp_s, self._dirty, self._merge_unshown = 0.0, False, False
+
+    def close(self) -> None:
+        self.builder.close(timeout_s=None)
 
     @property
     def server(self):
@@ -395,7 +402,8 @@ class NodeWork:
         if merges or self.server.map_moved:
             self._corrections()
         self._dirty, self._last_stamp_s = True, stamp_s
-        if self.cadence.due(stamp_s, bool(merges), time.monotonic()):
+        self._merge_unshown |= bool(merges)
+        if self.cadence.due(stamp_s, self._merge_unshown, time.monotonic()):
             self._team_map()
         return merges, decided
 
@@ -404,7 +412,7 @@ class NodeWork:
         (when it changed); True if work done."""
         if self.durable.run_due_global_ba():
             self._dirty = True
-        if not self._dirty:
+        if not self._dirty or self.builder.busy:
             return False
         self._corrections()
         self._team_map()
@@ -420,13 +428,14 @@ class NodeWork:
             out[r] = (server.T_group_map(m), server.in_world(m), server.is_metric(m), corrected)
         return out
 
-    def _team_map(self) -> tuple:
-        """``ServerNode._publish_map``: the stitched cloud, every robot's path (and the frame it
-        is drawn in), the merge edges."""
-        self._dirty = False
-        started = time.monotonic()
+    def _team_map(self) -> tuple | None:
+        """``ServerNode._publish_map``: the stitched cloud handed to the builder, every robot's
+        path (and the frame it is drawn in), the merge edges; None while the builder is busy."""
+        if self.builder.busy:
+            return None
+        self._dirty = self._merge_unshown = False
         server = self.server
-        cloud = server.team_cloud()
+        self.builder.submit(server.team_cloud_job(), self._last_stamp_s)
         paths = {}
         for r in self.durable.robots:
             poses = server.robot_keyframes(r)
@@ -434,9 +443,7 @@ class NodeWork:
                 m = server.current_map(r)
                 root = server.robot_of(server.groups.root(m))
                 paths[r] = (server.in_world(m), root, poses)
-        view = server.team_view()
-        self.cadence.published(self._last_stamp_s, started, time.monotonic())
-        return cloud, paths, view
+        return paths, server.team_view()
 
 
 @dataclasses.dataclass
@@ -707,10 +714,12 @@ def bench_server_scale(
             os.path.join(tmp, "team_map.db"),
             defer_global_ba=True,  # as the node: when no message waits
         )
+        work = NodeWork(durable)
         try:
             t = time.perf_counter()
-            run = replay_at_rate(arrivals, NodeWork(durable), rate)
-            _log(f"replay took {time.perf_counter() - t:.1f} s")
+            run = replay_at_rate(arrivals, work, rate)
+            took = time.perf_counter() - t
+            _log(f"replay took {took:.1f} s; {work.builder.built} team clouds built")
             yield from scale_figures(run)
             server = durable.server
             yield ("server_scale_final_graph_keyframes", float(len(server.store)), "keyframes")
@@ -719,6 +728,7 @@ def bench_server_scale(
             full_ms = 1e3 * (time.perf_counter() - t)
             yield ("server_scale_full_optimization_final_graph", full_ms, "ms")
         finally:
+            work.close()
             durable.close()
     if run.messages:
         os.makedirs(out_dir or ".", exist_ok=True)
