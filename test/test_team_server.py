@@ -506,6 +506,17 @@ def test_co_observation_budget_is_shared_by_the_team_per_second_of_data(world, p
     else:
         assert spent == 2 * cfg.rendezvous.auto_max_verifications
     assert server.rendezvous.verifications - before == 4  # 10 s of data refilled the budget
+    if per_s == 0:
+        return
+    # A clock that starts again (far behind the newest stamp) refills from its own time.
+    made = []
+    for kid, stamp in ((8, 3.5), (9, 6.5)):
+        kf = _keyframes(1, [1.55], points, desc, kid0=kid, seed=kid)[0]
+        kf.stamp_s = stamp
+        before = server.rendezvous.verifications
+        server.add_keyframe(kf)
+        made.append(server.rendezvous.verifications - before)
+    assert made == [4, 3]  # the 4 left; then 3 s of the new clock at 1 per second
 
 
 @pytest.mark.parametrize("full_above_m", [0.0, 0.02])

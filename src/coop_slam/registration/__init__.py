@@ -1,6 +1,6 @@
 """Relative-pose estimation between two keyframes (place recognition and rendezvous).
 
-Pure core: numpy arrays in, numpy arrays out (OpenCV for PnP, GTSAM for bundle adjustment).
+Pure core: numpy arrays in, numpy arrays out (OpenCV for PnP; bundle adjustment in numpy).
 Transforms follow ``T_a_b`` = maps points from frame b into frame a; ``T_a_b`` of two keyframes is
 ``T_camA_camB``.
 """

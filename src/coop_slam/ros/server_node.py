@@ -733,6 +733,7 @@ class ServerNode:
         cloud from the map builder. While the builder is busy the map stays due: the worker
         hands over a newer state when it is free (the next message, or idle)."""
         if self.map_builder.busy:
+            self._map_dirty = True  # shown when the builder is free (idle: within 0.5 s)
             return
         self._map_dirty = self._merge_unshown = False
         self.map_builder.submit(self.server.team_cloud_job(), stamp.to_sec())

@@ -38,6 +38,7 @@ from .plausibility import match_is_look_alike
 from .results import TYPE_RENDEZVOUS, Verified, robot_pair
 
 log = logging.getLogger(__name__)
+_CLOCK_RESET_S = 10.0  # a keyframe this much older than the newest seen restarts the budget's clock
 
 
 @dataclass
@@ -130,14 +131,17 @@ class Rendezvous:
     def _auto_budget(self, stamp_s: float) -> int:
         """Automatic verifications a new keyframe of this stamp may make: at most
         ``auto_max_verifications``, and what the team-wide budget holds after refilling it at
-        ``auto_verifications_per_s`` for the data time since the last keyframe."""
+        ``auto_verifications_per_s`` for the data time since the newest stamp seen."""
         cfg = self.config
         if cfg.auto_verifications_per_s <= 0:
             return cfg.auto_max_verifications
-        if self._auto_stamp_s is not None:  # keyframes of several robots: stamps may go back
-            gained = max(stamp_s - self._auto_stamp_s, 0.0) * cfg.auto_verifications_per_s
+        newest = self._auto_stamp_s
+        if newest is not None:  # keyframes of several robots: stamps may go back a little
+            gained = max(stamp_s - newest, 0.0) * cfg.auto_verifications_per_s
             self._auto_tokens = min(self._auto_tokens + gained, 2.0 * cfg.auto_max_verifications)
-        if self._auto_stamp_s is None or stamp_s > self._auto_stamp_s:
+        # Far back is another clock (a new session, a replay from 0), not a late keyframe: the
+        # budget refills from there, else it would wait for data time to pass the old newest.
+        if newest is None or stamp_s > newest or stamp_s < newest - _CLOCK_RESET_S:
             self._auto_stamp_s = stamp_s
         return min(cfg.auto_max_verifications, int(self._auto_tokens))
 

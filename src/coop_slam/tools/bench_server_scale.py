@@ -409,11 +409,12 @@ class NodeWork:
 
     def idle(self) -> bool:
         """The queue drained: the global BA a merge left due, then the final state of the map
-        (when it changed); True if work done."""
-        if self.durable.run_due_global_ba():
+        (when it changed, and once the builder is free); True if work done."""
+        ran = self.durable.run_due_global_ba()
+        if ran:
             self._dirty = True
         if not self._dirty or self.builder.busy:
-            return False
+            return ran
         self._corrections()
         self._team_map()
         return True
