@@ -156,11 +156,7 @@ def _projection_block(points_cam, uv, K, sigma_px, dcam_dpoint, dcam_dpose, jaco
     it: a constant error of 2 fx per coordinate and no gradient, so a step there is refused."""
     n = len(points_cam)
     front = points_cam[:, 2] > 1e-9
-    z = np.where(front, points_cam[:, 2], 1.0)
-    uv_hat = np.c_[
-        (K[0, 0] * points_cam[:, 0] + K[0, 1] * points_cam[:, 1]) / z + K[0, 2],
-        K[1, 1] * points_cam[:, 1] / z + K[1, 2],
-    ]
+    uv_hat = project(points_cam, K)  # NaN behind the camera, replaced here
     r = np.where(front[:, None], (uv_hat - uv) / sigma_px, 2.0 * K[0, 0] / sigma_px)
     if not jacobians:
         return _Block(r, np.ones(n, dtype=bool))
@@ -237,13 +233,17 @@ class _Normal:
     g_c: np.ndarray  # (6,)
     g_p: np.ndarray  # (n, 3)
 
-    def step(self, lam: float) -> tuple[np.ndarray, np.ndarray]:
-        """(pose step, point steps) of the system damped by lam * I (GTSAM's LM damping); the
-        points are eliminated first, as their blocks are independent given the pose."""
-        H_pp = self.H_pp + lam * np.eye(3)
-        H_pp_inv = np.linalg.inv(H_pp)
+    def _schur(self, lam: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(H_pp^-1, H_cp H_pp^-1, Schur complement of the pose) of the system damped by
+        lam * I: the points eliminated, their blocks being independent given the pose."""
+        H_pp_inv = np.linalg.inv(self.H_pp + lam * np.eye(3))
         HcpHinv = self.H_cp @ H_pp_inv  # (n, 6, 3)
         S = self.H_cc + lam * np.eye(6) - np.einsum("nij,nkj->ik", HcpHinv, self.H_cp)
+        return H_pp_inv, HcpHinv, S
+
+    def step(self, lam: float) -> tuple[np.ndarray, np.ndarray]:
+        """(pose step, point steps) of the system damped by lam * I (GTSAM's LM damping)."""
+        H_pp_inv, HcpHinv, S = self._schur(lam)
         b = self.g_c - np.einsum("nij,nj->i", HcpHinv, self.g_p)
         d_pose = np.linalg.solve(S, -b)
         rhs = -self.g_p - np.einsum("nji,j->ni", self.H_cp, d_pose)
@@ -252,8 +252,7 @@ class _Normal:
     def pose_covariance(self) -> np.ndarray:
         """Marginal covariance of B's pose (the inverse Schur complement), inf if singular."""
         try:
-            H_pp_inv = np.linalg.inv(self.H_pp)
-            S = self.H_cc - np.einsum("nij,njk,nlk->il", self.H_cp, H_pp_inv, self.H_cp)
+            S = self._schur(0.0)[2]
             if not np.all(np.isfinite(S)) or np.linalg.cond(S) > 1e14:
                 return np.full((6, 6), np.inf)
             return np.linalg.inv(S)

@@ -108,18 +108,23 @@ def _trees(points: np.ndarray, robots: np.ndarray) -> list[tuple[int, np.ndarray
     return out
 
 
+def _take_nearer(points, query, candidates, tree, radius_m, best_d, best_j) -> None:
+    """Where the nearest of ``candidates`` (the points ``tree`` holds) is closer to a point of
+    ``query`` than radius_m and than its best so far, it becomes that point's best."""
+    d, k = tree.query(points[query], distance_upper_bound=radius_m)
+    better = (d < radius_m) & (d < best_d[query])
+    best_d[query[better]] = d[better]
+    best_j[query[better]] = candidates[k[better]]
+
+
 def _nearest_other_robot(points, robots, trees, query, radius_m, best_d, best_j) -> None:
     """Set best_d / best_j of the points ``query`` to their nearest point of another robot
     closer than radius_m (inf / -1: none); robots in tree order, the first wins a tie."""
     best_d[query], best_j[query] = np.inf, -1
     for r, idx_r, tree in trees:
         others = query[robots[query] != r]
-        if not len(others):
-            continue
-        d, k = tree.query(points[others], distance_upper_bound=radius_m)
-        better = (d < radius_m) & (d < best_d[others])
-        best_d[others[better]] = d[better]
-        best_j[others[better]] = idx_r[k[better]]
+        if len(others):
+            _take_nearer(points, others, idx_r, tree, radius_m, best_d, best_j)
 
 
 def _mutual_pairs(best_j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -171,11 +176,9 @@ def _fuse_cross_robot(points, weights, robots, ids, radius_m: float):
             other_means = means[robots[means] != r]
             if not len(other_means):
                 continue
+            tree = cKDTree(points[other_means])
             idx_r = np.nonzero(robots == r)[0]
-            d, k = cKDTree(points[other_means]).query(points[idx_r], distance_upper_bound=radius_m)
-            better = (d < radius_m) & (d < best_d[idx_r])
-            best_d[idx_r[better]] = d[better]
-            best_j[idx_r[better]] = other_means[k[better]]
+            _take_nearer(points, idx_r, other_means, tree, radius_m, best_d, best_j)
         trees = _trees(points, robots)
         query = np.unique(np.concatenate([means, labels[stale]]))
         _nearest_other_robot(points, robots, trees, query, radius_m, best_d, best_j)
