@@ -161,6 +161,7 @@ class ClientNode:
         self.pub_sighting = rospy.Publisher("/robot_sightings", RobotSighting, queue_size=10)
         self.topics = camera_topics(self.robot_id, self.sensor)
         self.infos: dict[str, CameraInfo] = {}
+        self._info_keys: dict[str, tuple] = {}  # per camera info topic: the last one accepted
         self.subs_info = [
             rospy.Subscriber(topic, CameraInfo, self._on_info, which, queue_size=5)
             for which, topic in self.topics["infos"].items()
@@ -369,6 +370,17 @@ class ClientNode:
     # --- callbacks --------------------------------------------------------------------------------
     def _on_info(self, msg: CameraInfo, which: str) -> None:
         topic = self.topics["infos"][which]
+        # Every frame brings its camera info; only a change needs a new camera model.
+        key = (
+            msg.width,
+            msg.height,
+            msg.distortion_model,
+            tuple(msg.D),
+            tuple(msg.K),
+            tuple(msg.P),
+        )
+        if self.camera is not None and self._info_keys.get(which) == key:
+            return
         self.infos[which] = msg
         try:
             if self.sensor == "stereo":
@@ -380,6 +392,7 @@ class ClientNode:
         except MessageError as exc:
             self.rejects.reject(topic, str(exc))
             return
+        self._info_keys[which] = key
         with self.lock:
             if self.camera is not None and cam != self.camera:
                 rospy.logwarn(

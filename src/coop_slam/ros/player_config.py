@@ -33,6 +33,9 @@ class PlayerConfig:
     # so a recording misses none of them; "" = do not wait.
     wait_for_node: str = ""
     depth_encoding: str = "32FC1"  # 32FC1 (metres) or 16UC1 (millimetres), as in REP-118
+    # Live playback (not lock-step) decodes frames ahead of time, up to this much image data [MiB]
+    # (RedKitchen: ~2.1 MiB a frame with 32FC1 depth); 0 = decode each frame when it is due.
+    preload_mb: float = 2048.0
     progress_period_s: float = 5.0  # wall time between progress log lines [s]
     exit_when_done: bool = False  # exit after the last frame instead of spinning (latched topics)
 
@@ -43,6 +46,7 @@ class PlayerConfig:
         )
         require(self.rate > 0, f"player: ~rate must be > 0, got {self.rate}")
         require(self.ack_timeout_s > 0, "player: ~ack_timeout_s must be > 0")
+        require(self.preload_mb >= 0, f"player: ~preload_mb must be >= 0, got {self.preload_mb}")
         require(self.robots >= 0, "player: ~robots must be >= 0")
         require(self.duration_s >= 0, "player: ~duration_s must be >= 0")
         require(

@@ -41,6 +41,7 @@ from ..playback import (
     parse_robot_ids,
     parse_sensors,
 )
+from ..prefetch import Prefetcher
 from .convert import camera_info_to_msg, image_to_msg, pose_to_msg
 from .player_config import PlayerConfig
 
@@ -90,6 +91,16 @@ def frame_messages(
         )
     out.append((topics["image"], image_to_msg(color, enc, stamp, optical_frame)))
     return out + _ground_truth(ns, stamp, T_world_cam)
+
+
+def _messages_bytes(group_messages: dict) -> int:
+    """Bytes of image data in a frame group's messages (what the prefetch budget counts)."""
+    return sum(
+        len(getattr(msg, "data", b""))
+        for messages in group_messages.values()
+        if isinstance(messages, list)
+        for _, msg in messages
+    )
 
 
 def _ground_truth(ns: str, stamp, T_world_cam) -> list:
@@ -148,11 +159,12 @@ class _RobotTopics:
     def has_consumer(self) -> bool:
         return self.acks.has_consumer
 
-    def publish(self, play_s: float, frame) -> None:
+    def messages(self, play_s: float, frame) -> list:
         T_world_cam = self.T_world_cam[frame.index]
-        for topic, msg in frame_messages(
-            self.stream, frame, play_s, self.depth_encoding, T_world_cam
-        ):
+        return frame_messages(self.stream, frame, play_s, self.depth_encoding, T_world_cam)
+
+    def publish(self, play_s: float, frame, messages: list | None = None) -> None:
+        for topic, msg in messages or self.messages(play_s, frame):
             self.pubs[topic].publish(msg)
 
     def wait_ack(self, play_s: float, timeout_s: float, frame=None) -> bool:
@@ -254,11 +266,56 @@ class PlayerNode:
             total,
             "lock-step" if cfg.lockstep else f"{cfg.rate:g} x real time",
         )
+        prefetch = self._prefetch(groups)
+        try:
+            self._play(groups, prefetch)
+        finally:
+            if prefetch is not None:
+                prefetch.close()
+
+    def _prefetch(self, groups) -> Prefetcher | None:
+        """Live playback decodes frames ahead (up to ~preload_mb), so decoding neither takes the
+        clients' cores when a frame is due nor delays its publishing; lock-step decodes each
+        frame when due (the clients wait for it anyway)."""
+        if self.cfg.lockstep or self.cfg.preload_mb <= 0:
+            return None
+        prefetch = Prefetcher(
+            groups, self._group_messages, _messages_bytes, int(self.cfg.preload_mb * 2**20)
+        )
+        t0 = time.monotonic()
+        prefetch.wait_filled(
+            lambda done, total: rospy.loginfo(
+                "player: decoding frames ahead, %d/%d groups", done, total
+            )
+        )
+        done, total = prefetch.filled()
+        rospy.loginfo(
+            "player: %d of %d frame groups decoded ahead in %.1f s (~preload_mb %g)",
+            done,
+            total,
+            time.monotonic() - t0,
+            self.cfg.preload_mb,
+        )
+        return prefetch
+
+    def _group_messages(self, group) -> dict:
+        """Each robot's messages of a frame group, or the DatasetError of its frame."""
+        out = {}
+        for g in group:
+            try:
+                out[g.robot_id] = self.topics[g.robot_id].messages(g.play_s, g.frame)
+            except DatasetError as exc:
+                out[g.robot_id] = exc
+        return out
+
+    def _play(self, groups, prefetch: Prefetcher | None) -> None:
+        cfg = self.cfg
+        total = len(self.schedule)
         warned_free = set()
         wall0, sim0 = time.monotonic(), groups[0][0].play_s
         published = 0
         last_progress = time.monotonic()
-        for group in groups:
+        for index, group in enumerate(groups):
             if rospy.is_shutdown():
                 return
             play_s = group[0].play_s
@@ -279,10 +336,14 @@ class PlayerNode:
                             g.robot_id,
                             cfg.rate,
                         )
+            ready = prefetch.get(index) if prefetch is not None else {}
             self.clock.publish(Clock(clock=rospy.Time.from_sec(play_s)))
             for g in group:
                 try:
-                    self.topics[g.robot_id].publish(play_s, g.frame)
+                    messages = ready.get(g.robot_id)
+                    if isinstance(messages, DatasetError):
+                        raise messages
+                    self.topics[g.robot_id].publish(play_s, g.frame, messages)
                 except DatasetError as exc:
                     rospy.logerr(
                         "player: skipping robot_%d frame %d: %s", g.robot_id, g.frame.index, exc
