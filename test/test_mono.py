@@ -316,6 +316,45 @@ def test_local_ba_holds_the_scale_of_a_monocular_map():
         problem, problem.T_map_cam, problem.points_map)))  # fmt: skip
 
 
+@pytest.mark.parametrize(
+    "sensor, planar, window, fixed",
+    [("mono", False, 16, 16), ("mono", True, 8, 8), ("rgbd", False, 8, 8)],
+)
+def test_a_free_monocular_camera_gets_the_wider_local_ba_window(sensor, planar, window, fixed):
+    """40 keyframes that all see the same 200 points: local BA of the newest optimizes
+    ba_window_mono keyframes and holds ba_max_fixed_mono fixed for a free-moving monocular camera
+    (its scale lives in shared points only), ba_window / ba_max_fixed otherwise (a ground robot's
+    height prior holds a monocular scale; depth measures it)."""
+    rng = np.random.default_rng(2)
+    xyz = rng.uniform([-2, -1.5, 3], [2, 1.5, 6], (200, 3))
+    vmap = Map(0)
+    pids = vmap.points.add(
+        xyz,
+        rng.integers(0, 256, (len(xyz), 32), dtype=np.uint8),
+        np.full(len(xyz), 45.0, np.float32),
+        np.tile([0.0, 0.0, 1.0], (len(xyz), 1)),
+        np.full(len(xyz), 20.0),
+        1,
+    )
+    for k in range(1, 41):
+        T = se3(np.eye(3), [0.05 * k, 0, 0])
+        pc = transform_points(invert(T), xyz)
+        uv = pc[:, :2] / pc[:, 2:] * K[0, 0] + K[:2, 2]
+        kf = _keyframe(k, T, uv, vmap.points.desc[pids], np.zeros(len(xyz)), pids)
+        if sensor == "rgbd":
+            kf.depths_m = pc[:, 2].astype(np.float32)
+        vmap.add_keyframe(kf)
+    for k in range(1, 41):
+        vmap.update_covisibility(k, propagate=False)
+    cfg = sync_config(planar_motion=planar)
+    camera = dataclasses.replace(MONO, sensor=sensor)
+    mapper = LocalMapper(cfg, make_sensor(cfg, camera), lambda: vmap, lambda e: 0)
+    problem = mapper.build_ba_problem(vmap, 40)
+    # (the map's first keyframe, when in the window, is held fixed there: the gauge)
+    assert len(problem.kf_ids) == window + fixed
+    assert int((~problem.fixed).sum()) in (window, window - 1)
+
+
 # --- playback -------------------------------------------------------------------------------------
 def test_playback_plays_a_monocular_camera_from_any_data(tmp_path):
     from coop_slam.playback import (

@@ -111,6 +111,12 @@ class VoConfig:
     ba_enabled: bool = True
     ba_window: int = 8  # keyframes optimized by local BA (newest + best covisible)
     ba_max_fixed: int = 8  # keyframes held fixed around the window (most covisible first)
+    # A free-moving monocular camera's scale is held only by its keyframes' shared points: a wider
+    # window keeps it from drifting (see the monocular section of config/client.yaml). RGB-D and
+    # stereo measure scale in every keyframe; with planar_motion the height prior holds a monocular
+    # map's scale and these are not used (wider windows measured worse there).
+    ba_window_mono: int = 16
+    ba_max_fixed_mono: int = 16
     ba_iterations: int = 5  # Levenberg-Marquardt iterations per local BA
     ba_huber_mono: float = 2.447  # Huber threshold of (u, v) factors [whitened px], sqrt(5.991)
     ba_huber_stereo: float = 2.796  # Huber threshold of (u, v, u_right) factors, sqrt(7.815)
@@ -221,8 +227,8 @@ class VoConfig:
             "vo.max_speed_m_s and vo.max_turn_rate_deg_s must be > 0",
         )
         require(
-            self.ba_window >= 1 and self.ba_iterations >= 1,
-            "local BA needs a window and iterations",
+            self.ba_window >= 1 and self.ba_window_mono >= 1 and self.ba_iterations >= 1,
+            "local BA needs a window (vo.ba_window, vo.ba_window_mono) and iterations",
         )
         require(
             len(self.planar_up_cam) == 3 and np.linalg.norm(self.planar_up_cam) > 0.5,

@@ -514,9 +514,19 @@ class LocalMapper:
         self.stats["points_culled"] += int(bad.sum())
 
     # --- local BA ---------------------------------------------------------------------------------
+    def _ba_sizes(self) -> tuple[int, int]:
+        """(keyframes optimized, at most fixed) of a local BA for this camera. A monocular map's
+        scale is held by its shared points only, so its window is wider -- unless the planar
+        priors of a ground robot hold it (its camera's height; see VoConfig.ba_window_mono)."""
+        cfg = self.config
+        if self.sensor.monocular and not cfg.planar_motion:
+            return cfg.ba_window_mono, cfg.ba_max_fixed_mono
+        return cfg.ba_window, cfg.ba_max_fixed
+
     def build_ba_problem(self, vmap: Map, kf_id: int) -> BaProblem | None:
         cfg = self.config
-        window = [kf_id] + vmap.best_covisible(kf_id, cfg.ba_window - 1)
+        n_window, max_fixed = self._ba_sizes()
+        window = [kf_id] + vmap.best_covisible(kf_id, n_window - 1)
         pts = vmap.points
         local = np.unique(
             np.concatenate([vmap.keyframes[k].map_point_ids for k in window]).astype(np.int64)
@@ -533,7 +543,7 @@ class LocalMapper:
         candidates -= set(window)
         candidates = [c for c in candidates if c in vmap.keyframes]
         counts = [int(np.isin(vmap.keyframes[c].map_point_ids, local).sum()) for c in candidates]
-        order = np.argsort(counts)[::-1][: cfg.ba_max_fixed]
+        order = np.argsort(counts)[::-1][:max_fixed]
         fixed_ids = [candidates[i] for i in order if counts[i] > 0]
         all_ids = window + fixed_ids
         fixed = np.array([False] * len(window) + [True] * len(fixed_ids))
@@ -673,7 +683,7 @@ class LocalMapper:
         with self._step(vmap):
             if kf_id not in vmap.keyframes:
                 return removed
-            candidates = vmap.best_covisible(kf_id, 2 * self.config.ba_window)
+            candidates = vmap.best_covisible(kf_id, 2 * self._ba_sizes()[0])
         for c in candidates:
             with self._step(vmap):  # one candidate at a time: see process()
                 if self._cull_keyframe(vmap, kf_id, c):
