@@ -100,3 +100,18 @@ def test_close_wakes_a_consumer_waiting_for_a_slow_item():
     release.set()
     closer.join(5.0)
     assert woke
+
+
+def test_filling_reports_progress_while_items_keep_arriving():
+    """The loader wakes the waiter at every item; progress still comes once per period."""
+    calls = []
+
+    def load(x):
+        time.sleep(0.02)
+        return x
+
+    pf = Prefetcher(list(range(20)), load, size=lambda v: 1, max_bytes=100)
+    pf.wait_filled(lambda done, total: calls.append((done, total)), period_s=0.05)
+    assert pf.filled() == (20, 20)
+    assert len(calls) >= 2 and all(total == 20 for _, total in calls)
+    pf.close()

@@ -9,6 +9,7 @@ so a sequence that fits is decoded before playing starts and a longer one stays 
 from __future__ import annotations
 
 import threading
+import time
 from typing import Any, Callable, Sequence
 
 
@@ -66,6 +67,8 @@ class Prefetcher:
             except Exception as exc:  # handed to the consumer of this item
                 entry = (False, exc, 0)
             with self._cond:
+                if self._closed:
+                    return
                 self._ready[index] = entry
                 self._held_bytes += entry[2]
                 self._next_load = index + 1
@@ -79,22 +82,27 @@ class Prefetcher:
     def wait_filled(self, progress: Callable[[int, int], None] | None = None, period_s=1.0):
         """Block until the budget is full or everything is loaded; ``progress(loaded, total)``
         every ``period_s`` meanwhile."""
+        next_report = time.monotonic() + period_s
         with self._cond:
             while (
                 not self._closed
                 and self._next_load < len(self._items)
                 and self._held_bytes < self._max_bytes
             ):
-                if not self._cond.wait(period_s) and progress is not None:
+                self._cond.wait(max(0.0, next_report - time.monotonic()))
+                if progress is not None and time.monotonic() >= next_report:
+                    next_report += period_s
                     progress(self._next_load, len(self._items))
 
     def get(self, index: int) -> Any:
+        """The loaded item ``index`` (the next in order), waiting for the loader if need be;
+        raises what loading it raised, or PrefetchError once closed."""
         with self._cond:
             if self._closed:
                 raise PrefetchError("prefetcher is closed")
             if index != self._next_get:
                 raise PrefetchError(
-                    f"items are taken in order: asked for {index}, next is " f"{self._next_get}"
+                    f"items are taken in order: asked for {index}, next is {self._next_get}"
                 )
             while index not in self._ready:
                 if self._closed:
@@ -109,6 +117,7 @@ class Prefetcher:
         return value
 
     def close(self) -> None:
+        """Stop loading and drop what is loaded; a waiting get() raises PrefetchError."""
         with self._cond:
             self._closed = True
             self._ready.clear()

@@ -162,6 +162,7 @@ class ClientNode:
         self.topics = camera_topics(self.robot_id, self.sensor)
         self.infos: dict[str, CameraInfo] = {}
         self._info_keys: dict[str, tuple] = {}  # per camera info topic: the last one accepted
+        self._info_lock = threading.Lock()
         self.subs_info = [
             rospy.Subscriber(topic, CameraInfo, self._on_info, which, queue_size=5)
             for which, topic in self.topics["infos"].items()
@@ -379,35 +380,39 @@ class ClientNode:
             tuple(msg.K),
             tuple(msg.P),
         )
-        if self.camera is not None and self._info_keys.get(which) == key:
-            return
-        self.infos[which] = msg
-        try:
-            if self.sensor == "stereo":
-                if "left" not in self.infos or "right" not in self.infos:
-                    return
-                cam = stereo_camera_from_infos(self.infos["left"], self.infos["right"])
-            else:  # rgbd or mono: the colour camera
-                cam = camera_from_info(msg, sensor=self.sensor, depth_scale=self.depth_scale)
-        except MessageError as exc:
-            self.rejects.reject(topic, str(exc))
-            return
-        self._info_keys[which] = key
-        with self.lock:
-            if self.camera is not None and cam != self.camera:
-                rospy.logwarn(
-                    "client %s: camera model changed (%dx%d fx=%.1f -> %dx%d fx=%.1f); "
-                    "starting a new map",
-                    self.name,
-                    self.camera.width,
-                    self.camera.height,
-                    self.camera.fx,
-                    cam.width,
-                    cam.height,
-                    cam.fx,
-                )
-                self._close_vo()
-            self.camera = cam
+        # One info at a time: stereo's left and right callbacks run in threads of their own, and
+        # a camera built from one new and one old info must not be kept as the last accepted.
+        with self._info_lock:
+            if self.camera is not None and self._info_keys.get(which) == key:
+                return
+            self.infos[which] = msg
+            try:
+                if self.sensor == "stereo":
+                    if "left" not in self.infos or "right" not in self.infos:
+                        return
+                    cam = stereo_camera_from_infos(self.infos["left"], self.infos["right"])
+                else:  # rgbd or mono: the colour camera
+                    cam = camera_from_info(msg, sensor=self.sensor, depth_scale=self.depth_scale)
+            except MessageError as exc:
+                self._info_keys.pop(which, None)  # the next info is checked again, in full
+                self.rejects.reject(topic, str(exc))
+                return
+            self._info_keys[which] = key
+            with self.lock:
+                if self.camera is not None and cam != self.camera:
+                    rospy.logwarn(
+                        "client %s: camera model changed (%dx%d fx=%.1f -> %dx%d fx=%.1f); "
+                        "starting a new map",
+                        self.name,
+                        self.camera.width,
+                        self.camera.height,
+                        self.camera.fx,
+                        cam.width,
+                        cam.height,
+                        cam.fx,
+                    )
+                    self._close_vo()
+                self.camera = cam
 
     def _close_vo(self) -> None:
         if self.vo is not None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from ..config import require
@@ -46,7 +47,10 @@ class PlayerConfig:
         )
         require(self.rate > 0, f"player: ~rate must be > 0, got {self.rate}")
         require(self.ack_timeout_s > 0, "player: ~ack_timeout_s must be > 0")
-        require(self.preload_mb >= 0, f"player: ~preload_mb must be >= 0, got {self.preload_mb}")
+        require(
+            math.isfinite(self.preload_mb) and self.preload_mb >= 0,
+            f"player: ~preload_mb must be a finite number >= 0 [MiB], got {self.preload_mb}",
+        )
         require(self.robots >= 0, "player: ~robots must be >= 0")
         require(self.duration_s >= 0, "player: ~duration_s must be >= 0")
         require(

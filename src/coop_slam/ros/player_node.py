@@ -41,7 +41,7 @@ from ..playback import (
     parse_robot_ids,
     parse_sensors,
 )
-from ..prefetch import Prefetcher
+from ..prefetch import Prefetcher, PrefetchError
 from .convert import camera_info_to_msg, image_to_msg, pose_to_msg
 from .player_config import PlayerConfig
 
@@ -164,7 +164,7 @@ class _RobotTopics:
         return frame_messages(self.stream, frame, play_s, self.depth_encoding, T_world_cam)
 
     def publish(self, play_s: float, frame, messages: list | None = None) -> None:
-        for topic, msg in messages or self.messages(play_s, frame):
+        for topic, msg in messages if messages is not None else self.messages(play_s, frame):
             self.pubs[topic].publish(msg)
 
     def wait_ack(self, play_s: float, timeout_s: float, frame=None) -> bool:
@@ -282,6 +282,7 @@ class PlayerNode:
         prefetch = Prefetcher(
             groups, self._group_messages, _messages_bytes, int(self.cfg.preload_mb * 2**20)
         )
+        rospy.on_shutdown(prefetch.close)  # Ctrl-C while decoding ahead stops at once
         t0 = time.monotonic()
         prefetch.wait_filled(
             lambda done, total: rospy.loginfo(
@@ -322,6 +323,10 @@ class PlayerNode:
             lockstep_ids = [
                 g.robot_id for g in group if cfg.lockstep and self.topics[g.robot_id].has_consumer
             ]
+            try:  # taken before the wait for its time, so waiting for the loader overlaps it
+                ready = prefetch.get(index) if prefetch is not None else {}
+            except PrefetchError:
+                return  # closed: shutting down
             if not lockstep_ids and cfg.rate > 0:
                 delay = wall0 + (play_s - sim0) / cfg.rate - time.monotonic()
                 if delay > 0:
@@ -336,7 +341,6 @@ class PlayerNode:
                             g.robot_id,
                             cfg.rate,
                         )
-            ready = prefetch.get(index) if prefetch is not None else {}
             self.clock.publish(Clock(clock=rospy.Time.from_sec(play_s)))
             for g in group:
                 try:

@@ -231,6 +231,10 @@ class VoConfig:
             "local BA needs a window (vo.ba_window, vo.ba_window_mono) and iterations",
         )
         require(
+            self.ba_max_fixed >= 0 and self.ba_max_fixed_mono >= 0,
+            "vo.ba_max_fixed and vo.ba_max_fixed_mono must be >= 0",
+        )
+        require(
             len(self.planar_up_cam) == 3 and np.linalg.norm(self.planar_up_cam) > 0.5,
             "vo.planar_up_cam must be a unit 3-vector [x, y, z] in the camera optical frame",
         )
