@@ -98,8 +98,6 @@ class Prefetcher:
         """The loaded item ``index`` (the next in order), waiting for the loader if need be;
         raises what loading it raised, or PrefetchError once closed."""
         with self._cond:
-            if self._closed:
-                raise PrefetchError("prefetcher is closed")
             if index != self._next_get:
                 raise PrefetchError(
                     f"items are taken in order: asked for {index}, next is {self._next_get}"
