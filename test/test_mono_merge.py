@@ -113,6 +113,9 @@ def test_two_monocular_robots_merge_in_the_first_ones_units(world):
     assert not server.is_metric(1) and not server.is_metric(2)
     assert server.map_scale(1) == 1.0
     assert server.map_scale(2) == pytest.approx(1 / UNITS_PER_M, rel=0.02)
+    # Monocular maps only: both scales drift in the team graph, each held by one weak prior, and
+    # the link's scale measures them.
+    assert {key[0] for _, key, _ in server.graph.edges("scale_prior")} == {1, 2}
 
 
 def test_ate_with_scale_correction_recovers_the_scale():

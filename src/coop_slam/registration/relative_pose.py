@@ -150,6 +150,7 @@ class RelativePoseResult:
     # B's lengths in A's units: 1 for the rigid paths; a similarity (estimate_similarity) maps
     # p_a = scale * R p_b + t, with (R, t) = T_a_b and sigma_trans_m in A's units
     scale: float = 1.0
+    sigma_log_scale: float = np.inf  # BA marginal std of log(scale) (similarity path only)
     inlier_ratio: float = 0.0
     timings_ms: dict = field(default_factory=dict)
 
@@ -496,4 +497,5 @@ def estimate_similarity(
         inlier_ratio=min(1.0, len(inlier_idx) / max(n_matches, 1)),
         timings_ms=timings,
         scale=float(sim.scale),
+        sigma_log_scale=sim.sigma_scale_rel,
     )

@@ -137,6 +137,8 @@ class LoopClosureConfig:
     sigma_scale: float = 3.0
     min_sigma_trans_m: float = 0.01
     min_sigma_rot_deg: float = 0.3
+    # ... and for a similarity (a monocular side) its scale's, in log scale.
+    min_sigma_log_scale: float = 0.01
     # A constraint further than this from the current estimate makes the next optimization a full
     # one (batch Levenberg-Marquardt over the team graph); a closer one, the common case for links
     # between merged robots, is absorbed by the next incremental (iSAM2) update. A full run after
@@ -146,6 +148,8 @@ class LoopClosureConfig:
     # team map on replayed runs (8 robots, RedKitchen, mixed team, revisit, rendezvous).
     full_above_trans_m: float = 0.1
     full_above_rot_deg: float = 3.0
+    # ... or a similarity's scale this far (relative) from the graph's local scales there.
+    full_above_scale: float = 0.03
 
     def validate(self) -> None:
         require(self.min_separation_s >= 0, "loops.min_separation_s must be >= 0")
@@ -153,8 +157,10 @@ class LoopClosureConfig:
         require(self.min_inliers >= 1, "loops.min_inliers must be >= 1")
         require(self.gate_trans_m > 0, "loops.gate_trans_m must be > 0")
         require(
-            self.full_above_trans_m >= 0 and self.full_above_rot_deg >= 0,
-            "loops.full_above_trans_m and full_above_rot_deg must be >= 0",
+            self.full_above_trans_m >= 0
+            and self.full_above_rot_deg >= 0
+            and self.full_above_scale >= 0,
+            "loops.full_above_trans_m, full_above_rot_deg and full_above_scale must be >= 0",
         )
         require(self.gate_rot_deg > 0, "loops.gate_rot_deg must be > 0")
         require(self.weak_gate_trans_m > 0, "loops.weak_gate_trans_m must be > 0")
@@ -162,6 +168,7 @@ class LoopClosureConfig:
         require(self.sigma_scale > 0, "loops.sigma_scale must be > 0")
         require(self.min_sigma_trans_m > 0, "loops.min_sigma_trans_m must be > 0")
         require(self.min_sigma_rot_deg > 0, "loops.min_sigma_rot_deg must be > 0")
+        require(self.min_sigma_log_scale > 0, "loops.min_sigma_log_scale must be > 0")
 
 
 @dataclass

@@ -17,9 +17,10 @@ rotation first as in GTSAM's Pose3 tangent space):
   client's local structure. Both are rebuilt whenever the client moves a keyframe (local BA).
 - loop (intra-robot) and merge (inter-robot) constraints from place recognition / rendezvous, with
   a robust kernel (Cauchy by default) so one wrong constraint cannot wreck the map.
-- a monocular map placed in a metric group (``set_scale_drift``) has one more variable per
-  keyframe, its log scale, and its odometry / covisible factors measure the translation times the
-  local scale, with a random walk of the scale (see :mod:`.scale_drift`; one weak prior per map).
+- a monocular map (``set_scale_drift``) has one more variable per keyframe, its log scale, and
+  its odometry / covisible factors measure the translation times the local scale, with a random
+  walk of the scale; its loops and links measured by a similarity carry the similarity's scale
+  (see :mod:`.scale_drift`; one weak prior per map).
 - gauge priors: one stiff prior per connected component, on the first keyframe of its smallest
   robot, at that keyframe's estimate when the prior was created (for a component's first keyframe
   that is ``T_group_map_hint @ T_map_cam``, i.e. the client's own pose for a group root).
@@ -58,6 +59,7 @@ from .scale_drift import (
     scale_key,
     scale_prior_factor,
     scaled_between_factor,
+    scaled_link_factor,
 )
 
 log = logging.getLogger(__name__)
@@ -102,14 +104,16 @@ class PoseGraphConfig:
     isam_relinearize_threshold: float = 0.01
     isam_relinearize_skip: int = 1
     isam_extra_updates: int = 1  # extra iSAM2 iterations per incremental call
-    # Monocular maps in a metric group (see set_scale_drift and .scale_drift): a log-scale
-    # variable per keyframe; the drift between two keyframes has sigma scale_drift_sigma plus
-    # scale_drift_sigma_per_m per metre between them; the map's first keyframe is held at the
-    # map's own scale with scale_prior_sigma.
+    # Monocular maps (see set_scale_drift and .scale_drift): a log-scale variable per keyframe;
+    # the drift between two keyframes has sigma scale_drift_sigma plus scale_drift_sigma_per_m
+    # per metre between them; the map's first keyframe is held at the map's own scale with
+    # scale_prior_sigma; a loop or link's measured scale has log sigma link_scale_sigma unless
+    # its caller gives one.
     scale_drift: bool = True
     scale_drift_sigma: float = 0.002
     scale_drift_sigma_per_m: float = 0.1
     scale_prior_sigma: float = 0.1
+    link_scale_sigma: float = 0.05
 
     def validate(self) -> None:
         for name in (
@@ -123,6 +127,7 @@ class PoseGraphConfig:
             "robust_k",
             "scale_drift_sigma",
             "scale_prior_sigma",
+            "link_scale_sigma",
         ):
             require(getattr(self, name) > 0, f"pose_graph.{name} must be > 0")
         for name in ("odom_rot_sigma_per_m", "odom_trans_sigma_per_m", "scale_drift_sigma_per_m"):
@@ -178,6 +183,11 @@ class _Factor:
     sigmas: tuple[float, float]  # (rotation rad, translation m)
     label: str = ""
     robust_k: float | None = None  # per-factor kernel width (whitened); None: the config's
+    # A loop / merge measured by a similarity: log of key_j's map lengths in key_i's (T_meas's
+    # translation is in key_i's) and its sigma (None: not measured); used where an end's scale
+    # may drift.
+    log_scale: float = 0.0
+    scale_sigma: float | None = None
 
 
 def gtsam_key(robot_id: int, keyframe_id: int) -> int:
@@ -323,12 +333,17 @@ class TeamPoseGraph:
             return gtsam.noiseModel.mEstimator.Cauchy.Create(k)
         return None
 
+    def _kernel_of(self, f: _Factor):
+        """The robust kernel of a loop / merge factor (None: none)."""
+        if self._kernel is None:
+            return None
+        return self._kernel if f.robust_k is None else self._make_kernel(f.robust_k)
+
     def _noise(self, f: _Factor):
         r, t = f.sigmas
         base = gtsam.noiseModel.Diagonal.Sigmas(np.array([r, r, r, t, t, t]))
         if f.kind in (KIND_LOOP, KIND_MERGE) and self._kernel is not None:
-            kernel = self._kernel if f.robust_k is None else self._make_kernel(f.robust_k)
-            return gtsam.noiseModel.Robust.Create(kernel, base)
+            return gtsam.noiseModel.Robust.Create(self._kernel_of(f), base)
         return base
 
     def _gtsam_factor(self, fid: int):
@@ -337,7 +352,7 @@ class TeamPoseGraph:
         hundreds of factors each time was a tenth of an eight-robot server's time)."""
         f = self._factors[fid]
         cached = self._gtsam_cache.get(fid)
-        version = (f.sigmas, f.robust_k, self._drifts(f))
+        version = (f.sigmas, f.robust_k, self._drifts(f), self._link_drifts(f), f.log_scale)
         if cached is not None and cached[0] is f.T_meas and cached[1] == version:
             return cached[2]
         factor = self._make_gtsam_factor(f)
@@ -348,7 +363,26 @@ class TeamPoseGraph:
         """Whether a factor is a client factor of a map whose scale may drift."""
         return f.kind in _CLIENT_KINDS and f.key_i[0] in self._scale_drift
 
+    def _link_drifts(self, f: _Factor) -> tuple[bool, bool]:
+        """For a loop / merge factor, whether the scale of each end's map may drift."""
+        if f.kind not in (KIND_LOOP, KIND_MERGE):
+            return (False, False)
+        return (f.key_i[0] in self._scale_drift, f.key_j[0] in self._scale_drift)
+
     def _make_gtsam_factor(self, f: _Factor):
+        drift_i, drift_j = self._link_drifts(f)
+        if drift_i or drift_j:
+            return scaled_link_factor(
+                gtsam_key(*f.key_i),
+                gtsam_key(*f.key_j),
+                scale_key(*f.key_i) if drift_i else None,
+                scale_key(*f.key_j) if drift_j else None,
+                f.T_meas,
+                None if f.scale_sigma is None else f.log_scale,
+                *f.sigmas,
+                f.scale_sigma,
+                self._kernel_of(f),
+            )
         if self._drifts(f):
             cfg = self.config
             dist_m = float(np.linalg.norm(f.T_meas[:3, 3]))
@@ -531,13 +565,14 @@ class TeamPoseGraph:
     def rescale_robots(self, robots, factor: float, about_maps: bool = False) -> None:
         """The robots' map lengths were multiplied by ``factor`` (a monocular map's scale, see
         :mod:`.map_scale`): client poses, refined poses and estimates follow, client factors are
-        rebuilt, loop factors (and merge factors between the robots) scale with them.
+        rebuilt, loop and merge factors measured in a rescaled map's lengths scale with them (and
+        the scale of a similarity to a map not rescaled follows).
 
         ``about_maps=False``: the robots are whole components (a group before it merges) whose
         group frame is rescaled about its origin, an exact similarity of the estimate.
         ``about_maps=True``: each robot's map is rescaled about its place in the group (its
-        ``T_group_map``) while the rest of the group stays; merge factors to it, relative camera
-        poses measured in the group's units, stay too. The next optimisation is a full one."""
+        ``T_group_map``) while the rest of the group stays; merge factors between two such
+        maps stay. The next optimisation is a full one."""
         robots = {int(r) for r in robots}
         centers = {r: self.T_group_map(r) for r in robots if about_maps and r in self._chain}
 
@@ -555,24 +590,34 @@ class TeamPoseGraph:
         if not about_maps:
             for r in robots & set(self._map_hint):
                 self._map_hint[r] = scale_translation(self._map_hint[r], factor)
+        log_f = float(np.log(factor))
         for fid, f in list(self._factors.items()):
-            if f.key_i[0] not in robots:
-                continue
+            in_i = f.key_i[0] in robots
+            in_j = f.key_j is not None and f.key_j[0] in robots
             if f.kind in _CLIENT_KINDS:
-                self._drop_factor(fid)
-                self._client_factor(f.kind, f.key_i, f.key_j)
+                if in_i:
+                    self._drop_factor(fid)
+                    self._client_factor(f.kind, f.key_i, f.key_j)
             elif f.kind == KIND_PRIOR:
-                f.T_meas = self._values[f.key_i].copy()
+                if in_i:
+                    f.T_meas = self._values[f.key_i].copy()
             elif f.kind == KIND_SCALE_PRIOR:
                 continue
-            elif f.key_j[0] in robots and (f.kind == KIND_LOOP or not about_maps):
-                f.T_meas = scale_translation(f.T_meas, factor)
-                f.sigmas = (f.sigmas[0], f.sigmas[1] * factor)
+            elif in_i and in_j and about_maps and f.kind == KIND_MERGE:
+                # Two maps rescaled each about its place: their relative pose, measured in the
+                # group's units, and the ratio of their lengths stay.
+                continue
+            else:
+                # The measurement is in i's lengths and its scale is j's lengths in i's.
+                if in_i:
+                    f.T_meas = scale_translation(f.T_meas, factor)
+                    f.sigmas = (f.sigmas[0], f.sigmas[1] * factor)
+                f.log_scale += (log_f if in_i else 0.0) - (log_f if in_j else 0.0)
         self._rebuild = True
 
     def set_scale_drift(self, robot_id: int, on: bool) -> None:
-        """Whether a robot's map may drift in scale (a monocular map placed in a metric group, see
-        :mod:`.scale_drift`); off by config (``scale_drift``). Turning it off keeps the local
+        """Whether a robot's map may drift in scale (a monocular map, see :mod:`.scale_drift`);
+        off by config (``scale_drift``). Turning it off keeps the local
         scales the optimizations found in the estimate, not in later measurements."""
         robot_id = int(robot_id)
         on = bool(on) and self.config.scale_drift
@@ -610,10 +655,15 @@ class TeamPoseGraph:
         rot_sigma_rad: float | None = None,
         trans_sigma_m: float | None = None,
         robust_k: float | None = None,
+        log_scale: float | None = None,
+        log_scale_sigma: float | None = None,
     ) -> int:
         """Intra-robot loop closure ``T_cami_camj`` (robust); ``kind`` is a label kept for reports,
-        ``robust_k`` overrides the config's kernel width for this factor. Returns the constraint's
-        factor id (for :meth:`remove_constraint`)."""
+        ``robust_k`` overrides the config's kernel width for this factor. ``log_scale``: for a
+        loop measured by a similarity, the log of its scale (j's map lengths in i's), with
+        ``log_scale_sigma`` (default: the config's ``link_scale_sigma``); it measures the drift
+        of a monocular map's scale around the loop (None: no scale measured). Returns the
+        constraint's factor id (for :meth:`remove_constraint`)."""
         key_i, key_j = self._check_key(robot_id, kf_i), self._check_key(robot_id, kf_j)
         if key_i == key_j:
             raise PoseGraphError(f"a loop needs two different keyframes (got {kf_i} twice)")
@@ -624,7 +674,10 @@ class TeamPoseGraph:
             self.config.loop_rot_sigma_rad,
             self.config.loop_trans_sigma_m,
         )
-        return self._add_factor(_Factor(KIND_LOOP, key_i, key_j, T, sig, kind, robust_k))
+        ls, ls_sig = self._link_scale(log_scale, log_scale_sigma)
+        return self._add_factor(
+            _Factor(KIND_LOOP, key_i, key_j, T, sig, kind, robust_k, ls, ls_sig)
+        )
 
     def add_merge(
         self,
@@ -637,11 +690,14 @@ class TeamPoseGraph:
         rot_sigma_rad: float | None = None,
         trans_sigma_m: float | None = None,
         robust_k: float | None = None,
+        log_scale: float | None = None,
+        log_scale_sigma: float | None = None,
     ) -> int:
         """Inter-robot constraint ``T_camA_camB`` (robust). When it joins two groups, the group
         whose smallest robot id is larger is moved rigidly into the other's frame so that this
         constraint holds exactly at the current estimate (the first merge of two groups is the
-        verified one); the next optimisation is then a full one. Returns the factor id."""
+        verified one); the next optimisation is then a full one. ``log_scale`` (b's map lengths
+        in a's) and ``log_scale_sigma`` as for :meth:`add_loop`. Returns the factor id."""
         key_a, key_b = self._check_key(robot_a, kf_a), self._check_key(robot_b, kf_b)
         if key_a[0] == key_b[0]:
             raise PoseGraphError("a merge constraint joins two different robots; use add_loop")
@@ -666,7 +722,22 @@ class TeamPoseGraph:
                 if c == moving:
                     self._values[k] = T_new_old @ self._values[k]
             self._rebuild = True
-        return self._add_factor(_Factor(KIND_MERGE, key_a, key_b, T_ab, sig, kind, robust_k))
+        ls, ls_sig = self._link_scale(log_scale, log_scale_sigma)
+        return self._add_factor(
+            _Factor(KIND_MERGE, key_a, key_b, T_ab, sig, kind, robust_k, ls, ls_sig)
+        )
+
+    def _link_scale(self, log_scale, sigma) -> tuple[float, float | None]:
+        """(log scale, its sigma) of a constraint's scale row; sigma None: no row."""
+        if log_scale is None:
+            return 0.0, None
+        log_scale = float(log_scale)
+        if not np.isfinite(log_scale):
+            raise PoseGraphError(f"a constraint's log scale must be finite, got {log_scale}")
+        sigma = self.config.link_scale_sigma if sigma is None else float(sigma)
+        if not (np.isfinite(sigma) and sigma > 0):
+            raise PoseGraphError(f"a constraint's log-scale sigma must be > 0, got {sigma}")
+        return log_scale, sigma
 
     def remove_constraint(self, factor_id: int) -> None:
         """Withdraw a loop / merge constraint (e.g. rejected later by the caller)."""

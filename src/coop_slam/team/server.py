@@ -347,7 +347,8 @@ class TeamServer:
 
     def _prepare_merge(self, v: Verified) -> Verified:
         """A merge by a similarity: the side without metric scale (or the second of two such) is
-        rescaled into the other's units, and the match becomes the rigid part in them."""
+        rescaled into the other's units, and the match becomes the rigid part in them (its scale
+        1 there)."""
         res = v.result
         if res.scale == 1.0:
             return v
@@ -367,6 +368,8 @@ class TeamServer:
             self.groups.members(rb if side == "b" else ra) if side else [],
             factor,
         )
+        if side is not None:
+            res = dataclasses.replace(res, scale=1.0)
         res = dataclasses.replace(res, T_a_b=T_a_b, sigma_trans_m=sigma_trans)
         return dataclasses.replace(v, result=res)
 
@@ -484,8 +487,8 @@ class TeamServer:
         self.stitcher.need_full = False
         self.map_moved = True
         for m in self.graph.robots:
-            # Metres reach a monocular map's keyframes through its links: its scale may drift.
-            self.graph.set_scale_drift(m, self.scales.is_mono(m) and self.scales.is_metric(m))
+            # A monocular map's scale drifts along its path; its loops and links measure it.
+            self.graph.set_scale_drift(m, self.scales.is_mono(m))
         try:
             stats = self.graph.optimize_full() if full else self.graph.optimize_incremental()
         except (PoseGraphError, RuntimeError) as exc:

@@ -27,11 +27,11 @@ from .results import TYPE_LOOP, ConstraintResult, MergeResult, Verified, robot_p
 log = logging.getLogger(__name__)
 
 
-def graph_call(fn, *args) -> None:
+def graph_call(fn, *args, **kwargs) -> None:
     """Call a pose-graph method; its errors are logged, never raised: the graph must never take
     the server down."""
     try:
-        fn(*args)
+        fn(*args, **kwargs)
     except PoseGraphError as exc:
         log.warning("pose graph: %s", exc)
 
@@ -101,6 +101,7 @@ class Stitcher:
         pairs around it that the match predicts and registration confirms (see
         :mod:`.overlap_links`); the optimization that follows estimates the map transform from
         all of them."""
+        measured_scale = float(v.result.scale)  # the merge's own, before a rescale
         if self._prepare_merge is not None:
             v = self._prepare_merge(v)
         key_a, key_b, res = v.key_a, v.key_b, v.result
@@ -136,7 +137,7 @@ class Stitcher:
             float(res.residual_px),
             group,
             len(welded),
-            float(res.scale),
+            measured_scale,
         )
         self.merges.append(merge)
         log.info(
@@ -194,10 +195,10 @@ class Stitcher:
         # this (precise) constraint: the kernel is widened by it, else the robust loss would
         # down-weight exactly the loops that correct the most drift. A constraint that later
         # disagrees with the rest of the graph by more is still down-weighted.
-        k = self.graph.config.robust_k
+        d2 = 0.0
         if sig_rot is not None:
-            k *= float(np.sqrt(1.0 + (dt / sig_trans) ** 2 + (np.radians(dr) / sig_rot) ** 2))
-        self._add_factor(v.kind, key_a, key_b, res, robust_k=k)
+            d2 = (dt / sig_trans) ** 2 + (np.radians(dr) / sig_rot) ** 2
+        ds = self._add_factor(v.kind, key_a, key_b, res, d2)  # None: no scale measured
         self.constraints.append(
             ConstraintResult(
                 TYPE_LOOP if key_a[0] == key_b[0] else v.kind,
@@ -210,12 +211,14 @@ class Stitcher:
             )
         )
         self._last_constraint[key_b[0]] = self._kf_count(key_b[0])
-        if dt > self.config.full_above_trans_m or dr > self.config.full_above_rot_deg:
+        cfg = self.config
+        far_scale = ds is not None and abs(ds) > cfg.full_above_scale
+        if dt > cfg.full_above_trans_m or dr > cfg.full_above_rot_deg or far_scale:
             self.need_full = True
         if self._on_constraint is not None:
             self._on_constraint(v)
         log.info(
-            "%s constraint %s - %s (%d inliers, %.2f px; %.3f m / %.2f deg from estimate)",
+            "%s constraint %s - %s (%d inliers, %.2f px; %.3f m / %.2f deg%s from estimate)",
             self.constraints[-1].type,
             key_a,
             key_b,
@@ -223,14 +226,24 @@ class Stitcher:
             res.residual_px,
             dt,
             dr,
+            "" if ds is None else f" / scale {100 * ds:+.1f} %",
         )
         return True
 
     # --- pose graph -------------------------------------------------------------------------------
-    def _add_factor(self, kind: str, key_a, key_b, res: RelativePoseResult, robust_k=None) -> None:
+    def _add_factor(self, kind: str, key_a, key_b, res: RelativePoseResult, d2=0.0) -> float | None:
         """A verified relative pose into the pose graph (loop factor within one robot, merge factor
-        between two), its matched map points into the links for global BA."""
+        between two), its matched map points into the links for global BA. Its robust kernel is
+        widened by ``d2``, its pose's squared whitened disagreement with the estimate, and by its
+        scale's (a similarity's) with the graph's local scales; returns the latter, relative
+        (None without a scale)."""
         sig_rot, sig_trans = self._sigmas(res)
+        scale = self._scale_row(res)
+        ds = None
+        if scale:
+            ds = scale["log_scale"] - (self._log_scale(key_b) - self._log_scale(key_a))
+            d2 += (ds / scale["log_scale_sigma"]) ** 2
+        robust_k = self.graph.config.robust_k * float(np.sqrt(1.0 + d2)) if d2 > 0 else None
         if key_a[0] == key_b[0]:
             graph_call(
                 self.graph.add_loop,
@@ -242,6 +255,7 @@ class Stitcher:
                 sig_rot,
                 sig_trans,
                 robust_k,
+                **scale,
             )
         else:
             graph_call(
@@ -255,8 +269,16 @@ class Stitcher:
                 sig_rot,
                 sig_trans,
                 robust_k,
+                **scale,
             )
         self._record_links(key_a, key_b, res)
+        return None if ds is None else float(np.expm1(ds))
+
+    def _log_scale(self, key) -> float:
+        try:
+            return float(np.log(self.graph.local_scale(*key)))
+        except PoseGraphError:
+            return 0.0
 
     def _record_links(self, key_a, key_b, res: RelativePoseResult) -> None:
         """Map points matched by an accepted registration are one physical point."""
@@ -274,3 +296,11 @@ class Stitcher:
         if not np.isfinite(rot_deg * trans_m):  # no marginals: the pose graph's defaults
             return None, None
         return float(np.radians(rot_deg)), float(trans_m)
+
+    def _scale_row(self, res: RelativePoseResult) -> dict:
+        """A similarity's scale (a monocular side) and its log std, which measure the maps'
+        local scales where it was taken; none for a rigid estimate (or without a marginal)."""
+        if not np.isfinite(res.sigma_log_scale):
+            return {}
+        sigma = max(self.config.min_sigma_log_scale, self.config.sigma_scale * res.sigma_log_scale)
+        return {"log_scale": float(np.log(res.scale)), "log_scale_sigma": float(sigma)}
