@@ -397,3 +397,18 @@ def test_a_similarity_merge_is_judged_against_the_maps_scale_around_its_keyframe
     run.merges[0]["scale"] *= 1.04
     merge = evaluate_run(run, gts)["merges"][0]
     assert merge["local_scale_err"] == pytest.approx(0.04, abs=0.01)
+
+
+def test_plots_align_a_monocular_map_with_its_scale():
+    """A map in its own units (here 0.4 of a metre) aligned by a similarity, as its ATE is: the
+    drawn keyframes lie on the ground truth (drawn without the scale they did not)."""
+    from coop_slam.evaluation.metrics import ate
+    from coop_slam.evaluation.plots import aligned
+
+    stamps = np.arange(20, dtype=float)
+    gt = np.array([se3(np.eye(3), [np.cos(0.3 * k), np.sin(0.3 * k), 0.1 * k]) for k in range(20)])
+    T_est_gt = se3(Rotation.from_euler("z", 40, degrees=True).as_matrix(), [1.0, -2.0, 0.5])
+    est = np.einsum("ij,njk->nik", T_est_gt, gt)
+    est[:, :3, 3] *= 0.4
+    res = ate(stamps, est, stamps, gt, correct_scale=True)
+    np.testing.assert_allclose(aligned(res, est)[:, :3, 3], gt[:, :3, 3], atol=1e-6)

@@ -36,10 +36,18 @@ def save_top_view(path: str, title: str, curves) -> None:
     plt.close(fig)
 
 
-def plot_trajectories(out_dir: str, keyframes: dict, gts: dict) -> None:
+def aligned(res, poses: np.ndarray) -> np.ndarray:
+    """Estimated poses (N, 4, 4) moved by an ATE result's alignment, its scale included."""
+    poses = np.array(poses, dtype=float)
+    poses[:, :3, 3] *= res.scale
+    return np.einsum("ij,njk->nik", res.T_gt_est, poses)
+
+
+def plot_trajectories(out_dir: str, keyframes: dict, gts: dict, mono=()) -> None:
     """``trajectories.png``: top view of every robot's keyframes (robot id -> (stamps, poses) in
     its map) aligned to its ground truth (robot id -> (stamps, T_world_cam)), and the ground
-    truth; without ground truth, the keyframes in their own map frames."""
+    truth; without ground truth, the keyframes in their own map frames. Robots in ``mono``
+    (monocular maps) are aligned with a similarity, as their ATE is."""
     curves = []
     for k, rid in enumerate(sorted(gts)):
         stamps_gt, poses_gt = gts[rid]
@@ -51,12 +59,17 @@ def plot_trajectories(out_dir: str, keyframes: dict, gts: dict) -> None:
         curves.append((poses_gt, k, f"robot_{rid} ground truth", False))
         if len(stamps) >= 3:
             try:
-                res = ate(stamps, poses, stamps_gt, poses_gt)
+                res = ate(stamps, poses, stamps_gt, poses_gt, correct_scale=rid in mono)
             except EvaluationError:
                 continue
-            aligned = np.einsum("ij,njk->nik", res.T_gt_est, poses)
+            sim3 = ", Sim(3)" if rid in mono else ""
             curves.append(
-                (aligned, k, f"robot_{rid} keyframes (ATE {100 * res.rmse_m:.1f} cm)", True)
+                (
+                    aligned(res, poses),
+                    k,
+                    f"robot_{rid} keyframes (ATE {100 * res.rmse_m:.1f} cm{sim3})",
+                    True,
+                )
             )
     save_top_view(
         os.path.join(out_dir, "trajectories.png"),
@@ -67,12 +80,13 @@ def plot_trajectories(out_dir: str, keyframes: dict, gts: dict) -> None:
 
 def plot_team(out_dir: str, est_world: dict, gt_world: dict, team) -> None:
     """``team_trajectories.png``: top view of every robot's keyframes in world (one alignment,
-    ``team.T_gt_est``, for the team) and ground truth."""
+    ``team``'s, for the team: a similarity for a world of monocular maps) and ground truth."""
     curves = []
     for k, rid in enumerate(sorted(est_world)):
         curves.append((gt_world[rid][1], k, f"robot_{rid} ground truth", False))
-        aligned = np.einsum("ij,njk->nik", team.T_gt_est, est_world[rid][1])
-        curves.append((aligned, k, f"robot_{rid} keyframes in world", True))
+        curves.append(
+            (aligned(team, est_world[rid][1]), k, f"robot_{rid} keyframes in world", True)
+        )
     save_top_view(
         os.path.join(out_dir, "team_trajectories.png"),
         f"team map: one alignment for all robots (team ATE {100 * team.rmse_m:.1f} cm)",

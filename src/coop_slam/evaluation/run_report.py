@@ -424,7 +424,10 @@ def evaluate_run(
     report["topics"] = _topic_bandwidth(run)
     if out_dir:
         plot_trajectories(
-            out_dir, {rid: _kf_arrays(r) for rid, r in run.robots.items() if r.keyframes}, gts
+            out_dir,
+            {rid: _kf_arrays(r) for rid, r in run.robots.items() if r.keyframes},
+            gts,
+            mono={e["id"] for e in report["robots"] if e.get("sensor") == "mono"},
         )
     return report
 
