@@ -511,7 +511,10 @@ class TeamServer:
         for m in merges:
             key_a, key_b = (m.robot_a, m.keyframe_a), (m.robot_b, m.keyframe_b)
             if key_a in self.store and key_b in self.store:
-                m.T_camA_camB = invert(self.T_group_cam(*key_a)) @ self.T_group_cam(*key_b)
+                # In a's map lengths, as registered: a monocular map's graph lengths there are
+                # its local scale times them.
+                T = invert(self.T_group_cam(*key_a)) @ self.T_group_cam(*key_b)
+                m.T_camA_camB = scale_translation(T, 1.0 / self.local_scale(*key_a))
             m.T_mapA_mapB = invert(self.T_group_map(m.robot_a)) @ self.T_group_map(m.robot_b)
 
     def global_ba_is_cheap(self, robot_id: int) -> bool:
