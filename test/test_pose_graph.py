@@ -585,3 +585,37 @@ def test_refined_poses_of_a_drifting_map_keep_its_scale_correction():
         T,
     ) in before.items():  # the adopted measurements shift the balance with the links a little
         assert np.linalg.norm(graph.T_group_cam(2, k)[:3, 3] - T[:3, 3]) < 0.003
+
+
+def test_a_sim3_loop_keeps_its_scale_when_an_end_is_culled():
+    """Robot 2's monocular map is 10 % longer after keyframe 5; a loop from keyframe 15 (there)
+    to keyframe 2 measures it (translation in keyframe 15's lengths, scale 1.1). Culling either
+    end moves the loop to a neighbour with its scale row, and the moved loop agrees with the map
+    as well as the original did (its sigmas are 1 mm and 0.1 %: a moved loop whose translation
+    mixed the two ends' lengths would be 2 cm off). Stiff odometry: the estimate follows the
+    client's poses in the graph's local scale, so the moved loop can be compared at once."""
+    stiff = dict(odom_trans_sigma_m=1e-4, odom_trans_sigma_per_m=0.0, odom_rot_sigma_rad=1e-4)
+    graph = TeamPoseGraph(PoseGraphConfig(robust_kernel="none", **stiff))
+    true = [se3(t=[0.2 * k, 0.0, 0.0]) for k in range(20)]
+    client = [se3(t=[0.2 * k if k <= 5 else 1.0 + 0.22 * (k - 5), 0.0, 0.0]) for k in range(20)]
+    for k in range(20):
+        graph.add_keyframe(2, k, client[k])
+    T = invert(true[15]) @ true[2]
+    T[:3, 3] *= 1.1
+    tight = dict(rot_sigma_rad=0.001, trans_sigma_m=0.001, log_scale_sigma=0.001)
+    graph.add_loop(2, 15, 2, T, log_scale=np.log(1.1), **tight)
+    graph.set_scale_drift(2, True)
+    graph.optimize_full()
+    (before,) = graph.constraint_report()
+    assert before.scale_row
+    for culled in (2, 15):
+        graph.remove_keyframe(2, culled)
+        # At the estimate the original loop had: the moved loop measures the same.
+        (status,) = graph.constraint_report()
+        assert status.scale_row, culled
+        assert status.whitened_error < before.whitened_error + 1.0, (culled, status, before)
+        graph.optimize_full()
+        (before,) = graph.constraint_report()
+        # The later end's map lengths are 1.1 x the earlier's: its local scale 1 / 1.1 of theirs.
+        ratio = graph.local_scale(*before.key_j) / graph.local_scale(*before.key_i)
+        assert ratio == pytest.approx(1.1, rel=0.005), culled

@@ -170,8 +170,9 @@ class ConstraintStatus:
     label: str  # caller's label (e.g. place_recognition, rendezvous)
     key_i: Key
     key_j: Key
-    whitened_error: float  # Mahalanobis norm of the 6-D residual
+    whitened_error: float  # Mahalanobis norm of the residual (6-D, 7-D with a scale row)
     weight: float  # robust-kernel weight at that residual (1 = fully trusted)
+    scale_row: bool = False  # its similarity's scale is in the graph (a drifting map's end)
 
 
 @dataclass
@@ -527,10 +528,23 @@ class TeamPoseGraph:
             T_anchor_k = invert(self._client[anchor]) @ self._client[key]
             if f.key_i == key:  # X_j = X_k T = X_anchor T_anchor_k T
                 key_i, key_j, T = anchor, f.key_j, T_anchor_k @ f.T_meas
-            else:  # T = X_i^-1 X_k = X_i^-1 X_anchor T_anchor_k
+            else:  # T = X_i^-1 X_k = X_i^-1 X_anchor T_anchor_k, T in i's lengths: j's times s
+                T_anchor_k = scale_translation(T_anchor_k, float(np.exp(f.log_scale)))
                 key_i, key_j, T = f.key_i, anchor, f.T_meas @ invert(T_anchor_k)
             if key_i != key_j:
-                self._add_factor(_Factor(f.kind, key_i, key_j, T, f.sigmas, f.label, f.robust_k))
+                self._add_factor(
+                    _Factor(
+                        f.kind,
+                        key_i,
+                        key_j,
+                        T,
+                        f.sigmas,
+                        f.label,
+                        f.robust_k,
+                        f.log_scale,
+                        f.scale_sigma,
+                    )
+                )
         if prev is not None and nxt is not None:
             self._client_factor(KIND_ODOMETRY, prev, nxt)
         chain.pop(pos)
@@ -993,9 +1007,11 @@ class TeamPoseGraph:
             values = self._gtsam_values((f.key_i, f.key_j))
             e = np.asarray(self._gtsam_factor(fid).unwhitenedError(values), float)
             r, t = f.sigmas
-            d = float(np.linalg.norm(e / np.array([r, r, r, t, t, t])))
-            w = float(self._kernel.weight(d)) if self._kernel is not None else 1.0
-            out.append(ConstraintStatus(fid, f.kind, f.label, f.key_i, f.key_j, d, w))
+            sigmas = [r, r, r, t, t, t] + ([f.scale_sigma] if len(e) == 7 else [])
+            d = float(np.linalg.norm(e / np.array(sigmas)))
+            kernel = self._kernel_of(f)
+            w = float(kernel.weight(d)) if kernel is not None else 1.0
+            out.append(ConstraintStatus(fid, f.kind, f.label, f.key_i, f.key_j, d, w, len(e) == 7))
         return out
 
 
