@@ -335,17 +335,16 @@ class TeamPoseGraph:
         return None
 
     def _kernel_of(self, f: _Factor):
-        """The robust kernel of a loop / merge factor (None: none)."""
-        if self._kernel is None:
+        """The robust kernel of a factor: a loop / merge's (None: none, and for the others)."""
+        if self._kernel is None or f.kind not in (KIND_LOOP, KIND_MERGE):
             return None
         return self._kernel if f.robust_k is None else self._make_kernel(f.robust_k)
 
     def _noise(self, f: _Factor):
         r, t = f.sigmas
         base = gtsam.noiseModel.Diagonal.Sigmas(np.array([r, r, r, t, t, t]))
-        if f.kind in (KIND_LOOP, KIND_MERGE) and self._kernel is not None:
-            return gtsam.noiseModel.Robust.Create(self._kernel_of(f), base)
-        return base
+        kernel = self._kernel_of(f)
+        return base if kernel is None else gtsam.noiseModel.Robust.Create(kernel, base)
 
     def _gtsam_factor(self, fid: int):
         """The GTSAM factor of a factor id; kept until the factor goes or its measurement or
@@ -1007,11 +1006,12 @@ class TeamPoseGraph:
             values = self._gtsam_values((f.key_i, f.key_j))
             e = np.asarray(self._gtsam_factor(fid).unwhitenedError(values), float)
             r, t = f.sigmas
-            sigmas = [r, r, r, t, t, t] + ([f.scale_sigma] if len(e) == 7 else [])
+            scale_row = len(e) == 7
+            sigmas = [r, r, r, t, t, t] + ([f.scale_sigma] if scale_row else [])
             d = float(np.linalg.norm(e / np.array(sigmas)))
             kernel = self._kernel_of(f)
             w = float(kernel.weight(d)) if kernel is not None else 1.0
-            out.append(ConstraintStatus(fid, f.kind, f.label, f.key_i, f.key_j, d, w, len(e) == 7))
+            out.append(ConstraintStatus(fid, f.kind, f.label, f.key_i, f.key_j, d, w, scale_row))
         return out
 
 
