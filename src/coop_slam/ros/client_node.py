@@ -222,6 +222,8 @@ class ClientNode:
         )
         self._outbox_lock = threading.Lock()
         self.keyframes_sent = 0
+        # data time and wall time of the newest frame (the uplink holds records by data time)
+        self.last_frame_s, self.last_frame_wall = 0.0, time.monotonic()
         from ..vo.outbox import Uplink, UplinkConfig
 
         # Updates carry what changed since the server got the keyframe (~uplink).
@@ -341,6 +343,12 @@ class ClientNode:
     def _resend_loop(self) -> None:
         while not rospy.is_shutdown():
             time.sleep(0.5)
+            if (
+                len(self.uplink.holdback)
+                and time.monotonic() - self.last_frame_wall > self.uplink.idle_flush_s
+            ):
+                with self.lock:  # no frame for a while: what the uplink holds goes now
+                    self._send_records(self.uplink.flush())
             with self._outbox_lock:
                 due = self.outbox.due()
             if due and self.pub_kf.get_num_connections() > 0:
@@ -542,7 +550,7 @@ class ClientNode:
                 if res.message.startswith("relocalized in the team map"):
                     rospy.loginfo("client %s: %s", self.name, res.message)
                 self._maybe_ask_server()
-                self._publish_events()
+                self._publish_events(stamp.to_sec())
                 if self.path_due and stamp.to_sec() - self.last_path_s >= self.path_period_s:
                     self.last_path_s = stamp.to_sec()
                     self._publish_path()
@@ -671,11 +679,14 @@ class ClientNode:
                     self._publish_path()
 
     # --- publishing -------------------------------------------------------------------------------
-    def _publish_events(self) -> None:
-        from ..keyframe_record import ACTION_NEW, ACTION_REMOVE
-        from ..vo.outbox import event_record, signature_of
+    def _publish_events(self, now_s: float | None = None) -> None:
+        """Hand the odometry's events at data time ``now_s`` to the uplink and send what it lets
+        go (None: everything it holds, the odometry is closing)."""
+        from ..keyframe_record import ACTION_REMOVE
+        from ..vo.outbox import event_record
         from ..vo.types import EVENT_NEW_SEGMENT, EVENT_WARNING, KEYFRAME_ACTIONS
 
+        made_s = self.last_frame_s if now_s is None else now_s
         for ev in self.vo.drain_events():
             if ev.kind == EVENT_WARNING:
                 rospy.logwarn("client %s: %s", self.name, ev.message)
@@ -693,17 +704,29 @@ class ClientNode:
                     self.kf_poses.pop(rec.keyframe_id, None)
                 else:
                     self.kf_poses[rec.keyframe_id] = (rec.stamp_s, rec.T_map_cam)
-                self.keyframes_sent += rec.action == ACTION_NEW
-                # An update goes with what changed since the server got the keyframe.
-                out = self.uplink.prepare(rec)
-                if out.skip:
-                    continue
-                if out.signature:
-                    msg = keyframe_to_msg(signature_of(rec, self.vocabulary), self.map_frame)
-                else:
-                    msg = keyframe_to_msg(rec, self.map_frame, out.delta, out.patched)
-                self._send_keyframe(msg)
                 self.path_due = True
+                # An update goes with what changed since the server got the keyframe.
+                self._send_records(self.uplink.offer(rec, made_s))
+        if now_s is None:
+            self._send_records(self.uplink.flush())
+        else:
+            self.last_frame_s, self.last_frame_wall = now_s, time.monotonic()
+            self._send_records(self.uplink.due(now_s))
+
+    def _send_records(self, outgoing) -> None:
+        """Send keyframe records as the uplink prepared them (self.lock held)."""
+        from ..keyframe_record import ACTION_NEW
+        from ..vo.outbox import signature_of
+
+        for rec, out in outgoing:
+            if out.skip:
+                continue
+            if out.signature:
+                msg = keyframe_to_msg(signature_of(rec, self.vocabulary), self.map_frame)
+            else:
+                msg = keyframe_to_msg(rec, self.map_frame, out.delta, out.patched)
+            self.keyframes_sent += rec.action == ACTION_NEW
+            self._send_keyframe(msg)
 
     def _publish_pose(self, stamp, T_odom_cam: np.ndarray) -> None:
         T_map_cam = self.T_map_odom @ T_odom_cam

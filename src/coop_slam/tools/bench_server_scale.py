@@ -49,7 +49,7 @@ from ..team.publish_cadence import PublishCadence, PublishCadenceConfig
 Figure = tuple[str, float, str]
 # Bump when what the synthesised streams hold changes (client behaviour, record layout): the cache
 # key has it, so an old cache is not replayed as if it were current.
-STREAM_VERSION = "1"
+STREAM_VERSION = "2"
 DEFAULT_SCENARIO, DEFAULT_ROBOTS = "multi", 8
 SESSION = 1  # the synthesised clients' delivery session (one start each, sequences from 1)
 _REPO = os.path.normpath(
@@ -168,17 +168,22 @@ class ClientSender:
         self.sequence = 0
         self.new_keyframes = 0
 
-    def send(self, events, t_s: float) -> list[Arrival]:
+    def send(self, events, t_s: float, last: bool = False) -> list[Arrival]:
+        """The messages that go at data time ``t_s`` for ``events`` (and what the uplink held
+        before); ``last``: everything it holds goes too."""
         from ..vo.outbox import event_record
         from ..vo.types import KEYFRAME_ACTIONS
 
-        out = []
+        going = []
         for ev in events:
             if ev.kind not in KEYFRAME_ACTIONS:  # warnings, new segments: nothing sent
                 continue
             rec = event_record(ev, self.robot_id, self.camera, self.T_base_cam)
+            going += self.uplink.offer(rec, t_s)
+        going += self.uplink.flush() if last else self.uplink.due(t_s)
+        out = []
+        for rec, how in going:
             self.new_keyframes += rec.action == ACTION_NEW
-            how = self.uplink.prepare(rec)
             self.sequence += 1
             out.append(
                 Arrival(
@@ -227,7 +232,7 @@ def robot_stream(robot_id: int, seq, cfg, T_base_cam: np.ndarray, label: str = "
                     f"{len(out)} messages, {time.perf_counter() - t0:.0f} s"
                 )
         vo.flush()
-        out += sender.send(vo.drain_events(), seq.frames[-1].stamp_s if n else 0.0)
+        out += sender.send(vo.drain_events(), seq.frames[-1].stamp_s if n else 0.0, last=True)
     finally:
         vo.close()
     return out

@@ -96,10 +96,24 @@ class UplinkConfig:
     # new keyframe goes as its place signature; whole when the server asks for it, and only
     # then its updates.
     mode: str = "full"
+    # Full mode: a new keyframe waits this long before it goes [s of data time], and goes with
+    # what local BA made of it meanwhile; one the client culls within it (most culled keyframes
+    # are) never travels. 0 = at once.
+    hold_new_s: float = 1.0
+    # Full mode: the updates of a keyframe the server has go at most once per this long, the
+    # latest of them [s of data time] (local BA moves every keyframe of its window after each new
+    # keyframe). 0 = each as it comes.
+    coalesce_updates_s: float = 1.0
+    # Wall-clock seconds without a camera frame after which whatever is held goes (the camera
+    # stopped, or the run ended).
+    idle_flush_s: float = 2.0
 
     def validate(self) -> None:
         require(self.point_move_m >= 0, "uplink.point_move_m must be >= 0 [m]")
         require(self.mode in UPLINK_MODES, f"uplink.mode must be one of {UPLINK_MODES}")
+        require(self.hold_new_s >= 0, "uplink.hold_new_s must be >= 0 [s]")
+        require(self.coalesce_updates_s >= 0, "uplink.coalesce_updates_s must be >= 0 [s]")
+        require(self.idle_flush_s > 0, "uplink.idle_flush_s must be > 0 [s]")
 
 
 def signature_of(rec: KeyframeRecord, vocabulary) -> PlaceSignature:
@@ -129,6 +143,57 @@ class Outgoing(NamedTuple):
     skip: bool = False
 
 
+class Holdback:
+    """When each keyframe record goes: a new keyframe after ``hold_new_s`` (its record then the
+    latest snapshot, still as new; nothing at all when it was removed meanwhile), the updates of a
+    keyframe already sent at most once per ``coalesce_s`` (the latest, ``coalesce_s`` after the
+    first of them was held), removals of sent keyframes at once. Times are data time (frame
+    stamps), so a lock-step run sends the same messages however fast the machine is. Records of
+    one keyframe go in the order they were made; the server handles keyframes in any order."""
+
+    def __init__(self, hold_new_s: float = 0.0, coalesce_s: float = 0.0):
+        self.hold_new_s, self.coalesce_s = float(hold_new_s), float(coalesce_s)
+        # keyframe id -> (data time held since, latest record); insertion order = creation order
+        self._new: dict[int, tuple[float, KeyframeRecord]] = {}
+        self._updates: dict[int, tuple[float, KeyframeRecord]] = {}
+
+    def __len__(self) -> int:
+        return len(self._new) + len(self._updates)
+
+    def offer(self, rec: KeyframeRecord, now_s: float) -> list[KeyframeRecord]:
+        """Hold ``rec`` (made at data time ``now_s``); returns what goes at once."""
+        k = rec.keyframe_id
+        if rec.action == ACTION_NEW:
+            if self.hold_new_s <= 0:
+                return [rec]
+            self._new[k] = (now_s, rec)
+        elif rec.action == ACTION_UPDATE:
+            if k in self._new:  # not sent yet: it goes as new, as it is now
+                self._new[k] = (self._new[k][0], dataclasses.replace(rec, action=ACTION_NEW))
+            elif self.coalesce_s <= 0:
+                return [rec]
+            else:
+                self._updates[k] = (self._updates.get(k, (now_s,))[0], rec)
+        else:
+            self._updates.pop(k, None)
+            if self._new.pop(k, None) is None:  # the server has it
+                return [rec]
+        return []
+
+    def due(self, now_s: float) -> list[KeyframeRecord]:
+        """What has waited long enough at data time ``now_s``: new keyframes first, oldest
+        first."""
+        out = []
+        for held, wait in ((self._new, self.hold_new_s), (self._updates, self.coalesce_s)):
+            for k in [k for k, (t, _) in held.items() if now_s - t >= wait]:
+                out.append(held.pop(k)[1])
+        return out
+
+    def flush(self) -> list[KeyframeRecord]:
+        """Everything held, new keyframes first."""
+        return self.due(float("inf"))
+
+
 class Uplink:
     """What each keyframe message carries. An update goes without what the keyframe saw
     (``KeyFrame.delta``) when its keypoints, octaves, descriptors and depths are the ones sent with
@@ -144,15 +209,34 @@ class Uplink:
     those of the others are not sent; removals are.
 
     It keeps, per keyframe, the observations as the server holds them (the messages reach the
-    server in order, and every one does: :class:`coop_slam.delivery.Outbox`)."""
+    server in order, and every one does: :class:`coop_slam.delivery.Outbox`).
+
+    When records go is :class:`Holdback`'s (full mode; in pull mode each goes as it comes):
+    :meth:`offer` a record as the odometry makes it, send what it and :meth:`due` return."""
 
     def __init__(self, config: UplinkConfig | None = None):
         config = config or UplinkConfig()
         config.validate()
         self.enabled, self.min_point_move_m = config.delta_updates, config.point_move_m
         self.pull = config.mode == "pull"
+        self.idle_flush_s = config.idle_flush_s
+        self.holdback = (
+            Holdback() if self.pull else Holdback(config.hold_new_s, config.coalesce_updates_s)
+        )
         # keyframe id -> (digest sent with it as new, map point ids, per-keypoint points held)
         self._held: dict[int, tuple[bytes, np.ndarray, np.ndarray]] = {}
+
+    def offer(self, rec: KeyframeRecord, now_s: float) -> list[tuple[KeyframeRecord, Outgoing]]:
+        """A record the odometry made at data time ``now_s``: what goes now, and how."""
+        return [(r, self.prepare(r)) for r in self.holdback.offer(rec, now_s)]
+
+    def due(self, now_s: float) -> list[tuple[KeyframeRecord, Outgoing]]:
+        """The held records that go at data time ``now_s``, and how."""
+        return [(r, self.prepare(r)) for r in self.holdback.due(now_s)]
+
+    def flush(self) -> list[tuple[KeyframeRecord, Outgoing]]:
+        """Every held record, and how it goes."""
+        return [(r, self.prepare(r)) for r in self.holdback.flush()]
 
     def prepare(self, rec: KeyframeRecord) -> Outgoing:
         """How ``rec`` (about to be sent) goes; remembers what the server will hold after it."""
