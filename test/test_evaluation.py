@@ -91,7 +91,7 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
 
     from coop_slam.evaluation.run_report import _local_merge_error
     from coop_slam.keyframe_record import ACTION_REMOVE, ACTION_UPDATE
-    from coop_slam.msg import MergeEvent
+    from coop_slam.msg import FrameStats, MergeEvent
     from coop_slam.ros.convert import keyframe_to_msg, pose_to_msg, transform_to_msg
     from coop_slam.ros.run_recorder import run_data_from_bag
     from helpers import make_keyframe
@@ -133,7 +133,10 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
             group=[1, 2],
         )
         merge.header.stamp = rospy.Time.from_sec(1.5)
-        bag.write("/merge_events", merge, rospy.Time.from_sec(1.5))
+        stats = FrameStats(robot_id=2, tracking_ok=True)
+        stats.header.stamp = rospy.Time.from_sec(2.5)  # the newest frame when it was published
+        bag.write("/robot_2/frame_stats", stats, rospy.Time.from_sec(2.5))
+        bag.write("/merge_events", merge, rospy.Time.from_sec(2.6))
         moved = make_keyframe(robot_id=2, keyframe_id=4, seed=3)
         moved.T_map_cam, moved.stamp_s = se3(t=[0.05, 0, 0]) @ gt[3], stamps[3]
         moved.action = ACTION_UPDATE
@@ -152,6 +155,7 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
     assert all(len(r.keyframe_points[k]) == 50 for k in (1, 2, 3, 5))
     assert sorted(r.team_keyframes) == [1, 2, 4, 5]  # the NaN pose is dropped, not stored
     assert run.merges[0]["type"] == "rendezvous" and run.merges[0]["stamp_s"] == 1.5
+    assert run.merges[0]["published_s"] == 2.5
     assert len(run.topic_bytes["/robot_2/keyframes"]) == 6
     with pytest.raises(EvaluationError, match="bag not found"):
         run_data_from_bag(str(tmp_path / "missing.bag"), [1])

@@ -51,6 +51,7 @@ MERGE_KEYS = (
     "trans_err_m",
     "rot_err_deg",
     "latency_s",
+    "published_s",
     "local_trans_err_m",
     "local_rot_err_deg",
     # A merge by a similarity (a monocular side): its scale against the true ratio of the two
@@ -178,6 +179,9 @@ def render_markdown(report: dict) -> str:
             "(rendezvous) or first revisit (place recognition) in the ground truth, whose view "
             "model counts a surface as shared only when seen from similar directions (within "
             "about 22 deg): a negative latency is a verified merge on a view it does not count. "
+            "`published_s`: when the server published the merge, in data time (the newest camera "
+            "frame by then; `stamp` is the keyframe's that triggered it, which a client's uplink "
+            "sends a while after the frame, `uplink.hold_new_s`). "
             "`scale_err` / `local_scale_err` of a merge by a similarity (a monocular side): its "
             "scale against the true ratio of the maps' units over their whole paths / around the "
             "matched keyframes.",

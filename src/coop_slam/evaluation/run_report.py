@@ -343,6 +343,7 @@ def evaluate_run(
             "trans_err_m": None,
             "rot_err_deg": None,
             "latency_s": None,
+            "published_s": m.get("published_s"),
             "scale_err": None,
             "local_scale_err": None,
         }

@@ -67,6 +67,7 @@ class RunRecorder:
         self.run = RunData(robots={int(r): RobotRun() for r in robot_ids})
         self.lock = threading.Lock()
         self.done = False  # the player said it has played everything
+        self.newest_frame_s = 0.0  # data time: the newest frame any client has finished
 
     def topics(self) -> dict[str, str]:
         """Topic -> message type of everything recorded (the demo's rosbag takes the same list)."""
@@ -100,6 +101,7 @@ class RunRecorder:
             r.frames_dropped += 1
             return
         r.frames += 1
+        self.newest_frame_s = max(self.newest_frame_s, msg.header.stamp.to_sec())
         sent = int(getattr(msg, "keyframes_sent", 0))
         if not r.keyframes_sent_sessions or sent < r.keyframes_sent_sessions[-1]:
             r.keyframes_sent_sessions.append(sent)  # the first, or a restarted client
@@ -190,6 +192,7 @@ class RunRecorder:
                 "T_mapA_mapB": transform_from_msg(msg.T_mapA_mapB),
                 "T_camA_camB": transform_from_msg(msg.T_camA_camB),
                 "scale": getattr(msg, "scale", None),  # not in bags recorded before it
+                "published_s": self.newest_frame_s or None,  # data time it was published at
             }
         )
 

@@ -17,7 +17,7 @@ COLUMNS = (
     "robot ATE [cm]",
     "pooled [cm]",
     "team ATE [cm]",
-    "merges (type, latency s, error cm / deg at the matched keyframes)",
+    "merges (type, latency s (+ until published), error cm / deg at the matched keyframes)",
     "wrong merges",
     "links (robots: count)",
     "overlap agreement (robots: inter / intra mm)",
@@ -100,7 +100,10 @@ def row(report: dict, info: dict) -> list[str]:
             err += f", scale {100 * m['scale_err']:+.1f} %" + (
                 f" ({100 * local:+.1f} % local)" if local is not None else ""
             )
-        merges.append(f"{m['type']} {m['robots']}: {_num(m.get('latency_s'))}, {err}")
+        latency = _num(m.get("latency_s"))
+        if m.get("published_s") is not None:
+            latency += f" (+{m['published_s'] - m['stamp']:.1f})"
+        merges.append(f"{m['type']} {m['robots']}: {latency}, {err}")
     means = [r.get("track_ms_mean") for r in robots if r.get("track_ms_mean") is not None]
     p95s = [r.get("track_ms_p95") for r in robots if r.get("track_ms_p95") is not None]
     track = f"{max(means):.0f} / {max(p95s):.0f}" if means and p95s else "–"
