@@ -163,23 +163,26 @@ def _map_keyframe(rec: KeyframeRecord):
 def test_the_synthesised_client_sends_as_the_client_node():
     """New keyframes go whole, an update without what the keyframe saw when that is unchanged
     (else whole), a removal by id; numbered 1, 2, ... in one session; events that are no keyframe
-    send nothing."""
+    send nothing. With the uplink's holdback (client.yaml) a keyframe made and culled within
+    hold_new_s sends nothing at all."""
+    from coop_slam.vo.outbox import UplinkConfig
+
     rec = make_keyframe(n=40, keyframe_id=7)
     kf = _map_keyframe(rec)
     moved = dataclasses.replace(kf, T_map_cam=kf.T_map_cam.copy())
     moved.T_map_cam[:3, 3] += 0.05
     seen_again = dataclasses.replace(moved, depths_m=kf.depths_m * 1.01)
-    sender = ClientSender(3, rec.camera, np.eye(4))
-    sent = sender.send(
-        [
-            VoEvent(EVENT_KEYFRAME_NEW, 0, 7, kf),
-            VoEvent(EVENT_WARNING, 0, message="time went back"),
-            VoEvent(EVENT_KEYFRAME_UPDATE, 0, 7, moved),
-            VoEvent(EVENT_KEYFRAME_UPDATE, 0, 7, seen_again),
-            VoEvent(EVENT_KEYFRAME_REMOVE, 0, 7),
-        ],
-        t_s=4.5,
-    )
+    events = [
+        VoEvent(EVENT_KEYFRAME_NEW, 0, 7, kf),
+        VoEvent(EVENT_WARNING, 0, message="time went back"),
+        VoEvent(EVENT_KEYFRAME_UPDATE, 0, 7, moved),
+        VoEvent(EVENT_KEYFRAME_UPDATE, 0, 7, seen_again),
+        VoEvent(EVENT_KEYFRAME_REMOVE, 0, 7),
+    ]
+    assert ClientSender(3, rec.camera, np.eye(4)).send(events, t_s=4.5, last=True) == []
+    at_once = UplinkConfig(hold_new_s=0.0, coalesce_updates_s=0.0)
+    sender = ClientSender(3, rec.camera, np.eye(4), at_once)
+    sent = sender.send(events, t_s=4.5)
     assert [(a.t_s, a.robot_id, a.sequence) for a in sent] == [(4.5, 3, k) for k in (1, 2, 3, 4)]
     new, delta, whole, removal = (a.item for a in sent)
     assert isinstance(new, KeyframeRecord) and new.keypoints.dtype == np.float32

@@ -147,6 +147,19 @@ def test_no_merge_without_overlap(tmp_path, scenario):
         assert topics[f"/robot_{r}/keyframes"]["messages"] >= 5
         assert topics[f"/robot_{r}/local_map"]["messages"] >= 1
         assert topics[f"/team_map/robot_{r}/path"]["messages"] >= 1
+    # The uplink holds a new keyframe back a second (uplink.hold_new_s): when the player is done
+    # the held ones go too, so the server ends with every keyframe the clients kept.
+    import rosbag
+
+    kept = {}
+    with rosbag.Bag(str(out / "run.bag")) as bag:
+        for topic, msg, _ in bag.read_messages(
+            topics=["/robot_1/frame_stats", "/robot_2/frame_stats"]
+        ):
+            kept[topic] = msg.keyframes
+    assert [kept[f"/robot_{r}/frame_stats"] for r in (1, 2)] == [
+        robot["keyframes"] for robot in report["robots"]
+    ]
     if scenario == "disjoint":  # scripts/evaluate re-derives the report from the recorded bag
         again = _evaluate_again(out)
         assert again["groups"] == report["groups"] and again["robots"] == report["robots"]

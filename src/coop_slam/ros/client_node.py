@@ -39,6 +39,7 @@ import rospy
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Bool
 
 from ..config import load_yaml_config
 from ..errors import CoopSlamError
@@ -270,6 +271,8 @@ class ClientNode:
                 wait_s,
             )
         self.sub_ack = rospy.Subscriber(f"{ns}/keyframe_ack", KeyframeAck, self._on_ack)
+        # Played data (scripts/demo, player.launch): the player says when it has played all.
+        self.sub_done = rospy.Subscriber("/player/done", Bool, self._flush_uplink, queue_size=1)
         self._resender = threading.Thread(target=self._resend_loop, daemon=True)
         self._resender.start()
 
@@ -343,12 +346,15 @@ class ClientNode:
     def _resend_loop(self) -> None:
         while not rospy.is_shutdown():
             time.sleep(0.5)
+            # No frame for a while: the camera stopped, what the uplink holds goes now. Lock-step
+            # playback waits for every client, so a pause says nothing there: what is held goes
+            # when the player is done (its messages stay the same however loaded the machine is).
             if (
-                len(self.uplink.holdback)
+                not self.wait_for_mapping
+                and len(self.uplink.holdback)
                 and time.monotonic() - self.last_frame_wall > self.uplink.idle_flush_s
             ):
-                with self.lock:  # no frame for a while: what the uplink holds goes now
-                    self._send_records(self.uplink.flush())
+                self._flush_uplink()
             with self._outbox_lock:
                 due = self.outbox.due()
             if due and self.pub_kf.get_num_connections() > 0:
@@ -360,6 +366,12 @@ class ClientNode:
                 )
                 for msg in due:
                     self.pub_kf.publish(msg)
+
+    def _flush_uplink(self, msg=None) -> None:
+        """Send whatever the uplink holds (``msg``: the player's ``done``, when it is done)."""
+        if msg is None or msg.data:
+            with self.lock:
+                self._send_records(self.uplink.flush())
 
     def _send_keyframe(self, msg) -> None:
         with self._outbox_lock:
