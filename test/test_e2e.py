@@ -148,7 +148,8 @@ def test_no_merge_without_overlap(tmp_path, scenario):
         assert topics[f"/robot_{r}/local_map"]["messages"] >= 1
         assert topics[f"/team_map/robot_{r}/path"]["messages"] >= 1
     # The uplink holds a new keyframe back a second (uplink.hold_new_s): when the player is done
-    # the held ones go too, so the server ends with every keyframe the clients kept.
+    # the held ones go too, so every keyframe the clients kept went to the server (their last
+    # stats, sent after that flush, against the keyframes their messages add up to).
     import rosbag
 
     kept = {}

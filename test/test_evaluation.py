@@ -329,7 +329,11 @@ def test_a_robots_new_map_segment_merging_with_its_old_one_is_judged_at_both_key
 
 def test_frame_stats_count_dropped_frames_and_a_mapper_behind_the_camera():
     """Per robot: frames tracked, frames a busy client skipped, and frames tracked while local
-    mapping held more than one keyframe (the mapper falling behind), with its largest backlog."""
+    mapping held more than one keyframe (the mapper falling behind), with its largest backlog.
+    Stats without a frame (stamp 0: keyframes the uplink sent after the last frame) count the
+    keyframes sent, not a frame."""
+    import rospy
+
     from coop_slam.msg import FrameStats
     from coop_slam.ros.run_recorder import RunRecorder
 
@@ -338,11 +342,14 @@ def test_frame_stats_count_dropped_frames_and_a_mapper_behind_the_camera():
         [(False, 0), (True, 0), (False, 1), (False, 3), (False, 2)]
     ):
         msg = FrameStats(robot_id=1, tracking_ok=True, track_ms=10.0, dropped=dropped)
-        msg.mapping_backlog = backlog
+        msg.header.stamp = rospy.Time.from_sec(1.0 + 0.1 * k)
+        msg.mapping_backlog, msg.keyframes_sent = backlog, k
         rec.feed("/robot_1/frame_stats", msg, 0.1 * k, 40)
+    rec.feed("/robot_1/frame_stats", FrameStats(robot_id=1, keyframes_sent=6), 0.6, 40)
     r = rec.run.robots[1]
     assert (r.frames, r.frames_dropped) == (4, 1)
     assert (r.mapping_backlog_max, r.frames_mapping_behind) == (3, 2)
+    assert r.keyframes_sent_sessions == [6] and rec.newest_frame_s == pytest.approx(1.4)
 
 
 def test_bandwidth_gives_uplink_and_downlink_per_robot():

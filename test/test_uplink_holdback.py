@@ -54,6 +54,16 @@ def test_updates_of_a_sent_keyframe_go_once_per_interval_the_latest():
     assert len(hold) == 0
 
 
+def test_data_time_going_back_lets_what_is_held_go():
+    """A looped bag or a reset clock: records held at a later data time go at once, not when
+    data time has caught up with them."""
+    hold = Holdback(hold_new_s=1.0, coalesce_s=1.0)
+    hold.offer(make_keyframe(keyframe_id=1), 100.0)
+    hold.offer(make_keyframe(keyframe_id=2), 100.5)
+    assert [r.keyframe_id for r in hold.due(100.6)] == []
+    assert [r.keyframe_id for r in hold.due(3.0)] == [1, 2]
+
+
 def test_flush_sends_everything_held_and_zero_waits_send_at_once():
     hold = Holdback(hold_new_s=1.0, coalesce_s=1.0)
     hold.offer(make_keyframe(keyframe_id=1), 0.0)
@@ -68,15 +78,26 @@ def test_flush_sends_everything_held_and_zero_waits_send_at_once():
 
 def test_uplink_offers_through_its_holdback_and_prepares_deltas_in_sending_order():
     """What the server ends up holding is the keyframe's last state, with the delta protocol
-    intact: the update after a held new keyframe is a delta of what that new carried."""
+    intact: the update after a held new keyframe is a patch against what that new carried (the
+    points local BA moved while it was held), not against the keyframe as first made."""
     uplink = Uplink(UplinkConfig(hold_new_s=0.5, coalesce_updates_s=0.5))
     kf = make_keyframe(n=60, keyframe_id=7)
     assert uplink.offer(kf, 0.0) == []
+    moved = _moved(kf, ACTION_UPDATE, 0.02)
+    moved.map_points = kf.map_points + np.float32(0.05)  # every point moved while held
+    uplink.offer(moved, 0.3)
     going = uplink.due(0.5)
     assert len(going) == 1 and going[0][0].action == ACTION_NEW and not going[0][1].delta
-    uplink.offer(_moved(kf, ACTION_UPDATE, 0.02), 0.6)
+    np.testing.assert_array_equal(going[0][0].map_points, moved.map_points)
+    again = _moved(moved, ACTION_UPDATE, 0.01)
+    again.map_points = moved.map_points.copy()
+    again.map_points[:3] += np.float32(0.05)  # three points moved since the new went
+    uplink.offer(again, 0.6)
     ((rec, out),) = uplink.due(1.1)
-    assert rec.action == ACTION_UPDATE and out.delta and len(out.patched) == 0
+    assert rec.action == ACTION_UPDATE and out.delta
+    assert sorted(rec.map_point_ids[out.patched]) == sorted(
+        rec.map_point_ids[rec.map_point_ids != 0][:3]
+    )
     # pull mode (low-bandwidth): no holding, its own rules
     pull = Uplink(UplinkConfig(mode="pull"))
     ((rec, out),) = pull.offer(make_keyframe(keyframe_id=8), 0.0)

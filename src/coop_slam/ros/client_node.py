@@ -346,15 +346,16 @@ class ClientNode:
     def _resend_loop(self) -> None:
         while not rospy.is_shutdown():
             time.sleep(0.5)
-            # No frame for a while: the camera stopped, what the uplink holds goes now. Lock-step
-            # playback waits for every client, so a pause says nothing there: what is held goes
-            # when the player is done (its messages stay the same however loaded the machine is).
+            # No frame for a while: the camera stopped, what the uplink holds goes now. Played
+            # data in lock-step waits for every client, so a pause says nothing there: what is
+            # held goes when the player is done (the messages stay the same however loaded the
+            # machine is).
             if (
-                not self.wait_for_mapping
-                and len(self.uplink.holdback)
+                len(self.uplink.holdback)
                 and time.monotonic() - self.last_frame_wall > self.uplink.idle_flush_s
+                and not (self.wait_for_mapping and self.sub_done.get_num_connections())
             ):
-                self._flush_uplink()
+                self._flush_uplink(blocking=False)
             with self._outbox_lock:
                 due = self.outbox.due()
             if due and self.pub_kf.get_num_connections() > 0:
@@ -367,11 +368,29 @@ class ClientNode:
                 for msg in due:
                     self.pub_kf.publish(msg)
 
-    def _flush_uplink(self, msg=None) -> None:
-        """Send whatever the uplink holds (``msg``: the player's ``done``, when it is done)."""
-        if msg is None or msg.data:
-            with self.lock:
+    def _flush_uplink(self, msg=None, blocking: bool = True) -> None:
+        """Send whatever the uplink holds (``msg``: the player's ``done``, when it is done), and
+        say how many new keyframes went in all (no frame will: see :meth:`_publish_counters`).
+        Not ``blocking``: nothing when a frame is being tracked (the resend thread must not wait
+        for one)."""
+        if (msg is not None and not msg.data) or not self.lock.acquire(blocking=blocking):
+            return
+        try:
+            if len(self.uplink.holdback):
                 self._send_records(self.uplink.flush())
+                self._publish_counters()
+        finally:
+            self.lock.release()
+
+    def _publish_counters(self) -> None:
+        """The delivery counters of FrameStats without a frame (stamp 0): keyframes sent after
+        the last frame (what the uplink held) count too."""
+        from coop_slam.msg import FrameStats
+
+        stats = FrameStats(robot_id=self.robot_id, tracking_ok=True)
+        stats.keyframes = len(self.kf_poses)
+        stats.keyframes_sent, stats.unacked = self.keyframes_sent, self.outbox.unacked
+        self.pub_stats.publish(stats)
 
     def _send_keyframe(self, msg) -> None:
         with self._outbox_lock:
@@ -710,6 +729,7 @@ class ClientNode:
                     ev.message,
                 )
                 self.segment = ev.map_segment + self.segment_base
+                self._send_records(self.uplink.flush())  # the old map's keyframes go first
             elif ev.kind in KEYFRAME_ACTIONS:
                 rec = self._as_sent(event_record(ev, self.robot_id, self.camera, self.T_base_cam))
                 if rec.action == ACTION_REMOVE:
@@ -789,6 +809,7 @@ class ClientNode:
         self.slot.close()
         with self.lock:
             if self.vo is not None:
+                self._send_records(self.uplink.flush())  # best effort: the node is going down
                 self.vo.close()
         rospy.loginfo(
             "client %s: %d frames, %d dropped (busy), %d keyframes, %d corrections applied, %d "

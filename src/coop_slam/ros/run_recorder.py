@@ -100,7 +100,8 @@ class RunRecorder:
         if getattr(msg, "dropped", False):  # busy client: a newer frame was tracked instead
             r.frames_dropped += 1
             return
-        r.frames += 1
+        frame = not msg.header.stamp.is_zero()  # stamp 0: the delivery counters alone
+        r.frames += frame
         self.newest_frame_s = max(self.newest_frame_s, msg.header.stamp.to_sec())
         sent = int(getattr(msg, "keyframes_sent", 0))
         if not r.keyframes_sent_sessions or sent < r.keyframes_sent_sessions[-1]:

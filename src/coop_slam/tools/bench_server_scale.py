@@ -172,10 +172,12 @@ class ClientSender:
         """The messages that go at data time ``t_s`` for ``events`` (and what the uplink held
         before); ``last``: everything it holds goes too."""
         from ..vo.outbox import event_record
-        from ..vo.types import KEYFRAME_ACTIONS
+        from ..vo.types import EVENT_NEW_SEGMENT, KEYFRAME_ACTIONS
 
         going = []
         for ev in events:
+            if ev.kind == EVENT_NEW_SEGMENT:  # the old map's keyframes go first
+                going += self.uplink.flush()
             if ev.kind not in KEYFRAME_ACTIONS:  # warnings, new segments: nothing sent
                 continue
             rec = event_record(ev, self.robot_id, self.camera, self.T_base_cam)

@@ -102,7 +102,7 @@ def row(report: dict, info: dict) -> list[str]:
             )
         latency = _num(m.get("latency_s"))
         if m.get("published_s") is not None:
-            latency += f" (+{m['published_s'] - m['stamp']:.1f})"
+            latency += f" ({m['published_s'] - m['stamp']:+.1f})"
         merges.append(f"{m['type']} {m['robots']}: {latency}, {err}")
     means = [r.get("track_ms_mean") for r in robots if r.get("track_ms_mean") is not None]
     p95s = [r.get("track_ms_p95") for r in robots if r.get("track_ms_p95") is not None]

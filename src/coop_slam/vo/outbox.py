@@ -182,10 +182,11 @@ class Holdback:
 
     def due(self, now_s: float) -> list[KeyframeRecord]:
         """What has waited long enough at data time ``now_s``: new keyframes first, oldest
-        first."""
+        first. Held later than ``now_s`` (data time went back: a looped bag, a reset clock) is
+        due too, or it would wait until data time caught up."""
         out = []
         for held, wait in ((self._new, self.hold_new_s), (self._updates, self.coalesce_s)):
-            for k in [k for k, (t, _) in held.items() if now_s - t >= wait]:
+            for k in [k for k, (t, _) in held.items() if now_s - t >= wait or now_s < t]:
                 out.append(held.pop(k)[1])
         return out
 
