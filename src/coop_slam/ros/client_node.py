@@ -315,18 +315,23 @@ class ClientNode:
         if msg.robot_id != self.robot_id:
             self.rejects.reject("keyframe_request", f"request for robot {msg.robot_id}")
             return
-        if (msg.request and msg.request <= self._request_seen) or self.vo is None:
-            return  # latched: answered already (or no map yet)
-        self._request_seen = msg.request
-        for kid in msg.keyframe_ids:
-            kf = self.vo.keyframe(int(kid) - self.kf_id_base)
-            if kf is None:
-                rospy.loginfo("client %s: the server asks for keyframe %d, gone", self.name, kid)
-                continue
-            rec = self._as_sent(keyframe_record(kf, self.robot_id, self.camera, self.T_base_cam))
-            rec.action = ACTION_NEW
-            self.uplink.answer(rec)
-            self._send_keyframe(keyframe_to_msg(rec, self.map_frame))
+        # The uplink's state (what the server holds) is the tracking thread's too.
+        with self.lock:
+            if (msg.request and msg.request <= self._request_seen) or self.vo is None:
+                return  # latched: answered already (or no map yet)
+            self._request_seen = msg.request
+            for kid in msg.keyframe_ids:
+                kf = self.vo.keyframe(int(kid) - self.kf_id_base)
+                if kf is None:
+                    rospy.loginfo(
+                        "client %s: the server asks for keyframe %d, gone", self.name, kid
+                    )
+                    continue
+                rec = keyframe_record(kf, self.robot_id, self.camera, self.T_base_cam)
+                rec = self._as_sent(rec)
+                rec.action = ACTION_NEW
+                self.uplink.answer(rec)
+                self._send_keyframe(keyframe_to_msg(rec, self.map_frame))
 
     def _as_sent(self, rec):
         """A record with this client run's keyframe ids and map segments (after a restart they
