@@ -351,6 +351,32 @@ def test_cued_request_is_retried_on_the_next_keyframes(world, late):
     assert dt < 0.02 and dr < 0.5
 
 
+def test_a_later_keyframe_of_a_cued_request_is_tried_against_what_the_other_saw_then(world):
+    """Keyframes reach the server a while after they were taken (the clients' uplink holds them):
+    a keyframe arriving for an open request is verified against the other robot's keyframes
+    nearest it in time too, not only against those nearest the cue, which here look away."""
+    points, desc, _, vocab = world
+    cfg = _config(robots=[1, 2])
+    cfg.place_recognition.enabled = False
+    cfg.rendezvous.auto = False  # only the request may merge
+    server = TeamServer(cfg, vocab)
+    away = np.array([1.3, 1.1]) - np.pi / 2  # a quarter turn from the shared scene
+    for kf in _keyframes(1, away, points, desc, seed=1, t0=0.0):  # stamps 0, 1 s
+        server.add_keyframe(kf)
+    for kf in _keyframes(1, [1.3, 1.5], points, desc, kid0=3, seed=3, t0=2.5):  # 2.5, 3.5 s
+        server.add_keyframe(kf)
+    (before,) = _keyframes(2, [1.3 + np.pi], points, desc, offset=(0.3, -0.2), seed=50, t0=0.5)
+    server.add_keyframe(before)
+    merge, _ = server.request_rendezvous(1, 2, stamp_s=1.0)
+    assert merge is None
+    (turned,) = _keyframes(2, [1.3], points, desc, kid0=2, offset=(0.3, -0.2), seed=51, t0=2.5)
+    merges = server.add_keyframe(turned)
+    assert len(merges) == 1 and merges[0].type == "rendezvous", server.groups.groups()
+    assert merges[0].stamp_s == 2.5
+    dt, dr = transform_error(merges[0].T_mapA_mapB, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
+    assert dt < 0.02 and dr < 0.5
+
+
 def test_a_new_map_segment_is_a_map_of_its_own_that_merges_back(world):
     """A client that lost tracking for good (or restarted) sends a new map segment in a new map
     frame: the server keeps it apart (no odometry to the old segment) and merges it back."""

@@ -290,13 +290,20 @@ class Rendezvous:
                 continue
             key_new = (rec.robot_id, rec.keyframe_id)
             other = request.robot_b if rec.robot_id == request.robot_a else request.robot_a
-            keys_other = self.store.near_in_time(
-                other, request.stamp_s, window, latest_fallback=True
+            # The other robot's views nearest the cue, and nearest this keyframe (what it saw at
+            # the same moment: keyframes reach the server a while after they were made, so the
+            # ones nearest the cue can be older than this one).
+            near = self.store.near_in_time
+            keys_other = list(
+                dict.fromkeys(
+                    near(other, rec.stamp_s, window, latest_fallback=True)[:2]
+                    + near(other, request.stamp_s, window, latest_fallback=True)[:2]
+                )
             )
             if rec.robot_id == request.robot_a:
-                v = self._verify_request(request, [key_new], keys_other[:2], 2)
+                v = self._verify_request(request, [key_new], keys_other, len(keys_other))
             else:
-                v = self._verify_request(request, keys_other[:2], [key_new], 2)
+                v = self._verify_request(request, keys_other, [key_new], len(keys_other))
             if v is not None:
                 del self._open_requests[pair]
                 log.info("rendezvous request %s / %s: verified on a later keyframe", *pair)
