@@ -296,8 +296,8 @@ class Rendezvous:
             near = self.store.near_in_time
             keys_other = list(
                 dict.fromkeys(
-                    near(other, rec.stamp_s, window, latest_fallback=True)[:2]
-                    + near(other, request.stamp_s, window, latest_fallback=True)[:2]
+                    near(other, rec.stamp_s, window, latest_fallback=True)[:3]
+                    + near(other, request.stamp_s, window, latest_fallback=True)[:3]
                 )
             )
             if rec.robot_id == request.robot_a:
