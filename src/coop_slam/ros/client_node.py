@@ -223,8 +223,7 @@ class ClientNode:
         )
         self._outbox_lock = threading.Lock()
         self.keyframes_sent = 0
-        # data time and wall time of the newest frame (the uplink holds records by data time)
-        self.last_frame_s, self.last_frame_wall = 0.0, time.monotonic()
+        self.last_frame_wall = time.monotonic()  # when the newest frame came (idle flush)
         from ..vo.outbox import Uplink, UplinkConfig
 
         # Updates carry what changed since the server got the keyframe (~uplink).
@@ -722,7 +721,7 @@ class ClientNode:
         from ..vo.outbox import event_record
         from ..vo.types import EVENT_NEW_SEGMENT, EVENT_WARNING, KEYFRAME_ACTIONS
 
-        made_s = self.last_frame_s if now_s is None else now_s
+        made_s = 0.0 if now_s is None else now_s  # None: all goes below, made whenever
         for ev in self.vo.drain_events():
             if ev.kind == EVENT_WARNING:
                 rospy.logwarn("client %s: %s", self.name, ev.message)
@@ -747,7 +746,7 @@ class ClientNode:
         if now_s is None:
             self._send_records(self.uplink.flush())
         else:
-            self.last_frame_s, self.last_frame_wall = now_s, time.monotonic()
+            self.last_frame_wall = time.monotonic()
             self._send_records(self.uplink.due(now_s))
 
     def _send_records(self, outgoing) -> None:

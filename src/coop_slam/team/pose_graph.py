@@ -39,7 +39,7 @@ from __future__ import annotations
 import bisect
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import NoReturn
 
 import gtsam
@@ -56,6 +56,7 @@ from .map_scale import scale_translation
 from .scale_drift import (
     SCALE_BIT,
     is_scale_key,
+    pose_sigmas,
     scale_key,
     scale_prior_factor,
     scaled_between_factor,
@@ -341,8 +342,7 @@ class TeamPoseGraph:
         return self._kernel if f.robust_k is None else self._make_kernel(f.robust_k)
 
     def _noise(self, f: _Factor):
-        r, t = f.sigmas
-        base = gtsam.noiseModel.Diagonal.Sigmas(np.array([r, r, r, t, t, t]))
+        base = gtsam.noiseModel.Diagonal.Sigmas(pose_sigmas(*f.sigmas))
         kernel = self._kernel_of(f)
         return base if kernel is None else gtsam.noiseModel.Robust.Create(kernel, base)
 
@@ -531,19 +531,7 @@ class TeamPoseGraph:
                 T_anchor_k = scale_translation(T_anchor_k, float(np.exp(f.log_scale)))
                 key_i, key_j, T = f.key_i, anchor, f.T_meas @ invert(T_anchor_k)
             if key_i != key_j:
-                self._add_factor(
-                    _Factor(
-                        f.kind,
-                        key_i,
-                        key_j,
-                        T,
-                        f.sigmas,
-                        f.label,
-                        f.robust_k,
-                        f.log_scale,
-                        f.scale_sigma,
-                    )
-                )
+                self._add_factor(replace(f, key_i=key_i, key_j=key_j, T_meas=T))
         if prev is not None and nxt is not None:
             self._client_factor(KIND_ODOMETRY, prev, nxt)
         chain.pop(pos)
@@ -1005,10 +993,9 @@ class TeamPoseGraph:
                 continue
             values = self._gtsam_values((f.key_i, f.key_j))
             e = np.asarray(self._gtsam_factor(fid).unwhitenedError(values), float)
-            r, t = f.sigmas
             scale_row = len(e) == 7
-            sigmas = [r, r, r, t, t, t] + ([f.scale_sigma] if scale_row else [])
-            d = float(np.linalg.norm(e / np.array(sigmas)))
+            sigmas = pose_sigmas(*f.sigmas, *([f.scale_sigma] if scale_row else []))
+            d = float(np.linalg.norm(e / sigmas))
             kernel = self._kernel_of(f)
             w = float(kernel.weight(d)) if kernel is not None else 1.0
             out.append(ConstraintStatus(fid, f.kind, f.label, f.key_i, f.key_j, d, w, scale_row))

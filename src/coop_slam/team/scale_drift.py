@@ -37,6 +37,13 @@ def is_scale_key(gkey: int) -> bool:
     return bool(gtsam.Symbol(gkey).index() & SCALE_BIT)
 
 
+def pose_sigmas(rot_sigma: float, trans_sigma: float, *more: float) -> np.ndarray:
+    """A factor's sigmas in GTSAM's Pose3 order (rotation, then translation), and of any rows
+    after them (a scale row)."""
+    r, t = rot_sigma, trans_sigma
+    return np.array([r, r, r, t, t, t, *more], dtype=float)
+
+
 def _error(
     T_meas: np.ndarray,
     w_i: float,
@@ -103,8 +110,7 @@ def scaled_between_factor(
 ) -> gtsam.CustomFactor:
     """A client factor between two keyframes of a monocular map with their log-scale variables
     (see the module docstring); sigmas: the pose rows' and the drift between them."""
-    r, t = rot_sigma, trans_sigma
-    noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([r, r, r, t, t, t, drift_sigma]))
+    noise = gtsam.noiseModel.Diagonal.Sigmas(pose_sigmas(rot_sigma, trans_sigma, drift_sigma))
     error = partial(_error, np.asarray(T_meas, float), 0.5, 0.5, 0.0, True, True)
     return gtsam.CustomFactor(noise, [key_i, key_j, skey_i, skey_j], error)
 
@@ -129,9 +135,8 @@ def scaled_link_factor(
     kernel, or None."""
     if skey_i is None and skey_j is None:
         raise ValueError("a scaled link needs a scale variable on at least one end")
-    r, t = rot_sigma, trans_sigma
-    sigmas = [r, r, r, t, t, t] + ([] if log_s_ab is None else [scale_sigma])
-    noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(sigmas, dtype=float))
+    extra = () if log_s_ab is None else (scale_sigma,)
+    noise = gtsam.noiseModel.Diagonal.Sigmas(pose_sigmas(rot_sigma, trans_sigma, *extra))
     if robust is not None:
         noise = gtsam.noiseModel.Robust.Create(robust, noise)
     keys = [key_i, key_j] + [k for k in (skey_i, skey_j) if k is not None]
