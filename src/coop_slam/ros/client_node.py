@@ -45,6 +45,7 @@ from ..config import load_yaml_config
 from ..errors import CoopSlamError
 from ..geometry import invert, se3_from_quat, transform_points
 from ..playback import PLAYABLE_SENSORS, camera_topics
+from ..vo.shared_poses import SharedPoses
 from .convert import (
     MessageError,
     camera_from_info,
@@ -112,11 +113,9 @@ class ClientNode:
         self.camera = None
         self.lock = threading.Lock()
         self.rejects = RejectCounter(f"client {self.name}")
-        self.T_map_odom = np.eye(4)  # server correction (REP-105 map -> odom)
-        # Pose-graph sharing: move our own map onto the team map's optimized keyframe poses (the
-        # odometry frame, odom, stays continuous: see coop_slam.vo.map_correction). Off by
-        # default: tracking in the corrected map made the team map worse on the team world.
-        self.apply_corrections = bool(rospy.get_param("~apply_corrections", False))
+        # Pose-graph sharing: the team map's poses of our keyframes over what we publish (path,
+        # cloud, map -> odom); the odometry goes on in its own frame (coop_slam.vo.shared_poses).
+        self.shared = SharedPoses()
         self.corrections_applied = 0
         self.T_world_map = None
         self.segment = 0
@@ -592,7 +591,7 @@ class ClientNode:
                 stats.keyframes = len(self.kf_poses)
                 stats.keyframes_sent, stats.unacked = self.keyframes_sent, self.outbox.unacked
                 if res.ok:
-                    self._publish_pose(stamp, self.T_base_cam @ self.vo.T_odo_map @ res.T_map_cam)
+                    self._publish_pose(stamp, self.T_base_cam @ res.T_map_cam)
                 if self.marker_every and self.frames % self.marker_every == 0:
                     self._detect_markers(stamp, image, res)
                 if stamp.to_sec() - self.last_cloud_s >= self.cloud_period_s:
@@ -698,20 +697,9 @@ class ClientNode:
             return
         with self.lock:
             self.T_world_map = T_world_map if msg.merged else None
-            # The newest corrected keyframe we know: map->odom moves our odometry onto it.
-            known = [(kid, T) for kid, T in zip(msg.keyframe_ids, poses) if kid in self.kf_poses]
-            if known:
-                kid, T_map_cam_opt = max(known, key=lambda kv: kv[0])
-                T_odom_cam = self.kf_poses[kid][1]
-                self.T_map_odom = T_map_cam_opt @ invert(T_odom_cam)
-            if self.apply_corrections and self.vo is not None and known:
-                # Message poses: robot_k/map (base-aligned), ids from kf_id_base; the odometry's
-                # own: its camera-aligned map frame, its own ids.
-                T_cam_base = invert(self.T_base_cam)
-                corrected = {kid - self.kf_id_base: T_cam_base @ T for kid, T in known}
-                if self.vo.apply_corrections(corrected) is not None:
-                    self.corrections_applied += 1
-                    self._publish_path()
+            if self.shared.receive(dict(zip(msg.keyframe_ids, poses)), self._odom_poses()):
+                self.corrections_applied += 1
+                self._publish_path()
 
     # --- publishing -------------------------------------------------------------------------------
     def _publish_events(self, now_s: float | None = None) -> None:
@@ -738,6 +726,7 @@ class ClientNode:
                 rec = self._as_sent(event_record(ev, self.robot_id, self.camera, self.T_base_cam))
                 if rec.action == ACTION_REMOVE:
                     self.kf_poses.pop(rec.keyframe_id, None)
+                    self.shared.forget(rec.keyframe_id)
                 else:
                     self.kf_poses[rec.keyframe_id] = (rec.stamp_s, rec.T_map_cam)
                 self.path_due = True
@@ -765,35 +754,40 @@ class ClientNode:
             self._send_keyframe(msg)
 
     def _publish_pose(self, stamp, T_odom_cam: np.ndarray) -> None:
-        T_map_cam = self.T_map_odom @ T_odom_cam
+        T_map_odom = self.shared.T_map_odom
+        T_map_cam = T_map_odom @ T_odom_cam
         msg = PoseStamped(pose=pose_to_msg(T_map_cam))
         msg.header.stamp, msg.header.frame_id = stamp, self.map_frame
         self.pub_pose.publish(msg)
         T_odom_base = T_odom_cam @ invert(self.T_base_cam)
         self.tf.sendTransform(
             [
-                transform_stamped(self.T_map_odom, self.map_frame, self.odom_frame, stamp),
+                transform_stamped(T_map_odom, self.map_frame, self.odom_frame, stamp),
                 transform_stamped(T_odom_base, self.odom_frame, self.base_frame, stamp),
             ]
         )
 
+    def _odom_poses(self) -> dict[int, np.ndarray]:
+        """Our keyframes' poses in robot_k/odom (message ids): those of the current map segment
+        as the odometry has them now, older ones as sent."""
+        poses = {kid: T for kid, (_, T) in self.kf_poses.items()}
+        if self.vo is not None:
+            for k, T in self.vo.keyframe_poses().items():
+                if k + self.kf_id_base in poses:
+                    poses[k + self.kf_id_base] = self.T_base_cam @ T
+        return poses
+
     def _publish_path(self) -> None:
-        """Our keyframes in robot_k/map: those of the current map segment as our own map has them
-        (corrected by the team map when corrections are applied), older ones as sent."""
+        """Our keyframes in robot_k/map, each with the team map's correction (see
+        coop_slam.vo.shared_poses)."""
         self.path_due = False
         path = Path()
         path.header.frame_id = self.map_frame
-        poses = dict(self.kf_poses)
-        if self.vo is not None:
-            T_odom_vo = self.T_base_cam @ self.vo.T_odo_map
-            for k, T in self.vo.keyframe_poses().items():
-                if k + self.kf_id_base in poses:
-                    poses[k + self.kf_id_base] = (poses[k + self.kf_id_base][0], T_odom_vo @ T)
+        T_cam_base = invert(self.T_base_cam)
+        poses = self.shared.keyframe_poses(self._odom_poses())
         for kid in sorted(poses):
-            stamp_s, T_map_cam = poses[kid]
-            ps = PoseStamped(
-                pose=pose_to_msg(self.T_map_odom @ T_map_cam @ invert(self.T_base_cam))
-            )
+            ps = PoseStamped(pose=pose_to_msg(poses[kid] @ T_cam_base))
+            stamp_s = self.kf_poses[kid][0]
             ps.header.stamp, ps.header.frame_id = rospy.Time.from_sec(stamp_s), self.map_frame
             path.poses.append(ps)
         if path.poses:
@@ -801,12 +795,8 @@ class ClientNode:
         self.pub_path.publish(path)
 
     def _publish_cloud(self, stamp) -> None:
-        _, xyz = self.vo.map_point_arrays()
-        pts = (
-            transform_points(self.T_map_odom @ self.T_base_cam @ self.vo.T_odo_map, xyz)
-            if len(xyz)
-            else np.zeros((0, 3))
-        )
+        xyz, ref = self.vo.map_points_with_reference()
+        pts = self.shared.points(transform_points(self.T_base_cam, xyz), ref + self.kf_id_base)
         self.pub_cloud.publish(cloud_to_msg(pts, self.map_frame, stamp))
 
     def shutdown(self) -> None:

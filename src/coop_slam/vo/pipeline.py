@@ -251,6 +251,19 @@ class VisualOdometry:
             ids = self._map.points.alive_ids()
             return ids.astype(np.uint32), self._map.points.xyz[ids].copy()
 
+    def map_points_with_reference(self) -> tuple[np.ndarray, np.ndarray]:
+        """(xyz (P, 3), reference keyframe id (P,)) of the current segment's map points: the
+        oldest keyframe observing each (normally the one that made it; 0: none left)."""
+        with self._map.lock:
+            pts = self._map.points
+            ids = pts.alive_ids()
+            ref = np.fromiter(
+                (min(pts.obs.get(int(p), ()), default=0) for p in ids),
+                dtype=np.int64,
+                count=len(ids),
+            )
+            return pts.xyz[ids].copy(), ref
+
     def drain_events(self) -> list[VoEvent]:
         """Keyframe and segment events since the last call, oldest first."""
         with self._events_lock:

@@ -1,0 +1,66 @@
+"""Pose-graph sharing on the client (coop_slam.vo.shared_poses): the team map's poses of a robot's
+keyframes laid over its odometry."""
+
+import numpy as np
+
+from coop_slam.geometry import exp_so3, invert, se3, transform_error, transform_points
+from coop_slam.vo.shared_poses import SharedPoses
+
+
+def _odometry(n: int, rng) -> dict[int, np.ndarray]:
+    return {
+        k: se3(exp_so3(rng.normal(0, 0.05, 3)), np.array([0.3 * k, 0.02 * k, 0.0]))
+        for k in range(1, n + 1)
+    }
+
+
+def test_corrected_keyframes_take_the_team_pose_and_follow_local_refinement():
+    rng = np.random.default_rng(3)
+    odom = _odometry(6, rng)
+    team = {k: se3(exp_so3(rng.normal(0, 0.01, 3)), rng.normal(0, 0.02, 3)) @ odom[k] for k in odom}
+    shared = SharedPoses()
+    # Keyframes 2 and 4 corrected; 7 is unknown to the robot (culled meanwhile) and ignored.
+    assert shared.receive({2: team[2], 4: team[4], 7: np.eye(4)}, odom) == 2
+    poses = shared.keyframe_poses(odom)
+    for k in (2, 4):
+        assert transform_error(poses[k], team[k])[0] < 1e-12
+    for k in (1, 3):  # not sent: the server agrees with the odometry within its thresholds
+        assert transform_error(poses[k], odom[k])[0] < 1e-12
+    C4 = team[4] @ invert(odom[4])
+    for k in (5, 6):  # newer than the newest corrected: not seen by the server, move with it
+        assert transform_error(poses[k], C4 @ odom[k])[0] < 1e-12
+    assert transform_error(shared.T_map_odom, C4)[0] < 1e-12
+    # Local BA refines keyframe 2 afterwards: its correction goes with it (an offset).
+    delta = se3(exp_so3(np.array([0.0, 0.0, 0.01])), np.array([0.01, 0.0, 0.0]))
+    odom2 = dict(odom) | {2: odom[2] @ delta}
+    assert transform_error(shared.keyframe_poses(odom2)[2], team[2] @ delta)[0] < 1e-12
+    # Culling the newest corrected keyframe: the next newest anchors where the robot is.
+    shared.forget(4)
+    C2 = team[2] @ invert(odom[2])
+    assert transform_error(shared.T_map_odom, C2)[0] < 1e-12
+    assert transform_error(shared.keyframe_poses(odom)[5], C2 @ odom[5])[0] < 1e-12
+
+
+def test_points_move_with_their_reference_keyframe():
+    rng = np.random.default_rng(4)
+    odom = _odometry(3, rng)
+    C = {k: se3(exp_so3(rng.normal(0, 0.02, 3)), rng.normal(0, 0.05, 3)) for k in odom}
+    shared = SharedPoses()
+    shared.receive({k: C[k] @ odom[k] for k in (1, 2)}, odom)
+    xyz = rng.normal(0, 2.0, (30, 3))
+    ref = np.repeat([1, 2, 3], 10)
+    out = shared.points(xyz, ref)
+    assert np.allclose(out[:10], transform_points(C[1], xyz[:10]))
+    assert np.allclose(out[10:20], transform_points(C[2], xyz[10:20]))
+    assert np.allclose(out[20:], transform_points(C[2], xyz[20:]))  # 3: newer, moves with 2
+    assert SharedPoses().points(np.zeros((0, 3)), np.zeros(0)).shape == (0, 3)
+
+
+def test_nothing_received_leaves_the_odometry_as_it_is():
+    rng = np.random.default_rng(5)
+    odom = _odometry(3, rng)
+    shared = SharedPoses()
+    assert shared.receive({9: np.eye(4)}, odom) == 0
+    assert np.array_equal(shared.T_map_odom, np.eye(4))
+    for k, T in shared.keyframe_poses(odom).items():
+        assert np.array_equal(T, odom[k])
