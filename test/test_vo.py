@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 import helpers_vo
 from coop_slam.config import load_config
 from coop_slam.errors import ConfigError
-from coop_slam.geometry import exp_so3, invert, se3, transform_error, transform_points
+from coop_slam.geometry import invert, se3, transform_error, transform_points
 from coop_slam.vo import (
     EVENT_KEYFRAME_NEW,
     EVENT_KEYFRAME_REMOVE,
@@ -333,43 +333,6 @@ def test_mapping_steps_wait_for_the_frame_being_tracked(room_sequence):
             assert entered.wait(10.0)
             vo.flush()
             assert vo.mapping_backlog == 0
-
-
-def test_server_corrections_move_the_map_and_tracking_goes_on_in_it(room_sequence):
-    """Pose-graph sharing: the server's optimized poses of the older keyframes (here: the truth
-    moved by a known rigid correction) move those keyframes; newer keyframes, their points and
-    the current pose move with the newest corrected one; tracking continues in the corrected map;
-    what the odometry sends stays in its own (odometry) frame."""
-    stamps, frames, gt = room_sequence
-    C_true = se3(exp_so3(np.array([0.0, 0.02, 0.01])), np.array([0.05, -0.02, 0.03]))
-    with VisualOdometry(sync_config(), helpers_vo.CAMERA) as vo:
-        _track_all(vo, stamps[:25], frames[:25])
-        vo.drain_events()
-        vmap = vo.vo_map
-        ids = sorted(vmap.keyframes)
-        assert len(ids) >= 3
-        older = ids[:-1]
-        xyz_before = vmap.points.xyz[vmap.points.alive_ids()].copy()
-        poses_before = {k: vmap.keyframes[k].T_map_cam.copy() for k in ids}
-        C = vo.apply_corrections({k: C_true @ poses_before[k] for k in older} | {999: np.eye(4)})
-        assert C is not None and transform_error(C, C_true)[0] < 1e-9
-        for k in ids:  # the newest, not corrected, moved with the newest corrected one
-            assert transform_error(vmap.keyframes[k].T_map_cam, C_true @ poses_before[k])[0] < 1e-9
-        xyz_after = vmap.points.xyz[vmap.points.alive_ids()]
-        assert np.allclose(xyz_after, transform_points(C_true, xyz_before), atol=1e-9)
-        # What the server knows does not move: snapshots (what is sent) stay in the odometry
-        # frame, so nothing is sent again and the odometry frame stays continuous.
-        assert not [e for e in vo.drain_events() if e.kind == EVENT_KEYFRAME_UPDATE]
-        for snap in vo.keyframes():
-            assert transform_error(snap.T_map_cam, poses_before[snap.keyframe_id])[0] < 1e-9
-        assert transform_error(vo.T_odo_map, invert(C_true))[0] < 1e-9
-        results = _track_all(vo, stamps[25:], frames[25:])
-        assert vo.vo_map.check_consistency() == []
-    assert all(r.ok for r in results)
-    # Tracking goes on in the corrected frame: the poses are the truth moved by the correction.
-    T_corr_gt = C_true @ invert(gt[0])  # gt[0]: the first keyframe, the map frame
-    est = np.array([r.T_map_cam for r in results])
-    assert ate_rmse(stamps[25:], est, np.array([T_corr_gt @ g for g in gt[25:]])) < 0.01
 
 
 def test_relocalizes_after_blackout_and_starts_segment_when_lost_long(room_sequence):

@@ -5,8 +5,8 @@ After each optimization the server could send a robot every keyframe pose it hol
 that is most of the downlink, and almost all of it unchanged. :class:`PoseFeedback` remembers what
 it last sent for each keyframe (at first: the client's own pose, as the client sent it) and selects
 only the keyframes whose optimized pose moved beyond a small threshold since, plus the robot's
-newest keyframe (the client anchors its ``map -> odom`` transform on it). A client that applies
-them (:mod:`coop_slam.vo.map_correction`) keeps sending its odometry-frame poses, so the
+newest keyframe (the client anchors its ``map -> odom`` transform on it). The client lays them
+over its odometry (:mod:`coop_slam.vo.shared_poses`) and keeps sending its odometry's poses, so the
 comparison is always against what was sent, never against what the client made of it.
 
 Poses are in the robot's map frame, in the server's units for that map (metres, or a monocular

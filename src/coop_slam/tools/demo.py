@@ -129,13 +129,6 @@ def parse_args(argv=None) -> argparse.Namespace:
         "comma-separated, e.g. server-kill@25,drop:0.1",
     )
     p.add_argument(
-        "--pose-sharing",
-        action="store_true",
-        help="clients move their own map onto the team map's optimized keyframe poses (pose-graph "
-        "sharing; experimental: on the team world it made the team map worse), instead of only "
-        "offsetting it by the server's correction (map -> odom)",
-    )
-    p.add_argument(
         "--low-bandwidth",
         action="store_true",
         help="low-bandwidth mode: each new keyframe goes as its place signature (pose and BoW "
@@ -211,7 +204,6 @@ def _write_run_info(
         "load_map": os.path.abspath(args.load_map) if args.load_map else None,
         "faults": args.faults,
         "rate": args.rate,  # None: lock-step
-        "pose_sharing": args.pose_sharing,
         "low_bandwidth": args.low_bandwidth,
         "sensors": args.sensors,
         "ground_robots": ground,
@@ -583,8 +575,6 @@ def run(args: argparse.Namespace) -> int:
         launch_args += ["respawn:=true", "resume:=true"]
     if faults.drop:
         launch_args.append(f"radio_drop:={faults.drop}")
-    if args.pose_sharing:
-        launch_args.append("apply_corrections:=true")
     if args.low_bandwidth:
         launch_args.append("low_bandwidth:=true")
     bag_path = os.path.join(out, "run.bag")

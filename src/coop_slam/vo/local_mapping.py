@@ -665,8 +665,7 @@ class LocalMapper:
         for k in moved:
             sent = self._sent_pose.get(k)
             if sent is not None:
-                kf = vmap.keyframes[k]  # sent in the odometry frame (see .map_correction)
-                trans_m, rot_deg = transform_error(kf.T_odo_map @ kf.T_map_cam, sent)
+                trans_m, rot_deg = transform_error(vmap.keyframes[k].T_map_cam, sent)
                 if trans_m >= cfg.update_min_trans_m or rot_deg >= cfg.update_min_rot_deg:
                     self._announce(EVENT_KEYFRAME_UPDATE, vmap, k)
 

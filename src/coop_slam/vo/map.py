@@ -43,10 +43,6 @@ class MapKeyframe:
     # (M, 3) float32 positions of the observed map points in the map frame, in the order of the
     # non-zero map_point_ids. Filled in the snapshots handed out in events; empty in the live map.
     map_points_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
-    # The correction the team map applied to this keyframe (see .map_correction): its pose and
-    # points in the odometry frame -- what the server knows and snapshots carry -- are this times
-    # the ones in the map. Identity until the server corrects the map.
-    T_odo_map: np.ndarray = field(default_factory=lambda: np.eye(4))
     # Internal: the keypoints as FrameFeatures (KD-tree for projection search); not in snapshots.
     features: object = field(default=None, repr=False, compare=False)
 
@@ -337,16 +333,13 @@ class Map:
 
     # --- snapshots and checks ---------------------------------------------------------------------
     def snapshot(self, kf_id: int) -> MapKeyframe:
-        """Deep copy of a keyframe with ``map_points_xyz`` filled in (for events), its pose and
-        points in the odometry frame (``T_odo_map``: identity unless corrected)."""
+        """Deep copy of a keyframe with ``map_points_xyz`` filled in (for events)."""
         kf = self.keyframes[kf_id]
         ids = kf.map_point_ids
         nz = ids[ids > 0].astype(np.int64)
-        T = kf.T_odo_map
         return replace(
             kf,
-            T_map_cam=T @ kf.T_map_cam,
-            T_odo_map=np.eye(4),
+            T_map_cam=kf.T_map_cam.copy(),
             uv_px=kf.uv_px.copy(),
             size_px=kf.size_px.copy(),
             angle_deg=kf.angle_deg.copy(),
@@ -356,7 +349,7 @@ class Map:
             map_point_ids=ids.copy(),
             covisible_ids=kf.covisible_ids.copy(),
             covisible_weights=kf.covisible_weights.copy(),
-            map_points_xyz=(self.points.xyz[nz] @ T[:3, :3].T + T[:3, 3]).astype(np.float32),
+            map_points_xyz=self.points.xyz[nz].astype(np.float32),
             features=None,
         )
 

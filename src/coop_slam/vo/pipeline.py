@@ -57,7 +57,6 @@ from .initialization import (
 from .keyframes import KeyframePolicy, add_keyframe
 from .local_mapping import LocalMapper
 from .map import Map, MapKeyframe
-from .map_correction import apply_keyframe_corrections
 from .relocalization import Relocalizer, pnp_against_keyframe, pnp_against_points
 from .sensor import make_sensor
 from .tracking import LocalMapTracker, Tracked
@@ -103,7 +102,6 @@ class VisualOdometry:
         self._events_lock = threading.Lock()
         self.map_segment = 0
         self._map = Map(self.map_segment)
-        self._T_odo_map = np.eye(4)  # see apply_corrections
         self._next_kf_id = 1
         self._mapper = LocalMapper(self.config, self._sensor, lambda: self._map, self._emit)
         self._clear_tracking()
@@ -275,32 +273,8 @@ class VisualOdometry:
         """Wait until local mapping has processed every keyframe (threaded mode)."""
         self._mapper.flush(timeout_s)
 
-    def apply_corrections(self, T_map_cam_new: dict[int, np.ndarray]) -> np.ndarray | None:
-        """Move the map onto the server's optimized poses of some of its keyframes (keyframe id
-        -> T_map_cam in this map's frame and units; see :mod:`.map_correction`), and the current
-        pose with the newest corrected keyframe; what is sent stays in the odometry frame
-        (:attr:`T_odo_map`). Returns the correction of the current pose (``T_new = C @ T_old``),
-        None when no keyframe of the current map was corrected."""
-        with self._map.lock:
-            C = apply_keyframe_corrections(self._map, T_map_cam_new)
-            if not C:
-                return None
-            # The current pose moves with the newest corrected keyframe, as the keyframes the
-            # server has not seen yet do (the server anchors a robot's map at its latest keyframe,
-            # so that correction is small: the frame goes on where the robot is).
-            C_cur = C[max(C)]
-            self._T_map_cam = C_cur @ self._T_map_cam
-            self._T_odo_map = self._T_odo_map @ invert(C_cur)
-        return C_cur
-
-    @property
-    def T_odo_map(self) -> np.ndarray:
-        """The odometry frame (continuous; what the server knows) from the current map's frame:
-        identity until the server's corrections moved the map."""
-        return self._T_odo_map.copy()
-
     def keyframe_poses(self) -> dict[int, np.ndarray]:
-        """The current map's keyframe poses as the map has them (corrected), id -> T_map_cam."""
+        """The current map's keyframe poses, id -> T_map_cam."""
         with self._map.lock:
             return {k: kf.T_map_cam.copy() for k, kf in self._map.keyframes.items()}
 
@@ -318,7 +292,6 @@ class VisualOdometry:
             self.map_segment += 1
             self._emit(VoEvent(EVENT_NEW_SEGMENT, self.map_segment, message="map reset"))
         self._map = Map(self.map_segment, first_point_id=self._map.points.next_id)
-        self._T_odo_map = np.eye(4)
         self._clear_tracking()
         self._ignored = []  # given in the dropped map's frame
 
@@ -655,7 +628,6 @@ class VisualOdometry:
         )
         self._ref_kf_id = kf_id
         self._frames_since_kf = 0
-        self._map.keyframes[kf_id].T_odo_map = self._T_odo_map.copy()
         if submit:
             self._mapper.submit(kf_id)
         return kf_id
