@@ -24,8 +24,8 @@ from ..config import require
 
 @dataclass
 class PoseFeedbackConfig:
-    min_trans_m: float = 0.005  # send a keyframe's pose when it moved this far since last sent [m]
-    min_rot_deg: float = 0.2  # ... or turned this much [deg]
+    min_trans_m: float = 0.001  # send a keyframe's pose when it moved this far since last sent [m]
+    min_rot_deg: float = 0.05  # ... or turned this much [deg]
 
     def validate(self) -> None:
         require(self.min_trans_m >= 0, "server: pose_feedback.min_trans_m must be >= 0")
