@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
 """rostest node: the client publishes keyframes, pose, TF (map -> odom -> base_link -> camera),
-path and local cloud with the right frames while the player plays a short synthetic sequence."""
+path and local cloud with the right frames while the player plays a short synthetic sequence; a
+correction from the server moves its path and cloud onto the poses it carries."""
 import os
 import sys
 import threading
@@ -16,8 +17,15 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Bool
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from coop_slam.msg import FrameStats, KeyFrame  # noqa: E402
-from coop_slam.ros.convert import cloud_from_msg, keyframe_from_msg  # noqa: E402
+from coop_slam.geometry import se3  # noqa: E402
+from coop_slam.msg import FrameStats, KeyFrame, MapCorrection  # noqa: E402
+from coop_slam.ros.convert import (  # noqa: E402
+    cloud_from_msg,
+    keyframe_from_msg,
+    pose_from_msg,
+    pose_to_msg,
+    transform_to_msg,
+)
 from helpers import wait_until  # noqa: E402
 
 
@@ -89,6 +97,38 @@ class ClientOutputsTest(unittest.TestCase):
         p = got["pose"][-1].pose.position
         t = T.transform.translation
         self.assertLess(np.linalg.norm([p.x - t.x, p.y - t.y, p.z - t.z]), 0.2)
+
+        # Pose-graph sharing: the server moved every keyframe 0.3 m along map x; the client shows
+        # its path and cloud there (map -> odom too, with its next frame's pose).
+        kept = {k: kf for k, kf in seen.items() if kf.action != 2}
+        pub = rospy.Publisher("/robot_1/correction", MapCorrection, queue_size=1, latch=True)
+
+        def corrected_by(S, stamp):
+            corr = MapCorrection(robot_id=1, merged=False, T_world_map=transform_to_msg(np.eye(4)))
+            corr.header.stamp = stamp  # the cloud it makes carries it (no earlier one counts)
+            corr.keyframe_ids = sorted(kept)
+            corr.keyframe_poses = [pose_to_msg(S @ kept[k].T_map_cam) for k in corr.keyframe_ids]
+            got["path"] = got["cloud"] = None
+            pub.publish(corr)
+            wait_until(
+                lambda: got["path"] is not None
+                and got["cloud"] is not None
+                and got["cloud"].header.stamp == stamp,
+                30.0,
+                "the path and cloud after a correction",
+            )
+            path = {ps.header.seq: pose_from_msg(ps.pose) for ps in got["path"].poses}
+            return path, cloud_from_msg(got["cloud"])
+
+        # The poses the client sent, then the same moved by S: path and cloud move by S.
+        path_sent, cloud_sent = corrected_by(np.eye(4), rospy.Time(10000))
+        self.assertEqual(sorted(path_sent), sorted(kept))
+        S = se3(t=[0.3, 0.0, 0.0])
+        path_moved, cloud_moved = corrected_by(S, rospy.Time(10001))
+        for k, T in path_sent.items():
+            self.assertLess(np.linalg.norm(path_moved[k][:3, 3] - (S @ T)[:3, 3]), 1e-3, k)
+        self.assertEqual(cloud_moved.shape, cloud_sent.shape)
+        self.assertLess(np.abs(cloud_moved - cloud_sent - [0.3, 0.0, 0.0]).max(), 1e-3)
 
 
 if __name__ == "__main__":

@@ -56,6 +56,10 @@ def test_revisit_merges_by_place_recognition(tmp_path):
     for robot in report["robots"]:
         assert robot["keyframes"] >= 10
         assert robot["ate_rmse_m"] < 0.005 * robot["path_length_m"]
+        # Pose-graph sharing: each client publishes its keyframes where the team map has them
+        # (2.5-2.9 mm apart when it only offset its odometry).
+        assert robot["path_team_gap_m"] < 0.001, robot
+        assert robot["path_ate_rmse_m"] < 1.1 * robot["server_ate_rmse_m"] + 0.0005, robot
 
 
 def test_a_stereo_and_an_rgbd_robot_build_one_map(tmp_path):

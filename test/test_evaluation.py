@@ -121,6 +121,10 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
             path.poses.append(ps)
         path.poses[2].pose.orientation.w = float("nan")
         bag.write("/team_map/robot_2/path", path, rospy.Time.from_sec(2.0))
+        path.header.frame_id = "robot_2/map"  # the client's own (its latest counts)
+        bag.write("/robot_2/path", path, rospy.Time.from_sec(2.0))
+        path.poses = path.poses[:2]
+        bag.write("/robot_2/path", path, rospy.Time.from_sec(2.1))
         merge = MergeEvent(
             type="rendezvous",
             robot_a=1,
@@ -154,6 +158,7 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
     # Each keyframe's 3D from depth (the report's overlap agreement), one point per keypoint.
     assert all(len(r.keyframe_points[k]) == 50 for k in (1, 2, 3, 5))
     assert sorted(r.team_keyframes) == [1, 2, 4, 5]  # the NaN pose is dropped, not stored
+    assert [t for t, _ in r.path] == list(stamps[:2]) and np.allclose(r.path[1][1], gt[1])
     assert run.merges[0]["type"] == "rendezvous" and run.merges[0]["stamp_s"] == 1.5
     assert run.merges[0]["published_s"] == 2.5
     assert len(run.topic_bytes["/robot_2/keyframes"]) == 6
@@ -231,6 +236,50 @@ def test_report_pools_the_single_robot_ates_as_a_perfect_stitching_would_score()
     run.robots[2].team_keyframes = {}
     report = evaluate_run(run, gts)
     assert report["single_ate_pooled_m"] is None and report["team_ate_rmse_m"] is None
+
+
+def test_report_judges_the_clients_published_path_against_the_truth_and_the_team_map():
+    """path_ate_rmse_m: the client's last /robot_k/path (base_link poses, placed at the camera
+    by the mount); path_team_gap_m: its keyframes in world against the server's, by stamp."""
+    pytest.importorskip("rosbag")
+    from coop_slam.evaluation.run_report import RobotRun, RunData, evaluate_run
+
+    stamps, gt = _circle(30)
+    T_base_cam = se3(
+        Rotation.from_euler("xyz", [-90, 0, -90], degrees=True).as_matrix(), [0.1, 0, 0.5]
+    )
+    T_world_map = se3(Rotation.from_euler("z", 30, degrees=True).as_matrix(), [1.0, -2.0, 0.0])
+    rng = np.random.default_rng(4)
+    odom = gt.copy()
+    odom[:, :3, 3] += rng.normal(0, 0.01, (30, 3))  # the client's odometry
+    team = gt.copy()
+    team[:, :3, 3] += rng.normal(0, 0.002, (30, 3))  # the server's optimized poses (world)
+    kfs = {k: (stamps[k], invert(T_world_map) @ odom[k]) for k in range(30)}
+
+    def report_with(path_cam):
+        run = RunData()
+        run.robots[1] = RobotRun(
+            frames=30,
+            keyframes=kfs,
+            team_keyframes={k: (stamps[k], team[k]) for k in range(30)},
+            T_world_map=T_world_map,
+            path=[(stamps[k], P @ invert(T_base_cam)) for k, P in enumerate(path_cam)],
+        )
+        entry = evaluate_run(run, {1: (stamps, gt)}, T_base_cam=T_base_cam)["robots"][0]
+        return entry
+
+    # A client showing the team map's poses: as accurate as the server, no gap.
+    shared = report_with([invert(T_world_map) @ T for T in team])
+    assert shared["path_ate_rmse_m"] == pytest.approx(shared["server_ate_rmse_m"], rel=1e-6)
+    assert shared["path_team_gap_m"] < 1e-9
+    # One showing its odometry: as accurate as that, centimetres from the team map.
+    own = report_with(list(kfs[k][1] for k in range(30)))
+    assert own["path_ate_rmse_m"] == pytest.approx(own["ate_rmse_m"], rel=1e-6)
+    assert own["path_team_gap_m"] > 0.005
+    run = RunData()
+    run.robots[1] = RobotRun(frames=30, keyframes=kfs)
+    entry = evaluate_run(run, {1: (stamps, gt)}, T_base_cam=T_base_cam)["robots"][0]
+    assert entry["path_ate_rmse_m"] is None and entry["path_team_gap_m"] is None  # no path
 
 
 def test_merge_latency_counts_from_the_first_shared_view_of_its_kind():

@@ -20,7 +20,7 @@ def test_corrected_keyframes_take_the_team_pose_and_follow_local_refinement():
     team = {k: se3(exp_so3(rng.normal(0, 0.01, 3)), rng.normal(0, 0.02, 3)) @ odom[k] for k in odom}
     shared = SharedPoses()
     # Keyframes 2 and 4 corrected; 7 is unknown to the robot (culled meanwhile) and ignored.
-    assert shared.receive({2: team[2], 4: team[4], 7: np.eye(4)}, odom) == 2
+    assert shared.receive({2: team[2], 4: team[4], 7: np.eye(4)}, odom) == 2 and shared.corrected
     poses = shared.keyframe_poses(odom)
     for k in (2, 4):
         assert transform_error(poses[k], team[k])[0] < 1e-12
@@ -60,7 +60,7 @@ def test_nothing_received_leaves_the_odometry_as_it_is():
     rng = np.random.default_rng(5)
     odom = _odometry(3, rng)
     shared = SharedPoses()
-    assert shared.receive({9: np.eye(4)}, odom) == 0
+    assert shared.receive({9: np.eye(4)}, odom) == 0 and not shared.corrected
     assert np.array_equal(shared.T_map_odom, np.eye(4))
     for k, T in shared.keyframe_poses(odom).items():
         assert np.array_equal(T, odom[k])

@@ -31,6 +31,21 @@ def se3_from_quat(t_xyz, q_xyzw) -> np.ndarray:
     return se3(Rotation.from_quat(q / n).as_matrix(), t_xyz)
 
 
+# REP-103 body axes (x forward, y left, z up) from a camera's optical axes (z forward, x right,
+# y down): the rotation of a level camera looking ahead.
+R_BASE_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def T_base_cam_of(base_cam) -> np.ndarray:
+    """A camera mount from the clients' ``T_base_cam`` parameter ([x y z qx qy qz qw]; empty: a
+    level camera looking ahead at base_link's origin)."""
+    if base_cam is None or len(base_cam) == 0:
+        T = np.eye(4)
+        T[:3, :3] = R_BASE_OPTICAL
+        return T
+    return se3_from_quat(base_cam[:3], base_cam[3:])
+
+
 def quat_from_se3(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(t_xyz, q_xyzw) of a 4x4 transform, with qw >= 0."""
     q = Rotation.from_matrix(T[:3, :3]).as_quat()

@@ -23,6 +23,12 @@ ROBOT_KEYS = (
     # the server's optimized poses of the robot's keyframes, aligned alone like ate_rmse_m
     # (Sim(3) for a monocular robot)
     "server_ate_rmse_m",
+    # the client's own last published trajectory (/robot_k/path: its keyframes with the team
+    # map's corrections, pose-graph sharing), aligned alone like ate_rmse_m
+    "path_ate_rmse_m",
+    # ... and its keyframes, placed in world by the robot's latest map transform, against the
+    # server's optimized ones (median distance; 0 when the client shows the team map's poses)
+    "path_team_gap_m",
     "rpe_rmse_m",
     "tracking_lost",
     "track_ms_mean",

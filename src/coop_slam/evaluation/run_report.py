@@ -52,6 +52,8 @@ class RobotRun:
     keyframes_sent_sessions: list = field(default_factory=list)
     unacked: int = 0
     keyframe_segments: dict = field(default_factory=dict)  # id -> map segment
+    # the client's latest /robot_k/path: (stamp_s, T_map_base) per keyframe
+    path: list = field(default_factory=list)
 
     def in_first_segment(self, keyframe_id: int) -> bool:
         """Whether a keyframe is of its first map segment (a later one is another map frame)."""
@@ -160,6 +162,30 @@ def _robot_accuracy(entry: dict, r: RobotRun, rid: int, gts: dict, world_metric:
     return None, res
 
 
+def _client_path_accuracy(
+    entry: dict, r: RobotRun, T_base_cam: np.ndarray, gt: tuple, mono: bool
+) -> None:
+    """``path_ate_rmse_m`` (the client's last published path, aligned alone) and
+    ``path_team_gap_m`` (its keyframes placed in world by the robot's latest ``T_world_map``
+    against the server's optimized ones: median distance)."""
+    stamps = np.array([t for t, _ in r.path])
+    poses_cam = np.array([T @ T_base_cam for _, T in r.path])
+    if len(gt[0]):
+        try:
+            entry["path_ate_rmse_m"] = ate(stamps, poses_cam, *gt, correct_scale=mono).rmse_m
+        except EvaluationError:
+            pass
+    # Keyframes by stamp (a path pose carries its keyframe's; older recordings have no ids).
+    team = {round(t, 6): T for t, T in r.team_keyframes.values()}
+    gaps = [
+        np.linalg.norm((r.T_world_map @ T)[:3, 3] - team[round(t, 6)][:3, 3])
+        for t, T in zip(stamps, poses_cam)
+        if round(t, 6) in team
+    ]
+    if r.T_world_map is not None and gaps:
+        entry["path_team_gap_m"] = float(np.median(gaps))
+
+
 def _merge_units(run: RunData, sensors: dict) -> list[tuple]:
     """Per merge (in order), the true length (metres) of one unit of its ``T_camA_camB`` and of
     each side's map just before it, as ``1.0`` (metres) or ``("unit", robot)`` (that monocular
@@ -236,12 +262,14 @@ def evaluate_run(
     overlap: dict | None = None,
     out_dir: str | None = None,
     sensors: dict | None = None,
+    T_base_cam: np.ndarray | None = None,
 ) -> dict:
     """The report dict (see :mod:`.report`) of a run against ground truth ``gts`` (robot id ->
     (stamps, T_world_cam) on the playback timeline, as in :class:`RunInput`; empty arrays
     where a robot has none, whose accuracy fields then stay null); writes trajectories and plots
     into ``out_dir``. ``sensors`` (robot id -> rgbd / stereo / mono) defaults to what each
-    robot's keyframes said."""
+    robot's keyframes said; ``T_base_cam``, the clients' camera mount, places their published
+    paths (base_link poses) at the camera (``path_ate_rmse_m``; none without it)."""
     robot_ids = sorted(gts)
     report = new_report(robot_ids)
     for r in run.robots.values():
@@ -301,6 +329,8 @@ def evaluate_run(
                     entry["rpe_rmse_m"] = rpe_rmse(stamps, poses, stamps_gt, poses_gt)
             except EvaluationError:
                 pass
+            if r.path and T_base_cam is not None:
+                _client_path_accuracy(entry, r, T_base_cam, gts[rid], sensors[rid] == "mono")
             if r.team_keyframes:  # the server's optimized poses, in world
                 ids = sorted(r.team_keyframes)
                 est_world[rid] = (
@@ -598,11 +628,12 @@ def evaluate_results(
     overlap: dict | None = None,
     sensors: dict | None = None,
     extra: dict | None = None,
+    T_base_cam: np.ndarray | None = None,
 ):
     """Report, trajectories, plots and the team map PLY of one run into ``out_dir`` (arguments as
     for :func:`evaluate_run`; ``extra``: fields of the run the recording does not hold, e.g. the
     faults injected); returns (report, report.json path, report.md path, PLY path or None)."""
-    report = evaluate_run(run, gts, overlap, out_dir, sensors)
+    report = evaluate_run(run, gts, overlap, out_dir, sensors, T_base_cam)
     report.update(extra or {})
     ply = None
     if run.team_cloud is not None:

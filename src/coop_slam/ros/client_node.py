@@ -43,7 +43,7 @@ from std_msgs.msg import Bool
 
 from ..config import load_yaml_config
 from ..errors import CoopSlamError
-from ..geometry import invert, se3_from_quat, transform_points
+from ..geometry import T_base_cam_of, invert, transform_points
 from ..playback import PLAYABLE_SENSORS, camera_topics
 from ..vo.shared_poses import SharedPoses
 from .convert import (
@@ -61,15 +61,6 @@ from .convert import (
 )
 from .log_bridge import forward_core_logs
 from .validation import RejectCounter
-
-# Optical frame (z forward, x right, y down) in a body frame (x forward, y left, z up).
-R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-
-
-def default_T_base_cam() -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = R_BODY_OPTICAL
-    return T
 
 
 class ClientNode:
@@ -98,9 +89,7 @@ class ClientNode:
         # 60-100 keyframes, on the frames that insert keyframes, and grew with the map.
         self.path_period_s = float(rospy.get_param("~path_period_s", 1.0))
         base_cam = rospy.get_param("~T_base_cam", [])  # [x y z qx qy qz qw]
-        self.T_base_cam = (
-            se3_from_quat(base_cam[:3], base_cam[3:]) if base_cam else default_T_base_cam()
-        )
+        self.T_base_cam = T_base_cam_of(base_cam)
         from ..markers import MarkerConfig, MarkerDetector
         from ..vo.config import VoConfig
 
@@ -700,6 +689,8 @@ class ClientNode:
             if self.shared.receive(dict(zip(msg.keyframe_ids, poses)), self._odom_poses()):
                 self.corrections_applied += 1
                 self._publish_path()
+                if self.vo is not None:
+                    self._publish_cloud(msg.header.stamp)
 
     # --- publishing -------------------------------------------------------------------------------
     def _publish_events(self, now_s: float | None = None) -> None:
@@ -789,14 +780,18 @@ class ClientNode:
             ps = PoseStamped(pose=pose_to_msg(poses[kid] @ T_cam_base))
             stamp_s = self.kf_poses[kid][0]
             ps.header.stamp, ps.header.frame_id = rospy.Time.from_sec(stamp_s), self.map_frame
+            ps.header.seq = kid  # the keyframe's id, as in the team map's paths
             path.poses.append(ps)
         if path.poses:
             path.header.stamp = path.poses[-1].header.stamp
         self.pub_path.publish(path)
 
     def _publish_cloud(self, stamp) -> None:
-        xyz, ref = self.vo.map_points_with_reference()
-        pts = self.shared.points(transform_points(self.T_base_cam, xyz), ref + self.kf_id_base)
+        if self.shared.corrected:
+            xyz, ref = self.vo.map_points_with_reference()
+            pts = self.shared.points(transform_points(self.T_base_cam, xyz), ref + self.kf_id_base)
+        else:  # nothing to lay over (finding each point's reference keyframe takes a while)
+            pts = transform_points(self.T_base_cam, self.vo.map_point_arrays()[1])
         self.pub_cloud.publish(cloud_to_msg(pts, self.map_frame, stamp))
 
     def shutdown(self) -> None:

@@ -143,6 +143,15 @@ class RunRecorder:
         if r.first_keyframe is None:
             r.first_keyframe = (stamp, T)
 
+    def _on_path(self, msg, r: RobotRun, t_s, nbytes) -> None:
+        path = []
+        for ps in msg.poses:
+            try:
+                path.append((ps.header.stamp.to_sec(), pose_from_msg(ps.pose)))
+            except MessageError:
+                continue
+        r.path = path
+
     def _on_correction(self, msg, r: RobotRun, t_s, nbytes) -> None:
         r.T_world_map = transform_from_msg(msg.T_world_map) if msg.merged else None
 

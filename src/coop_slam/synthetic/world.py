@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from ..errors import CoopSlamError
-from ..geometry import se3
+from ..geometry import R_BASE_OPTICAL, se3
 from . import textures
 
 WALL_HEIGHT_M = 2.5
@@ -35,11 +35,10 @@ BODY_SIZE_M = (0.4, 0.4, 0.6)
 MARKER_CENTRE_HEIGHT_M = 0.38
 DEFAULT_MARKER_SIZE_M = 0.25
 # Camera on the robot: 0.1 m forward, 0.5 m up, looking forward (optical z = base x).
-R_BASE_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-DEFAULT_T_BASE_CAM = se3(R_BASE_CAM, [0.1, 0.0, 0.5])
+DEFAULT_T_BASE_CAM = se3(R_BASE_OPTICAL, [0.1, 0.0, 0.5])
 # A hand-held camera: base_link is the camera carrier itself (same origin, REP-103 axes), so the
 # base moves in 6-DoF and T_world_cam = T_world_base @ HAND_HELD_T_BASE_CAM.
-HAND_HELD_T_BASE_CAM = se3(R_BASE_CAM, [0.0, 0.0, 0.0])
+HAND_HELD_T_BASE_CAM = se3(R_BASE_OPTICAL, [0.0, 0.0, 0.0])
 KITCHEN_SIZE_M = (4.0, 3.5)
 
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import CoopSlamError
 from ..evaluation.run_report import evaluate_results, run_input_of
-from ..geometry import quat_from_se3, se3_from_quat
+from ..geometry import T_base_cam_of, quat_from_se3
 from ..playback import load_run_source
 from .progress import throttled
 
@@ -244,13 +244,7 @@ def _framed_rviz_config(out: str, source, inputs, base_cam: list) -> str | None:
     from .record import DEFAULT_SIZE, find_config
 
     try:
-        if base_cam:
-            T_base_cam = se3_from_quat(base_cam[:3], base_cam[3:])
-        else:
-            from ..ros.client_node import default_T_base_cam  # what the clients then use
-
-            T_base_cam = default_T_base_cam()
-        T_world_gt = framing.T_world_gt(inputs.gts, T_base_cam)
+        T_world_gt = framing.T_world_gt(inputs.gts, T_base_cam_of(base_cam))
         poses = framing.world_camera_poses(inputs.gts, T_world_gt)
         seen, images = (
             framing.seen_depth_points(source.streams, T_world_gt)
@@ -683,6 +677,7 @@ def run(args: argparse.Namespace) -> int:
         {r: inputs.gts[r] for r in record_ids},
         inputs.overlap,
         extra={"faults": faults.summary()} if faults.any else None,
+        T_base_cam=T_base_cam_of(base_cam),
     )
     for entry in report["robots"]:
         if entry.get("keyframes_lost"):

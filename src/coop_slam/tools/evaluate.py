@@ -15,6 +15,7 @@ def main(argv=None) -> int:
     from ..errors import CoopSlamError
     from ..evaluation import EvaluationError
     from ..evaluation.run_report import evaluate_results, run_input_of
+    from ..geometry import T_base_cam_of
     from ..playback import load_run_source
     from ..ros.run_recorder import read_bag_input, run_data_from_bag
 
@@ -44,7 +45,12 @@ def main(argv=None) -> int:
         run.duration_s = inputs.end_s - inputs.start_s
         faults = {"faults": {"spec": info["faults"]}} if info.get("faults") else None
         _, json_path, md_path, ply = evaluate_results(
-            args.results, run, inputs.gts, inputs.overlap, extra=faults
+            args.results,
+            run,
+            inputs.gts,
+            inputs.overlap,
+            extra=faults,
+            T_base_cam=T_base_cam_of(info.get("T_base_cam") or []),
         )
     except (CoopSlamError, OSError, ValueError) as exc:
         print(f"[evaluate] ERROR: {exc}", file=sys.stderr)

@@ -59,6 +59,11 @@ class SharedPoses:
             self._newest = max(self._C, default=None)
 
     @property
+    def corrected(self) -> bool:
+        """Whether any keyframe has a correction."""
+        return bool(self._C)
+
+    @property
     def T_map_odom(self) -> np.ndarray:
         """The newest corrected keyframe's correction: where the robot is now (identity before
         the first)."""
