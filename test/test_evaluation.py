@@ -243,6 +243,7 @@ def test_report_judges_the_clients_published_path_against_the_truth_and_the_team
     by the mount); path_team_gap_m: its keyframes in world against the server's, by stamp."""
     pytest.importorskip("rosbag")
     from coop_slam.evaluation.run_report import RobotRun, RunData, evaluate_run
+    from coop_slam.team.map_scale import scale_translation
 
     stamps, gt = _circle(30)
     T_base_cam = se3(
@@ -256,13 +257,14 @@ def test_report_judges_the_clients_published_path_against_the_truth_and_the_team
     team[:, :3, 3] += rng.normal(0, 0.002, (30, 3))  # the server's optimized poses (world)
     kfs = {k: (stamps[k], invert(T_world_map) @ odom[k]) for k in range(30)}
 
-    def report_with(path_cam):
+    def report_with(path_cam, map_scale=1.0):
         run = RunData()
         run.robots[1] = RobotRun(
             frames=30,
             keyframes=kfs,
             team_keyframes={k: (stamps[k], team[k]) for k in range(30)},
             T_world_map=T_world_map,
+            map_scale=map_scale,
             path=[(stamps[k], P @ invert(T_base_cam)) for k, P in enumerate(path_cam)],
         )
         entry = evaluate_run(run, {1: (stamps, gt)}, T_base_cam=T_base_cam)["robots"][0]
@@ -272,6 +274,9 @@ def test_report_judges_the_clients_published_path_against_the_truth_and_the_team
     shared = report_with([invert(T_world_map) @ T for T in team])
     assert shared["path_ate_rmse_m"] == pytest.approx(shared["server_ate_rmse_m"], rel=1e-6)
     assert shared["path_team_gap_m"] < 1e-9
+    # A monocular map: the path in its own units, placed in metres by the map's scale.
+    halved = report_with([scale_translation(invert(T_world_map) @ T, 0.5) for T in team], 2.0)
+    assert halved["path_team_gap_m"] < 1e-9
     # One showing its odometry: as accurate as that, centimetres from the team map.
     own = report_with(list(kfs[k][1] for k in range(30)))
     assert own["path_ate_rmse_m"] == pytest.approx(own["ate_rmse_m"], rel=1e-6)

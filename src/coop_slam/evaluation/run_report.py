@@ -43,6 +43,7 @@ class RobotRun:
     keyframe_stamps: dict = field(default_factory=dict)
     kf_bytes: list = field(default_factory=list)  # (sim stamp_s, bytes) per KeyFrame message
     T_world_map: np.ndarray | None = None  # latest correction, when merged
+    map_scale: float = 1.0  # ... and its metres per unit of the robot's map (monocular)
     # server's optimized keyframe poses in world (latest /team_map/robot_k/path, when merged):
     # id -> (stamp_s, T_world_cam)
     team_keyframes: dict = field(default_factory=dict)
@@ -175,14 +176,18 @@ def _client_path_accuracy(
             entry["path_ate_rmse_m"] = ate(stamps, poses_cam, *gt, correct_scale=mono).rmse_m
         except EvaluationError:
             pass
+    if r.T_world_map is None:
+        return
     # Keyframes by stamp (a path pose carries its keyframe's; older recordings have no ids).
     team = {round(t, 6): T for t, T in r.team_keyframes.values()}
     gaps = [
-        np.linalg.norm((r.T_world_map @ T)[:3, 3] - team[round(t, 6)][:3, 3])
+        np.linalg.norm(
+            (r.T_world_map @ scale_translation(T, r.map_scale))[:3, 3] - team[round(t, 6)][:3, 3]
+        )
         for t, T in zip(stamps, poses_cam)
         if round(t, 6) in team
     ]
-    if r.T_world_map is not None and gaps:
+    if gaps:
         entry["path_team_gap_m"] = float(np.median(gaps))
 
 

@@ -154,6 +154,7 @@ class RunRecorder:
 
     def _on_correction(self, msg, r: RobotRun, t_s, nbytes) -> None:
         r.T_world_map = transform_from_msg(msg.T_world_map) if msg.merged else None
+        r.map_scale = float(msg.map_scale) if msg.map_scale > 0 else 1.0
 
     def _on_team_path(self, msg, robot_id: int) -> None:
         r = self.run.robots.get(robot_id)
