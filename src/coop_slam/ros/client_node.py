@@ -449,6 +449,10 @@ class ClientNode:
         if self.vo is not None:
             self.vo.reset()
             self._publish_events()
+            # The next odometry numbers its keyframes from 1 and its segments from 0 again: the
+            # messages go on after this one's (its reset announced the segment they start in).
+            self.kf_id_base += self.vo.keyframes_made
+            self.segment_base += self.vo.map_segment
             self.vo.close()
             self.vo = None
 

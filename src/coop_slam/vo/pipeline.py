@@ -279,6 +279,11 @@ class VisualOdometry:
             return {k: kf.T_map_cam.copy() for k, kf in self._map.keyframes.items()}
 
     @property
+    def keyframes_made(self) -> int:
+        """Keyframe ids this odometry has given out (1 .. this), culled ones included."""
+        return self._next_kf_id - 1
+
+    @property
     def mapping_backlog(self) -> int:
         """Keyframes local mapping has not finished (queued or in process); more than one means
         it falls behind the camera."""

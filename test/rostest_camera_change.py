@@ -1,0 +1,68 @@
+#!/usr/bin/env python3
+"""rostest node: a client's camera model changes (new intrinsics) mid-run; it starts a new map,
+whose keyframes and map segment continue after those of the first one: reused ids would make the
+server take a new keyframe for an old one."""
+import dataclasses
+import os
+import sys
+import time
+import unittest
+
+import rospy
+import rostest
+from sensor_msgs.msg import CameraInfo, Image
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import helpers_vo  # noqa: E402
+from coop_slam.msg import KeyFrame  # noqa: E402
+from coop_slam.ros.convert import camera_info_to_msg, image_to_msg  # noqa: E402
+from helpers import wait_until  # noqa: E402
+
+NEW = 0
+
+
+class CameraChangeTest(unittest.TestCase):
+    def test_new_map_continues_the_ids(self):
+        rospy.init_node("camera_change_test")
+        got = []
+        sub = rospy.Subscriber(  # noqa: F841
+            "/robot_1/keyframes", KeyFrame, lambda m: got.append(m), queue_size=100
+        )
+        cam = "/robot_1/camera"
+        pub_info = rospy.Publisher(f"{cam}/color/camera_info", CameraInfo, queue_size=5)
+        pub_depth = rospy.Publisher(f"{cam}/depth/image_raw", Image, queue_size=5)
+        pub_color = rospy.Publisher(f"{cam}/color/image_raw", Image, queue_size=5)
+        wait_until(
+            lambda: pub_color.get_num_connections() and pub_depth.get_num_connections(),
+            60.0,
+            "the client's subscriptions",
+        )
+        stamps, frames, _ = helpers_vo.sequence(n_frames=12)
+        other = dataclasses.replace(helpers_vo.CAMERA, fx=helpers_vo.CAMERA.fx * 1.1)
+
+        def play(camera, first_s: float, n: int) -> None:
+            for i in range(n):
+                stamp = rospy.Time.from_sec(first_s + i / 30.0)
+                bgr, depth = frames[i]
+                pub_info.publish(camera_info_to_msg(camera, stamp, "robot_1/camera_optical"))
+                pub_depth.publish(image_to_msg(depth, "32FC1", stamp, "robot_1/camera_optical"))
+                pub_color.publish(image_to_msg(bgr, "bgr8", stamp, "robot_1/camera_optical"))
+                time.sleep(0.3)  # a slow camera: the client tracks every frame
+
+        def new_keyframes():  # (without a server to acknowledge them, messages go again)
+            first_sends = {(m.session, m.sequence): m for m in got}.values()
+            return sorted((m.keyframe_id, m.map_segment) for m in first_sends if m.action == NEW)
+
+        play(helpers_vo.CAMERA, 100.0, 6)
+        wait_until(lambda: new_keyframes(), 30.0, "a keyframe of the first map")
+        first = new_keyframes()
+        self.assertTrue(all(seg == 0 for _, seg in first), first)
+        play(other, 110.0, 6)
+        wait_until(lambda: len(new_keyframes()) > len(first), 30.0, "a keyframe of the next map")
+        later = sorted(set(new_keyframes()) - set(first))
+        self.assertGreater(min(k for k, _ in later), max(k for k, _ in first), (first, later))
+        self.assertTrue(all(seg == 1 for _, seg in later), (first, later))
+
+
+if __name__ == "__main__":
+    rostest.rosrun("coop_slam", "client_camera_change", CameraChangeTest)
