@@ -60,6 +60,7 @@ class CameraChangeTest(unittest.TestCase):
         play(other, 110.0, 6)
         wait_until(lambda: len(new_keyframes()) > len(first), 30.0, "a keyframe of the next map")
         later = sorted(set(new_keyframes()) - set(first))
+        self.assertTrue(later, f"the next map's keyframes reuse the first's ids: {new_keyframes()}")
         self.assertGreater(min(k for k, _ in later), max(k for k, _ in first), (first, later))
         self.assertTrue(all(seg == 1 for _, seg in later), (first, later))
 
