@@ -18,7 +18,7 @@ from coop_slam.msg import KeyFrame  # noqa: E402
 from coop_slam.ros.convert import camera_info_to_msg, image_to_msg  # noqa: E402
 from helpers import wait_until  # noqa: E402
 
-NEW = 0
+NEW = KeyFrame.ACTION_NEW
 
 
 class CameraChangeTest(unittest.TestCase):

@@ -158,7 +158,8 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
     # Each keyframe's 3D from depth (the report's overlap agreement), one point per keypoint.
     assert all(len(r.keyframe_points[k]) == 50 for k in (1, 2, 3, 5))
     assert sorted(r.team_keyframes) == [1, 2, 4, 5]  # the NaN pose is dropped, not stored
-    assert [t for t, _ in r.path] == list(stamps[:2]) and np.allclose(r.path[1][1], gt[1])
+    assert [(k, t) for k, t, _ in r.path] == [(1, stamps[0]), (2, stamps[1])]
+    assert np.allclose(r.path[1][2], gt[1])
     assert run.merges[0]["type"] == "rendezvous" and run.merges[0]["stamp_s"] == 1.5
     assert run.merges[0]["published_s"] == 2.5
     assert len(run.topic_bytes["/robot_2/keyframes"]) == 6
@@ -257,7 +258,7 @@ def test_report_judges_the_clients_published_path_against_the_truth_and_the_team
     team[:, :3, 3] += rng.normal(0, 0.002, (30, 3))  # the server's optimized poses (world)
     kfs = {k: (stamps[k], invert(T_world_map) @ odom[k]) for k in range(30)}
 
-    def report_with(path_cam, map_scale=1.0):
+    def report_with(path_cam, map_scale=1.0, segments=None):
         run = RunData()
         run.robots[1] = RobotRun(
             frames=30,
@@ -265,7 +266,8 @@ def test_report_judges_the_clients_published_path_against_the_truth_and_the_team
             team_keyframes={k: (stamps[k], team[k]) for k in range(30)},
             T_world_map=T_world_map,
             map_scale=map_scale,
-            path=[(stamps[k], P @ invert(T_base_cam)) for k, P in enumerate(path_cam)],
+            keyframe_segments=segments or {},
+            path=[(k + 1, stamps[k], P @ invert(T_base_cam)) for k, P in enumerate(path_cam)],
         )
         entry = evaluate_run(run, {1: (stamps, gt)}, T_base_cam=T_base_cam)["robots"][0]
         return entry
@@ -274,6 +276,14 @@ def test_report_judges_the_clients_published_path_against_the_truth_and_the_team
     shared = report_with([invert(T_world_map) @ T for T in team])
     assert shared["path_ate_rmse_m"] == pytest.approx(shared["server_ate_rmse_m"], rel=1e-6)
     assert shared["path_team_gap_m"] < 1e-9
+    # Two map segments (keyframes 1-20, 21-30): the latest T_world_map places the second; the
+    # first, in another frame, is judged alone, as the robot's own ATE is.
+    apart = se3(t=[1.0, 0.0, 0.0])
+    two = report_with(
+        [invert(T_world_map) @ (apart if k < 20 else np.eye(4)) @ T for k, T in enumerate(team)],
+        segments={k + 1: int(k >= 20) for k in range(30)},
+    )
+    assert two["path_team_gap_m"] < 1e-9 and two["path_ate_rmse_m"] < 0.005
     # A monocular map: the path in its own units, placed in metres by the map's scale.
     halved = report_with([scale_translation(invert(T_world_map) @ T, 0.5) for T in team], 2.0)
     assert halved["path_team_gap_m"] < 1e-9

@@ -12,12 +12,11 @@ import numpy as np
 import pytest
 import yaml
 
+from coop_slam.geometry import R_BASE_OPTICAL as R_BODY_OPTICAL
 from coop_slam.tools import framing as F
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TEMPLATE = os.path.join(REPO, "rviz", "coop_slam.rviz")
-# base_link <- camera optical (x forward, y left, z up <- z forward, x right, y down), as the client
-R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 ASPECT = 16.0 / 9.0
 
 

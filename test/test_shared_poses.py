@@ -56,6 +56,30 @@ def test_points_move_with_their_reference_keyframe():
     assert SharedPoses().points(np.zeros((0, 3)), np.zeros(0)).shape == (0, 3)
 
 
+def test_a_new_map_segment_stays_in_its_own_frame_until_corrected():
+    rng = np.random.default_rng(6)
+    odom = _odometry(6, rng)
+    C = se3(exp_so3(np.array([0.0, 0.0, 0.1])), np.array([0.2, 0.0, 0.0]))
+    shared = SharedPoses()
+    shared.receive({k: C @ odom[k] for k in (1, 2, 3)}, odom)
+    shared.start_segment(5)  # keyframes 5, 6: another odometry frame
+    poses = shared.keyframe_poses(odom)
+    assert transform_error(poses[4], C @ odom[4])[0] < 1e-12  # still the old segment's
+    for k in (5, 6):
+        assert np.array_equal(poses[k], odom[k])
+    assert np.array_equal(shared.T_map_odom, np.eye(4))
+    # A point with no reference (id beyond all) goes with where the robot is now.
+    big = np.iinfo(np.int64).max
+    assert np.allclose(shared.points(np.ones((1, 3)), [big]), np.ones((1, 3)))
+    C5 = se3(t=np.array([0.0, 0.1, 0.0]))
+    shared.receive({5: C5 @ odom[5]}, odom)
+    assert transform_error(shared.keyframe_poses(odom)[6], C5 @ odom[6])[0] < 1e-12
+    assert transform_error(shared.T_map_odom, C5)[0] < 1e-12
+    # A late correction of old keyframes does not take "where the robot is" back to them.
+    shared.receive({2: C @ odom[2]}, odom)
+    assert transform_error(shared.T_map_odom, C5)[0] < 1e-12
+
+
 def test_nothing_received_leaves_the_odometry_as_it_is():
     rng = np.random.default_rng(5)
     odom = _odometry(3, rng)

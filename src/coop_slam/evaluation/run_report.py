@@ -53,7 +53,8 @@ class RobotRun:
     keyframes_sent_sessions: list = field(default_factory=list)
     unacked: int = 0
     keyframe_segments: dict = field(default_factory=dict)  # id -> map segment
-    # the client's latest /robot_k/path: (stamp_s, T_map_base) per keyframe
+    # the client's latest /robot_k/path: (keyframe id, stamp_s, T_map_base) per keyframe (id 0:
+    # recorded before paths carried them)
     path: list = field(default_factory=list)
 
     def in_first_segment(self, keyframe_id: int) -> bool:
@@ -166,13 +167,20 @@ def _robot_accuracy(entry: dict, r: RobotRun, rid: int, gts: dict, world_metric:
 def _client_path_accuracy(
     entry: dict, r: RobotRun, T_base_cam: np.ndarray, gt: tuple, mono: bool
 ) -> None:
-    """``path_ate_rmse_m`` (the client's last published path, aligned alone) and
-    ``path_team_gap_m`` (its keyframes placed in world by the robot's latest ``T_world_map``
-    against the server's optimized ones: median distance)."""
-    stamps = np.array([t for t, _ in r.path])
-    poses_cam = np.array([T @ T_base_cam for _, T in r.path])
+    """``path_ate_rmse_m`` (the client's last published path, aligned alone: its first map
+    segment, as ``ate_rmse_m``) and ``path_team_gap_m`` (its keyframes of the current segment
+    placed in world by the robot's latest ``T_world_map``, which is that segment's, against the
+    server's optimized ones: median distance)."""
+    known = r.keyframe_segments and all(k > 0 for k, _, _ in r.path)
+    current = r.keyframe_segments[max(r.keyframe_segments)] if known else None
+
+    def poses(keep) -> tuple[np.ndarray, np.ndarray]:
+        sel = [(t, T @ T_base_cam) for k, t, T in r.path if not known or keep(k)]
+        return np.array([t for t, _ in sel]), np.array([T for _, T in sel])
+
     if len(gt[0]):
         try:
+            stamps, poses_cam = poses(r.in_first_segment)
             entry["path_ate_rmse_m"] = ate(stamps, poses_cam, *gt, correct_scale=mono).rmse_m
         except EvaluationError:
             pass
@@ -180,6 +188,7 @@ def _client_path_accuracy(
         return
     # Keyframes by stamp (a path pose carries its keyframe's; older recordings have no ids).
     team = {round(t, 6): T for t, T in r.team_keyframes.values()}
+    stamps, poses_cam = poses(lambda k: r.keyframe_segments.get(k) == current)
     gaps = [
         np.linalg.norm(
             (r.T_world_map @ scale_translation(T, r.map_scale))[:3, 3] - team[round(t, 6)][:3, 3]

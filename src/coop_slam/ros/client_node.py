@@ -105,6 +105,7 @@ class ClientNode:
         # Pose-graph sharing: the team map's poses of our keyframes over what we publish (path,
         # cloud, map -> odom); the odometry goes on in its own frame (coop_slam.vo.shared_poses).
         self.shared = SharedPoses()
+        self.segment_starts = False  # a new map segment begins with the next new keyframe
         self.corrections_applied = 0
         self.T_world_map = None
         self.segment = 0
@@ -700,7 +701,7 @@ class ClientNode:
     def _publish_events(self, now_s: float | None = None) -> None:
         """Hand the odometry's events at data time ``now_s`` to the uplink and send what it lets
         go (None: everything it holds, the odometry is closing)."""
-        from ..keyframe_record import ACTION_REMOVE
+        from ..keyframe_record import ACTION_NEW, ACTION_REMOVE
         from ..vo.outbox import event_record
         from ..vo.types import EVENT_NEW_SEGMENT, EVENT_WARNING, KEYFRAME_ACTIONS
 
@@ -716,9 +717,13 @@ class ClientNode:
                     ev.message,
                 )
                 self.segment = ev.map_segment + self.segment_base
+                self.segment_starts = True  # with the next new keyframe
                 self._send_records(self.uplink.flush())  # the old map's keyframes go first
             elif ev.kind in KEYFRAME_ACTIONS:
                 rec = self._as_sent(event_record(ev, self.robot_id, self.camera, self.T_base_cam))
+                if self.segment_starts and rec.action == ACTION_NEW:
+                    self.shared.start_segment(rec.keyframe_id)
+                    self.segment_starts = False
                 if rec.action == ACTION_REMOVE:
                     self.kf_poses.pop(rec.keyframe_id, None)
                     self.shared.forget(rec.keyframe_id)
@@ -793,7 +798,9 @@ class ClientNode:
     def _publish_cloud(self, stamp) -> None:
         if self.shared.corrected:
             xyz, ref = self.vo.map_points_with_reference()
-            pts = self.shared.points(transform_points(self.T_base_cam, xyz), ref + self.kf_id_base)
+            # A point no keyframe observes any more goes with where the robot is now.
+            ids = np.where(ref > 0, ref + self.kf_id_base, np.iinfo(np.int64).max)
+            pts = self.shared.points(transform_points(self.T_base_cam, xyz), ids)
         else:  # nothing to lay over (finding each point's reference keyframe takes a while)
             pts = transform_points(self.T_base_cam, self.vo.map_point_arrays()[1])
         self.pub_cloud.publish(cloud_to_msg(pts, self.map_frame, stamp))

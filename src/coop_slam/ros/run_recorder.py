@@ -147,7 +147,7 @@ class RunRecorder:
         path = []
         for ps in msg.poses:
             try:
-                path.append((ps.header.stamp.to_sec(), pose_from_msg(ps.pose)))
+                path.append((ps.header.seq, ps.header.stamp.to_sec(), pose_from_msg(ps.pose)))
             except MessageError:
                 continue
         r.path = path

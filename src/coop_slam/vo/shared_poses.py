@@ -18,7 +18,9 @@ corrections that differ per keyframe and made the team map worse (session 15's n
 A keyframe's correction follows later local refinements of its odometry pose (it is kept as an
 offset, not as a fixed pose). Keyframes the server has not sent a pose for are within its
 thresholds of their odometry pose (identity), except those newer than the newest corrected one
-(the server has not seen them yet): they move with it, as the live pose does.
+(the server has not seen them yet): they move with it, as the live pose does -- unless they begin
+a new map segment, another odometry frame the server has not placed yet (identity until it
+does).
 
 Pure core: numpy in, numpy out.
 """
@@ -30,6 +32,7 @@ import numpy as np
 from ..geometry import invert
 
 _I = np.eye(4)
+_I.setflags(write=False)
 
 
 class SharedPoses:
@@ -38,6 +41,7 @@ class SharedPoses:
     def __init__(self) -> None:
         self._C: dict[int, np.ndarray] = {}
         self._newest: int | None = None
+        self._segment_start = 0  # the first keyframe id of the current map segment
 
     def receive(
         self, T_map_cam_team: dict[int, np.ndarray], T_odom_cam: dict[int, np.ndarray]
@@ -47,15 +51,21 @@ class SharedPoses:
         many were taken."""
         taken = [k for k in T_map_cam_team if k in T_odom_cam]
         for k in taken:
-            self._C[k] = np.asarray(T_map_cam_team[k], float) @ invert(T_odom_cam[k])
+            C = np.asarray(T_map_cam_team[k], float) @ invert(T_odom_cam[k])
+            C.setflags(write=False)
+            self._C[k] = C
         if taken:
-            self._newest = max(taken)
+            self._newest = max(taken + ([] if self._newest is None else [self._newest]))
         return len(taken)
+
+    def start_segment(self, first_kf_id: int) -> None:
+        """The odometry starts a new map segment with this keyframe id."""
+        self._segment_start = int(first_kf_id)
 
     def forget(self, kf_id: int) -> None:
         """A keyframe the odometry culled."""
         self._C.pop(kf_id, None)
-        if kf_id == self._newest:
+        if kf_id == self._newest:  # the newest corrected is the newest of those left
             self._newest = max(self._C, default=None)
 
     @property
@@ -66,15 +76,16 @@ class SharedPoses:
     @property
     def T_map_odom(self) -> np.ndarray:
         """The newest corrected keyframe's correction: where the robot is now (identity before
-        the first)."""
-        return _I.copy() if self._newest is None else self._C[self._newest].copy()
+        the first, and in a new map segment before its first)."""
+        return self.correction(np.iinfo(np.int64).max).copy()
 
     def correction(self, kf_id: int) -> np.ndarray:
         """``C_k`` of a keyframe (see the module)."""
         if kf_id in self._C:
             return self._C[kf_id]
-        if self._newest is not None and kf_id > self._newest:
-            return self._C[self._newest]
+        newest = self._newest
+        if newest is not None and kf_id > newest and not newest < self._segment_start <= kf_id:
+            return self._C[newest]
         return _I
 
     def keyframe_poses(self, T_odom_cam: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
@@ -85,10 +96,7 @@ class SharedPoses:
         """Points (N, 3) of the odometry's map moved with their reference keyframes' corrections
         (``ref_kf_ids`` (N,), message ids)."""
         xyz_odom = np.asarray(xyz_odom, float).reshape(-1, 3)
-        ref_kf_ids = np.asarray(ref_kf_ids, np.int64).reshape(-1)
-        out = np.empty_like(xyz_odom)
-        for k in np.unique(ref_kf_ids):
-            rows = ref_kf_ids == k
-            C = self.correction(int(k))
-            out[rows] = xyz_odom[rows] @ C[:3, :3].T + C[:3, 3]
-        return out
+        ids, inverse = np.unique(np.asarray(ref_kf_ids, np.int64).reshape(-1), return_inverse=True)
+        C = np.stack([self.correction(int(k)) for k in ids]) if len(ids) else np.zeros((0, 4, 4))
+        C = C[inverse]
+        return np.einsum("nij,nj->ni", C[:, :3, :3], xyz_odom) + C[:, :3, 3]
