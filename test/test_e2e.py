@@ -309,7 +309,7 @@ def test_results_table_gives_a_monocular_robots_sim3_ate_and_scale_errors():
 
     report = {
         "robots": [
-            {"sensor": "rgbd", "ate_rmse_m": 0.003},
+            {"sensor": "rgbd", "ate_rmse_m": 0.003, "path_ate_rmse_m": 0.0025},
             {"sensor": "mono", "ate_rmse_m": None, "ate_sim3_rmse_m": 0.008, "scale_error": 0.0073},
         ],
         "merges": [
@@ -326,4 +326,5 @@ def test_results_table_gives_a_monocular_robots_sim3_ate_and_scale_errors():
     }
     cells = row(report, {"scenario": "team"})
     assert cells[3] == "0.30 / 0.80 (Sim3, scale +0.7 %)"
-    assert cells[6].endswith("scale -0.7 % (+1.2 % local)")
+    assert cells[6] == "0.25 / –"  # the clients' published paths
+    assert cells[7].endswith("scale -0.7 % (+1.2 % local)")

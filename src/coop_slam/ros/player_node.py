@@ -30,6 +30,7 @@ from ..datasets import DatasetError
 from ..errors import CoopSlamError
 from ..playback import (
     COLOR_TOPIC,
+    PLAYABLE_SENSORS,
     PlaybackError,
     RobotStream,
     build_schedule,
@@ -192,19 +193,27 @@ class _RobotTopics:
                 self.publish(play_s, frame)
 
 
-def wait_for_consumers(color_pubs: dict, cfg: PlayerConfig) -> None:
-    """Before playing: wait (each step at most ``cfg.wait_for_subscribers_s``) until every robot's
-    colour images have a subscriber, then until ``cfg.wait_for_node`` (a bag recorder started
-    alongside) subscribes to every robot's keyframes, so neither misses the first frames."""
+def _flat_topics(topics: dict) -> list[str]:
+    """The topic names of :func:`coop_slam.playback.camera_topics`."""
+    return [t for v in topics.values() for t in (v.values() if isinstance(v, dict) else [v])]
+
+
+def wait_for_consumers(camera_pubs: dict, cfg: PlayerConfig) -> None:
+    """Before playing: wait (each step at most ``cfg.wait_for_subscribers_s``) until each of every
+    robot's camera topics (robot id -> their publishers: images and camera infos) has a
+    subscriber, then until ``cfg.wait_for_node`` (a bag recorder started alongside) subscribes to
+    every robot's keyframes, so neither misses the first frames. (A client that subscribed to its
+    images but not yet to its camera info rejected the first frame: a monocular map then started
+    from another pair of views, and the run differed from the one before.)"""
     import rosgraph
 
     deadline = time.monotonic() + cfg.wait_for_subscribers_s
     while time.monotonic() < deadline and not rospy.is_shutdown():
-        if all(p.get_num_connections() > 0 for p in color_pubs.values()):
+        if all(p.get_num_connections() > 0 for pubs in camera_pubs.values() for p in pubs):
             break
         time.sleep(0.1)
     if cfg.wait_for_node:
-        topics = {f"/robot_{r}/keyframes" for r in color_pubs}
+        topics = {f"/robot_{r}/keyframes" for r in camera_pubs}
         master = rosgraph.Master(rospy.get_name())
         deadline = time.monotonic() + cfg.wait_for_subscribers_s
         while time.monotonic() < deadline and not rospy.is_shutdown():
@@ -219,9 +228,10 @@ def wait_for_consumers(color_pubs: dict, cfg: PlayerConfig) -> None:
                 sorted(topics),
             )
     time.sleep(0.5)  # let the connections settle so the first frames are not lost
-    for rid, pub in color_pubs.items():
-        if pub.get_num_connections() == 0:
-            rospy.logwarn("player: nobody subscribes to robot_%d's images; playing anyway", rid)
+    for pubs in camera_pubs.values():
+        alone = sorted(p.resolved_name for p in pubs if p.get_num_connections() == 0)
+        if alone:
+            rospy.logwarn("player: nobody subscribes to %s; playing anyway", ", ".join(alone))
 
 
 class PlayerNode:
@@ -257,7 +267,13 @@ class PlayerNode:
         self.clock.publish(
             Clock(clock=rospy.Time.from_sec(max(0.0, self.schedule[0].play_s - 0.1)))
         )
-        wait_for_consumers({rid: t.color for rid, t in self.topics.items()}, self.cfg)
+        wait_for_consumers(
+            {
+                rid: [p for topic, p in t.pubs.items() if topic.startswith(f"/robot_{rid}/camera/")]
+                for rid, t in self.topics.items()
+            },
+            self.cfg,
+        )
         groups = group_simultaneous(self.schedule)
         total = len(self.schedule)
         rospy.loginfo(
@@ -438,11 +454,17 @@ class BagPlayer:
             publishers[topic] = rospy.Publisher(topic, cls, queue_size=20)
         start = self.bag.get_start_time()
         self.clock.publish(Clock(clock=rospy.Time.from_sec(max(0.0, start - 0.1))))
-        colors = {}  # robot id -> its main image's publisher (colour, or left of a pair)
-        for topic, pub in publishers.items():
+        cameras = {}  # robot id -> its camera topics' publishers (images, camera infos)
+        for topic in publishers:
             if m := COLOR_TOPIC.match(topic):
-                colors[int(m.group(1))] = pub
-        wait_for_consumers(colors, cfg)
+                rid = int(m.group(1))
+                wanted = {  # what a client of any sensor subscribes to
+                    t
+                    for sensor in PLAYABLE_SENSORS
+                    for t in _flat_topics(camera_topics(rid, sensor))
+                }
+                cameras[rid] = [p for t, p in publishers.items() if t in wanted]
+        wait_for_consumers(cameras, cfg)
         lockstep = {rid for rid, a in self.acks.items() if cfg.lockstep and a.has_consumer}
         for rid in sorted(set(self.acks) - lockstep):
             rospy.logwarn(

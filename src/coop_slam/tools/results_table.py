@@ -17,6 +17,8 @@ COLUMNS = (
     "robot ATE [cm]",
     "pooled [cm]",
     "team ATE [cm]",
+    # each client's last published path (its keyframes with the team map's corrections)
+    "published path ATE [cm]",
     "merges (type, latency s (+ until published), error cm / deg at the matched keyframes)",
     "wrong merges",
     "links (robots: count)",
@@ -115,6 +117,11 @@ def row(report: dict, info: dict) -> list[str]:
         " / ".join(_robot_ate(r) for r in robots),
         _cm(report.get("single_ate_pooled_m")),
         _cm(report.get("team_ate_rmse_m")),
+        (
+            " / ".join(_cm(r.get("path_ate_rmse_m")) for r in robots)
+            if any(r.get("path_ate_rmse_m") is not None for r in robots)
+            else "–"
+        ),
         "<br>".join(merges) or "none",
         _num(report.get("wrong_merges"), 0),
         "<br>".join(f"{k['robots']}: {k['count']}" for k in report.get("links") or []) or "–",
