@@ -204,29 +204,6 @@ def test_robots_seen_together_match_at_once():
         assert bool(asked) == expect_first
 
 
-def test_robots_seen_together_ask_for_a_less_alike_view_of_each_other():
-    """Two robots seeing one scene from different places: the other robot's view scores 0.5
-    where the query and its previous keyframe score 0.8 -- asked for within the rendezvous
-    window (rendezvous_score_ratio 0.5), not without a sighting nor at the 0.8 ratio."""
-    place = np.arange(1000, 1200)
-    mine = np.concatenate([place[:160], np.arange(5000, 5040)])
-    theirs = np.concatenate([place[:100], np.arange(9000, 9100)])
-    for together, ratio, expect in ((True, 0.5, True), (False, 0.5, False), (True, 0.8, False)):
-        planner = PullPlanner(PullConfig(rendezvous_score_ratio=ratio, min_score_ratio=0.8))
-        planner.add(_sig(1, 1, theirs), 0.0)
-        planner.add(_sig(2, 1, np.arange(7000, 7200)), 0.05)  # elsewhere, still covisible
-        planner.add(_sig(2, 2, place, covisible=[1]), 0.1)
-        planner.take_requests()
-        if together:
-            planner.seen_together(1, 2, 0.2)
-        asked = planner.add(_sig(2, 3, mine, covisible=[1, 2]), 0.5)
-        assert bool(asked) == expect, (together, ratio)
-        if expect:
-            assert sorted(asked) == [(1, 1), (2, 3)]
-    with pytest.raises(Exception, match="rendezvous_score_ratio"):
-        PullPlanner(PullConfig(rendezvous_score_ratio=0.9))
-
-
 def test_a_lost_robots_view_has_the_matching_keyframe_asked_for():
     """Assisted relocalization in low-bandwidth mode: the place a lost robot sees is a signature
     of its teammate's; the planner asks for that keyframe (once), and when the server holds it

@@ -42,12 +42,8 @@ class PullConfig:
     # much as two neighbouring views of one place are worth asking for.
     min_score_ratio: float = 0.8
     # Robots seen together (a marker sighting): their alike signatures match at once for this
-    # long [s] (the rendezvous; otherwise place recognition's consistency over keyframes) ...
+    # long [s] (the rendezvous; otherwise place recognition's consistency over keyframes).
     rendezvous_window_s: float = 10.0
-    # ... at this lower share of the query's score with its previous keyframe: two robots look
-    # at one scene from different places (on the rendezvous world the pair the default mode
-    # linked first scored 0.058 against a floor of 0.109 at 0.8).
-    rendezvous_score_ratio: float = 0.5
 
     def validate(self) -> None:
         require(self.keyframes_per_min > 0, "pull.keyframes_per_min must be > 0")
@@ -56,10 +52,6 @@ class PullConfig:
         require(self.loop_min_keyframes >= 1, "pull.loop_min_keyframes must be >= 1")
         require(self.min_score_ratio >= 0, "pull.min_score_ratio must be >= 0")
         require(self.rendezvous_window_s >= 0, "pull.rendezvous_window_s must be >= 0 [s]")
-        require(
-            0 <= self.rendezvous_score_ratio <= self.min_score_ratio,
-            "pull.rendezvous_score_ratio must be in [0, min_score_ratio]",
-        )
 
 
 class PullPlanner:
@@ -99,29 +91,20 @@ class PullPlanner:
         covisible = [(robot, int(c)) for c in rec.covisible_ids]
         # How alike two views of one place look here: the query and the robot's previous keyframe.
         previous = self._last.get(robot)
-        alike = 0.0
+        floor = 0.0
         if previous is not None and previous in self.db:
-            alike = l1_score(sig.bow, self.db.bow(*previous))
+            floor = self.config.min_score_ratio * l1_score(sig.bow, self.db.bow(*previous))
         self._last[robot] = key
         self.db.add(robot, kf, sig.bow, covisible)
-        cfg = self.config
-        window = cfg.rendezvous_window_s
-        partners = {b for (a, b), t in self._together.items() if a == robot and now_s - t <= window}
-
-        def floor(other: int) -> float:
-            ratio = cfg.rendezvous_score_ratio if other in partners else cfg.min_score_ratio
-            return ratio * alike
-
+        gap = self.config.loop_min_keyframes
         candidates = [
             c
             for c in self.db.query(sig.bow, robot, kf, covisible, other_robots_only=False)
-            if (c.key[0] != robot or abs(c.key[1] - kf) >= cfg.loop_min_keyframes)
-            and c.score >= floor(c.key[0])
+            if (c.key[0] != robot or abs(c.key[1] - kf) >= gap) and c.score >= floor
         ]
-        # Place recognition's consistency counts views as alike as two neighbouring ones only.
-        consistent = set(
-            self.consistency.check(robot, [c for c in candidates if c.score >= floor(-1)], self.db)
-        )
+        consistent = set(self.consistency.check(robot, candidates, self.db))
+        window = self.config.rendezvous_window_s
+        partners = {b for (a, b), t in self._together.items() if a == robot and now_s - t <= window}
         consistent |= {c.key for c in candidates if c.key[0] in partners}
         # Another group's place first (a merge), then the best score.
         ranked = sorted(
