@@ -258,7 +258,7 @@ def test_report_judges_the_clients_published_path_against_the_truth_and_the_team
     team[:, :3, 3] += rng.normal(0, 0.002, (30, 3))  # the server's optimized poses (world)
     kfs = {k: (stamps[k], invert(T_world_map) @ odom[k]) for k in range(30)}
 
-    def report_with(path_cam, map_scale=1.0, segments=None):
+    def report_with(path_cam, map_scale=1.0, segments=None, first=0):
         run = RunData()
         run.robots[1] = RobotRun(
             frames=30,
@@ -267,7 +267,10 @@ def test_report_judges_the_clients_published_path_against_the_truth_and_the_team
             T_world_map=T_world_map,
             map_scale=map_scale,
             keyframe_segments=segments or {},
-            path=[(k + 1, stamps[k], P @ invert(T_base_cam)) for k, P in enumerate(path_cam)],
+            path=[
+                (k + 1, stamps[k], P @ invert(T_base_cam))
+                for k, P in enumerate(path_cam, start=first)
+            ],
         )
         entry = evaluate_run(run, {1: (stamps, gt)}, T_base_cam=T_base_cam)["robots"][0]
         return entry
@@ -284,6 +287,13 @@ def test_report_judges_the_clients_published_path_against_the_truth_and_the_team
         segments={k + 1: int(k >= 20) for k in range(30)},
     )
     assert two["path_team_gap_m"] < 1e-9 and two["path_ate_rmse_m"] < 0.005
+    # A restarted client: its path holds its second segment only (no ATE of the first).
+    later = report_with(
+        [invert(T_world_map) @ T for T in team[20:]],
+        segments={k + 1: int(k >= 20) for k in range(30)},
+        first=20,
+    )
+    assert later["path_ate_rmse_m"] is None and later["path_team_gap_m"] < 1e-9
     # A monocular map: the path in its own units, placed in metres by the map's scale.
     halved = report_with([scale_translation(invert(T_world_map) @ T, 0.5) for T in team], 2.0)
     assert halved["path_team_gap_m"] < 1e-9

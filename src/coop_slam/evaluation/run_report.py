@@ -178,9 +178,9 @@ def _client_path_accuracy(
         sel = [(t, T @ T_base_cam) for k, t, T in r.path if not known or keep(k)]
         return np.array([t for t, _ in sel]), np.array([T for _, T in sel])
 
-    if len(gt[0]):
+    stamps, poses_cam = poses(r.in_first_segment)
+    if len(gt[0]) and len(stamps):  # (a restarted client's path holds later segments only)
         try:
-            stamps, poses_cam = poses(r.in_first_segment)
             entry["path_ate_rmse_m"] = ate(stamps, poses_cam, *gt, correct_scale=mono).rmse_m
         except EvaluationError:
             pass
