@@ -307,6 +307,22 @@ def test_report_judges_the_clients_published_path_against_the_truth_and_the_team
     assert entry["path_ate_rmse_m"] is None and entry["path_team_gap_m"] is None  # no path
 
 
+def test_keyframe_errors_are_each_poses_distance_after_the_ates_alignment(tmp_path):
+    from coop_slam.evaluation.plots import keyframe_errors, plot_path_errors
+
+    stamps, gt = _circle(20)
+    est = gt.copy()
+    est[5, :3, 3] += [0.05, 0.0, 0.0]
+    moved = np.einsum("ij,njk->nik", se3(t=[1.0, 2.0, 0.0]), est)
+    t, err, res = keyframe_errors(stamps, moved, stamps, gt)
+    assert np.array_equal(t, stamps) and int(np.argmax(err)) == 5 and err[5] > 0.04
+    assert np.sqrt(np.mean(err**2)) == pytest.approx(res.rmse_m)
+    assert keyframe_errors(stamps[:2], moved[:2], stamps, gt) is None  # too few to align
+    series = {1: [("odometry", stamps, moved), ("short", stamps[:2], moved[:2])], 2: []}
+    plot_path_errors(str(tmp_path), series, {1: (stamps, gt), 2: (stamps, gt)})
+    assert (tmp_path / "path_errors.png").stat().st_size > 0
+
+
 def test_merge_latency_counts_from_the_first_shared_view_of_its_kind():
     """Rendezvous latency from the first co-observation, place recognition from the first revisit
     (either direction); a marker sighting without a shared scene is no start."""

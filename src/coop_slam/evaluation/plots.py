@@ -1,6 +1,7 @@
 """Pictures of a run: top views of the robots' trajectories against ground truth, each robot
-aligned on its own and the team with one alignment; and the stitched team cloud as a PLY file.
-Pure over arrays: matplotlib (Agg) draws, nothing is shown."""
+aligned on its own and the team with one alignment; each robot's keyframe errors over time (its
+odometry, the team map's poses, the path its client published); and the stitched team cloud as a
+PLY file. Pure over arrays: matplotlib (Agg) draws, nothing is shown."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import os
 
 import numpy as np
 
+from ..timestamps import associate
 from .metrics import EvaluationError, ate
 
 
@@ -92,6 +94,66 @@ def plot_team(out_dir: str, est_world: dict, gt_world: dict, team) -> None:
         f"team map: one alignment for all robots (team ATE {100 * team.rmse_m:.1f} cm)",
         curves,
     )
+
+
+def keyframe_errors(stamps, poses, stamps_gt, poses_gt, mono: bool = False):
+    """(stamps, position errors [m], ATE result) of a trajectory aligned on its own as its ATE
+    is; None when it cannot be aligned."""
+    try:
+        res = ate(stamps, poses, stamps_gt, poses_gt, correct_scale=mono)
+    except EvaluationError:
+        return None
+    i, j = associate(np.asarray(stamps, float), np.asarray(stamps_gt, float), 0.02)
+    placed = aligned(res, np.asarray(poses, float)[i])
+    err = np.linalg.norm(placed[:, :3, 3] - np.asarray(poses_gt, float)[j][:, :3, 3], axis=1)
+    return np.asarray(stamps, float)[i], err, res
+
+
+def plot_path_errors(out_dir: str, series: dict, gts: dict, mono=()) -> None:
+    """``path_errors.png``: per robot, the position error of each keyframe over time for each of
+    its trajectories (robot id -> [(label, stamps, poses)], e.g. its odometry, the team map's
+    poses, its client's published path), each aligned to ground truth on its own."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    robots = [r for r in sorted(series) if r in gts and len(gts[r][0])]
+    if not robots:
+        return
+    cols = 1 if len(robots) == 1 else 2
+    rows = -(-len(robots) // cols)
+    fig, axes = plt.subplots(
+        rows, cols, figsize=(6.5 * cols, 2.4 * rows + 0.8), squeeze=False, sharex=True
+    )
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for ax, rid in zip(axes.flat, robots):
+        for k, (label, stamps, poses) in enumerate(series[rid]):
+            found = keyframe_errors(stamps, poses, *gts[rid], mono=rid in mono)
+            if found is None:
+                continue
+            t, err, res = found
+            ax.plot(
+                t,
+                100 * err,
+                marker="o",
+                ms=2,
+                lw=max(0.8, 2.6 - 0.9 * k),  # later series thinner: a path on another shows
+                alpha=0.85,
+                color=colours[k % len(colours)],
+                label=f"{label} (ATE {100 * res.rmse_m:.2f} cm)",
+            )
+        ax.set_title(f"robot_{rid}", fontsize=9)
+        ax.set_ylabel("error [cm]")
+        ax.legend(fontsize=7)
+    for ax in axes.flat[len(robots) :]:
+        ax.set_visible(False)
+    for ax in axes[-1]:
+        ax.set_xlabel("time [s]")
+    fig.suptitle("keyframe position errors (each trajectory aligned to ground truth on its own)")
+    fig.tight_layout()
+    fig.savefig(os.path.join(out_dir, "path_errors.png"), dpi=110)
+    plt.close(fig)
 
 
 def write_ply(path: str, points: np.ndarray, rgb: np.ndarray) -> None:

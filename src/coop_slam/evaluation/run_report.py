@@ -21,7 +21,7 @@ from ..team.results import TYPE_LINK
 from .agreement import KeyframeCloud, team_agreement
 from .metrics import EvaluationError, ate, merge_error, relative_pose_error, rpe_rmse, team_ate
 from .overlap_view import plot_overlap
-from .plots import plot_team, plot_trajectories, write_ply
+from .plots import plot_path_errors, plot_team, plot_trajectories, write_ply
 from .report import count_wrong_merges, new_report, write_report
 
 
@@ -166,11 +166,12 @@ def _robot_accuracy(entry: dict, r: RobotRun, rid: int, gts: dict, world_metric:
 
 def _client_path_accuracy(
     entry: dict, r: RobotRun, T_base_cam: np.ndarray, gt: tuple, mono: bool
-) -> None:
+) -> tuple[np.ndarray, np.ndarray]:
     """``path_ate_rmse_m`` (the client's last published path, aligned alone: its first map
     segment, as ``ate_rmse_m``) and ``path_team_gap_m`` (its keyframes of the current segment
     placed in world by the robot's latest ``T_world_map``, which is that segment's, against the
-    server's optimized ones: median distance)."""
+    server's optimized ones: median distance). Returns the first segment's path (stamps, camera
+    poses)."""
     known = r.keyframe_segments and all(k > 0 for k, _, _ in r.path)
     current = r.keyframe_segments[max(r.keyframe_segments)] if known else None
 
@@ -184,8 +185,9 @@ def _client_path_accuracy(
             entry["path_ate_rmse_m"] = ate(stamps, poses_cam, *gt, correct_scale=mono).rmse_m
         except EvaluationError:
             pass
+    first = (stamps, poses_cam)
     if r.T_world_map is None:
-        return
+        return first
     # Keyframes by stamp (a path pose carries its keyframe's; older recordings have no ids).
     team = {round(t, 6): T for t, T in r.team_keyframes.values()}
     stamps, poses_cam = poses(lambda k: r.keyframe_segments.get(k) == current)
@@ -198,6 +200,7 @@ def _client_path_accuracy(
     ]
     if gaps:
         entry["path_team_gap_m"] = float(np.median(gaps))
+    return first
 
 
 def _merge_units(run: RunData, sensors: dict) -> list[tuple]:
@@ -307,6 +310,7 @@ def evaluate_run(
     # frame.
     T_world_map_gt = {}
     own_ate = {}  # robot -> (its own ATE, keyframes it was computed on)
+    published = {}  # robot -> its client's published path (first segment): stamps, poses
     for entry, rid in zip(report["robots"], robot_ids):
         r = run.robots.get(rid, RobotRun())
         stamps_gt, poses_gt = gts[rid]
@@ -344,7 +348,9 @@ def evaluate_run(
             except EvaluationError:
                 pass
             if r.path and T_base_cam is not None:
-                _client_path_accuracy(entry, r, T_base_cam, gts[rid], sensors[rid] == "mono")
+                published[rid] = _client_path_accuracy(
+                    entry, r, T_base_cam, gts[rid], sensors[rid] == "mono"
+                )
             if r.team_keyframes:  # the server's optimized poses, in world
                 ids = sorted(r.team_keyframes)
                 est_world[rid] = (
@@ -474,6 +480,20 @@ def evaluate_run(
             gts,
             mono={e["id"] for e in report["robots"] if e.get("sensor") == "mono"},
         )
+        if published:  # the pose-graph sharing's picture: what each client shows
+            series = {}
+            for rid, path in published.items():
+                r = run.robots[rid]
+                series[rid] = [("odometry (as sent)", *_kf_arrays(r))]
+                if r.team_keyframes:
+                    series[rid].append(("team map (server)", *est_world[rid]))
+                series[rid].append(("published path (client)", *path))
+            plot_path_errors(
+                out_dir,
+                series,
+                gts,
+                mono={e["id"] for e in report["robots"] if e.get("sensor") == "mono"},
+            )
     return report
 
 
