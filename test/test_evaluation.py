@@ -239,7 +239,7 @@ def test_report_pools_the_single_robot_ates_as_a_perfect_stitching_would_score()
     assert report["single_ate_pooled_m"] is None and report["team_ate_rmse_m"] is None
 
 
-def test_report_judges_the_clients_published_path_against_the_truth_and_the_team_map():
+def test_report_judges_the_clients_published_path_against_the_truth_and_the_team_map(tmp_path):
     """path_ate_rmse_m: the client's last /robot_k/path (base_link poses, placed at the camera
     by the mount); path_team_gap_m: its keyframes in world against the server's, by stamp."""
     pytest.importorskip("rosbag")
@@ -258,7 +258,7 @@ def test_report_judges_the_clients_published_path_against_the_truth_and_the_team
     team[:, :3, 3] += rng.normal(0, 0.002, (30, 3))  # the server's optimized poses (world)
     kfs = {k: (stamps[k], invert(T_world_map) @ odom[k]) for k in range(30)}
 
-    def report_with(path_cam, map_scale=1.0, segments=None, first=0):
+    def report_with(path_cam, map_scale=1.0, segments=None, first=0, out_dir=None):
         run = RunData()
         run.robots[1] = RobotRun(
             frames=30,
@@ -272,8 +272,9 @@ def test_report_judges_the_clients_published_path_against_the_truth_and_the_team
                 for k, P in enumerate(path_cam, start=first)
             ],
         )
-        entry = evaluate_run(run, {1: (stamps, gt)}, T_base_cam=T_base_cam)["robots"][0]
-        return entry
+        return evaluate_run(run, {1: (stamps, gt)}, out_dir=out_dir, T_base_cam=T_base_cam)[
+            "robots"
+        ][0]
 
     # A client showing the team map's poses: as accurate as the server, no gap.
     shared = report_with([invert(T_world_map) @ T for T in team])
@@ -292,6 +293,7 @@ def test_report_judges_the_clients_published_path_against_the_truth_and_the_team
         [invert(T_world_map) @ T for T in team[20:]],
         segments={k + 1: int(k >= 20) for k in range(30)},
         first=20,
+        out_dir=str(tmp_path),  # its picture too
     )
     assert later["path_ate_rmse_m"] is None and later["path_team_gap_m"] < 1e-9
     # A monocular map: the path in its own units, placed in metres by the map's scale.
@@ -318,6 +320,9 @@ def test_keyframe_errors_are_each_poses_distance_after_the_ates_alignment(tmp_pa
     assert np.array_equal(t, stamps) and int(np.argmax(err)) == 5 and err[5] > 0.04
     assert np.sqrt(np.mean(err**2)) == pytest.approx(res.rmse_m)
     assert keyframe_errors(stamps[:2], moved[:2], stamps, gt) is None  # too few to align
+    assert keyframe_errors(np.zeros(0), np.zeros(0), stamps, gt) is None  # none at all
+    with pytest.raises(EvaluationError, match="need at least 3"):
+        ate([], [], stamps, gt)
     series = {1: [("odometry", stamps, moved), ("short", stamps[:2], moved[:2])], 2: []}
     plot_path_errors(str(tmp_path), series, {1: (stamps, gt), 2: (stamps, gt)})
     assert (tmp_path / "path_errors.png").stat().st_size > 0

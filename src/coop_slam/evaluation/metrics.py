@@ -54,8 +54,8 @@ def ate(
     scale)."""
     from evo.core import metrics
 
-    poses_est = np.asarray(poses_est, float)
-    poses_gt = np.asarray(poses_gt, float)
+    poses_est = np.asarray(poses_est, float).reshape(-1, 4, 4)  # (an empty list: no poses)
+    poses_gt = np.asarray(poses_gt, float).reshape(-1, 4, 4)
     i_est, i_gt = associate(stamps_est, stamps_gt, max_dt_s)
     keep = np.all(np.isfinite(poses_est[i_est]), axis=(1, 2)) & np.all(
         np.isfinite(poses_gt[i_gt]), axis=(1, 2)

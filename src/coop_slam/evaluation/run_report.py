@@ -177,7 +177,7 @@ def _client_path_accuracy(
 
     def poses(keep) -> tuple[np.ndarray, np.ndarray]:
         sel = [(t, T @ T_base_cam) for k, t, T in r.path if not known or keep(k)]
-        return np.array([t for t, _ in sel]), np.array([T for _, T in sel])
+        return np.array([t for t, _ in sel]), np.array([T for _, T in sel]).reshape(-1, 4, 4)
 
     stamps, poses_cam = poses(r.in_first_segment)
     if len(gt[0]) and len(stamps):  # (a restarted client's path holds later segments only)
