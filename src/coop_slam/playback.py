@@ -87,6 +87,16 @@ def camera_topics(robot_id: int, sensor: str) -> dict:
     }
 
 
+def camera_topic_names(robot_id: int) -> set[str]:
+    """Every camera topic of a robot a client may subscribe to, whatever its sensor: images and
+    camera infos (see :func:`camera_topics`)."""
+    names = set()
+    for sensor in PLAYABLE_SENSORS:
+        for v in camera_topics(robot_id, sensor).values():
+            names.update(v.values() if isinstance(v, dict) else [v])
+    return names
+
+
 def image_topic(robot_id: int, sensor: str) -> str:
     """The topic of a robot's main image (see :func:`camera_topics`)."""
     return camera_topics(robot_id, sensor)["image"]

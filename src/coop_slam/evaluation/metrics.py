@@ -7,7 +7,7 @@ monocular map without metric scale).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -30,6 +30,9 @@ class AteResult:
     # alignment applied to the estimate: p_gt = scale * R p_est + t, with (R, t) = T_gt_est
     T_gt_est: np.ndarray
     scale: float = 1.0  # ground truth's lengths per estimated length (1 unless correct_scale)
+    # the associated estimated poses' stamps and their position errors after the alignment [m]
+    stamps_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    errors_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def _traj(poses, stamps):
@@ -95,6 +98,8 @@ def ate(
         count=len(i_est),
         T_gt_est=T,
         scale=float(scale),
+        stamps_s=stamps,
+        errors_m=np.asarray(ape.error, float),
     )
 
 

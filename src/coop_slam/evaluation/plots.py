@@ -9,7 +9,6 @@ import os
 
 import numpy as np
 
-from ..timestamps import associate
 from .metrics import EvaluationError, ate
 
 
@@ -103,10 +102,7 @@ def keyframe_errors(stamps, poses, stamps_gt, poses_gt, mono: bool = False):
         res = ate(stamps, poses, stamps_gt, poses_gt, correct_scale=mono)
     except EvaluationError:
         return None
-    i, j = associate(np.asarray(stamps, float), np.asarray(stamps_gt, float), 0.02)
-    placed = aligned(res, np.asarray(poses, float)[i])
-    err = np.linalg.norm(placed[:, :3, 3] - np.asarray(poses_gt, float)[j][:, :3, 3], axis=1)
-    return np.asarray(stamps, float)[i], err, res
+    return res.stamps_s, res.errors_m, res
 
 
 def plot_path_errors(out_dir: str, series: dict, gts: dict, mono=()) -> None:

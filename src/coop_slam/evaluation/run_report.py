@@ -474,11 +474,12 @@ def evaluate_run(
     report["bandwidth"] = _bandwidth(run)
     report["topics"] = _topic_bandwidth(run)
     if out_dir:
+        mono = {rid for rid in robot_ids if sensors[rid] == "mono"}
         plot_trajectories(
             out_dir,
             {rid: _kf_arrays(r) for rid, r in run.robots.items() if r.keyframes},
             gts,
-            mono={e["id"] for e in report["robots"] if e.get("sensor") == "mono"},
+            mono=mono,
         )
         if published:  # the pose-graph sharing's picture: what each client shows
             series = {}
@@ -488,12 +489,7 @@ def evaluate_run(
                 if r.team_keyframes:
                     series[rid].append(("team map (server)", *est_world[rid]))
                 series[rid].append(("published path (client)", *path))
-            plot_path_errors(
-                out_dir,
-                series,
-                gts,
-                mono={e["id"] for e in report["robots"] if e.get("sensor") == "mono"},
-            )
+            plot_path_errors(out_dir, series, gts, mono=mono)
     return report
 
 

@@ -45,7 +45,7 @@ from ..config import load_yaml_config
 from ..errors import CoopSlamError
 from ..geometry import T_base_cam_of, invert, transform_points
 from ..playback import PLAYABLE_SENSORS, camera_topics
-from ..vo.shared_poses import SharedPoses
+from ..vo.shared_poses import NEWEST, SharedPoses
 from .convert import (
     MessageError,
     camera_from_info,
@@ -799,7 +799,7 @@ class ClientNode:
         if self.shared.corrected:
             xyz, ref = self.vo.map_points_with_reference()
             # A point no keyframe observes any more goes with where the robot is now.
-            ids = np.where(ref > 0, ref + self.kf_id_base, np.iinfo(np.int64).max)
+            ids = np.where(ref > 0, ref + self.kf_id_base, NEWEST)
             pts = self.shared.points(transform_points(self.T_base_cam, xyz), ids)
         else:  # nothing to lay over (finding each point's reference keyframe takes a while)
             pts = transform_points(self.T_base_cam, self.vo.map_point_arrays()[1])

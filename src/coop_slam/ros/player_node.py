@@ -30,10 +30,10 @@ from ..datasets import DatasetError
 from ..errors import CoopSlamError
 from ..playback import (
     COLOR_TOPIC,
-    PLAYABLE_SENSORS,
     PlaybackError,
     RobotStream,
     build_schedule,
+    camera_topic_names,
     camera_topics,
     ground_truth_by_frame,
     group_simultaneous,
@@ -193,11 +193,6 @@ class _RobotTopics:
                 self.publish(play_s, frame)
 
 
-def _flat_topics(topics: dict) -> list[str]:
-    """The topic names of :func:`coop_slam.playback.camera_topics`."""
-    return [t for v in topics.values() for t in (v.values() if isinstance(v, dict) else [v])]
-
-
 def wait_for_consumers(camera_pubs: dict, cfg: PlayerConfig) -> None:
     """Before playing: wait (each step at most ``cfg.wait_for_subscribers_s``) until each of every
     robot's camera topics (robot id -> their publishers: images and camera infos) has a
@@ -269,7 +264,7 @@ class PlayerNode:
         )
         wait_for_consumers(
             {
-                rid: [p for topic, p in t.pubs.items() if topic.startswith(f"/robot_{rid}/camera/")]
+                rid: [p for topic, p in t.pubs.items() if topic in camera_topic_names(rid)]
                 for rid, t in self.topics.items()
             },
             self.cfg,
@@ -458,11 +453,7 @@ class BagPlayer:
         for topic in publishers:
             if m := COLOR_TOPIC.match(topic):
                 rid = int(m.group(1))
-                wanted = {  # what a client of any sensor subscribes to
-                    t
-                    for sensor in PLAYABLE_SENSORS
-                    for t in _flat_topics(camera_topics(rid, sensor))
-                }
+                wanted = camera_topic_names(rid)
                 cameras[rid] = [p for t, p in publishers.items() if t in wanted]
         wait_for_consumers(cameras, cfg)
         lockstep = {rid for rid, a in self.acks.items() if cfg.lockstep and a.has_consumer}

@@ -33,6 +33,8 @@ from ..geometry import invert
 
 _I = np.eye(4)
 _I.setflags(write=False)
+# A keyframe id beyond all: its correction is where the robot is now (the newest corrected one's).
+NEWEST = np.iinfo(np.int64).max
 
 
 class SharedPoses:
@@ -55,7 +57,7 @@ class SharedPoses:
             C.setflags(write=False)
             self._C[k] = C
         if taken:
-            self._newest = max(taken + ([] if self._newest is None else [self._newest]))
+            self._newest = max(*taken, self._newest or 0)  # (ids are >= 1)
         return len(taken)
 
     def start_segment(self, first_kf_id: int) -> None:
@@ -77,7 +79,7 @@ class SharedPoses:
     def T_map_odom(self) -> np.ndarray:
         """The newest corrected keyframe's correction: where the robot is now (identity before
         the first, and in a new map segment before its first)."""
-        return self.correction(np.iinfo(np.int64).max).copy()
+        return self.correction(NEWEST).copy()
 
     def correction(self, kf_id: int) -> np.ndarray:
         """``C_k`` of a keyframe (see the module)."""
