@@ -69,7 +69,7 @@ class ClientOutputsTest(unittest.TestCase):
         seen = {}  # keyframe id -> as last received (a delta update completes from it)
         for m in got["kf"]:
             self.assertEqual(m.header.frame_id, "robot_1/map")
-            kf = keyframe_from_msg(m, known_robots={1}, base=seen.get(m.keyframe_id))
+            kf = keyframe_from_msg(m, known_robots={1}, stored=seen.get)
             seen[m.keyframe_id] = kf
             self.assertTrue(m.sequence > 0 and m.session > 0)  # numbered for delivery
             if m.action != 2:

@@ -187,10 +187,10 @@ def test_the_synthesised_client_sends_as_the_client_node():
     new, delta, whole, removal = (a.item for a in sent)
     assert isinstance(new, KeyframeRecord) and new.keypoints.dtype == np.float32
     assert isinstance(delta, DeltaUpdate) and delta.keyframe_id == 7
-    completed = delta.complete(new, {3})
+    completed = delta.complete({7: new}.get, {3})
     np.testing.assert_array_equal(completed.descriptors, new.descriptors)
     np.testing.assert_allclose(completed.T_map_cam, moved.T_map_cam)
     with pytest.raises(KeyframeError, match="does not hold"):
-        complete_stripped(completed, None, {3})
+        complete_stripped(completed, {}.get, {3})
     assert isinstance(whole, KeyframeRecord) and whole.action == ACTION_UPDATE
     assert isinstance(removal, KeyframeRecord) and removal.action == ACTION_REMOVE

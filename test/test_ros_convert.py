@@ -71,7 +71,7 @@ def test_a_delta_update_rebuilds_the_same_keyframe_as_a_full_one():
     full_msg, delta_msg = (_wire(keyframe_to_msg(upd, "robot_2/map", d)) for d in (False, True))
     assert _size(delta_msg) < _size(full_msg) / 3
     full = keyframe_from_msg(full_msg, {1, 2})
-    delta = keyframe_from_msg(delta_msg, {1, 2}, base=new)
+    delta = keyframe_from_msg(delta_msg, {1, 2}, stored=lambda _kf: new)
     for name in ("T_map_cam", "keypoints", "octaves", "descriptors", "depths_m", "map_points"):
         np.testing.assert_array_equal(getattr(delta, name), getattr(full, name))
     assert delta.static_digest() == full.static_digest() and delta.action == ACTION_UPDATE
@@ -79,7 +79,7 @@ def test_a_delta_update_rebuilds_the_same_keyframe_as_a_full_one():
         keyframe_from_msg(delta_msg, {1, 2})
     delta_msg.action = delta_msg.ACTION_NEW
     with pytest.raises(MessageError, match="only an update"):
-        keyframe_from_msg(delta_msg, {1, 2}, base=new)
+        keyframe_from_msg(delta_msg, {1, 2}, stored=lambda _kf: new)
 
 
 def test_delta_updates_carry_only_the_observations_that_changed():
@@ -117,7 +117,7 @@ def test_delta_updates_carry_only_the_observations_that_changed():
         assert out.delta and 0 < len(out.patched) < 25
         msg = _wire(keyframe_to_msg(upd, "robot_2/map", out.delta, out.patched))
         sizes.append((_size(msg), _size(_wire(keyframe_to_msg(upd, "robot_2/map", True)))))
-        held = keyframe_from_msg(msg, {1, 2}, base=held)
+        held = keyframe_from_msg(msg, {1, 2}, stored=lambda _kf, base=held: base)
         np.testing.assert_array_equal(held.map_point_ids, upd.map_point_ids)
         np.testing.assert_allclose(held.T_map_cam, upd.T_map_cam, atol=1e-6)
         err = np.linalg.norm(held.map_points - upd.map_points, axis=1)
@@ -125,12 +125,137 @@ def test_delta_updates_carry_only_the_observations_that_changed():
         kf = upd
     assert all(patch < whole / 2 for patch, whole in sizes)
     # A later map segment's keyframe: the server holds it under the segment's map id.
-    again = keyframe_from_msg(msg, {1, 2}, base=dataclasses.replace(held, robot_id=3))
+    again = keyframe_from_msg(msg, {1, 2}, stored=lambda _kf: dataclasses.replace(held, robot_id=3))
     np.testing.assert_array_equal(again.map_point_ids, held.map_point_ids)
     # What the keyframe saw changed (a client re-extracted it): the update goes in full.
     redone = dataclasses.replace(kf, descriptors=kf.descriptors[::-1].copy())
     assert not deltas.prepare(redone).delta
     assert not deltas.prepare(dataclasses.replace(kf, action=ACTION_NEW)).delta
+
+
+def _sees(kf, ids_from, keypoints):
+    """``kf`` with its ``keypoints`` now observing the map points of keyframe ``ids_from``'s
+    same keypoints (tracked from it), at the points' positions there moved by 5 cm."""
+    import dataclasses
+
+    ids = kf.map_point_ids.copy()
+    ids[keypoints] = ids_from.map_point_ids[keypoints]
+    per_kp = kf.map_points_per_keypoint()
+    per_kp[keypoints] = ids_from.map_points_per_keypoint()[keypoints] + 0.05
+    return dataclasses.replace(
+        kf, map_point_ids=ids, map_points=per_kp[ids != 0].astype(np.float32)
+    )
+
+
+def test_a_map_points_descriptor_travels_once():
+    """A new keyframe observing map points a keyframe the server holds observes goes without
+    their descriptors; the server takes them there and gets the keyframe otherwise as sent. A
+    removed keyframe, another map segment's, or the keyframe itself is never referred to."""
+    import dataclasses
+
+    from coop_slam.keyframe_record import ACTION_REMOVE, ACTION_UPDATE
+    from coop_slam.vo.outbox import Uplink, UplinkConfig
+
+    uplink = Uplink()
+    server: dict[int, object] = {}  # keyframe id -> as the server holds it
+
+    def send(rec):
+        out = uplink.prepare(rec)
+        msg = _wire(keyframe_to_msg(rec, "robot_2/map", out.delta, out.patched, out.refs))
+        got = keyframe_from_msg(msg, {1, 2}, stored=server.get)
+        server[rec.keyframe_id] = got
+        return out, msg, got
+
+    a = make_keyframe(n=80, robot_id=2, keyframe_id=1)  # map points 1, 3, 5, ... at 0, 2, 4, ...
+    b = make_keyframe(n=80, robot_id=2, keyframe_id=2, seed=1)
+    b.map_point_ids = np.where(b.map_point_ids != 0, b.map_point_ids + 1000, 0).astype(np.uint32)
+    b = _sees(b, a, np.arange(0, 30, 2))  # tracked 15 of a's points
+    b = _sees(b, a, np.array([31]))  # a keypoint with no map point in a: nothing to take
+    out_a, msg_a, _ = send(a)
+    assert out_a.refs is None  # the server holds nothing yet
+    out_b, msg_b, got_b = send(b)
+    ref_kfs, refs = out_b.refs
+    assert list(ref_kfs) == [1] and np.array_equal(np.flatnonzero(refs), np.arange(0, 30, 2))
+    assert len(msg_b.descriptors) == 32 * (80 - 15)
+    # 15 descriptors less, a byte per keypoint and a keyframe id more
+    assert _size(msg_b) == _size(_wire(keyframe_to_msg(b, "robot_2/map"))) - 15 * 32 + 80 + 4
+    # The server's b: a's descriptors for the tracked keypoints, b's own for the others; its
+    # observations are b's (the points' positions travel: they moved).
+    np.testing.assert_array_equal(got_b.descriptors[refs != 0], a.descriptors[refs != 0])
+    np.testing.assert_array_equal(got_b.descriptors[refs == 0], b.descriptors[refs == 0])
+    for name in ("keypoints", "octaves", "depths_m", "map_point_ids", "map_points", "T_map_cam"):
+        np.testing.assert_allclose(
+            getattr(got_b, name)[..., :2] if name == "keypoints" else getattr(got_b, name),
+            getattr(b, name)[..., :2] if name == "keypoints" else getattr(b, name),
+            atol=1e-6,
+        )
+    # c tracks a's points and b's own: it takes from both, b (covisible, heavier) first.
+    c = make_keyframe(n=80, robot_id=2, keyframe_id=3, seed=2)
+    c.map_point_ids = np.where(c.map_point_ids != 0, c.map_point_ids + 2000, 0).astype(np.uint32)
+    c = _sees(_sees(c, a, np.arange(40, 60, 2)), b, np.arange(0, 20, 2))
+    c.covisible_ids, c.covisible_weights = np.array([1, 2], np.uint32), np.array([5, 9], np.uint16)
+    out_c, _, got_c = send(c)
+    assert list(out_c.refs[0]) == [2, 1]
+    np.testing.assert_array_equal(got_c.descriptors[:20:2], a.descriptors[:20:2])  # b took a's
+    np.testing.assert_array_equal(got_c.descriptors[40:60:2], a.descriptors[40:60:2])
+    # a removed: d, tracking a's points, carries their descriptors; so does a keyframe of a
+    # new map segment tracking b's, and c sent in full again (what it saw changed) refers to b
+    # (which holds c's first ten points) but not to itself.
+    send(dataclasses.replace(a, action=ACTION_REMOVE))
+    d = _sees(make_keyframe(n=80, robot_id=2, keyframe_id=4, seed=3), a, np.arange(60, 70, 2))
+    per_kp = d.map_points_per_keypoint()
+    d.map_point_ids = np.where(np.arange(80) < 60, 0, d.map_point_ids).astype(np.uint32)
+    d.map_points = per_kp[d.map_point_ids != 0].astype(np.float32)
+    assert send(d)[0].refs is None
+    e = dataclasses.replace(_sees(make_keyframe(n=80, robot_id=2, keyframe_id=5), b, [0]))
+    assert uplink.prepare(dataclasses.replace(e, map_segment=1)).refs is None
+    redone = dataclasses.replace(c, action=ACTION_UPDATE, descriptors=c.descriptors[::-1].copy())
+    out = uplink.prepare(redone)
+    assert not out.delta and list(out.refs[0]) == [2]
+    # The server no longer holds what a message refers to: refused, naming it.
+    del server[2]
+    msg = _wire(keyframe_to_msg(redone, "robot_2/map", False, None, out.refs))
+    with pytest.raises(MessageError, match="refer to keyframe 2, which the server does not hold"):
+        keyframe_from_msg(msg, {1, 2}, stored=server.get)
+    with pytest.raises(MessageError, match="keyframes the server holds are not given"):
+        keyframe_from_msg(msg, {1, 2})
+    # Switched off, every descriptor travels.
+    plain = Uplink(UplinkConfig(share_descriptors=False))
+    plain.prepare(a)
+    assert plain.prepare(b).refs is None
+
+
+def test_malformed_descriptor_refs_are_rejected():
+    from coop_slam.keyframe_record import observation_index
+
+    np.testing.assert_array_equal(
+        observation_index(np.array([0, 7, 3, 7]), np.array([7, 3, 0, 9])), [1, 2, -1, -1]
+    )
+    held = make_keyframe(n=20, robot_id=1, keyframe_id=4)
+    kf = make_keyframe(n=20, robot_id=1, keyframe_id=5, seed=1)  # map points 1, 3, ... as held
+    refs = np.where(kf.map_point_ids != 0, 1, 0).astype(np.uint8)
+    stored = {4: held}.get
+    ok = _wire(keyframe_to_msg(kf, "robot_1/map", refs=(np.array([4]), refs)))
+    np.testing.assert_array_equal(
+        keyframe_from_msg(ok, {1}, stored=stored).descriptors[refs != 0], held.descriptors[::2]
+    )
+    for change, match in (
+        (dict(descriptor_refs=bytes(refs[:-1])), "descriptor_refs has 19 entries"),
+        (dict(descriptor_refs=bytes(refs * 2)), "names reference 2 of 1"),
+        (dict(descriptors=ok.descriptors[:-32]), "hold 9 descriptors for 10 keypoints"),
+        (dict(map_point_ids=np.where(refs, 99, 0).tolist()), "map point 99 in keyframe 4"),
+        (dict(ref_keyframes=[6]), "keyframe 6, which the server does not hold"),
+    ):
+        msg = _wire(keyframe_to_msg(kf, "robot_1/map", refs=(np.array([4]), refs)))
+        for k, v in change.items():
+            setattr(msg, k, v)
+        with pytest.raises(MessageError, match=match):
+            keyframe_from_msg(msg, {1}, stored=stored)
+    bad = refs.copy()
+    bad[1] = 1  # keypoint 1 observes no map point
+    msg = _wire(keyframe_to_msg(kf, "robot_1/map", refs=(np.array([4]), bad)))
+    with pytest.raises(MessageError, match="observes no map point"):
+        keyframe_from_msg(msg, {1}, stored=stored)
 
 
 def test_malformed_patches_are_rejected():
@@ -141,16 +266,16 @@ def test_malformed_patches_are_rejected():
     msg.keypoints, msg.octaves, msg.descriptors, msg.depths_m = [], b"", b"", []
     msg.patched, msg.map_point_ids, msg.map_points = [25], [3], [0.0, 0.0, 1.0]
     with pytest.raises(MessageError, match="names keypoint 25 of a keyframe with 20"):
-        keyframe_from_msg(msg, {1}, base=held)
+        keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
     msg.patched, msg.map_point_ids, msg.map_points = [1, 1], [3, 4], [0.0] * 6
     with pytest.raises(MessageError, match="names a keypoint twice"):
-        keyframe_from_msg(msg, {1}, base=held)
+        keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
     msg.patched, msg.map_point_ids, msg.map_points = [1, 2], [3, 0], [0.0] * 6
     with pytest.raises(MessageError, match="gives 2 map points for 1 observed"):
-        keyframe_from_msg(msg, {1}, base=held)
+        keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
     msg.patched, msg.map_point_ids = [1, 2, 3], [3, 0]
     with pytest.raises(MessageError, match="patched lists 3 keypoints"):
-        keyframe_from_msg(msg, {1}, base=held)
+        keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
 
 
 def _remove_with_200k_keypoints(msg):

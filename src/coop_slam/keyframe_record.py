@@ -418,6 +418,73 @@ def complete_update(
     )
 
 
+def observation_index(source_ids: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """Per map point id of ``ids``, the index of the first keypoint observing it in a keyframe
+    whose per-keypoint map point ids are ``source_ids``; -1 where none does (and for id 0)."""
+    source_ids, ids = np.asarray(source_ids, np.int64), np.asarray(ids, np.int64)
+    if not len(source_ids):
+        return np.full(len(ids), -1, np.int64)
+    order = np.argsort(source_ids, kind="stable")  # equal ids keep their keypoint order
+    ranked = source_ids[order]
+    pos = np.minimum(np.searchsorted(ranked, ids), len(ranked) - 1)
+    return np.where((ranked[pos] == ids) & (ids != 0), order[pos], -1)
+
+
+def shared_descriptors(
+    map_point_ids: np.ndarray,
+    own: np.ndarray,
+    refs: np.ndarray,
+    ref_keyframes: np.ndarray,
+    stored,
+    where: str,
+) -> np.ndarray:
+    """A keyframe's (N, 32) descriptors from a message that leaves some out (``KeyFrame``
+    ``descriptor_refs``): ``own`` are the descriptors of the keypoints whose ``refs`` entry is 0;
+    a keypoint with ``refs`` i >= 1 takes the descriptor of the keypoint observing its map point in
+    keyframe ``ref_keyframes[i - 1]``, the record ``stored(keyframe_id)`` gives (None: not held).
+    Raises KeyframeError naming what does not fit."""
+    refs = np.asarray(refs, np.int64)
+    ids = np.asarray(map_point_ids, np.int64)
+    own = np.asarray(own, np.uint8).reshape(-1, DESCRIPTOR_BYTES)
+    if len(refs) != len(ids):
+        raise KeyframeError(
+            f"{where}: descriptor_refs has {len(refs)} entries, expected one per keypoint "
+            f"({len(ids)})"
+        )
+    if len(own) != int(np.count_nonzero(refs == 0)):
+        raise KeyframeError(
+            f"{where}: descriptors hold {len(own)} descriptors for "
+            f"{int(np.count_nonzero(refs == 0))} keypoints without a descriptor_refs entry"
+        )
+    if len(refs) and refs.max() > len(ref_keyframes):
+        raise KeyframeError(
+            f"{where}: descriptor_refs names reference {int(refs.max())} of "
+            f"{len(ref_keyframes)} ref_keyframes"
+        )
+    if np.any((refs != 0) & (ids == 0)):
+        raise KeyframeError(f"{where}: descriptor_refs names a keypoint that observes no map point")
+    out = np.zeros((len(ids), DESCRIPTOR_BYTES), np.uint8)
+    out[refs == 0] = own
+    for i, kf_id in enumerate(np.asarray(ref_keyframes, np.int64), start=1):
+        mine = np.flatnonzero(refs == i)
+        if not len(mine):
+            continue
+        source = stored(int(kf_id))
+        if source is None:
+            raise KeyframeError(
+                f"{where}: its descriptors refer to keyframe {kf_id}, which the server does not "
+                "hold"
+            )
+        at = observation_index(source.map_point_ids, ids[mine])
+        if np.any(at < 0):
+            raise KeyframeError(
+                f"{where}: descriptor_refs names map point {int(ids[mine][at < 0][0])} in "
+                f"keyframe {kf_id}, which does not observe it"
+            )
+        out[mine] = source.descriptors[at]
+    return out
+
+
 def _is_int(x) -> bool:
     return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
 

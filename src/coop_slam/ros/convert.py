@@ -6,6 +6,8 @@ function validates what it reads and raises :class:`MessageError` with a message
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 import rospy
 from geometry_msgs.msg import Pose, Transform
@@ -25,6 +27,7 @@ from ..keyframe_record import (
     camera_from_fields,
     complete_update,
     patch_of,
+    shared_descriptors,
 )
 
 
@@ -219,11 +222,14 @@ def keyframe_to_msg(
     frame_id: str,
     delta: bool = False,
     patched: np.ndarray | None = None,
+    refs: tuple[np.ndarray, np.ndarray] | None = None,
 ):
     """The KeyFrame message of a record; ``delta`` (an update): without keypoints, octaves,
     descriptors and depths, which the server has from the keyframe's first message, and with
-    ``patched`` (not None) only those keypoints' observations. A place signature goes as a new
-    keyframe with only its BoW vector (``signature_only``)."""
+    ``patched`` (not None) only those keypoints' observations. ``refs`` (a full message): the
+    keyframes the server holds and, per keypoint, the one whose descriptor it takes (0: the
+    descriptor travels; see :class:`coop_slam.vo.outbox.Outgoing`). A place signature goes as a
+    new keyframe with only its BoW vector (``signature_only``)."""
     from coop_slam.msg import CameraModel as CameraModelMsg
     from coop_slam.msg import KeyFrame
 
@@ -258,7 +264,12 @@ def keyframe_to_msg(
     elif not delta:
         msg.keypoints = np.asarray(kf.keypoints, np.float32)[:, :2].ravel().tolist()
         msg.octaves = np.asarray(kf.octaves, np.uint8).tobytes()
-        msg.descriptors = np.asarray(kf.descriptors, np.uint8).tobytes()
+        descriptors = np.asarray(kf.descriptors, np.uint8)
+        if refs is not None:
+            msg.ref_keyframes = np.asarray(refs[0], np.uint32).tolist()
+            msg.descriptor_refs = np.asarray(refs[1], np.uint8).tobytes()
+            descriptors = descriptors[np.asarray(refs[1]) == 0]
+        msg.descriptors = descriptors.tobytes()
         msg.depths_m = np.asarray(kf.depths_m, np.float32).tolist()
     ids, points = np.asarray(kf.map_point_ids, np.uint32), np.asarray(kf.map_points, np.float32)
     if delta and patched is not None:
@@ -278,13 +289,25 @@ def _bytes(field) -> np.ndarray:
     return np.asarray(field, dtype=np.uint8)
 
 
+def needs_stored(msg) -> bool:
+    """Whether a KeyFrame message is completed from keyframes the server holds (a delta update,
+    or descriptors taken from other keyframes): when the server takes it, in order, not when it
+    arrives."""
+    return bool(getattr(msg, "delta", False)) or len(getattr(msg, "descriptor_refs", ())) > 0
+
+
 def keyframe_from_msg(
-    msg, known_robots: set[int] | None = None, base: KeyframeRecord | None = None
+    msg,
+    known_robots: set[int] | None = None,
+    stored: Callable[[int], KeyframeRecord | None] | None = None,
 ) -> KeyframeRecord | PlaceSignature:
-    """Validated :class:`KeyframeRecord` from a KeyFrame message; raises MessageError. A delta
-    update takes keypoints, octaves, descriptors and depths from ``base``, the keyframe as the
-    server holds it, and, when it carries a patch, the observations it leaves out. A message
-    with ``signature_only`` gives a :class:`PlaceSignature`."""
+    """Validated :class:`KeyframeRecord` from a KeyFrame message; raises MessageError.
+    ``stored(keyframe_id)`` gives a keyframe of the message's robot and map segment as the server
+    holds it (None: not held): a delta update takes keypoints, octaves, descriptors and depths
+    from the keyframe's own, and, when it carries a patch, the observations it leaves out; a
+    message with ``descriptor_refs`` the descriptors it leaves out from the keyframes it names
+    (see :func:`needs_stored`). A message with ``signature_only`` gives a
+    :class:`PlaceSignature`."""
     try:
         if msg.camera.sensor_type >= len(SENSORS):
             raise KeyframeError(f"camera sensor_type {msg.camera.sensor_type} unknown")
@@ -333,11 +356,32 @@ def keyframe_from_msg(
             descriptors=descriptors.reshape(-1, 32),
             depths_m=np.asarray(msg.depths_m, np.float32),
         )
+        refs = _bytes(getattr(msg, "descriptor_refs", b""))
+        if len(refs):
+            if getattr(msg, "delta", False) or getattr(msg, "signature_only", False):
+                raise KeyframeError(
+                    f"{where}: only a full message may refer to other keyframes' descriptors"
+                )
+            if stored is None:
+                raise KeyframeError(
+                    f"{where}: refers to other keyframes' descriptors, but the keyframes the "
+                    "server holds are not given"
+                )
+            static["descriptors"] = shared_descriptors(
+                msg.map_point_ids,
+                static["descriptors"],
+                refs,
+                np.asarray(getattr(msg, "ref_keyframes", ()), np.int64),
+                stored,
+                where,
+            )
+        base = None
         if getattr(msg, "delta", False):
             if msg.action != ACTION_UPDATE:
                 raise KeyframeError(f"{where}: only an update may leave out what it saw (delta)")
             if any(len(v) for v in static.values()):
                 raise KeyframeError(f"{where}: a delta update carries no keypoints or descriptors")
+            base = stored(msg.keyframe_id) if stored is not None else None
             if base is None:
                 raise KeyframeError(
                     f"{where}: a delta update of a keyframe the server does not hold"

@@ -16,6 +16,7 @@ session. Services ``~save_map`` and ``~load_map``.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -44,6 +45,7 @@ from .convert import (
     MessageError,
     cloud_to_msg,
     keyframe_from_msg,
+    needs_stored,
     pose_from_msg,
     pose_to_msg,
     transform_stamped,
@@ -313,8 +315,8 @@ class ServerNode:
                 topic, f"keyframe of robot {msg.robot_id} on robot {topic_robot}'s topic"
             )
             return
-        if msg.delta:  # needs the keyframe as the server holds it when its turn comes
-            rec = PendingKeyframe(msg.robot_id, lambda: self._delta_record(msg))
+        if needs_stored(msg):  # needs keyframes as the server holds them when its turn comes
+            rec = PendingKeyframe(msg.robot_id, lambda: self._stored_record(msg))
         else:
             try:
                 rec = keyframe_from_msg(msg, known_robots=self.server.known_robots)
@@ -323,10 +325,13 @@ class ServerNode:
                 return
         self.queue.put(_KeyframeJob(rec, msg.header.stamp.to_sec(), msg.session, msg.sequence))
 
-    def _delta_record(self, msg) -> KeyframeRecord:
-        """A delta update completed from the stored keyframe (in the worker thread)."""
-        base = self.server.stored_record(msg.robot_id, msg.map_segment, msg.keyframe_id)
-        return keyframe_from_msg(msg, known_robots=self.server.known_robots, base=base)
+    def _stored_record(self, msg) -> KeyframeRecord:
+        """A message completed from the keyframes the server holds (in the worker thread)."""
+        return keyframe_from_msg(
+            msg,
+            known_robots=self.server.known_robots,
+            stored=functools.partial(self.server.stored_record, msg.robot_id, msg.map_segment),
+        )
 
     def _on_sighting(self, msg) -> None:
         """A marker sighting asks for a rendezvous check (at most once per pair and period)."""

@@ -42,6 +42,7 @@ from ..keyframe_record import (
     KeyframeRecord,
     complete_update,
     patch_of,
+    shared_descriptors,
 )
 from ..team.map_builder import TeamMapBuilder
 from ..team.publish_cadence import PublishCadence, PublishCadenceConfig
@@ -49,7 +50,7 @@ from ..team.publish_cadence import PublishCadence, PublishCadenceConfig
 Figure = tuple[str, float, str]
 # Bump when what the synthesised streams hold changes (client behaviour, record layout): the cache
 # key has it, so an old cache is not replayed as if it were current.
-STREAM_VERSION = "2"
+STREAM_VERSION = "3"
 DEFAULT_SCENARIO, DEFAULT_ROBOTS = "multi", 8
 SESSION = 1  # the synthesised clients' delivery session (one start each, sequences from 1)
 _REPO = os.path.normpath(
@@ -76,16 +77,18 @@ def _log(text: str) -> None:
 # --- the streams ----------------------------------------------------------------------------------
 @dataclasses.dataclass
 class DeltaUpdate:
-    """An update sent without what the keyframe saw (``KeyFrame.delta``): the server completes it
-    when it takes it, from the keyframe as it holds it then. ``complete(base, known_robots)``
-    raises CoopSlamError when it cannot (e.g. ``base`` None: a keyframe the server does not
-    hold)."""
+    """A message completed from keyframes the server holds (an update sent without what the
+    keyframe saw, ``KeyFrame.delta``, or a keyframe whose descriptors are other keyframes'): the
+    server completes it when it takes it. ``complete(stored, known_robots)``, ``stored(keyframe
+    id)`` the robot's keyframe of that map segment as the server holds it then (None: not held),
+    raises CoopSlamError when it cannot."""
 
     robot_id: int
     map_segment: int
     keyframe_id: int
     stamp_s: float
-    complete: Callable[[KeyframeRecord | None, set], KeyframeRecord]
+    complete: Callable[[Callable[[int], KeyframeRecord | None], set], KeyframeRecord]
+    action: int = ACTION_UPDATE
 
 
 class Arrival(NamedTuple):
@@ -100,7 +103,7 @@ class Arrival(NamedTuple):
 
 def message_kind(item: KeyframeRecord | DeltaUpdate) -> str:
     if isinstance(item, DeltaUpdate):
-        return "update"
+        return "new" if item.action == ACTION_NEW else "update"
     return {ACTION_NEW: "new", ACTION_UPDATE: "update", ACTION_REMOVE: "remove"}[item.action]
 
 
@@ -111,13 +114,14 @@ def header_stamp_s(item: KeyframeRecord | DeltaUpdate) -> float:
 
 def complete_stripped(
     sent: KeyframeRecord,
-    base: KeyframeRecord | None,
+    stored: Callable[[int], KeyframeRecord | None],
     known_robots: set,
     patched: np.ndarray | None = None,
 ) -> KeyframeRecord:
     """A delta update (``sent``, its static arrays empty, its observations a patch when
-    ``patched`` is given) completed as ``keyframe_from_msg`` does it: from ``base``, the keyframe
-    as the server holds it."""
+    ``patched`` is given) completed as ``keyframe_from_msg`` does it: from the keyframe as the
+    server holds it (``stored``)."""
+    base = stored(sent.keyframe_id)
     if base is None:
         raise KeyframeError(
             f"keyframe {sent.keyframe_id} of robot {sent.robot_id}: a delta update of a keyframe "
@@ -126,12 +130,36 @@ def complete_stripped(
     return complete_update(sent, base, patched).validate(known_robots)
 
 
+def complete_refs(
+    sent: KeyframeRecord,
+    refs: tuple[np.ndarray, np.ndarray],
+    stored: Callable[[int], KeyframeRecord | None],
+    known_robots: set,
+) -> KeyframeRecord:
+    """A full message whose descriptors partly come from keyframes the server holds (``refs``,
+    see :class:`coop_slam.vo.outbox.Outgoing`), completed as ``keyframe_from_msg`` does it."""
+    ref_keyframes, per_keypoint = refs
+    descriptors = shared_descriptors(
+        sent.map_point_ids,
+        sent.descriptors[np.asarray(per_keypoint) == 0],
+        per_keypoint,
+        ref_keyframes,
+        stored,
+        f"keyframe {sent.keyframe_id} of robot {sent.robot_id}",
+    )
+    return dataclasses.replace(sent, descriptors=descriptors).validate(known_robots)
+
+
 def as_sent(
-    rec: KeyframeRecord, delta: bool, patched: np.ndarray | None = None
+    rec: KeyframeRecord,
+    delta: bool,
+    patched: np.ndarray | None = None,
+    refs: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> KeyframeRecord | DeltaUpdate:
     """The record as the server gets it from the wire: arrays in the message's dtypes, keypoints
-    without their size and angle, and for a delta update without what the keyframe saw (and with
-    only the ``patched`` keypoints' observations, when given)."""
+    without their size and angle, for a delta update without what the keyframe saw (and with
+    only the ``patched`` keypoints' observations, when given), and with ``refs`` with the
+    descriptors of other keyframes the server holds."""
     arrays = {k: np.asarray(getattr(rec, k), dtype) for k, dtype in _WIRE_DTYPES.items()}
     keypoints = arrays["keypoints"].reshape(-1, 4).copy()
     keypoints[:, 2], keypoints[:, 3] = 0.0, -1.0  # not sent
@@ -140,7 +168,16 @@ def as_sent(
     arrays["map_points"] = arrays["map_points"].reshape(-1, 3)
     rec = dataclasses.replace(rec, **arrays)
     if not delta:
-        return rec
+        if refs is None:
+            return rec
+        return DeltaUpdate(
+            rec.robot_id,
+            rec.map_segment,
+            rec.keyframe_id,
+            rec.stamp_s,
+            functools.partial(complete_refs, rec, refs),
+            rec.action,
+        )
     empty = {k: np.zeros((0,) + getattr(rec, k).shape[1:], _WIRE_DTYPES[k]) for k in STATIC_ARRAYS}
     if patched is not None:
         empty["map_point_ids"], empty["map_points"] = patch_of(rec, patched)
@@ -189,7 +226,11 @@ class ClientSender:
             self.sequence += 1
             out.append(
                 Arrival(
-                    t_s, self.robot_id, as_sent(rec, how.delta, how.patched), SESSION, self.sequence
+                    t_s,
+                    self.robot_id,
+                    as_sent(rec, how.delta, how.patched, how.refs),
+                    SESSION,
+                    self.sequence,
                 )
             )
         return out
@@ -295,10 +336,12 @@ def synthesized_streams(
     return arrivals
 
 
-def _complete_msg(msg, base: KeyframeRecord | None, known_robots: set) -> KeyframeRecord:
+def _complete_msg(
+    msg, stored: Callable[[int], KeyframeRecord | None], known_robots: set
+) -> KeyframeRecord:
     from ..ros.convert import keyframe_from_msg
 
-    return keyframe_from_msg(msg, known_robots=known_robots, base=base)
+    return keyframe_from_msg(msg, known_robots=known_robots, stored=stored)
 
 
 def run_streams(run_dir: str) -> tuple[list[Arrival], dict]:
@@ -311,7 +354,7 @@ def run_streams(run_dir: str) -> tuple[list[Arrival], dict]:
 
     import rosbag
 
-    from ..ros.convert import MessageError, keyframe_from_msg
+    from ..ros.convert import MessageError, keyframe_from_msg, needs_stored
 
     with open(os.path.join(run_dir, "run.json"), encoding="utf-8") as fh:
         info = json.load(fh)
@@ -330,13 +373,14 @@ def run_streams(run_dir: str) -> tuple[list[Arrival], dict]:
                     again += 1
                     continue
                 seen.add((msg.robot_id, session, sequence))
-            if getattr(msg, "delta", False):  # completed when taken, as the node does
+            if needs_stored(msg):  # completed when taken, as the node does
                 item = DeltaUpdate(
                     msg.robot_id,
                     msg.map_segment,
                     msg.keyframe_id,
                     msg.header.stamp.to_sec(),
                     functools.partial(_complete_msg, msg),
+                    msg.action,
                 )
             else:
                 try:
@@ -383,7 +427,7 @@ class NodeWork:
         return PendingKeyframe(
             delta.robot_id,
             lambda: delta.complete(
-                server.stored_record(delta.robot_id, delta.map_segment, delta.keyframe_id),
+                functools.partial(server.stored_record, delta.robot_id, delta.map_segment),
                 server.known_robots,
             ),
         )

@@ -10,6 +10,7 @@ refactor must replay identically) and a quick way to try server parameters on re
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -42,7 +43,7 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
     from ..bow.training import ensure_default_vocabulary
     from ..geometry import invert, se3_from_quat
     from ..keyframe_record import ACTION_REMOVE
-    from ..ros.convert import MessageError, keyframe_from_msg, pose_from_msg
+    from ..ros.convert import MessageError, keyframe_from_msg, needs_stored, pose_from_msg
     from ..team.durable import DurableServer, PendingKeyframe
     from ..team.server import TeamServer
 
@@ -74,13 +75,13 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
                 )
                 continue
             try:
-                if getattr(msg, "delta", False):  # completed from the keyframe as stored then
+                if needs_stored(msg):  # completed from the keyframes as stored then
                     rec = PendingKeyframe(
                         msg.robot_id,
                         lambda m=msg: keyframe_from_msg(
                             m,
                             server.known_robots,
-                            server.stored_record(m.robot_id, m.map_segment, m.keyframe_id),
+                            functools.partial(server.stored_record, m.robot_id, m.map_segment),
                         ),
                     )
                 else:

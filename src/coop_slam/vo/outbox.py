@@ -23,12 +23,14 @@ from ..keyframe_record import (
     KeyframeRecord,
     PlaceSignature,
     apply_observation_patch,
+    observation_index,
     observation_patch,
 )
 from .map import MapKeyframe
 from .types import KEYFRAME_ACTIONS, VoEvent
 
 UPLINK_MODES = ("full", "pull")
+MAX_REF_KEYFRAMES = 255  # KeyFrame.msg: uint8 descriptor_refs
 
 
 def keyframe_record(
@@ -104,6 +106,13 @@ class UplinkConfig:
     # latest of them [s of data time] (local BA moves every keyframe of its window after each new
     # keyframe). 0 = each as it comes.
     coalesce_updates_s: float = 1.0
+    # Full mode: a keyframe leaves out the descriptors of keypoints observing a map point the
+    # server has in another keyframe (it takes them there): a map point's descriptor travels
+    # once. false: every keyframe carries all its descriptors.
+    share_descriptors: bool = True
+    # How many of the keyframes the server holds are searched for a new keyframe's map points:
+    # its covisible ones first, then the newest.
+    ref_keyframes: int = 32
     # Wall-clock seconds without a camera frame after which whatever is held goes (the camera
     # stopped, or the run ended).
     idle_flush_s: float = 2.0
@@ -114,6 +123,10 @@ class UplinkConfig:
         require(self.hold_new_s >= 0, "uplink.hold_new_s must be >= 0 [s]")
         require(self.coalesce_updates_s >= 0, "uplink.coalesce_updates_s must be >= 0 [s]")
         require(self.idle_flush_s > 0, "uplink.idle_flush_s must be > 0 [s]")
+        require(
+            1 <= self.ref_keyframes <= MAX_REF_KEYFRAMES,
+            f"uplink.ref_keyframes must be in [1, {MAX_REF_KEYFRAMES}]",
+        )
 
 
 def signature_of(rec: KeyframeRecord, vocabulary) -> PlaceSignature:
@@ -135,12 +148,25 @@ def signature_of(rec: KeyframeRecord, vocabulary) -> PlaceSignature:
 class Outgoing(NamedTuple):
     """How a keyframe record goes: ``delta`` without what the keyframe saw (``KeyFrame.delta``);
     ``patched`` (delta updates only) the keypoints whose observations go, None for all;
-    ``signature`` as its place signature only; ``skip`` not at all."""
+    ``signature`` as its place signature only; ``skip`` not at all; ``refs`` (a full message) the
+    keyframes whose descriptors it refers to and, per keypoint, which (``KeyFrame``
+    ``ref_keyframes``, ``descriptor_refs``; None: every descriptor goes)."""
 
     delta: bool
     patched: np.ndarray | None = None
     signature: bool = False
     skip: bool = False
+    refs: tuple[np.ndarray, np.ndarray] | None = None
+
+
+class _Held(NamedTuple):
+    """What the server holds of a keyframe: the digest of what it saw (as sent), its
+    observations (map point ids, per-keypoint points, NaN where none) and its map segment."""
+
+    digest: bytes
+    ids: np.ndarray
+    points: np.ndarray
+    segment: int
 
 
 class Holdback:
@@ -209,6 +235,9 @@ class Uplink:
     (:meth:`answer`); updates of keyframes the server holds move their pose only (no points),
     those of the others are not sent; removals are.
 
+    A full message leaves out the descriptors of keypoints observing a map point that a
+    keyframe the server holds observes too (``share_descriptors``): the server takes them there.
+
     It keeps, per keyframe, the observations as the server holds them (the messages reach the
     server in order, and every one does: :class:`coop_slam.delivery.Outbox`).
 
@@ -221,11 +250,12 @@ class Uplink:
         self.enabled, self.min_point_move_m = config.delta_updates, config.point_move_m
         self.pull = config.mode == "pull"
         self.idle_flush_s = config.idle_flush_s
+        self.share = config.share_descriptors and not self.pull
+        self.max_refs = config.ref_keyframes
         self.holdback = (
             Holdback() if self.pull else Holdback(config.hold_new_s, config.coalesce_updates_s)
         )
-        # keyframe id -> (digest sent with it as new, map point ids, per-keypoint points held)
-        self._held: dict[int, tuple[bytes, np.ndarray, np.ndarray]] = {}
+        self._held: dict[int, _Held] = {}  # keyframe id -> what the server holds of it
 
     def offer(self, rec: KeyframeRecord, now_s: float) -> list[tuple[KeyframeRecord, Outgoing]]:
         """A record the odometry made at data time ``now_s``: what goes now, and how."""
@@ -244,8 +274,9 @@ class Uplink:
         if rec.action == ACTION_NEW:
             if self.pull:
                 return Outgoing(False, signature=True)
+            refs = self._refs(rec)
             self._hold(rec.keyframe_id, rec.static_digest(), rec)
-            return Outgoing(False)
+            return Outgoing(False, refs=refs)
         held = self._held.get(rec.keyframe_id)
         if self.pull and rec.action == ACTION_UPDATE and held is None:
             return Outgoing(False, skip=True)
@@ -253,20 +284,21 @@ class Uplink:
             self._held.pop(rec.keyframe_id, None)
             return Outgoing(False)
         digest = rec.static_digest()
-        if held[0] != digest:  # what the keyframe saw changed: it goes in full
+        if held.digest != digest:  # what the keyframe saw changed: it goes in full
+            refs = self._refs(rec)
             self._hold(rec.keyframe_id, digest, rec)
-            return Outgoing(False)
+            return Outgoing(False, refs=refs)
         if self.pull:  # the radio's budget goes to whole keyframes: updates move the pose
             return Outgoing(True, np.zeros(0, np.uint32))
         per_keypoint = rec.map_points_per_keypoint()
         patched = observation_patch(
-            held[1], held[2], rec.map_point_ids, per_keypoint, self.min_point_move_m
+            held.ids, held.points, rec.map_point_ids, per_keypoint, self.min_point_move_m
         )
         ids = rec.map_point_ids[patched]
         held_ids, held_points = apply_observation_patch(
-            held[1], held[2], patched, ids, per_keypoint[patched][ids != 0]
+            held.ids, held.points, patched, ids, per_keypoint[patched][ids != 0]
         )
-        self._held[rec.keyframe_id] = (digest, held_ids, held_points)
+        self._held[rec.keyframe_id] = held._replace(ids=held_ids, points=held_points)
         return Outgoing(True, patched)
 
     def answer(self, rec: KeyframeRecord) -> Outgoing:
@@ -276,8 +308,36 @@ class Uplink:
         return Outgoing(False)
 
     def _hold(self, keyframe_id: int, digest: bytes, rec: KeyframeRecord) -> None:
-        self._held[keyframe_id] = (
+        self._held[keyframe_id] = _Held(
             digest,
             np.array(rec.map_point_ids, np.uint32),
             rec.map_points_per_keypoint(),
+            int(rec.map_segment),
         )
+
+    def _refs(self, rec: KeyframeRecord) -> tuple[np.ndarray, np.ndarray] | None:
+        """Which of ``rec``'s descriptors the server can take from keyframes it holds: the
+        keyframes (``rec``'s covisible ones first, then the newest, at most ``ref_keyframes``, of
+        its map segment) and per keypoint the one to take it from (0: it travels); None when
+        every descriptor travels."""
+        if not self.share:
+            return None
+        ids = np.asarray(rec.map_point_ids, np.uint32)
+        same = [k for k, h in self._held.items() if h.segment == rec.map_segment]
+        same = [k for k in same if k != rec.keyframe_id]
+        by_weight = np.argsort(-np.asarray(rec.covisible_weights, np.int64), kind="stable")
+        covisible = [int(rec.covisible_ids[i]) for i in by_weight]
+        order = list(dict.fromkeys([k for k in covisible if k in same] + sorted(same)[::-1]))
+        refs = np.zeros(len(ids), np.uint8)
+        used: list[int] = []
+        for kf_id in order[: self.max_refs]:
+            open_ = np.flatnonzero((refs == 0) & (ids != 0))
+            if not len(open_):
+                break
+            at = observation_index(self._held[kf_id].ids, ids[open_])
+            if np.any(at >= 0):
+                used.append(kf_id)
+                refs[open_[at >= 0]] = len(used)
+        if not used:
+            return None
+        return np.asarray(used, np.uint32), refs
