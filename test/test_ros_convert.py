@@ -1,5 +1,7 @@
 """ROS message conversion and validation (no master needed)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -37,10 +39,23 @@ def _wire(msg):
 def test_keyframe_round_trip_over_the_wire():
     kf = make_keyframe(n=40, robot_id=2, keyframe_id=9)
     kf.T_map_cam[:3, 3] = [1.0, -2.0, 0.5]
-    back = keyframe_from_msg(_wire(keyframe_to_msg(kf, "robot_2/map")), known_robots={1, 2})
+    msg = _wire(keyframe_to_msg(kf, "robot_2/map"))
+    back = keyframe_from_msg(msg, known_robots={1, 2})
     assert back.robot_id == 2 and back.keyframe_id == 9
     assert np.array_equal(back.descriptors, kf.descriptors)
-    assert np.allclose(back.keypoints[:, :2], kf.keypoints[:, :2])
+    # Keypoints in 1/64 px steps (a 640x480 image), depths as half floats: 6 bytes a keypoint
+    # less than float32s, within half a step and 2^-11 of the depth.
+    assert msg.keypoint_step_px == 1 / 64 and not len(msg.keypoints) and not len(msg.depths_m)
+    np.testing.assert_allclose(back.keypoints[:, :2], kf.keypoints[:, :2], rtol=0, atol=1 / 128)
+    np.testing.assert_allclose(back.depths_m, kf.depths_m, rtol=2**-11, atol=0)
+    plain = _wire(keyframe_to_msg(kf, "robot_2/map", compact=False))
+    assert _size(plain) - _size(msg) == 6 * 40
+    exact = keyframe_from_msg(plain, known_robots={1, 2})
+    assert np.array_equal(exact.keypoints[:, :2], kf.keypoints[:, :2])
+    assert np.array_equal(exact.depths_m, kf.depths_m)
+    # What does not fit goes as float32: a depth beyond the half float's range.
+    far = dataclasses.replace(kf, depths_m=np.full(40, 70000.0, np.float32))
+    assert not len(keyframe_to_msg(far, "robot_2/map").depths_f16)
     # Their size and angle do not travel (the server does not use them).
     assert np.all(back.keypoints[:, 2] == 0) and np.all(back.keypoints[:, 3] == -1)
     assert np.array_equal(back.map_point_ids, kf.map_point_ids)
@@ -183,12 +198,9 @@ def test_a_map_points_descriptor_travels_once():
     # observations are b's (the points' positions travel: they moved).
     np.testing.assert_array_equal(got_b.descriptors[refs != 0], a.descriptors[refs != 0])
     np.testing.assert_array_equal(got_b.descriptors[refs == 0], b.descriptors[refs == 0])
-    for name in ("keypoints", "octaves", "depths_m", "map_point_ids", "map_points", "T_map_cam"):
-        np.testing.assert_allclose(
-            getattr(got_b, name)[..., :2] if name == "keypoints" else getattr(got_b, name),
-            getattr(b, name)[..., :2] if name == "keypoints" else getattr(b, name),
-            atol=1e-6,
-        )
+    for name in ("octaves", "map_point_ids", "map_points", "T_map_cam"):
+        np.testing.assert_allclose(getattr(got_b, name), getattr(b, name), atol=1e-6)
+    np.testing.assert_allclose(got_b.keypoints[:, :2], b.keypoints[:, :2], atol=1 / 128)
     # c tracks a's points and b's own: it takes from both, b (covisible, heavier) first.
     c = make_keyframe(n=80, robot_id=2, keyframe_id=3, seed=2)
     c.map_point_ids = np.where(c.map_point_ids != 0, c.map_point_ids + 2000, 0).astype(np.uint32)
@@ -261,7 +273,7 @@ def test_malformed_descriptor_refs_are_rejected():
 def test_malformed_patches_are_rejected():
     sent = make_keyframe(n=20, robot_id=1, keyframe_id=4)
     held = keyframe_from_msg(_wire(keyframe_to_msg(sent, "robot_1/map")), {1})
-    msg = _wire(keyframe_to_msg(sent, "robot_1/map"))
+    msg = _wire(keyframe_to_msg(sent, "robot_1/map", compact=False))
     msg.action, msg.delta = msg.ACTION_UPDATE, True
     msg.keypoints, msg.octaves, msg.descriptors, msg.depths_m = [], b"", b"", []
     msg.patched, msg.map_point_ids, msg.map_points = [25], [3], [0.0, 0.0, 1.0]
@@ -298,10 +310,19 @@ def _remove_with_200k_keypoints(msg):
         (lambda m: setattr(m.pose.position, "y", 1e300), "pose position 1e.300 m"),
         (lambda m: setattr(m, "depths_m", [1e30] * len(m.depths_m)), "depths must be in"),
         (_remove_with_200k_keypoints, "keypoints holds 200000 entries, above the limit"),
+        # The compact encodings
+        (lambda m: setattr(m, "keypoints_uv", [7] * 19), "keypoints_uv holds 19 values"),
+        (lambda m: setattr(m, "keypoint_step_px", 0.0), "keypoint_step_px 0.0 is not in"),
+        (lambda m: setattr(m, "keypoint_step_px", float("nan")), "keypoint_step_px nan"),
+        (lambda m: setattr(m, "keypoints", [1.0] * 20), "keypoints and keypoints_uv are both"),
+        (lambda m: setattr(m, "depths_f16", m.depths_f16[:-1]), "depths_f16 holds 19 bytes"),
+        (lambda m: setattr(m, "depths_m", [1.0] * 10), "depths_m and depths_f16 are both"),
+        (lambda m: setattr(m, "keypoint_step_px", 1.0), "keypoints outside the 640x480 image"),
     ],
 )
 def test_malformed_keyframes_are_rejected(mutate, match):
-    msg = _wire(keyframe_to_msg(make_keyframe(n=10, robot_id=1), "robot_1/map"))
+    compact = "keypoints_uv" in match or "f16" in match or "step" in match or "640x480" in match
+    msg = _wire(keyframe_to_msg(make_keyframe(n=10, robot_id=1), "robot_1/map", compact=compact))
     mutate(msg)
     with pytest.raises(MessageError, match=match):
         keyframe_from_msg(msg, known_robots={1, 2})

@@ -418,6 +418,49 @@ def complete_update(
     )
 
 
+# --- compact encodings of what a keyframe saw (KeyFrame.msg keypoints_uv, depths_f16) ----------
+UV_CODE_MAX = 65535  # uint16
+
+
+def uv_step_px(width: int, height: int) -> float:
+    """The step keypoint positions travel in for an image of this size: the smallest power of two
+    that spans the image in uint16 (1/64 px up to 1023 px a side)."""
+    return float(2.0 ** np.ceil(np.log2((max(width, height) + 1) / UV_CODE_MAX)))
+
+
+def encode_uv(uv_px: np.ndarray, width: int, height: int) -> tuple[np.ndarray, float] | None:
+    """(N, 2) keypoint positions as uint16 steps and the step [px]; None when one does not fit
+    (outside the image, not finite): they then travel as float32."""
+    uv_px = np.asarray(uv_px, np.float64).reshape(-1, 2)
+    step = uv_step_px(width, height)
+    with np.errstate(invalid="ignore"):
+        code = np.round(uv_px / step)
+        if not np.all((code >= 0) & (code <= UV_CODE_MAX)):
+            return None
+    return code.astype(np.uint16), step
+
+
+def decode_uv(code: np.ndarray, step_px: float) -> np.ndarray:
+    """(N, 2) float32 keypoint positions [px] from :func:`encode_uv`'s steps."""
+    return (np.asarray(code, np.float64).reshape(-1, 2) * float(step_px)).astype(np.float32)
+
+
+def encode_depths(depths_m: np.ndarray) -> bytes | None:
+    """Depths as little-endian IEEE half floats; None when one does not fit (not finite, beyond
+    the half float's range): they then travel as float32."""
+    depths_m = np.asarray(depths_m, np.float64)
+    if not np.all(np.isfinite(depths_m)) or np.abs(depths_m).max(initial=0.0) > 65504.0:
+        return None
+    return depths_m.astype("<f2").tobytes()
+
+
+def decode_depths(raw: bytes) -> np.ndarray:
+    """float32 depths [m] from :func:`encode_depths`' bytes."""
+    if len(raw) % 2:
+        raise KeyframeError(f"depths_f16 holds {len(raw)} bytes, not 2 per keypoint")
+    return np.frombuffer(raw, "<f2").astype(np.float32)
+
+
 def observation_index(source_ids: np.ndarray, ids: np.ndarray) -> np.ndarray:
     """Per map point id of ``ids``, the index of the first keypoint observing it in a keyframe
     whose per-keypoint map point ids are ``source_ids``; -1 where none does (and for id 0)."""

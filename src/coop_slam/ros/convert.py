@@ -26,6 +26,10 @@ from ..keyframe_record import (
     PlaceSignature,
     camera_from_fields,
     complete_update,
+    decode_depths,
+    decode_uv,
+    encode_depths,
+    encode_uv,
     patch_of,
     shared_descriptors,
 )
@@ -223,13 +227,15 @@ def keyframe_to_msg(
     delta: bool = False,
     patched: np.ndarray | None = None,
     refs: tuple[np.ndarray, np.ndarray] | None = None,
+    compact: bool = True,
 ):
     """The KeyFrame message of a record; ``delta`` (an update): without keypoints, octaves,
     descriptors and depths, which the server has from the keyframe's first message, and with
     ``patched`` (not None) only those keypoints' observations. ``refs`` (a full message): the
     keyframes the server holds and, per keypoint, the one whose descriptor it takes (0: the
-    descriptor travels; see :class:`coop_slam.vo.outbox.Outgoing`). A place signature goes as a
-    new keyframe with only its BoW vector (``signature_only``)."""
+    descriptor travels; see :class:`coop_slam.vo.outbox.Outgoing`). ``compact``: keypoint
+    positions and depths in their compact encodings (``keypoints_uv``, ``depths_f16``) where they
+    fit. A place signature goes as a new keyframe with only its BoW vector (``signature_only``)."""
     from coop_slam.msg import CameraModel as CameraModelMsg
     from coop_slam.msg import KeyFrame
 
@@ -262,7 +268,12 @@ def keyframe_to_msg(
         msg.bow_word_gaps, msg.bow_weights = gaps, weights
         msg.bow_weight_max = weight_max
     elif not delta:
-        msg.keypoints = np.asarray(kf.keypoints, np.float32)[:, :2].ravel().tolist()
+        uv = np.asarray(kf.keypoints, np.float32)[:, :2]
+        coded = encode_uv(uv, cam.width, cam.height) if compact else None
+        if coded is None:
+            msg.keypoints = uv.ravel().tolist()
+        else:
+            msg.keypoints_uv, msg.keypoint_step_px = coded[0].ravel().tolist(), coded[1]
         msg.octaves = np.asarray(kf.octaves, np.uint8).tobytes()
         descriptors = np.asarray(kf.descriptors, np.uint8)
         if refs is not None:
@@ -270,7 +281,11 @@ def keyframe_to_msg(
             msg.descriptor_refs = np.asarray(refs[1], np.uint8).tobytes()
             descriptors = descriptors[np.asarray(refs[1]) == 0]
         msg.descriptors = descriptors.tobytes()
-        msg.depths_m = np.asarray(kf.depths_m, np.float32).tolist()
+        depths = encode_depths(kf.depths_m) if compact else None
+        if depths is None:
+            msg.depths_m = np.asarray(kf.depths_m, np.float32).tolist()
+        else:
+            msg.depths_f16 = depths
     ids, points = np.asarray(kf.map_point_ids, np.uint32), np.asarray(kf.map_points, np.float32)
     if delta and patched is not None:
         ids, points = patch_of(kf, patched)
@@ -287,6 +302,29 @@ def _bytes(field) -> np.ndarray:
     if isinstance(field, (bytes, bytearray)):
         return np.frombuffer(field, dtype=np.uint8)
     return np.asarray(field, dtype=np.uint8)
+
+
+def keypoints_and_depths(msg, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """A KeyFrame message's keypoints (flat float32: u, v per keypoint, or u, v, size, angle)
+    and depths [m], from whichever encoding it carries them in; raises KeyframeError."""
+    keypoints = np.asarray(msg.keypoints, np.float32)
+    coded = np.asarray(getattr(msg, "keypoints_uv", ()), np.uint16)
+    if len(coded):
+        step = float(getattr(msg, "keypoint_step_px", 0.0))
+        if keypoints.size:
+            raise KeyframeError(f"{where}: keypoints and keypoints_uv are both given")
+        if not (np.isfinite(step) and 0.0 < step <= 1.0):
+            raise KeyframeError(f"{where}: keypoint_step_px {step!r} is not in (0, 1] px")
+        if coded.size % 2:
+            raise KeyframeError(f"{where}: keypoints_uv holds {coded.size} values, not 2 per point")
+        keypoints = decode_uv(coded, step).ravel()
+    depths = np.asarray(msg.depths_m, np.float32)
+    half = _bytes(getattr(msg, "depths_f16", b""))
+    if len(half):
+        if depths.size:
+            raise KeyframeError(f"{where}: depths_m and depths_f16 are both given")
+        depths = decode_depths(half.tobytes())
+    return keypoints, depths
 
 
 def needs_stored(msg) -> bool:
@@ -321,10 +359,10 @@ def keyframe_from_msg(
             sensor=SENSORS[msg.camera.sensor_type],
             baseline_m=msg.camera.baseline_m,
         )
-        keypoints = np.asarray(msg.keypoints, np.float32)
+        where = f"keyframe {msg.keyframe_id} of robot {msg.robot_id}"
+        keypoints, depths = keypoints_and_depths(msg, where)
         descriptors = _bytes(msg.descriptors)
         map_points = np.asarray(msg.map_points, np.float32)
-        where = f"keyframe {msg.keyframe_id} of robot {msg.robot_id}"
         n = len(msg.octaves)
         if n and keypoints.size == 2 * n:  # u, v: size not given, no angle
             keypoints = np.column_stack(
@@ -354,7 +392,7 @@ def keyframe_from_msg(
             keypoints=keypoints.reshape(-1, 4),
             octaves=_bytes(msg.octaves),
             descriptors=descriptors.reshape(-1, 32),
-            depths_m=np.asarray(msg.depths_m, np.float32),
+            depths_m=depths,
         )
         refs = _bytes(getattr(msg, "descriptor_refs", b""))
         if len(refs):

@@ -14,6 +14,7 @@ import threading
 
 import numpy as np
 
+from ..errors import CoopSlamError
 from ..evaluation import EvaluationError
 from ..evaluation.run_report import RobotRun, RunData, RunInput
 from ..keyframe_record import ACTION_REMOVE
@@ -24,6 +25,7 @@ from .convert import (
     MessageError,
     cloud_colours_from_msg,
     cloud_from_msg,
+    keypoints_and_depths,
     pose_from_msg,
     transform_from_msg,
 )
@@ -212,8 +214,7 @@ def _points_cam(msg) -> np.ndarray:
     """(N, 3) float32 points of a KeyFrame message's keypoints with depth, in its camera frame
     (empty when the message is malformed: the report then leaves the keyframe out)."""
     try:
-        z = np.asarray(msg.depths_m, np.float32)
-        kp = np.asarray(msg.keypoints, np.float32)
+        kp, z = keypoints_and_depths(msg, "keyframe")
         kp = kp.reshape(-1, 2 if kp.size == 2 * len(z) else 4)  # u, v (or + size, angle)
         c = msg.camera
         ok = (z > 0) & np.isfinite(z)
@@ -221,7 +222,7 @@ def _points_cam(msg) -> np.ndarray:
             return np.zeros((0, 3), np.float32)
         K = np.array([[c.fx, 0.0, c.cx], [0.0, c.fy, c.cy], [0.0, 0.0, 1.0]])
         return backproject(kp[ok, :2], z[ok], K).astype(np.float32)
-    except (ValueError, TypeError):
+    except (ValueError, TypeError, CoopSlamError):
         return np.zeros((0, 3), np.float32)
 
 

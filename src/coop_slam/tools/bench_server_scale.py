@@ -41,6 +41,10 @@ from ..keyframe_record import (
     KeyframeError,
     KeyframeRecord,
     complete_update,
+    decode_depths,
+    decode_uv,
+    encode_depths,
+    encode_uv,
     patch_of,
     shared_descriptors,
 )
@@ -157,12 +161,18 @@ def as_sent(
     refs: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> KeyframeRecord | DeltaUpdate:
     """The record as the server gets it from the wire: arrays in the message's dtypes, keypoints
-    without their size and angle, for a delta update without what the keyframe saw (and with
-    only the ``patched`` keypoints' observations, when given), and with ``refs`` with the
-    descriptors of other keyframes the server holds."""
+    without their size and angle, keypoints and depths in their compact encodings, for a delta
+    update without what the keyframe saw (and with only the ``patched`` keypoints' observations,
+    when given), and with ``refs`` with the descriptors of other keyframes the server holds."""
     arrays = {k: np.asarray(getattr(rec, k), dtype) for k, dtype in _WIRE_DTYPES.items()}
     keypoints = arrays["keypoints"].reshape(-1, 4).copy()
     keypoints[:, 2], keypoints[:, 3] = 0.0, -1.0  # not sent
+    coded = encode_uv(keypoints[:, :2], rec.camera.width, rec.camera.height)
+    if coded is not None:  # as keyframe_to_msg sends them
+        keypoints[:, :2] = decode_uv(*coded)
+    half = encode_depths(arrays["depths_m"])
+    if half is not None:
+        arrays["depths_m"] = decode_depths(half)
     arrays["keypoints"] = keypoints
     arrays["descriptors"] = arrays["descriptors"].reshape(-1, 32)
     arrays["map_points"] = arrays["map_points"].reshape(-1, 3)
