@@ -208,3 +208,37 @@ def test_the_team_cloud_follows_a_monocular_keyframes_local_scale(world):
     for key in [k for k in server.store.keys() if k[0] == 2]:
         server.graph._log_scale[key] = np.log(0.5)
     assert camera_distances() == pytest.approx(0.5 * before, rel=0.15)
+
+
+def test_a_delta_update_of_a_rescaled_map_keeps_its_other_points(world):
+    """A delta update is completed from the keyframe the server holds, in the robot's own units
+    (the server rescaled the map at the merge): its points the patch leaves out stay where the
+    server had them (they were scaled a second time)."""
+    import dataclasses
+
+    from coop_slam.keyframe_record import ACTION_UPDATE, complete_update, patch_of
+
+    points, desc, kfs_a, vocab = world
+    server = TeamServer(_config(), vocab)
+    for kf in kfs_a:
+        server.add_keyframe(kf)
+    mono = _mono_b(points, desc, np.linspace(2.0, 3.0, 8))
+    for kf in mono:
+        server.add_keyframe(kf)
+    s = server.map_scale(2)
+    assert s == pytest.approx(1 / UNITS_PER_M, rel=0.02)
+    kf = mono[-1]
+    own = server.stored_record(2, 0, kf.keyframe_id)
+    np.testing.assert_allclose(own.map_points, kf.map_points, rtol=1e-5)
+    np.testing.assert_allclose(own.T_map_cam, kf.T_map_cam, atol=1e-6)
+    patched = np.flatnonzero(kf.map_point_ids)[:1]  # local BA moved one point
+    per_kp = kf.map_points_per_keypoint()
+    per_kp[patched] += 0.1
+    upd = dataclasses.replace(
+        kf, action=ACTION_UPDATE, map_points=per_kp[kf.map_point_ids != 0].astype(np.float32)
+    )
+    ids, pts = patch_of(upd, patched)
+    sent = dataclasses.replace(upd, map_point_ids=ids, map_points=pts)
+    server.add_keyframe(complete_update(sent, server.stored_record(2, 0, kf.keyframe_id), patched))
+    held = server.store.record((2, kf.keyframe_id))
+    np.testing.assert_allclose(held.map_points, upd.map_points * s, rtol=1e-4)

@@ -205,11 +205,16 @@ class TeamServer:
         return self.segments.robot_of(map_id)
 
     def stored_record(self, robot_id: int, segment: int, keyframe_id: int):
-        """The keyframe as stored (None when the server does not hold it): what a delta update
-        leaves out comes from here."""
+        """The keyframe as stored, in the robot's own units as it sent it (None when the server
+        does not hold it): what a delta update, or a keyframe sharing its descriptors, leaves out
+        comes from here. (The server stores a monocular map's keyframes in the units of the group
+        it merged into; a completed message is scaled into them again when it is taken.)"""
         mid = self.segments.find(robot_id, segment)
         key = (mid, int(keyframe_id))
-        return self.store.record(key) if mid is not None and key in self.store else None
+        if mid is None or key not in self.store:
+            return None
+        rec, s = self.store.record(key), self.scales.scale(mid)
+        return rec if s == 1.0 else rescale_record(rec, 1.0 / s)
 
     def map_name(self, map_id: int) -> str:
         """A map id as the user knows it: ``robot 2``, ``robot 2 (map segment 1)``."""
