@@ -129,14 +129,20 @@ def test_delta_updates_carry_only_the_observations_that_changed():
         upd.map_point_ids = ids
         upd.map_points = per_kp[ids != 0].astype(np.float32)
         out = deltas.prepare(upd)
-        assert out.delta and 0 < len(out.patched) < 25
-        msg = _wire(keyframe_to_msg(upd, "robot_2/map", out.delta, out.patched))
+        # The reassigned keypoints travel as a patch, the moved points as half-float moves.
+        reassigned = np.flatnonzero(ids != kf.map_point_ids)
+        assert out.delta and np.array_equal(out.patched, reassigned)
+        assert 0 < len(out.moves[0]) <= 10
+        msg = _wire(keyframe_to_msg(upd, "robot_2/map", out.delta, out.patched, moves=out.moves))
+        assert len(msg.moves_f16) == 6 * len(msg.moved)
         sizes.append((_size(msg), _size(_wire(keyframe_to_msg(upd, "robot_2/map", True)))))
         held = keyframe_from_msg(msg, {1, 2}, stored=lambda _kf, base=held: base)
         np.testing.assert_array_equal(held.map_point_ids, upd.map_point_ids)
         np.testing.assert_allclose(held.T_map_cam, upd.T_map_cam, atol=1e-6)
         err = np.linalg.norm(held.map_points - upd.map_points, axis=1)
         assert err.max() <= move_m + 1e-6
+        moved = held.map_points_per_keypoint()[out.moves[0]] - per_kp[out.moves[0]]
+        assert np.abs(moved).max() <= 0.06 * 2**-11 + 1e-6
         kf = upd
     assert all(patch < whole / 2 for patch, whole in sizes)
     # A later map segment's keyframe: the server holds it under the segment's map id.
@@ -287,6 +293,27 @@ def test_malformed_patches_are_rejected():
         keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
     msg.patched, msg.map_point_ids = [1, 2, 3], [3, 0]
     with pytest.raises(MessageError, match="patched lists 3 keypoints"):
+        keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
+    # Half-float moves of map points (keypoint 0 observes map point 1, keypoint 1 none)
+    msg.patched, msg.map_point_ids, msg.map_points = [2], [0], []
+    for moved, nbytes, match in (
+        ([0], 5, "moves_f16 holds 5 bytes for 1 moved"),
+        ([25], 6, "moved names keypoint 25 of a keyframe with 20"),
+        ([0, 0], 12, "moved names a keypoint twice"),
+        ([1], 6, "moved names a keypoint that observes no map point"),
+        ([2], 6, "both patched and moved"),
+    ):
+        msg.moved, msg.moves_f16 = moved, bytes(nbytes)
+        with pytest.raises(MessageError, match=match):
+            keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
+    msg.moved, msg.moves_f16 = [0], np.full(3, np.inf, "<f2").tobytes()
+    with pytest.raises(MessageError, match="NaN or inf"):
+        keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
+    msg.moves_f16 = np.array([0.5, 0, 0], "<f2").tobytes()
+    got = keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
+    np.testing.assert_allclose(got.map_points[0], held.map_points[0] + [0.5, 0, 0], atol=1e-6)
+    msg.delta, msg.patched, msg.map_point_ids = False, [], list(sent.map_point_ids)
+    with pytest.raises(MessageError, match="only a delta update with a patch moves"):
         keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
 
 

@@ -94,8 +94,9 @@ def test_uplink_offers_through_its_holdback_and_prepares_deltas_in_sending_order
     again.map_points[:3] += np.float32(0.05)  # three points moved since the new went
     uplink.offer(again, 0.6)
     ((rec, out),) = uplink.due(1.1)
-    assert rec.action == ACTION_UPDATE and out.delta
-    assert sorted(rec.map_point_ids[out.patched]) == sorted(
+    assert rec.action == ACTION_UPDATE and out.delta and len(out.patched) == 0
+    # (they moved 5 cm: a half float carries that to 25 um)
+    assert sorted(rec.map_point_ids[out.moves[0]]) == sorted(
         rec.map_point_ids[rec.map_point_ids != 0][:3]
     )
     # pull mode (low-bandwidth): no holding, its own rules

@@ -49,6 +49,7 @@ MAX_STAMP_S = 1e10  # seconds since 1970 (the year 2286) or since the sim clock 
 MAX_OCTAVE = 31  # pyramid level; clients use at most 16 (vo.n_levels)
 KEYPOINT_ANGLE_DEG = (-1.0, 360.0)  # OpenCV: [0, 360), -1 = no orientation
 _MAX_KEYFRAME_ID = (1 << 32) - 1  # KeyFrame.msg: uint32 keyframe_id
+HALF_FLOAT_ERROR = 2.0**-11  # a half float's rounding error, relative to its value
 
 
 class KeyframeError(CoopSlamError):
@@ -389,12 +390,69 @@ def apply_observation_patch(
     return out_ids, out_points
 
 
+def split_moves(
+    held_ids: np.ndarray,
+    held_points: np.ndarray,
+    patched: np.ndarray,
+    ids: np.ndarray,
+    points: np.ndarray,
+    min_move_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Of the keypoints ``patched`` (see :func:`observation_patch`; ``ids``, ``points`` the
+    keyframe's now, per keypoint), those whose map point only moved and whose move a half float
+    carries to within half of ``min_move_m``: ``(others, moved, moves)``, the rest of
+    ``patched``, the moved keypoints and their (k, 3) float16 moves [m] since ``held_points``.
+    ``min_move_m`` 0: none (every position travels exact)."""
+    patched = np.asarray(patched, np.int64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        move = np.asarray(points, float)[patched] - np.asarray(held_points, float)[patched]
+        ok = (
+            (np.asarray(held_ids)[patched] == np.asarray(ids)[patched])
+            & (np.asarray(ids)[patched] != 0)
+            & np.all(np.isfinite(move), axis=1)
+            & (np.abs(move).max(axis=1, initial=0.0) * HALF_FLOAT_ERROR <= 0.5 * min_move_m)
+        )
+    return (
+        patched[~ok].astype(np.uint32),
+        patched[ok].astype(np.uint32),
+        move[ok].astype(np.float16).reshape(-1, 3),
+    )
+
+
+def apply_moves(
+    held_ids: np.ndarray, held_points: np.ndarray, moved: np.ndarray, moves: np.ndarray
+) -> np.ndarray:
+    """The per-keypoint points after the keypoints ``moved``'s map points moved by ``moves``
+    ((k, 3) float16 [m]), added in float32 as the message's points are (the client and the
+    server get the same bits). Raises KeyframeError when they do not fit."""
+    n = len(held_ids)
+    moved = np.asarray(moved, np.int64)
+    moves = np.asarray(moves, np.float16).reshape(-1, 3)
+    if len(moves) != len(moved):
+        raise KeyframeError(f"moves_f16 gives {len(moves)} moves for {len(moved)} moved keypoints")
+    if len(moved) and (moved.min() < 0 or moved.max() >= n):
+        raise KeyframeError(f"moved names keypoint {int(moved.max())} of a keyframe with {n}")
+    if len(np.unique(moved)) != len(moved):
+        raise KeyframeError("moved names a keypoint twice")
+    if np.any(np.asarray(held_ids)[moved] == 0):
+        raise KeyframeError("moved names a keypoint that observes no map point")
+    if not np.all(np.isfinite(moves)):
+        raise KeyframeError("moves_f16 holds NaN or inf")
+    out = np.array(held_points, float, copy=True)
+    out[moved] = np.asarray(out[moved], np.float32) + moves.astype(np.float32)
+    return out
+
+
 def complete_update(
-    sent: KeyframeRecord, base: KeyframeRecord, patched: np.ndarray | None = None
+    sent: KeyframeRecord,
+    base: KeyframeRecord,
+    patched: np.ndarray | None = None,
+    moves: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> KeyframeRecord:
     """A delta update as the server holds it: what the keyframe saw from ``base`` (the keyframe
     as stored), and its observations from ``sent`` -- all of them (``patched`` None), or a patch
-    of ``base``'s (see :func:`apply_observation_patch`)."""
+    of ``base``'s (see :func:`apply_observation_patch`) and ``moves`` of its map points (moved
+    keypoints, their float16 moves: see :func:`apply_moves`)."""
     static = {k: getattr(base, k) for k in STATIC_ARRAYS}
     if patched is None:
         return dataclasses.replace(sent, **static)
@@ -410,6 +468,13 @@ def complete_update(
         sent.map_point_ids,
         np.asarray(sent.map_points).reshape(-1, 3),
     )
+    if moves is not None:
+        if len(np.intersect1d(np.asarray(moves[0], np.int64), np.asarray(patched, np.int64))):
+            raise KeyframeError(
+                f"keyframe {sent.keyframe_id} of robot {sent.robot_id}: a keypoint is both "
+                "patched and moved"
+            )
+        per_keypoint = apply_moves(ids, per_keypoint, *moves)
     return dataclasses.replace(
         sent,
         **static,

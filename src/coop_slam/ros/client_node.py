@@ -749,7 +749,9 @@ class ClientNode:
             if out.signature:
                 msg = keyframe_to_msg(signature_of(rec, self.vocabulary), self.map_frame)
             else:
-                msg = keyframe_to_msg(rec, self.map_frame, out.delta, out.patched, out.refs)
+                msg = keyframe_to_msg(
+                    rec, self.map_frame, out.delta, out.patched, out.refs, moves=out.moves
+                )
             self.keyframes_sent += rec.action == ACTION_NEW
             self._send_keyframe(msg)
 

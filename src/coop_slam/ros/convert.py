@@ -228,6 +228,7 @@ def keyframe_to_msg(
     patched: np.ndarray | None = None,
     refs: tuple[np.ndarray, np.ndarray] | None = None,
     compact: bool = True,
+    moves: tuple[np.ndarray, np.ndarray] | None = None,
 ):
     """The KeyFrame message of a record; ``delta`` (an update): without keypoints, octaves,
     descriptors and depths, which the server has from the keyframe's first message, and with
@@ -235,7 +236,9 @@ def keyframe_to_msg(
     keyframes the server holds and, per keypoint, the one whose descriptor it takes (0: the
     descriptor travels; see :class:`coop_slam.vo.outbox.Outgoing`). ``compact``: keypoint
     positions and depths in their compact encodings (``keypoints_uv``, ``depths_f16``) where they
-    fit. A place signature goes as a new keyframe with only its BoW vector (``signature_only``)."""
+    fit. ``moves`` (a delta update with a patch): keypoints whose map point moved, and the moves
+    as half floats. A place signature goes as a new keyframe with only its BoW vector
+    (``signature_only``)."""
     from coop_slam.msg import CameraModel as CameraModelMsg
     from coop_slam.msg import KeyFrame
 
@@ -290,6 +293,9 @@ def keyframe_to_msg(
     if delta and patched is not None:
         ids, points = patch_of(kf, patched)
         msg.patched = np.asarray(patched, np.uint32).tolist()
+        if moves is not None:
+            msg.moved = np.asarray(moves[0], np.uint16).tolist()
+            msg.moves_f16 = np.asarray(moves[1], "<f2").tobytes()
     msg.map_point_ids = ids.tolist()
     msg.map_points = np.asarray(points, np.float32).ravel().tolist()
     msg.covisible_ids = np.asarray(kf.covisible_ids, np.uint32).tolist()
@@ -446,8 +452,20 @@ def keyframe_from_msg(
             map_segment=msg.map_segment,
             action=msg.action,
         )
+        moved = np.asarray(getattr(msg, "moved", ()), np.int64)
+        moves = None
+        if len(moved):
+            if not is_patch:
+                raise KeyframeError(f"{where}: only a delta update with a patch moves map points")
+            half = _bytes(getattr(msg, "moves_f16", b""))
+            if len(half) != 6 * len(moved):
+                raise KeyframeError(
+                    f"{where}: moves_f16 holds {len(half)} bytes for {len(moved)} moved "
+                    "keypoints (6 each)"
+                )
+            moves = (moved, np.frombuffer(half.tobytes(), "<f2").reshape(-1, 3))
         if getattr(msg, "delta", False):
-            rec = complete_update(rec, base, patched if is_patch else None)
+            rec = complete_update(rec, base, patched if is_patch else None, moves)
         if getattr(msg, "signature_only", False):
             if msg.action != ACTION_NEW or getattr(msg, "delta", False):
                 raise KeyframeError(f"{where}: only a new keyframe goes as a place signature")

@@ -121,6 +121,7 @@ def complete_stripped(
     stored: Callable[[int], KeyframeRecord | None],
     known_robots: set,
     patched: np.ndarray | None = None,
+    moves: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> KeyframeRecord:
     """A delta update (``sent``, its static arrays empty, its observations a patch when
     ``patched`` is given) completed as ``keyframe_from_msg`` does it: from the keyframe as the
@@ -131,7 +132,7 @@ def complete_stripped(
             f"keyframe {sent.keyframe_id} of robot {sent.robot_id}: a delta update of a keyframe "
             "the server does not hold"
         )
-    return complete_update(sent, base, patched).validate(known_robots)
+    return complete_update(sent, base, patched, moves).validate(known_robots)
 
 
 def complete_refs(
@@ -159,11 +160,13 @@ def as_sent(
     delta: bool,
     patched: np.ndarray | None = None,
     refs: tuple[np.ndarray, np.ndarray] | None = None,
+    moves: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> KeyframeRecord | DeltaUpdate:
     """The record as the server gets it from the wire: arrays in the message's dtypes, keypoints
     without their size and angle, keypoints and depths in their compact encodings, for a delta
-    update without what the keyframe saw (and with only the ``patched`` keypoints' observations,
-    when given), and with ``refs`` with the descriptors of other keyframes the server holds."""
+    update without what the keyframe saw (and with only the ``patched`` keypoints' observations
+    and ``moves``, when given), and with ``refs`` with the descriptors of other keyframes the
+    server holds."""
     arrays = {k: np.asarray(getattr(rec, k), dtype) for k, dtype in _WIRE_DTYPES.items()}
     keypoints = arrays["keypoints"].reshape(-1, 4).copy()
     keypoints[:, 2], keypoints[:, 3] = 0.0, -1.0  # not sent
@@ -197,7 +200,7 @@ def as_sent(
         rec.map_segment,
         rec.keyframe_id,
         rec.stamp_s,
-        functools.partial(complete_stripped, stripped, patched=patched),
+        functools.partial(complete_stripped, stripped, patched=patched, moves=moves),
     )
 
 
@@ -238,7 +241,7 @@ class ClientSender:
                 Arrival(
                     t_s,
                     self.robot_id,
-                    as_sent(rec, how.delta, how.patched, how.refs),
+                    as_sent(rec, how.delta, how.patched, how.refs, how.moves),
                     SESSION,
                     self.sequence,
                 )

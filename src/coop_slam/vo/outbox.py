@@ -22,9 +22,11 @@ from ..keyframe_record import (
     ACTION_UPDATE,
     KeyframeRecord,
     PlaceSignature,
+    apply_moves,
     apply_observation_patch,
     observation_index,
     observation_patch,
+    split_moves,
 )
 from .map import MapKeyframe
 from .types import KEYFRAME_ACTIONS, VoEvent
@@ -150,13 +152,16 @@ class Outgoing(NamedTuple):
     ``patched`` (delta updates only) the keypoints whose observations go, None for all;
     ``signature`` as its place signature only; ``skip`` not at all; ``refs`` (a full message) the
     keyframes whose descriptors it refers to and, per keypoint, which (``KeyFrame``
-    ``ref_keyframes``, ``descriptor_refs``; None: every descriptor goes)."""
+    ``ref_keyframes``, ``descriptor_refs``; None: every descriptor goes); ``moves`` (a delta
+    update) keypoints whose map point only moved and the (k, 3) float16 moves (``KeyFrame``
+    ``moved``, ``moves_f16``; their observations are not in the patch)."""
 
     delta: bool
     patched: np.ndarray | None = None
     signature: bool = False
     skip: bool = False
     refs: tuple[np.ndarray, np.ndarray] | None = None
+    moves: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class _Held(NamedTuple):
@@ -228,7 +233,8 @@ class Uplink:
     since they last went:
     keypoints that observe another map point (or none), or whose map point moved more than
     ``point_move_m`` (local BA moves most points of a keyframe a little, and an update that
-    sent them all was most of a client's traffic). ``delta_updates`` False: every update goes in
+    sent them all was most of a client's traffic); a move goes as a half-float offset when that
+    carries it to within half of ``point_move_m``. ``delta_updates`` False: every update goes in
     full.
 
     In pull mode a new keyframe goes as its place signature, and whole only when the server asks
@@ -294,12 +300,16 @@ class Uplink:
         patched = observation_patch(
             held.ids, held.points, rec.map_point_ids, per_keypoint, self.min_point_move_m
         )
+        patched, moved, moves = split_moves(
+            held.ids, held.points, patched, rec.map_point_ids, per_keypoint, self.min_point_move_m
+        )
         ids = rec.map_point_ids[patched]
         held_ids, held_points = apply_observation_patch(
             held.ids, held.points, patched, ids, per_keypoint[patched][ids != 0]
         )
+        held_points = apply_moves(held_ids, held_points, moved, moves)
         self._held[rec.keyframe_id] = held._replace(ids=held_ids, points=held_points)
-        return Outgoing(True, patched)
+        return Outgoing(True, patched, moves=(moved, moves) if len(moved) else None)
 
     def answer(self, rec: KeyframeRecord) -> Outgoing:
         """A keyframe the server asked for (pull mode): it goes whole, as new, and its updates
