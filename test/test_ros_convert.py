@@ -154,17 +154,22 @@ def test_delta_updates_carry_only_the_observations_that_changed():
     assert not deltas.prepare(dataclasses.replace(kf, action=ACTION_NEW)).delta
 
 
-def _sees(kf, ids_from, keypoints):
+def _sees(kf, ids_from, keypoints, bits=4):
     """``kf`` with its ``keypoints`` now observing the map points of keyframe ``ids_from``'s
-    same keypoints (tracked from it), at the points' positions there moved by 5 cm."""
+    same keypoints (tracked from it), at the points' positions there moved by 5 cm, their
+    descriptors there with ``bits`` bits flipped."""
     import dataclasses
 
+    desc = kf.descriptors.copy()
+    desc[keypoints] = ids_from.descriptors[keypoints]
+    desc[keypoints, : bits // 8] ^= 0xFF
+    desc[keypoints, bits // 8] ^= (1 << (bits % 8)) - 1
     ids = kf.map_point_ids.copy()
     ids[keypoints] = ids_from.map_point_ids[keypoints]
     per_kp = kf.map_points_per_keypoint()
     per_kp[keypoints] = ids_from.map_points_per_keypoint()[keypoints] + 0.05
     return dataclasses.replace(
-        kf, map_point_ids=ids, map_points=per_kp[ids != 0].astype(np.float32)
+        kf, descriptors=desc, map_point_ids=ids, map_points=per_kp[ids != 0].astype(np.float32)
     )
 
 
@@ -192,6 +197,7 @@ def test_a_map_points_descriptor_travels_once():
     b.map_point_ids = np.where(b.map_point_ids != 0, b.map_point_ids + 1000, 0).astype(np.uint32)
     b = _sees(b, a, np.arange(0, 30, 2))  # tracked 15 of a's points
     b = _sees(b, a, np.array([31]))  # a keypoint with no map point in a: nothing to take
+    b = _sees(b, a, np.arange(32, 40, 2), bits=40)  # the view changed them too much: they travel
     out_a, msg_a, _ = send(a)
     assert out_a.refs is None  # the server holds nothing yet
     out_b, msg_b, got_b = send(b)
@@ -227,7 +233,8 @@ def test_a_map_points_descriptor_travels_once():
     assert send(d)[0].refs is None
     e = dataclasses.replace(_sees(make_keyframe(n=80, robot_id=2, keyframe_id=5), b, [0]))
     assert uplink.prepare(dataclasses.replace(e, map_segment=1)).refs is None
-    redone = dataclasses.replace(c, action=ACTION_UPDATE, descriptors=c.descriptors[::-1].copy())
+    redone = dataclasses.replace(c, action=ACTION_UPDATE, descriptors=c.descriptors.copy())
+    redone.descriptors[:, -1] ^= 1
     out = uplink.prepare(redone)
     assert not out.delta and list(out.refs[0]) == [2]
     # The server no longer holds what a message refers to: refused, naming it.
@@ -241,6 +248,11 @@ def test_a_map_points_descriptor_travels_once():
     plain = Uplink(UplinkConfig(share_descriptors=False))
     plain.prepare(a)
     assert plain.prepare(b).refs is None
+    # Any difference allowed, the ones the view changed too are taken from a.
+    anyway = Uplink(UplinkConfig(share_max_bits=256))
+    anyway.prepare(a)
+    tracked = np.r_[np.arange(0, 30, 2), np.arange(32, 40, 2)]
+    assert np.array_equal(np.flatnonzero(anyway.prepare(b).refs[1]), tracked)
 
 
 def test_malformed_descriptor_refs_are_rejected():

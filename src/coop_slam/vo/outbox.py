@@ -15,6 +15,7 @@ import numpy as np
 
 from ..config import require
 from ..datasets.base import CameraModel
+from ..descriptors import DESCRIPTOR_BYTES, hamming_rows
 from ..geometry import transform_points
 from ..keyframe_record import (
     ACTION_NEW,
@@ -112,6 +113,11 @@ class UplinkConfig:
     # server has in another keyframe (it takes them there): a map point's descriptor travels
     # once. false: every keyframe carries all its descriptors.
     share_descriptors: bool = True
+    # ... when the descriptor there differs from the keypoint's own in at most this many bits
+    # (of 256): a map point's descriptor changes with the view (median 33 bits between keyframes
+    # of our worlds), and matching across robots, which the server does with them, needs them
+    # close to what the camera saw. 256: always.
+    share_max_bits: int = 32
     # How many of the keyframes the server holds are searched for a new keyframe's map points:
     # its covisible ones first, then the newest.
     ref_keyframes: int = 32
@@ -125,6 +131,10 @@ class UplinkConfig:
         require(self.hold_new_s >= 0, "uplink.hold_new_s must be >= 0 [s]")
         require(self.coalesce_updates_s >= 0, "uplink.coalesce_updates_s must be >= 0 [s]")
         require(self.idle_flush_s > 0, "uplink.idle_flush_s must be > 0 [s]")
+        require(
+            0 <= self.share_max_bits <= 8 * DESCRIPTOR_BYTES,
+            f"uplink.share_max_bits must be in [0, {8 * DESCRIPTOR_BYTES}]",
+        )
         require(
             1 <= self.ref_keyframes <= MAX_REF_KEYFRAMES,
             f"uplink.ref_keyframes must be in [1, {MAX_REF_KEYFRAMES}]",
@@ -166,12 +176,14 @@ class Outgoing(NamedTuple):
 
 class _Held(NamedTuple):
     """What the server holds of a keyframe: the digest of what it saw (as sent), its
-    observations (map point ids, per-keypoint points, NaN where none) and its map segment."""
+    observations (map point ids, per-keypoint points, NaN where none), its map segment and its
+    descriptors."""
 
     digest: bytes
     ids: np.ndarray
     points: np.ndarray
     segment: int
+    descriptors: np.ndarray  # (N, 32) as the server holds them
 
 
 class Holdback:
@@ -257,7 +269,7 @@ class Uplink:
         self.pull = config.mode == "pull"
         self.idle_flush_s = config.idle_flush_s
         self.share = config.share_descriptors and not self.pull
-        self.max_refs = config.ref_keyframes
+        self.max_refs, self.max_bits = config.ref_keyframes, config.share_max_bits
         self.holdback = (
             Holdback() if self.pull else Holdback(config.hold_new_s, config.coalesce_updates_s)
         )
@@ -280,8 +292,8 @@ class Uplink:
         if rec.action == ACTION_NEW:
             if self.pull:
                 return Outgoing(False, signature=True)
-            refs = self._refs(rec)
-            self._hold(rec.keyframe_id, rec.static_digest(), rec)
+            refs, descriptors = self._refs(rec)
+            self._hold(rec.keyframe_id, rec.static_digest(), rec, descriptors)
             return Outgoing(False, refs=refs)
         held = self._held.get(rec.keyframe_id)
         if self.pull and rec.action == ACTION_UPDATE and held is None:
@@ -291,8 +303,8 @@ class Uplink:
             return Outgoing(False)
         digest = rec.static_digest()
         if held.digest != digest:  # what the keyframe saw changed: it goes in full
-            refs = self._refs(rec)
-            self._hold(rec.keyframe_id, digest, rec)
+            refs, descriptors = self._refs(rec)
+            self._hold(rec.keyframe_id, digest, rec, descriptors)
             return Outgoing(False, refs=refs)
         if self.pull:  # the radio's budget goes to whole keyframes: updates move the pose
             return Outgoing(True, np.zeros(0, np.uint32))
@@ -317,21 +329,34 @@ class Uplink:
         self._hold(rec.keyframe_id, rec.static_digest(), rec)
         return Outgoing(False)
 
-    def _hold(self, keyframe_id: int, digest: bytes, rec: KeyframeRecord) -> None:
+    def _hold(
+        self,
+        keyframe_id: int,
+        digest: bytes,
+        rec: KeyframeRecord,
+        descriptors: np.ndarray | None = None,
+    ) -> None:
+        """Remember what the server holds of ``rec`` once it got it: its descriptors are
+        ``descriptors`` (those it took from other keyframes) or the record's."""
         self._held[keyframe_id] = _Held(
             digest,
             np.array(rec.map_point_ids, np.uint32),
             rec.map_points_per_keypoint(),
             int(rec.map_segment),
+            np.array(rec.descriptors if descriptors is None else descriptors, np.uint8),
         )
 
-    def _refs(self, rec: KeyframeRecord) -> tuple[np.ndarray, np.ndarray] | None:
-        """Which of ``rec``'s descriptors the server can take from keyframes it holds: the
-        keyframes (``rec``'s covisible ones first, then the newest, at most ``ref_keyframes``, of
-        its map segment) and per keypoint the one to take it from (0: it travels); None when
-        every descriptor travels."""
+    def _refs(self, rec: KeyframeRecord) -> tuple[tuple[np.ndarray, np.ndarray] | None, np.ndarray]:
+        """Which of ``rec``'s descriptors the server can take from keyframes it holds: a
+        keypoint's map point's descriptor there within ``share_max_bits`` of its own. Returns
+        the keyframes (``rec``'s covisible ones first, then the newest, at most
+        ``ref_keyframes``, of its map segment) and per keypoint the one to take it from (0: it
+        travels) -- None when every descriptor travels -- and the descriptors the server then
+        holds."""
+        own = np.asarray(rec.descriptors, np.uint8)
         if not self.share:
-            return None
+            return None, own
+        server = own.copy()
         ids = np.asarray(rec.map_point_ids, np.uint32)
         same = [k for k, h in self._held.items() if h.segment == rec.map_segment]
         same = [k for k in same if k != rec.keyframe_id]
@@ -344,10 +369,14 @@ class Uplink:
             open_ = np.flatnonzero((refs == 0) & (ids != 0))
             if not len(open_):
                 break
-            at = observation_index(self._held[kf_id].ids, ids[open_])
-            if np.any(at >= 0):
+            held = self._held[kf_id]
+            at = observation_index(held.ids, ids[open_])
+            open_, at = open_[at >= 0], at[at >= 0]
+            close = hamming_rows(own[open_], held.descriptors[at]) <= self.max_bits
+            if np.any(close):
                 used.append(kf_id)
-                refs[open_[at >= 0]] = len(used)
+                refs[open_[close]] = len(used)
+                server[open_[close]] = held.descriptors[at[close]]
         if not used:
-            return None
-        return np.asarray(used, np.uint32), refs
+            return None, own
+        return (np.asarray(used, np.uint32), refs), server
