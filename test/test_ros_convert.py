@@ -10,6 +10,7 @@ from helpers import make_keyframe
 msg_mod = pytest.importorskip(
     "coop_slam.msg", reason="generated messages need the catkin workspace"
 )
+from coop_slam.keyframe_record import encode_map_point_ids  # noqa: E402
 from coop_slam.ros.convert import (  # noqa: E402
     MessageError,
     depth_from_msg,
@@ -44,12 +45,13 @@ def test_keyframe_round_trip_over_the_wire():
     assert back.robot_id == 2 and back.keyframe_id == 9
     assert np.array_equal(back.descriptors, kf.descriptors)
     # Keypoints in 1/64 px steps (a 640x480 image), depths as half floats: 6 bytes a keypoint
-    # less than float32s, within half a step and 2^-11 of the depth.
+    # less than float32s, within half a step and 2^-11 of the depth; map point ids as varints
+    # (a byte each here: ids 1, 3, 5, ... on every other keypoint, 4 as uint32).
     assert msg.keypoint_step_px == 1 / 64 and not len(msg.keypoints) and not len(msg.depths_m)
     np.testing.assert_allclose(back.keypoints[:, :2], kf.keypoints[:, :2], rtol=0, atol=1 / 128)
     np.testing.assert_allclose(back.depths_m, kf.depths_m, rtol=2**-11, atol=0)
     plain = _wire(keyframe_to_msg(kf, "robot_2/map", compact=False))
-    assert _size(plain) - _size(msg) == 6 * 40
+    assert _size(plain) - _size(msg) == 6 * 40 + 3 * 40
     exact = keyframe_from_msg(plain, known_robots={1, 2})
     assert np.array_equal(exact.keypoints[:, :2], kf.keypoints[:, :2])
     assert np.array_equal(exact.depths_m, kf.depths_m)
@@ -273,7 +275,7 @@ def test_malformed_descriptor_refs_are_rejected():
         (dict(descriptor_refs=bytes(refs[:-1])), "descriptor_refs has 19 entries"),
         (dict(descriptor_refs=bytes(refs * 2)), "names reference 2 of 1"),
         (dict(descriptors=ok.descriptors[:-32]), "hold 9 descriptors for 10 keypoints"),
-        (dict(map_point_ids=np.where(refs, 99, 0).tolist()), "map point 99 in keyframe 4"),
+        (dict(map_point_id_codes=encode_map_point_ids(np.where(refs, 99, 0))), "map point 99 in"),
         (dict(ref_keyframes=[6]), "keyframe 6, which the server does not hold"),
     ):
         msg = _wire(keyframe_to_msg(kf, "robot_1/map", refs=(np.array([4]), refs)))
@@ -357,10 +359,15 @@ def _remove_with_200k_keypoints(msg):
         (lambda m: setattr(m, "depths_f16", m.depths_f16[:-1]), "depths_f16 holds 19 bytes"),
         (lambda m: setattr(m, "depths_m", [1.0] * 10), "depths_m and depths_f16 are both"),
         (lambda m: setattr(m, "keypoint_step_px", 1.0), "keypoints outside the 640x480 image"),
+        (lambda m: setattr(m, "map_point_id_codes", m.map_point_id_codes + b"\x80"), "_codes: the"),
+        (lambda m: setattr(m, "map_point_ids", [1] * 10), "map_point_ids and map_point_id_codes"),
+        (lambda m: setattr(m, "map_point_id_codes", b"\x02" * 10), "an id outside"),
     ],
 )
 def test_malformed_keyframes_are_rejected(mutate, match):
-    compact = "keypoints_uv" in match or "f16" in match or "step" in match or "640x480" in match
+    compact = any(
+        k in match for k in ("keypoints_uv", "f16", "step", "640x480", "_codes", "id out")
+    )
     msg = _wire(keyframe_to_msg(make_keyframe(n=10, robot_id=1), "robot_1/map", compact=compact))
     mutate(msg)
     with pytest.raises(MessageError, match=match):

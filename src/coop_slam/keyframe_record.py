@@ -19,6 +19,7 @@ from .datasets.base import CameraModel, DatasetError
 from .descriptors import DESCRIPTOR_BYTES
 from .errors import CoopSlamError
 from .geometry import GeometryError, check_se3
+from .varint import VarintError, decode_varints, encode_varints
 
 ACTION_NEW, ACTION_UPDATE, ACTION_REMOVE = 0, 1, 2
 STATIC_ARRAYS = ("keypoints", "octaves", "descriptors", "depths_m")  # see static_digest
@@ -50,6 +51,7 @@ MAX_OCTAVE = 31  # pyramid level; clients use at most 16 (vo.n_levels)
 KEYPOINT_ANGLE_DEG = (-1.0, 360.0)  # OpenCV: [0, 360), -1 = no orientation
 _MAX_KEYFRAME_ID = (1 << 32) - 1  # KeyFrame.msg: uint32 keyframe_id
 HALF_FLOAT_ERROR = 2.0**-11  # a half float's rounding error, relative to its value
+_MAX_ID_VARINT_BYTES = 5  # a zigzag step between uint32 ids takes 33 bits
 
 
 class KeyframeError(CoopSlamError):
@@ -524,6 +526,35 @@ def decode_depths(raw: bytes) -> np.ndarray:
     if len(raw) % 2:
         raise KeyframeError(f"depths_f16 holds {len(raw)} bytes, not 2 per keypoint")
     return np.frombuffer(raw, "<f2").astype(np.float32)
+
+
+def encode_map_point_ids(ids: np.ndarray) -> bytes:
+    """Per keypoint a varint: 0 where it observes no map point, else the zigzag of its map point
+    id minus the previous keypoint's non-zero one (0 before the first), plus 1. Ids made together
+    follow each other: most take a byte (four as uint32)."""
+    ids = np.asarray(ids, np.int64)
+    seen = ids != 0
+    step = np.diff(np.concatenate([[0], ids[seen]]))
+    code = np.zeros(len(ids), np.int64)
+    code[seen] = np.where(step >= 0, 2 * step, -2 * step - 1) + 1
+    return encode_varints(code)
+
+
+def decode_map_point_ids(raw: bytes) -> np.ndarray:
+    """The uint32 map point ids of :func:`encode_map_point_ids`' bytes; KeyframeError if they are
+    none."""
+    try:
+        code = decode_varints(raw, _MAX_ID_VARINT_BYTES)
+    except VarintError as exc:
+        raise KeyframeError(f"map_point_id_codes: {exc}") from None
+    seen = code != 0
+    z = code[seen] - 1
+    ids = np.cumsum(np.where(z % 2 == 0, z // 2, -(z + 1) // 2))
+    if len(ids) and (ids.min() < 1 or ids.max() > _MAX_KEYFRAME_ID):
+        raise KeyframeError("map_point_id_codes give an id outside [1, 2^32)")
+    out = np.zeros(len(code), np.uint32)
+    out[seen] = ids
+    return out
 
 
 def observation_index(source_ids: np.ndarray, ids: np.ndarray) -> np.ndarray:

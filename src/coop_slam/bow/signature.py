@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import CoopSlamError
+from ..varint import VarintError, decode_varints, encode_varints
 from .vocabulary import BowVector
 
 _MAX_VARINT_BYTES = 5  # word ids are int32
@@ -29,40 +30,27 @@ def encode_signature(bow: BowVector) -> tuple[bytes, bytes, float]:
     if len(words) == 0:
         return b"", b"", 0.0
     gaps = np.diff(np.concatenate([[-1], words]))
-    out = bytearray()
-    for g in gaps.tolist():
-        while g >= 0x80:
-            out.append((g & 0x7F) | 0x80)
-            g >>= 7
-        out.append(g)
     scale = float(weights.max())
     q = np.clip(np.rint(weights / scale * 255.0), 1, 255).astype(np.uint8)
-    return bytes(out), q.tobytes(), scale
+    return encode_varints(gaps), q.tobytes(), scale
 
 
 def decode_signature(gaps: bytes, weights: bytes, scale: float) -> BowVector:
     """The BoW vector (L1-normalised again) of an encoded signature; SignatureError if the parts
     do not fit."""
-    raw = np.frombuffer(bytes(gaps), np.uint8)
     q = np.frombuffer(bytes(weights), np.uint8)
     if not np.isfinite(scale) or scale < 0 or (len(q) and scale == 0):
         raise SignatureError(f"signature weight scale {scale!r} must be finite and > 0")
-    if len(raw) == 0:
+    try:
+        gap = decode_varints(gaps, _MAX_VARINT_BYTES)
+    except VarintError as exc:
+        raise SignatureError(f"signature word ids: {exc}") from None
+    if len(gap) == 0:
         if len(q):
             raise SignatureError(f"signature lists 0 words but {len(q)} weights")
         return BowVector(np.zeros(0, np.int32), np.zeros(0))
-    if raw[-1] & 0x80:
-        raise SignatureError("signature word ids end inside a varint")
-    # Each varint ends at a byte below 0x80: split there and add up the 7-bit groups.
-    ends = np.flatnonzero(raw < 0x80)
-    starts = np.concatenate([[0], ends[:-1] + 1]).astype(np.int64)
-    if len(ends) and (ends - starts).max() >= _MAX_VARINT_BYTES:
-        raise SignatureError("signature word id gap longer than an int32")
-    if len(ends) != len(q):
-        raise SignatureError(f"signature lists {len(ends)} words but {len(q)} weights")
-    value = (raw & 0x7F).astype(np.int64)
-    shift = 7 * (np.arange(len(raw)) - np.repeat(starts, ends - starts + 1))
-    gap = np.add.reduceat(value << shift, starts)
+    if len(gap) != len(q):
+        raise SignatureError(f"signature lists {len(gap)} words but {len(q)} weights")
     words = np.cumsum(gap) - 1
     if (gap <= 0).any():
         raise SignatureError("signature word ids must increase")

@@ -27,8 +27,10 @@ from ..keyframe_record import (
     camera_from_fields,
     complete_update,
     decode_depths,
+    decode_map_point_ids,
     decode_uv,
     encode_depths,
+    encode_map_point_ids,
     encode_uv,
     patch_of,
     shared_descriptors,
@@ -236,9 +238,9 @@ def keyframe_to_msg(
     keyframes the server holds and, per keypoint, the one whose descriptor it takes (0: the
     descriptor travels; see :class:`coop_slam.vo.outbox.Outgoing`). ``compact``: keypoint
     positions and depths in their compact encodings (``keypoints_uv``, ``depths_f16``) where they
-    fit. ``moves`` (a delta update with a patch): keypoints whose map point moved, and the moves
-    as half floats. A place signature goes as a new keyframe with only its BoW vector
-    (``signature_only``)."""
+    fit, map point ids as varints (not in a patch). ``moves`` (a delta update with a patch):
+    keypoints whose map point moved, and the moves as half floats. A place signature goes as a
+    new keyframe with only its BoW vector (``signature_only``)."""
     from coop_slam.msg import CameraModel as CameraModelMsg
     from coop_slam.msg import KeyFrame
 
@@ -296,7 +298,10 @@ def keyframe_to_msg(
         if moves is not None:
             msg.moved = np.asarray(moves[0], np.uint16).tolist()
             msg.moves_f16 = np.asarray(moves[1], "<f2").tobytes()
-    msg.map_point_ids = ids.tolist()
+    if compact and not (delta and patched is not None):
+        msg.map_point_id_codes = encode_map_point_ids(ids)
+    else:
+        msg.map_point_ids = ids.tolist()
     msg.map_points = np.asarray(points, np.float32).ravel().tolist()
     msg.covisible_ids = np.asarray(kf.covisible_ids, np.uint32).tolist()
     msg.covisible_weights = np.asarray(kf.covisible_weights, np.uint16).tolist()
@@ -367,6 +372,12 @@ def keyframe_from_msg(
         )
         where = f"keyframe {msg.keyframe_id} of robot {msg.robot_id}"
         keypoints, depths = keypoints_and_depths(msg, where)
+        ids = np.asarray(msg.map_point_ids, np.uint32)
+        codes = _bytes(getattr(msg, "map_point_id_codes", b""))
+        if len(codes):
+            if len(ids):
+                raise KeyframeError(f"{where}: map_point_ids and map_point_id_codes are both given")
+            ids = decode_map_point_ids(codes.tobytes())
         descriptors = _bytes(msg.descriptors)
         map_points = np.asarray(msg.map_points, np.float32)
         n = len(msg.octaves)
@@ -412,7 +423,7 @@ def keyframe_from_msg(
                     "server holds are not given"
                 )
             static["descriptors"] = shared_descriptors(
-                msg.map_point_ids,
+                ids,
                 static["descriptors"],
                 refs,
                 np.asarray(getattr(msg, "ref_keyframes", ()), np.int64),
@@ -431,7 +442,6 @@ def keyframe_from_msg(
                     f"{where}: a delta update of a keyframe the server does not hold"
                 )
         patched = np.asarray(getattr(msg, "patched", ()), np.int64)
-        ids = np.asarray(msg.map_point_ids, np.uint32)
         is_patch = bool(getattr(msg, "delta", False)) and len(ids) == len(patched)
         if len(patched) and not is_patch:
             raise KeyframeError(
