@@ -1,0 +1,32 @@
+"""Varints (coop_slam.varint) and the map point ids keyframes carry in them."""
+
+import numpy as np
+import pytest
+
+from coop_slam.keyframe_record import KeyframeError, decode_map_point_ids, encode_map_point_ids
+from coop_slam.varint import VarintError, decode_varints, encode_varints
+
+
+def test_varints_round_trip_and_take_a_byte_below_128():
+    values = np.array([0, 1, 127, 128, 300, 2**32 + 5, 2**40], np.int64)
+    raw = encode_varints(values)
+    assert len(encode_varints(np.arange(128))) == 128
+    np.testing.assert_array_equal(decode_varints(raw, 6), values)
+    with pytest.raises(VarintError, match="longer than 5 bytes"):
+        decode_varints(raw, 5)
+    with pytest.raises(VarintError, match="end inside a varint"):
+        decode_varints(raw + b"\x80", 6)
+    with pytest.raises(VarintError, match="non-negative"):
+        encode_varints(np.array([-1]))
+
+
+def test_map_point_ids_round_trip_in_any_order():
+    rng = np.random.default_rng(0)
+    ids = rng.integers(1, 2**32 - 1, 500).astype(np.uint32)
+    ids[rng.random(500) < 0.4] = 0
+    ids[:5] = [7, 8, 9, 10, 11]  # made together: a byte each
+    for case in (ids, ids[::-1], np.zeros(3, np.uint32), np.zeros(0, np.uint32)):
+        np.testing.assert_array_equal(decode_map_point_ids(encode_map_point_ids(case)), case)
+    assert len(encode_map_point_ids(np.arange(1, 101, dtype=np.uint32))) == 100
+    with pytest.raises(KeyframeError, match="outside"):
+        decode_map_point_ids(encode_varints(np.array([2])))  # a step of -1 from 0
