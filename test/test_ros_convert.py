@@ -66,6 +66,52 @@ def test_keyframe_round_trip_over_the_wire():
     assert back.stamp_s == pytest.approx(kf.stamp_s)
 
 
+def test_map_points_travel_as_offsets_from_their_keypoints_depths():
+    """A full message carries an observed keypoint's map point as a half-float offset from the
+    keypoint at its depth (as the server decodes both), the others' as float32; an offset beyond
+    a metre sends every point as float32."""
+    from coop_slam.geometry import transform_points
+
+    kf = make_keyframe(n=60, robot_id=2, keyframe_id=9)
+    kf.T_map_cam[:3, 3] = [3.0, -1.0, 0.5]
+    kf.depths_m[::5] = 0.0  # some keypoints without a depth
+    rng = np.random.default_rng(1)
+    at_depth = transform_points(kf.T_map_cam, kf.points_cam())
+    per_kp = at_depth + rng.normal(0, 0.01, at_depth.shape)  # local BA moved them by ~1 cm
+    no_depth = kf.depths_m == 0
+    per_kp[no_depth] = rng.uniform(-5, 5, (int(no_depth.sum()), 3))
+    kf.map_points = per_kp[kf.map_point_ids != 0].astype(np.float32)
+    msg = _wire(keyframe_to_msg(kf, "robot_2/map"))
+    seen = kf.map_point_ids != 0
+    assert len(msg.map_point_offsets_f16) == 6 * int((seen & ~no_depth).sum())
+    assert len(msg.map_points) == 3 * int((seen & no_depth).sum())
+    back = keyframe_from_msg(msg, {1, 2})
+    err = np.abs(back.map_points - kf.map_points)
+    assert err.max() < 0.05 * 2**-11 + 1e-5  # the offsets' half-float rounding (and float32)
+    np.testing.assert_array_equal(
+        back.map_points_per_keypoint()[seen & no_depth],
+        kf.map_points_per_keypoint()[seen & no_depth],
+    )
+    plain = _wire(keyframe_to_msg(kf, "robot_2/map", compact=False))
+    assert not len(plain.map_point_offsets_f16)
+    # A point a metre and more from its keypoint's depth: every point goes as float32.
+    far = kf.map_points.copy()
+    far[np.flatnonzero(~no_depth[seen])[0]] += 1.5
+    msg = _wire(keyframe_to_msg(dataclasses.replace(kf, map_points=far), "robot_2/map"))
+    assert not len(msg.map_point_offsets_f16) and len(msg.map_points) == far.size
+    # Malformed offsets
+    good = _wire(keyframe_to_msg(kf, "robot_2/map"))
+    for field, value, match in (
+        ("map_point_offsets_f16", good.map_point_offsets_f16[:-6], "bytes for 24 observed"),
+        ("map_point_offsets_f16", np.full(72, np.nan, "<f2").tobytes(), "NaN or inf"),
+        ("map_points", list(good.map_points)[:-3], "points for 6 observed keypoints without"),
+    ):
+        bad = _wire(keyframe_to_msg(kf, "robot_2/map"))
+        setattr(bad, field, value)
+        with pytest.raises(MessageError, match=match):
+            keyframe_from_msg(bad, {1, 2})
+
+
 def _size(msg) -> int:
     import io
 

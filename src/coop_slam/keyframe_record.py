@@ -18,7 +18,7 @@ from .bow.vocabulary import BowVector
 from .datasets.base import CameraModel, DatasetError
 from .descriptors import DESCRIPTOR_BYTES
 from .errors import CoopSlamError
-from .geometry import GeometryError, check_se3
+from .geometry import GeometryError, check_se3, transform_points
 from .varint import VarintError, decode_varints, encode_varints
 
 ACTION_NEW, ACTION_UPDATE, ACTION_REMOVE = 0, 1, 2
@@ -51,6 +51,9 @@ MAX_OCTAVE = 31  # pyramid level; clients use at most 16 (vo.n_levels)
 KEYPOINT_ANGLE_DEG = (-1.0, 360.0)  # OpenCV: [0, 360), -1 = no orientation
 _MAX_KEYFRAME_ID = (1 << 32) - 1  # KeyFrame.msg: uint32 keyframe_id
 HALF_FLOAT_ERROR = 2.0**-11  # a half float's rounding error, relative to its value
+# A map point offset from its keypoint's depth travels as a half float up to this [m] (0.5 mm
+# error at most); local BA moves points mm to cm from where the depth put them.
+MAX_POINT_OFFSET_M = 1.0
 _MAX_ID_VARINT_BYTES = 5  # a zigzag step between uint32 ids takes 33 bits
 
 
@@ -555,6 +558,60 @@ def decode_map_point_ids(raw: bytes) -> np.ndarray:
     out = np.zeros(len(code), np.uint32)
     out[seen] = ids
     return out
+
+
+def _depth_points(rec: KeyframeRecord) -> np.ndarray:
+    """(N, 3) map-frame points of the keypoints at their depths; NaN rows where there is none."""
+    with np.errstate(invalid="ignore"):
+        return transform_points(rec.T_map_cam, rec.points_cam())
+
+
+def encode_point_offsets(rec: KeyframeRecord) -> tuple[bytes, np.ndarray] | None:
+    """The map points of a keyframe as half-float offsets [m] from where its keypoints' depths put
+    them (observed keypoints with a depth, in keypoint order), and the (K, 3) float32 points of
+    the observed keypoints without one; None when an offset is beyond ``MAX_POINT_OFFSET_M`` or
+    not finite (every point then travels as float32). ``rec`` is the keyframe as the server will
+    decode it (keypoints, depths and pose as they travel)."""
+    seen = np.asarray(rec.map_point_ids) != 0
+    with_depth = seen & (np.asarray(rec.depths_m) > 0)
+    per_keypoint = rec.map_points_per_keypoint()
+    with np.errstate(invalid="ignore"):
+        offsets = per_keypoint[with_depth] - _depth_points(rec)[with_depth]
+        if not np.all(np.abs(offsets) <= MAX_POINT_OFFSET_M):
+            return None
+    rest = per_keypoint[seen & ~with_depth].astype(np.float32)
+    return offsets.astype("<f2").tobytes(), rest
+
+
+def decode_point_offsets(rec: KeyframeRecord, raw: bytes, rest: np.ndarray) -> np.ndarray:
+    """The (M, 3) float32 map points of :func:`encode_point_offsets`' offsets ``raw`` and
+    points ``rest``, for ``rec`` (its keypoints, depths, pose and map point ids as decoded);
+    KeyframeError when they do not fit."""
+    if not len(rec.map_point_ids) == len(rec.depths_m) == len(rec.keypoints):
+        raise KeyframeError(
+            f"{len(rec.keypoints)} keypoints, {len(rec.depths_m)} depths and "
+            f"{len(rec.map_point_ids)} map point ids: map point offsets need one of each"
+        )
+    seen = np.asarray(rec.map_point_ids) != 0
+    with_depth = seen & (np.asarray(rec.depths_m) > 0)
+    if len(raw) != 6 * int(with_depth.sum()):
+        raise KeyframeError(
+            f"map_point_offsets_f16 holds {len(raw)} bytes for {int(with_depth.sum())} observed "
+            "keypoints with a depth (6 each)"
+        )
+    rest = np.asarray(rest, np.float32).reshape(-1, 3)
+    if len(rest) != int((seen & ~with_depth).sum()):
+        raise KeyframeError(
+            f"map_points holds {len(rest)} points for {int((seen & ~with_depth).sum())} observed "
+            "keypoints without a depth (the others' go as offsets)"
+        )
+    offsets = np.frombuffer(raw, "<f2").reshape(-1, 3).astype(np.float32)
+    if not np.all(np.isfinite(offsets)):
+        raise KeyframeError("map_point_offsets_f16 holds NaN or inf")
+    per_keypoint = np.full((len(seen), 3), np.nan, np.float32)
+    per_keypoint[with_depth] = _depth_points(rec)[with_depth].astype(np.float32) + offsets
+    per_keypoint[seen & ~with_depth] = rest
+    return per_keypoint[seen]
 
 
 def observation_index(source_ids: np.ndarray, ids: np.ndarray) -> np.ndarray:

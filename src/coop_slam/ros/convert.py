@@ -6,6 +6,7 @@ function validates what it reads and raises :class:`MessageError` with a message
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable
 
 import numpy as np
@@ -28,9 +29,11 @@ from ..keyframe_record import (
     complete_update,
     decode_depths,
     decode_map_point_ids,
+    decode_point_offsets,
     decode_uv,
     encode_depths,
     encode_map_point_ids,
+    encode_point_offsets,
     encode_uv,
     patch_of,
     shared_descriptors,
@@ -238,7 +241,8 @@ def keyframe_to_msg(
     keyframes the server holds and, per keypoint, the one whose descriptor it takes (0: the
     descriptor travels; see :class:`coop_slam.vo.outbox.Outgoing`). ``compact``: keypoint
     positions and depths in their compact encodings (``keypoints_uv``, ``depths_f16``) where they
-    fit, map point ids as varints (not in a patch). ``moves`` (a delta update with a patch):
+    fit, map point ids as varints (not in a patch), map points as half-float offsets from their
+    keypoints' depths (a full message, where they fit). ``moves`` (a delta update with a patch):
     keypoints whose map point moved, and the moves as half floats. A place signature goes as a
     new keyframe with only its BoW vector (``signature_only``)."""
     from coop_slam.msg import CameraModel as CameraModelMsg
@@ -292,6 +296,9 @@ def keyframe_to_msg(
         else:
             msg.depths_f16 = depths
     ids, points = np.asarray(kf.map_point_ids, np.uint32), np.asarray(kf.map_points, np.float32)
+    offsets = encode_point_offsets(_as_decoded(kf, msg)) if compact and not delta else None
+    if offsets is not None:
+        msg.map_point_offsets_f16, points = offsets
     if delta and patched is not None:
         ids, points = patch_of(kf, patched)
         msg.patched = np.asarray(patched, np.uint32).tolist()
@@ -313,6 +320,16 @@ def _bytes(field) -> np.ndarray:
     if isinstance(field, (bytes, bytearray)):
         return np.frombuffer(field, dtype=np.uint8)
     return np.asarray(field, dtype=np.uint8)
+
+
+def _as_decoded(kf: KeyframeRecord, msg) -> KeyframeRecord:
+    """``kf`` with its keypoints, depths and pose as the server decodes them from ``msg``."""
+    flat, depths = keypoints_and_depths(msg, "keyframe")
+    uv = flat.reshape(-1, 2) if flat.size == 2 * len(depths) else flat.reshape(-1, 4)[:, :2]
+    keypoints = np.column_stack([uv, np.zeros(len(uv)), np.full(len(uv), -1.0)])
+    return dataclasses.replace(
+        kf, keypoints=keypoints, depths_m=depths, T_map_cam=pose_from_msg(msg.pose)
+    )
 
 
 def keypoints_and_depths(msg, where: str) -> tuple[np.ndarray, np.ndarray]:
@@ -474,6 +491,12 @@ def keyframe_from_msg(
                     "keypoints (6 each)"
                 )
             moves = (moved, np.frombuffer(half.tobytes(), "<f2").reshape(-1, 3))
+        offsets = _bytes(getattr(msg, "map_point_offsets_f16", b""))
+        if len(offsets):
+            if getattr(msg, "delta", False):
+                raise KeyframeError(f"{where}: only a full message carries map point offsets")
+            points = decode_point_offsets(rec, offsets.tobytes(), rec.map_points)
+            rec = dataclasses.replace(rec, map_points=points)
         if getattr(msg, "delta", False):
             rec = complete_update(rec, base, patched if is_patch else None, moves)
         if getattr(msg, "signature_only", False):
