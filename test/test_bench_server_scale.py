@@ -13,7 +13,7 @@ from coop_slam.team.server import TeamServer
 from coop_slam.tools.bench_server_scale import (
     Arrival,
     ClientSender,
-    DeltaUpdate,
+    NeedsStored,
     NodeWork,
     as_sent,
     backlog_at,
@@ -78,7 +78,7 @@ def replayed(tmp_path_factory):
 def test_every_message_is_processed_once_in_arrival_order(replayed):
     arrivals, run, server, kfs_a, _ = replayed
     assert [(m.robot_id, m.kind) for m in run.messages] == [
-        (a.robot_id, "update" if isinstance(a.item, DeltaUpdate) else m.kind)
+        (a.robot_id, "update" if isinstance(a.item, NeedsStored) else m.kind)
         for a, m in zip(arrivals, run.messages)
     ]
     assert len(run.messages) == len(arrivals) == 24 + 6 + 3
@@ -186,7 +186,7 @@ def test_the_synthesised_client_sends_as_the_client_node():
     assert [(a.t_s, a.robot_id, a.sequence) for a in sent] == [(4.5, 3, k) for k in (1, 2, 3, 4)]
     new, delta, whole, removal = (a.item for a in sent)
     assert isinstance(new, KeyframeRecord) and new.keypoints.dtype == np.float32
-    assert isinstance(delta, DeltaUpdate) and delta.keyframe_id == 7
+    assert isinstance(delta, NeedsStored) and delta.keyframe_id == 7
     completed = delta.complete({7: new}.get, {3})
     np.testing.assert_array_equal(completed.descriptors, new.descriptors)
     np.testing.assert_allclose(completed.T_map_cam, moved.T_map_cam)

@@ -1,6 +1,7 @@
 """ROS message conversion and validation (no master needed)."""
 
 import dataclasses
+import functools
 
 import numpy as np
 import pytest
@@ -58,6 +59,8 @@ def test_keyframe_round_trip_over_the_wire():
     # What does not fit goes as float32: a depth beyond the half float's range.
     far = dataclasses.replace(kf, depths_m=np.full(40, 70000.0, np.float32))
     assert not len(keyframe_to_msg(far, "robot_2/map").depths_f16)
+    tiny = dataclasses.replace(kf, depths_m=np.full(40, 1e-6, np.float32))  # loses precision
+    assert not len(keyframe_to_msg(tiny, "robot_2/map").depths_f16)
     # Their size and angle do not travel (the server does not use them).
     assert np.all(back.keypoints[:, 2] == 0) and np.all(back.keypoints[:, 3] == -1)
     assert np.array_equal(back.map_point_ids, kf.map_point_ids)
@@ -323,6 +326,7 @@ def test_malformed_descriptor_refs_are_rejected():
         (dict(descriptors=ok.descriptors[:-32]), "hold 9 descriptors for 10 keypoints"),
         (dict(map_point_id_codes=encode_map_point_ids(np.where(refs, 99, 0))), "map point 99 in"),
         (dict(ref_keyframes=[6]), "keyframe 6, which the server does not hold"),
+        (dict(ref_keyframes=[4] * 256), "ref_keyframes lists 256 keyframes, above the limit"),
     ):
         msg = _wire(keyframe_to_msg(kf, "robot_1/map", refs=(np.array([4]), refs)))
         for k, v in change.items():
@@ -383,37 +387,58 @@ def _remove_with_200k_keypoints(msg):
 
 
 @pytest.mark.parametrize(
-    "mutate, match",
+    "mutate, match, compact",
     [
-        (lambda m: setattr(m, "descriptors", m.descriptors[:-5]), "multiple of 32"),
-        (lambda m: setattr(m, "robot_id", 9), "unknown"),
-        (lambda m: setattr(m.pose.orientation, "w", float("nan")), "unit quaternion"),
-        (lambda m: setattr(m.pose.position, "x", float("inf")), "NaN or inf"),
-        (lambda m: setattr(m, "keypoints", list(m.keypoints)[:-1]), "2 per keypoint .u, v."),
-        (lambda m: setattr(m, "depths_m", list(m.depths_m)[:-1]), "depths_m"),
-        (lambda m: setattr(m.camera, "fx", 0.0), "camera model"),
+        (lambda m: setattr(m, "descriptors", m.descriptors[:-5]), "multiple of 32", False),
+        (lambda m: setattr(m, "robot_id", 9), "unknown", False),
+        (lambda m: setattr(m.pose.orientation, "w", float("nan")), "unit quaternion", False),
+        (lambda m: setattr(m.pose.position, "x", float("inf")), "NaN or inf", False),
+        (lambda m: setattr(m, "keypoints", list(m.keypoints)[:-1]), "2 per keypoint .u, v.", False),
+        (lambda m: setattr(m, "depths_m", list(m.depths_m)[:-1]), "depths_m", False),
+        (lambda m: setattr(m.camera, "fx", 0.0), "camera model", False),
         # Finite yet absurd, as a fuzzer sent them.
-        (lambda m: setattr(m.camera, "fx", 1e-300), "camera fx = 1e-300 px is outside"),
-        (lambda m: setattr(m.pose.position, "y", 1e300), "pose position 1e.300 m"),
-        (lambda m: setattr(m, "depths_m", [1e30] * len(m.depths_m)), "depths must be in"),
-        (_remove_with_200k_keypoints, "keypoints holds 200000 entries, above the limit"),
+        (lambda m: setattr(m.camera, "fx", 1e-300), "camera fx = 1e-300 px is outside", False),
+        (lambda m: setattr(m.pose.position, "y", 1e300), "pose position 1e.300 m", False),
+        (lambda m: setattr(m, "depths_m", [1e30] * len(m.depths_m)), "depths must be in", False),
+        (_remove_with_200k_keypoints, "keypoints holds 200000 entries, above the limit", False),
         # The compact encodings
-        (lambda m: setattr(m, "keypoints_uv", [7] * 19), "keypoints_uv holds 19 values"),
-        (lambda m: setattr(m, "keypoint_step_px", 0.0), "keypoint_step_px 0.0 is not in"),
-        (lambda m: setattr(m, "keypoint_step_px", float("nan")), "keypoint_step_px nan"),
-        (lambda m: setattr(m, "keypoints", [1.0] * 20), "keypoints and keypoints_uv are both"),
-        (lambda m: setattr(m, "depths_f16", m.depths_f16[:-1]), "depths_f16 holds 19 bytes"),
-        (lambda m: setattr(m, "depths_m", [1.0] * 10), "depths_m and depths_f16 are both"),
-        (lambda m: setattr(m, "keypoint_step_px", 1.0), "keypoints outside the 640x480 image"),
-        (lambda m: setattr(m, "map_point_id_codes", m.map_point_id_codes + b"\x80"), "_codes: the"),
-        (lambda m: setattr(m, "map_point_ids", [1] * 10), "map_point_ids and map_point_id_codes"),
-        (lambda m: setattr(m, "map_point_id_codes", b"\x02" * 10), "an id outside"),
+        (lambda m: setattr(m, "keypoint_step_px", 0.5), "keypoint_step_px is given without", False),
+        (lambda m: setattr(m, "keypoints_uv", [7] * 19), "keypoints_uv holds 19 values", True),
+        (
+            lambda m: setattr(m, "keypoints_uv", [7] * 40),
+            "keypoints_uv holds 40 values for 10",
+            True,
+        ),
+        (lambda m: setattr(m, "ref_keyframes", [4]), "ref_keyframes is given without", True),
+        (lambda m: setattr(m, "moves_f16", bytes(6)), "moves_f16 is given without moved", True),
+        (lambda m: setattr(m, "keypoint_step_px", 0.0), "keypoint_step_px 0.0 is not in", True),
+        (lambda m: setattr(m, "keypoint_step_px", float("nan")), "keypoint_step_px nan", True),
+        (
+            lambda m: setattr(m, "keypoints", [1.0] * 20),
+            "keypoints and keypoints_uv are both",
+            True,
+        ),
+        (lambda m: setattr(m, "depths_f16", m.depths_f16[:-1]), "depths_f16 holds 19 bytes", True),
+        (lambda m: setattr(m, "depths_m", [1.0] * 10), "depths_m and depths_f16 are both", True),
+        (
+            lambda m: setattr(m, "keypoint_step_px", 1.0),
+            "keypoints outside the 640x480 image",
+            True,
+        ),
+        (
+            lambda m: setattr(m, "map_point_id_codes", m.map_point_id_codes + b"\x80"),
+            "_codes: the",
+            True,
+        ),
+        (
+            lambda m: setattr(m, "map_point_ids", [1] * 10),
+            "map_point_ids and map_point_id_codes",
+            True,
+        ),
+        (lambda m: setattr(m, "map_point_id_codes", b"\x02" * 10), "an id outside", True),
     ],
 )
-def test_malformed_keyframes_are_rejected(mutate, match):
-    compact = any(
-        k in match for k in ("keypoints_uv", "f16", "step", "640x480", "_codes", "id out")
-    )
+def test_malformed_keyframes_are_rejected(mutate, match, compact):
     msg = _wire(keyframe_to_msg(make_keyframe(n=10, robot_id=1), "robot_1/map", compact=compact))
     mutate(msg)
     with pytest.raises(MessageError, match=match):
@@ -507,3 +532,42 @@ def test_a_place_signature_round_trip_over_the_wire():
     msg.action, msg.bow_weights = msg.ACTION_NEW, msg.bow_weights[:-1]
     with pytest.raises(MessageError, match="words but"):
         keyframe_from_msg(msg, {1, 2})
+
+
+def test_a_refused_keyframe_is_not_referred_to_after_the_acknowledgement():
+    """The server acknowledges the keyframes it refused (KeyframeAck.refused_keyframe_ids); the
+    client's uplink forgets them, so later keyframes carry the descriptors themselves instead of
+    being refused in turn (one refusal refused every later keyframe before)."""
+    import dataclasses
+
+    from coop_slam.team.durable import DurableServer, PendingKeyframe
+    from coop_slam.team.server import TeamServer
+    from coop_slam.vo.outbox import Uplink
+    from helpers import team_server_config, team_vocabulary
+
+    a = make_keyframe(n=80, keyframe_id=1)
+    vocab = team_vocabulary([a])
+    durable = DurableServer(team_server_config(robots=[1]), lambda c: TeamServer(c, vocab), None)
+    uplink, sequence = Uplink(), [0]
+
+    def send(rec):
+        out = uplink.prepare(rec)
+        msg = _wire(keyframe_to_msg(rec, "robot_1/map", out.delta, out.patched, out.refs))
+        stored = functools.partial(durable.server.stored_record, 1, msg.map_segment)
+        item = PendingKeyframe(1, lambda: keyframe_from_msg(msg, {1}, stored), msg.keyframe_id)
+        sequence[0] += 1
+        return msg, durable.add_keyframe(item, 7, sequence[0])
+
+    bad = dataclasses.replace(a, depths_m=np.full(80, 5000.0, np.float32))  # beyond any camera
+    _, taken = send(bad)
+    assert taken.rejected and durable.refused(1) == [1]
+    b = _sees(make_keyframe(n=80, keyframe_id=2, seed=1), a, np.arange(0, 20, 2))
+    msg, taken = send(b)  # sent before the acknowledgement came: refused as well
+    assert len(msg.descriptor_refs) and taken.rejected and durable.refused(1) == [1, 2]
+    uplink.forget(durable.refused(1))
+    c = _sees(make_keyframe(n=80, keyframe_id=3, seed=2), a, np.arange(0, 20, 2))
+    msg, taken = send(c)
+    assert not len(msg.descriptor_refs) and not taken.rejected
+    # Keyframe 1's next update goes whole and the server holds it again.
+    msg, taken = send(dataclasses.replace(a, action=1))
+    assert not msg.delta and not taken.rejected and durable.refused(1) == [2]

@@ -37,7 +37,7 @@ ARRAY_FIELDS = STATIC_ARRAYS + (
 # Keypoints per keyframe: clients send 1000 (config/client.yaml vo.n_features), ORB-SLAM's largest
 # presets 2000 (stereo KITTI); 5 x that leaves room for dense stereo / RGB-D extractors. Matching
 # two keyframes costs time in the product of their sizes: 1 s at this limit, 5 s at 20,000.
-MAX_KEYPOINTS = 10000
+MAX_KEYPOINTS = 10000  # (below 65536: KeyFrame.moved indexes keypoints in uint16)
 # Covisible keyframes listed per keyframe: each shares map points with this one; ORB-SLAM keeps
 # tens. This many is hours of keyframes at 1 Hz all seeing one scene.
 MAX_COVISIBLE = 10000
@@ -51,6 +51,10 @@ MAX_OCTAVE = 31  # pyramid level; clients use at most 16 (vo.n_levels)
 KEYPOINT_ANGLE_DEG = (-1.0, 360.0)  # OpenCV: [0, 360), -1 = no orientation
 _MAX_KEYFRAME_ID = (1 << 32) - 1  # KeyFrame.msg: uint32 keyframe_id
 HALF_FLOAT_ERROR = 2.0**-11  # a half float's rounding error, relative to its value
+HALF_FLOAT_MAX = 65504.0
+HALF_FLOAT_NORMAL_MIN = 2.0**-14  # below it a half float loses relative precision
+MAX_REF_KEYFRAMES = 255  # KeyFrame.msg: uint8 descriptor_refs
+_MAX_UINT32 = (1 << 32) - 1
 # A map point offset from its keypoint's depth travels as a half float up to this [m] (0.5 mm
 # error at most); local BA moves points mm to cm from where the depth put them.
 MAX_POINT_OFFSET_M = 1.0
@@ -405,9 +409,9 @@ def split_moves(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Of the keypoints ``patched`` (see :func:`observation_patch`; ``ids``, ``points`` the
     keyframe's now, per keypoint), those whose map point only moved and whose move a half float
-    carries to within half of ``min_move_m``: ``(others, moved, moves)``, the rest of
-    ``patched``, the moved keypoints and their (k, 3) float16 moves [m] since ``held_points``.
-    ``min_move_m`` 0: none (every position travels exact)."""
+    carries to within half of ``min_move_m`` per coordinate (0.87 of it in length): ``(others,
+    moved, moves)``, the rest of ``patched``, the moved keypoints and their (k, 3) float16 moves
+    [m] since ``held_points``. ``min_move_m`` 0: none (every position travels exact)."""
     patched = np.asarray(patched, np.int64)
     with np.errstate(invalid="ignore", over="ignore"):
         move = np.asarray(points, float)[patched] - np.asarray(held_points, float)[patched]
@@ -416,6 +420,7 @@ def split_moves(
             & (np.asarray(ids)[patched] != 0)
             & np.all(np.isfinite(move), axis=1)
             & (np.abs(move).max(axis=1, initial=0.0) * HALF_FLOAT_ERROR <= 0.5 * min_move_m)
+            & (np.abs(move).max(axis=1, initial=0.0) <= HALF_FLOAT_MAX)
         )
     return (
         patched[~ok].astype(np.uint32),
@@ -429,7 +434,8 @@ def apply_moves(
 ) -> np.ndarray:
     """The per-keypoint points after the keypoints ``moved``'s map points moved by ``moves``
     ((k, 3) float16 [m]), added in float32 as the message's points are (the client and the
-    server get the same bits). Raises KeyframeError when they do not fit."""
+    server add alike; the server's position differs from the client's by the rounding of a
+    monocular map's scale at most). Raises KeyframeError when they do not fit."""
     n = len(held_ids)
     moved = np.asarray(moved, np.int64)
     moves = np.asarray(moves, np.float16).reshape(-1, 3)
@@ -494,7 +500,7 @@ UV_CODE_MAX = 65535  # uint16
 
 def uv_step_px(width: int, height: int) -> float:
     """The step keypoint positions travel in for an image of this size: the smallest power of two
-    that spans the image in uint16 (1/64 px up to 1023 px a side)."""
+    that spans the image and a pixel beyond in uint16 (1/64 px up to 1022 px a side)."""
     return float(2.0 ** np.ceil(np.log2((max(width, height) + 1) / UV_CODE_MAX)))
 
 
@@ -517,9 +523,15 @@ def decode_uv(code: np.ndarray, step_px: float) -> np.ndarray:
 
 def encode_depths(depths_m: np.ndarray) -> bytes | None:
     """Depths as little-endian IEEE half floats; None when one does not fit (not finite, beyond
-    the half float's range): they then travel as float32."""
+    the half float's range, or so small it would lose its precision): they then travel as
+    float32."""
     depths_m = np.asarray(depths_m, np.float64)
-    if not np.all(np.isfinite(depths_m)) or np.abs(depths_m).max(initial=0.0) > 65504.0:
+    small = (depths_m != 0) & (np.abs(depths_m) < HALF_FLOAT_NORMAL_MIN)
+    if (
+        not np.all(np.isfinite(depths_m))
+        or np.abs(depths_m).max(initial=0.0) > HALF_FLOAT_MAX
+        or np.any(small)
+    ):
         return None
     return depths_m.astype("<f2").tobytes()
 
@@ -553,7 +565,7 @@ def decode_map_point_ids(raw: bytes) -> np.ndarray:
     seen = code != 0
     z = code[seen] - 1
     ids = np.cumsum(np.where(z % 2 == 0, z // 2, -(z + 1) // 2))
-    if len(ids) and (ids.min() < 1 or ids.max() > _MAX_KEYFRAME_ID):
+    if len(ids) and (ids.min() < 1 or ids.max() > _MAX_UINT32):
         raise KeyframeError("map_point_id_codes give an id outside [1, 2^32)")
     out = np.zeros(len(code), np.uint32)
     out[seen] = ids
@@ -642,6 +654,11 @@ def shared_descriptors(
     refs = np.asarray(refs, np.int64)
     ids = np.asarray(map_point_ids, np.int64)
     own = np.asarray(own, np.uint8).reshape(-1, DESCRIPTOR_BYTES)
+    if len(ref_keyframes) > MAX_REF_KEYFRAMES:
+        raise KeyframeError(
+            f"{where}: ref_keyframes lists {len(ref_keyframes)} keyframes, above the limit of "
+            f"{MAX_REF_KEYFRAMES}"
+        )
     if len(refs) != len(ids):
         raise KeyframeError(
             f"{where}: descriptor_refs has {len(refs)} entries, expected one per keypoint "
@@ -661,11 +678,10 @@ def shared_descriptors(
         raise KeyframeError(f"{where}: descriptor_refs names a keypoint that observes no map point")
     out = np.zeros((len(ids), DESCRIPTOR_BYTES), np.uint8)
     out[refs == 0] = own
-    for i, kf_id in enumerate(np.asarray(ref_keyframes, np.int64), start=1):
-        mine = np.flatnonzero(refs == i)
-        if not len(mine):
-            continue
-        source = stored(int(kf_id))
+    ref_keyframes = np.asarray(ref_keyframes, np.int64)
+    for i in np.unique(refs[refs > 0]):
+        mine, kf_id = np.flatnonzero(refs == i), int(ref_keyframes[i - 1])
+        source = stored(kf_id)
         if source is None:
             raise KeyframeError(
                 f"{where}: its descriptors refer to keyframe {kf_id}, which the server does not "

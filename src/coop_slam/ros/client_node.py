@@ -335,6 +335,8 @@ class ClientNode:
             return
         with self._outbox_lock:
             self.outbox.ack(msg.session, msg.sequence)
+        # Keyframes the server refused: later messages must not count on it holding them.
+        self.uplink.forget(getattr(msg, "refused_keyframe_ids", ()))
 
     def _resend_loop(self) -> None:
         while not rospy.is_shutdown():

@@ -343,9 +343,14 @@ def keypoints_and_depths(msg, where: str) -> tuple[np.ndarray, np.ndarray]:
             raise KeyframeError(f"{where}: keypoints and keypoints_uv are both given")
         if not (np.isfinite(step) and 0.0 < step <= 1.0):
             raise KeyframeError(f"{where}: keypoint_step_px {step!r} is not in (0, 1] px")
-        if coded.size % 2:
-            raise KeyframeError(f"{where}: keypoints_uv holds {coded.size} values, not 2 per point")
+        if coded.size != 2 * len(msg.octaves):
+            raise KeyframeError(
+                f"{where}: keypoints_uv holds {coded.size} values for {len(msg.octaves)} octaves: "
+                "2 per keypoint (u, v)"
+            )
         keypoints = decode_uv(coded, step).ravel()
+    elif float(getattr(msg, "keypoint_step_px", 0.0)):
+        raise KeyframeError(f"{where}: keypoint_step_px is given without keypoints_uv")
     depths = np.asarray(msg.depths_m, np.float32)
     half = _bytes(getattr(msg, "depths_f16", b""))
     if len(half):
@@ -429,6 +434,8 @@ def keyframe_from_msg(
             depths_m=depths,
         )
         refs = _bytes(getattr(msg, "descriptor_refs", b""))
+        if len(getattr(msg, "ref_keyframes", ())) and not len(refs):
+            raise KeyframeError(f"{where}: ref_keyframes is given without descriptor_refs")
         if len(refs):
             if getattr(msg, "delta", False) or getattr(msg, "signature_only", False):
                 raise KeyframeError(
@@ -481,6 +488,8 @@ def keyframe_from_msg(
         )
         moved = np.asarray(getattr(msg, "moved", ()), np.int64)
         moves = None
+        if len(getattr(msg, "moves_f16", b"")) and not len(moved):
+            raise KeyframeError(f"{where}: moves_f16 is given without moved")
         if len(moved):
             if not is_patch:
                 raise KeyframeError(f"{where}: only a delta update with a patch moves map points")

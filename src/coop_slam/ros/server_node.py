@@ -304,6 +304,7 @@ class ServerNode:
             last_keyframe_id=last_kf,
             last_map_segment=last_seg,
             durable=self.durable.store is not None,
+            refused_keyframe_ids=self.durable.refused(robot_id),
         )
         msg.header.stamp = rospy.Time.now()
         self.pub_ack[robot_id].publish(msg)
@@ -316,7 +317,7 @@ class ServerNode:
             )
             return
         if needs_stored(msg):  # needs keyframes as the server holds them when its turn comes
-            rec = PendingKeyframe(msg.robot_id, lambda: self._stored_record(msg))
+            rec = PendingKeyframe(msg.robot_id, lambda: self._stored_record(msg), msg.keyframe_id)
         else:
             try:
                 rec = keyframe_from_msg(msg, known_robots=self.server.known_robots)

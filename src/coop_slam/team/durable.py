@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Callable
 
@@ -48,14 +49,23 @@ def _has_inputs(path: str) -> bool:
         store.close()
 
 
+REFUSED_KEPT = 64  # refused keyframes acknowledged per robot (the newest)
+
+
 @dataclass
 class PendingKeyframe:
-    """A keyframe message that becomes a record only when it is taken, in order: a delta update
-    needs the keyframe as the server holds it then. ``resolve()`` raises CoopSlamError when the
-    message cannot be taken."""
+    """A keyframe message that becomes a record only when it is taken, in order: a delta update,
+    or a keyframe whose descriptors are other keyframes', needs the keyframes as the server holds
+    them then. ``resolve()`` raises CoopSlamError when the message cannot be taken."""
 
     robot_id: int
     resolve: Callable[[], KeyframeRecord]
+    keyframe_id: int = 0  # (0: not known)
+
+
+def _keyframe_id(item) -> int:
+    """The keyframe id of an input (0 when a pending message does not say)."""
+    return int(getattr(item, "keyframe_id", 0) or 0)
 
 
 @dataclass
@@ -130,6 +140,9 @@ class DurableServer:
                 config.pull, config.place_recognition.database, min_consecutive, same_group
             )
         self.order = {r: InOrder() for r in robots}
+        # robot -> keyframe ids whose last message the core refused, newest last (acknowledged
+        # with them: the client must not count on the server holding them)
+        self._refused: dict[int, deque[int]] = {r: deque(maxlen=REFUSED_KEPT) for r in robots}
         if source_resume is not None:
             self.store = source_resume
             self.store.set_robots(robots)
@@ -174,6 +187,11 @@ class DurableServer:
         o = self.order[robot_id]
         return o.session, o.last
 
+    def refused(self, robot_id: int) -> list[int]:
+        """The keyframes of a robot whose last message the server refused (the newest
+        ``REFUSED_KEPT``)."""
+        return list(self._refused.get(robot_id, ()))
+
     def last_ids(self) -> dict[int, tuple[int, int]]:
         """robot -> (highest keyframe id, highest map segment) taken: a restarted client goes
         on above them."""
@@ -205,10 +223,16 @@ class DurableServer:
         v = order.arrive(session, sequence, (rec, sequence))
         out = Taken([], duplicate=v.duplicate, held=v.held, stale=v.stale)
         for item, seq in v.take:
+            refused = self._refused.setdefault(item.robot_id, deque(maxlen=REFUSED_KEPT))
+            keyframe_id = _keyframe_id(item)
+            if keyframe_id in refused:
+                refused.remove(keyframe_id)
             try:
                 out.merges += self._take(item, seq)
             except CoopSlamError as exc:
                 out.rejected = (out.rejected or []) + [str(exc)]
+                if keyframe_id:
+                    refused.append(keyframe_id)
             out.taken += 1
         return out
 

@@ -80,7 +80,7 @@ def _log(text: str) -> None:
 
 # --- the streams ----------------------------------------------------------------------------------
 @dataclasses.dataclass
-class DeltaUpdate:
+class NeedsStored:
     """A message completed from keyframes the server holds (an update sent without what the
     keyframe saw, ``KeyFrame.delta``, or a keyframe whose descriptors are other keyframes'): the
     server completes it when it takes it. ``complete(stored, known_robots)``, ``stored(keyframe
@@ -100,18 +100,18 @@ class Arrival(NamedTuple):
 
     t_s: float  # arrival on the stream's clock [s] (bag receive time or frame stamp)
     robot_id: int
-    item: KeyframeRecord | DeltaUpdate
+    item: KeyframeRecord | NeedsStored
     session: int  # delivery (see coop_slam.delivery)
     sequence: int
 
 
-def message_kind(item: KeyframeRecord | DeltaUpdate) -> str:
-    if isinstance(item, DeltaUpdate):
+def message_kind(item: KeyframeRecord | NeedsStored) -> str:
+    if isinstance(item, NeedsStored):
         return "new" if item.action == ACTION_NEW else "update"
     return {ACTION_NEW: "new", ACTION_UPDATE: "update", ACTION_REMOVE: "remove"}[item.action]
 
 
-def header_stamp_s(item: KeyframeRecord | DeltaUpdate) -> float:
+def header_stamp_s(item: KeyframeRecord | NeedsStored) -> float:
     """The message's header stamp, as the node reads it (a removal's is 0)."""
     return float(item.stamp_s)
 
@@ -161,7 +161,7 @@ def as_sent(
     patched: np.ndarray | None = None,
     refs: tuple[np.ndarray, np.ndarray] | None = None,
     moves: tuple[np.ndarray, np.ndarray] | None = None,
-) -> KeyframeRecord | DeltaUpdate:
+) -> KeyframeRecord | NeedsStored:
     """The record as the server gets it from the wire: arrays in the message's dtypes, keypoints
     without their size and angle, keypoints and depths in their compact encodings, for a delta
     update without what the keyframe saw (and with only the ``patched`` keypoints' observations
@@ -183,7 +183,7 @@ def as_sent(
     if not delta:
         if refs is None:
             return rec
-        return DeltaUpdate(
+        return NeedsStored(
             rec.robot_id,
             rec.map_segment,
             rec.keyframe_id,
@@ -195,7 +195,7 @@ def as_sent(
     if patched is not None:
         empty["map_point_ids"], empty["map_points"] = patch_of(rec, patched)
     stripped = dataclasses.replace(rec, **empty)
-    return DeltaUpdate(
+    return NeedsStored(
         rec.robot_id,
         rec.map_segment,
         rec.keyframe_id,
@@ -387,7 +387,7 @@ def run_streams(run_dir: str) -> tuple[list[Arrival], dict]:
                     continue
                 seen.add((msg.robot_id, session, sequence))
             if needs_stored(msg):  # completed when taken, as the node does
-                item = DeltaUpdate(
+                item = NeedsStored(
                     msg.robot_id,
                     msg.map_segment,
                     msg.keyframe_id,
@@ -433,7 +433,7 @@ class NodeWork:
     def server(self):
         return self.durable.server
 
-    def _pending(self, delta: DeltaUpdate):
+    def _pending(self, delta: NeedsStored):
         from ..team.durable import PendingKeyframe
 
         server = self.server
@@ -443,11 +443,12 @@ class NodeWork:
                 functools.partial(server.stored_record, delta.robot_id, delta.map_segment),
                 server.known_robots,
             ),
+            delta.keyframe_id,
         )
 
     def keyframe(self, a: Arrival) -> tuple[list, float]:
         """One message through the worker: (merges it made, wall time they were decided)."""
-        rec = self._pending(a.item) if isinstance(a.item, DeltaUpdate) else a.item
+        rec = self._pending(a.item) if isinstance(a.item, NeedsStored) else a.item
         try:
             taken = self.durable.add_keyframe(rec, a.session, a.sequence)
         except CoopSlamError:

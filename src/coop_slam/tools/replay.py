@@ -74,6 +74,8 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
                     T_body_cam,
                 )
                 continue
+            if msg.action != ACTION_REMOVE:  # a removal carries no stamp
+                stamps.setdefault((msg.robot_id, msg.keyframe_id), msg.header.stamp.to_sec())
             try:
                 if needs_stored(msg):  # completed from the keyframes as stored then
                     rec = PendingKeyframe(
@@ -83,11 +85,10 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
                             server.known_robots,
                             functools.partial(server.stored_record, m.robot_id, m.map_segment),
                         ),
+                        msg.keyframe_id,
                     )
                 else:
                     rec = keyframe_from_msg(msg, known_robots=server.known_robots)
-                    if rec.action != ACTION_REMOVE:  # a removal carries no stamp
-                        stamps.setdefault((rec.robot_id, rec.keyframe_id), rec.stamp_s)
                 taken = durable.add_keyframe(
                     rec, getattr(msg, "session", 0), getattr(msg, "sequence", 0)
                 )

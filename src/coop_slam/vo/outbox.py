@@ -8,6 +8,7 @@ body at start (z up, REP-103), so poses and points are moved by ``T_base_cam`` o
 from __future__ import annotations
 
 import dataclasses
+import threading
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -21,6 +22,7 @@ from ..keyframe_record import (
     ACTION_NEW,
     ACTION_REMOVE,
     ACTION_UPDATE,
+    MAX_REF_KEYFRAMES,
     KeyframeRecord,
     PlaceSignature,
     apply_moves,
@@ -33,7 +35,6 @@ from .map import MapKeyframe
 from .types import KEYFRAME_ACTIONS, VoEvent
 
 UPLINK_MODES = ("full", "pull")
-MAX_REF_KEYFRAMES = 255  # KeyFrame.msg: uint8 descriptor_refs
 
 
 def keyframe_record(
@@ -257,7 +258,8 @@ class Uplink:
     keyframe the server holds observes too (``share_descriptors``): the server takes them there.
 
     It keeps, per keyframe, the observations as the server holds them (the messages reach the
-    server in order, and every one does: :class:`coop_slam.delivery.Outbox`).
+    server in order, and every one does: :class:`coop_slam.delivery.Outbox`); a keyframe the
+    server refused (:meth:`forget`, from its acknowledgement) is no longer counted on.
 
     When records go is :class:`Holdback`'s (full mode; in pull mode each goes as it comes):
     :meth:`offer` a record as the odometry makes it, send what it and :meth:`due` return."""
@@ -274,6 +276,10 @@ class Uplink:
             Holdback() if self.pull else Holdback(config.hold_new_s, config.coalesce_updates_s)
         )
         self._held: dict[int, _Held] = {}  # keyframe id -> what the server holds of it
+        # Keyframes the server refused, to forget before the next message is prepared (said by
+        # the acknowledgement's thread)
+        self._refused: set[int] = set()
+        self._refused_lock = threading.Lock()
 
     def offer(self, rec: KeyframeRecord, now_s: float) -> list[tuple[KeyframeRecord, Outgoing]]:
         """A record the odometry made at data time ``now_s``: what goes now, and how."""
@@ -287,8 +293,19 @@ class Uplink:
         """Every held record, and how it goes."""
         return [(r, self.prepare(r)) for r in self.holdback.flush()]
 
+    def forget(self, keyframe_ids) -> None:
+        """The server refused these keyframes' last messages: it does not hold them as this
+        uplink thinks, so no message refers to them and their next update goes whole (any
+        thread)."""
+        with self._refused_lock:
+            self._refused.update(int(k) for k in keyframe_ids)
+
     def prepare(self, rec: KeyframeRecord) -> Outgoing:
         """How ``rec`` (about to be sent) goes; remembers what the server will hold after it."""
+        with self._refused_lock:
+            refused, self._refused = self._refused, set()
+        for k in refused:
+            self._held.pop(k, None)
         if rec.action == ACTION_NEW:
             if self.pull:
                 return Outgoing(False, signature=True)

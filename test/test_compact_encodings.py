@@ -1,4 +1,4 @@
-"""Varints (coop_slam.varint) and the map point ids keyframes carry in them."""
+"""Compact encodings of keyframe messages: varints, map point id codes, half-float moves."""
 
 import numpy as np
 import pytest
@@ -30,3 +30,19 @@ def test_map_point_ids_round_trip_in_any_order():
     assert len(encode_map_point_ids(np.arange(1, 101, dtype=np.uint32))) == 100
     with pytest.raises(KeyframeError, match="outside"):
         decode_map_point_ids(encode_varints(np.array([2])))  # a step of -1 from 0
+
+
+def test_a_move_beyond_a_half_float_goes_as_a_position():
+    """split_moves: a point moved beyond the half float's range travels exact (it became inf
+    and the client's own bookkeeping failed), as does one whose move would lose too much."""
+    from coop_slam.keyframe_record import apply_moves, split_moves
+
+    ids = np.array([5, 6, 7], np.uint32)
+    held = np.zeros((3, 3))
+    now = np.array([[0.01, 0, 0], [70000.0, 0, 0], [30.0, 0, 0]])
+    for min_move_m, moved in ((100.0, [0, 2]), (0.002, [0])):
+        others, got, moves = split_moves(ids, held, np.arange(3), ids, now, min_move_m)
+        assert list(got) == moved and sorted(others) == sorted(set(range(3)) - set(moved))
+        after = apply_moves(ids, held, got, moves)
+        assert np.all(np.isfinite(after))
+        np.testing.assert_allclose(after[got], now[got], rtol=2**-11)
