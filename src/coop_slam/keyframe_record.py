@@ -580,19 +580,23 @@ def _depth_points(rec: KeyframeRecord) -> np.ndarray:
 
 def encode_point_offsets(rec: KeyframeRecord) -> tuple[bytes, np.ndarray] | None:
     """The map points of a keyframe as half-float offsets [m] from where its keypoints' depths put
-    them (observed keypoints with a depth, in keypoint order), and the (K, 3) float32 points of
-    the observed keypoints without one; None when an offset is beyond ``MAX_POINT_OFFSET_M`` or
-    not finite (every point then travels as float32). ``rec`` is the keyframe as the server will
-    decode it (keypoints, depths and pose as they travel)."""
+    them (observed keypoints with a depth, in keypoint order; NaN where the offset is beyond
+    ``MAX_POINT_OFFSET_M``), and the (K, 3) float32 points of the other observed keypoints and of
+    those NaN ones, in keypoint order; None when that is no shorter than float32 points alone.
+    ``rec`` is the keyframe as the server will decode it (keypoints, depths and pose as they
+    travel)."""
     seen = np.asarray(rec.map_point_ids) != 0
     with_depth = seen & (np.asarray(rec.depths_m) > 0)
     per_keypoint = rec.map_points_per_keypoint()
+    offsets = np.full((len(seen), 3), np.nan)
     with np.errstate(invalid="ignore"):
-        offsets = per_keypoint[with_depth] - _depth_points(rec)[with_depth]
-        if not np.all(np.abs(offsets) <= MAX_POINT_OFFSET_M):
-            return None
-    rest = per_keypoint[seen & ~with_depth].astype(np.float32)
-    return offsets.astype("<f2").tobytes(), rest
+        offsets[with_depth] = per_keypoint[with_depth] - _depth_points(rec)[with_depth]
+        near = np.all(np.abs(offsets) <= MAX_POINT_OFFSET_M, axis=1)
+    offsets[~near] = np.nan
+    exact = seen & ~near
+    if 6 * with_depth.sum() + 12 * exact.sum() >= 12 * seen.sum():
+        return None
+    return offsets[with_depth].astype("<f2").tobytes(), per_keypoint[exact].astype(np.float32)
 
 
 def decode_point_offsets(rec: KeyframeRecord, raw: bytes, rest: np.ndarray) -> np.ndarray:
@@ -611,18 +615,20 @@ def decode_point_offsets(rec: KeyframeRecord, raw: bytes, rest: np.ndarray) -> n
             f"map_point_offsets_f16 holds {len(raw)} bytes for {int(with_depth.sum())} observed "
             "keypoints with a depth (6 each)"
         )
+    offsets = np.full((len(seen), 3), np.nan, np.float32)
+    offsets[with_depth] = np.frombuffer(raw, "<f2").reshape(-1, 3)
+    if np.any(np.isinf(offsets)):
+        raise KeyframeError("map_point_offsets_f16 holds inf")
+    exact = seen & np.any(np.isnan(offsets), axis=1)  # no depth, or an offset beyond range
     rest = np.asarray(rest, np.float32).reshape(-1, 3)
-    if len(rest) != int((seen & ~with_depth).sum()):
+    if len(rest) != int(exact.sum()):
         raise KeyframeError(
-            f"map_points holds {len(rest)} points for {int((seen & ~with_depth).sum())} observed "
-            "keypoints without a depth (the others' go as offsets)"
+            f"map_points holds {len(rest)} points for {int(exact.sum())} observed keypoints "
+            "without a depth or an offset (the others' go as offsets)"
         )
-    offsets = np.frombuffer(raw, "<f2").reshape(-1, 3).astype(np.float32)
-    if not np.all(np.isfinite(offsets)):
-        raise KeyframeError("map_point_offsets_f16 holds NaN or inf")
     per_keypoint = np.full((len(seen), 3), np.nan, np.float32)
-    per_keypoint[with_depth] = _depth_points(rec)[with_depth].astype(np.float32) + offsets
-    per_keypoint[seen & ~with_depth] = rest
+    per_keypoint[seen] = _depth_points(rec)[seen].astype(np.float32) + offsets[seen]
+    per_keypoint[exact] = rest
     return per_keypoint[seen]
 
 
