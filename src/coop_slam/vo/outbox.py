@@ -102,13 +102,13 @@ class UplinkConfig:
     # new keyframe goes as its place signature; whole when the server asks for it, and only
     # then its updates.
     mode: str = "full"
-    # A new keyframe (its place signature in pull mode) waits this long before it goes [s of data
-    # time], and goes with what local BA made of it meanwhile; one the client culls within it
-    # (most culled keyframes are) never travels. 0 = at once.
+    # Full mode: a new keyframe waits this long before it goes [s of data time], and goes with
+    # what local BA made of it meanwhile; one the client culls within it (most culled keyframes
+    # are) never travels. 0 = at once.
     hold_new_s: float = 1.0
-    # The updates of a keyframe the server has go at most once per this long, the latest of them
-    # [s of data time] (local BA moves every keyframe of its window after each new keyframe).
-    # 0 = each as it comes.
+    # Full mode: the updates of a keyframe the server has go at most once per this long, the
+    # latest of them [s of data time] (local BA moves every keyframe of its window after each new
+    # keyframe). 0 = each as it comes.
     coalesce_updates_s: float = 1.0
     # Full mode: a keyframe leaves out the descriptors of keypoints observing a map point the
     # server has in another keyframe (it takes them there): a map point's descriptor travels
@@ -261,8 +261,8 @@ class Uplink:
     server in order, and every one does: :class:`coop_slam.delivery.Outbox`); a keyframe the
     server refused (:meth:`forget`, from its acknowledgement) is no longer counted on.
 
-    When records go is :class:`Holdback`'s: :meth:`offer` a record as the odometry makes it,
-    send what it and :meth:`due` return."""
+    When records go is :class:`Holdback`'s (full mode; in pull mode each goes as it comes):
+    :meth:`offer` a record as the odometry makes it, send what it and :meth:`due` return."""
 
     def __init__(self, config: UplinkConfig | None = None):
         config = config or UplinkConfig()
@@ -272,9 +272,9 @@ class Uplink:
         self.idle_flush_s = config.idle_flush_s
         self.share = config.share_descriptors and not self.pull
         self.max_refs, self.max_bits = config.ref_keyframes, config.share_max_bits
-        # (in pull mode too: half of a stereo or monocular robot's keyframes are culled within
-        # the hold, and their signatures were most of its low-bandwidth uplink)
-        self.holdback = Holdback(config.hold_new_s, config.coalesce_updates_s)
+        self.holdback = (
+            Holdback() if self.pull else Holdback(config.hold_new_s, config.coalesce_updates_s)
+        )
         self._held: dict[int, _Held] = {}  # keyframe id -> what the server holds of it
         # Keyframes the server refused, to forget before the next message is prepared (said by
         # the acknowledgement's thread)
