@@ -66,13 +66,22 @@ class ClientOutputsTest(unittest.TestCase):
         self.assertTrue(all(s.robot_id == 1 for s in got["stats"]))
         self.assertGreaterEqual(sum(s.tracking_ok for s in got["stats"]), 0.9 * len(got["stats"]))
         self.assertGreaterEqual(len(got["kf"]), 2)
-        seen = {}  # keyframe id -> as last received (a delta update completes from it)
-        for m in got["kf"]:
+        # Taken as the server takes them: each once, in sequence order (no server acknowledges
+        # here, so the client sends them again and again), completed from the keyframes held.
+        by_sequence = {m.sequence: m for m in got["kf"]}
+        in_order = []  # up to the first one not received (yet)
+        while len(in_order) + 1 in by_sequence:
+            in_order.append(by_sequence[len(in_order) + 1])
+        self.assertGreaterEqual(len(in_order), 2)
+        seen = {}  # keyframe id -> as held (delta updates and shared descriptors come from it)
+        for m in in_order:
             self.assertEqual(m.header.frame_id, "robot_1/map")
             kf = keyframe_from_msg(m, known_robots={1}, stored=seen.get)
-            seen[m.keyframe_id] = kf
             self.assertTrue(m.sequence > 0 and m.session > 0)  # numbered for delivery
-            if m.action != 2:
+            if m.action == 2:
+                seen.pop(m.keyframe_id, None)
+            else:
+                seen[m.keyframe_id] = kf
                 self.assertGreater(kf.num_keypoints, 100)
                 self.assertGreater(np.count_nonzero(kf.map_point_ids), 50)
         self.assertGreater(len(got["pose"]), 100)
