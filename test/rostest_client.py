@@ -5,6 +5,7 @@ correction from the server moves its path and cloud onto the poses it carries.""
 import os
 import sys
 import threading
+import time
 import unittest
 
 import numpy as np
@@ -68,13 +69,19 @@ class ClientOutputsTest(unittest.TestCase):
         self.assertGreaterEqual(len(got["kf"]), 2)
         # Taken as the server takes them: each once, in sequence order (no server acknowledges
         # here, so the client sends them again and again), completed from the keyframes held.
+        # The keyframes held back until the player was done go last: wait until no new message
+        # came for 3 s (messages sent again carry the sequence they had).
+        newest, since = 0, time.monotonic()
+        while time.monotonic() - since < 3.0:
+            top = max(m.sequence for m in got["kf"])
+            if top != newest:
+                newest, since = top, time.monotonic()
+            time.sleep(0.2)  # (sim time stopped with the player)
         by_sequence = {m.sequence: m for m in got["kf"]}
-        in_order = []  # up to the first one not received (yet)
-        while len(in_order) + 1 in by_sequence:
-            in_order.append(by_sequence[len(in_order) + 1])
-        self.assertGreaterEqual(len(in_order), 2)
+        missing = sorted(set(range(1, max(by_sequence) + 1)) - set(by_sequence))
+        self.assertFalse(missing, f"keyframe messages never received: {missing}")
         seen = {}  # keyframe id -> as held (delta updates and shared descriptors come from it)
-        for m in in_order:
+        for _, m in sorted(by_sequence.items()):
             self.assertEqual(m.header.frame_id, "robot_1/map")
             kf = keyframe_from_msg(m, known_robots={1}, stored=seen.get)
             self.assertTrue(m.sequence > 0 and m.session > 0)  # numbered for delivery
