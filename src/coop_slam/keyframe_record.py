@@ -49,12 +49,13 @@ MAX_DEPTH_M = 1000.0  # depth cameras reach ~10 m, stereo ~100 m
 MAX_STAMP_S = 1e10  # seconds since 1970 (the year 2286) or since the sim clock started
 MAX_OCTAVE = 31  # pyramid level; clients use at most 16 (vo.n_levels)
 KEYPOINT_ANGLE_DEG = (-1.0, 360.0)  # OpenCV: [0, 360), -1 = no orientation
-_MAX_KEYFRAME_ID = (1 << 32) - 1  # KeyFrame.msg: uint32 keyframe_id
-HALF_FLOAT_ERROR = 2.0**-11  # a half float's rounding error, relative to its value
-HALF_FLOAT_MAX = 65504.0
-HALF_FLOAT_NORMAL_MIN = 2.0**-14  # below it a half float loses relative precision
-MAX_REF_KEYFRAMES = 255  # KeyFrame.msg: uint8 descriptor_refs
 _MAX_UINT32 = (1 << 32) - 1
+_MAX_KEYFRAME_ID = _MAX_UINT32  # KeyFrame.msg: uint32 keyframe_id
+_HALF = np.finfo(np.float16)
+HALF_FLOAT_ERROR = float(_HALF.eps) / 2  # a half float's rounding error, relative to its value
+HALF_FLOAT_MAX = float(_HALF.max)
+HALF_FLOAT_NORMAL_MIN = float(_HALF.tiny)  # below it a half float loses relative precision
+MAX_REF_KEYFRAMES = 255  # KeyFrame.msg: uint8 descriptor_refs
 # A map point offset from its keypoint's depth travels as a half float up to this [m] (0.5 mm
 # error at most); local BA moves points mm to cm from where the depth put them.
 MAX_POINT_OFFSET_M = 1.0
@@ -415,12 +416,13 @@ def split_moves(
     patched = np.asarray(patched, np.int64)
     with np.errstate(invalid="ignore", over="ignore"):
         move = np.asarray(points, float)[patched] - np.asarray(held_points, float)[patched]
+        largest = np.abs(move).max(axis=1, initial=0.0)
         ok = (
             (np.asarray(held_ids)[patched] == np.asarray(ids)[patched])
             & (np.asarray(ids)[patched] != 0)
             & np.all(np.isfinite(move), axis=1)
-            & (np.abs(move).max(axis=1, initial=0.0) * HALF_FLOAT_ERROR <= 0.5 * min_move_m)
-            & (np.abs(move).max(axis=1, initial=0.0) <= HALF_FLOAT_MAX)
+            & (largest * HALF_FLOAT_ERROR <= 0.5 * min_move_m)
+            & (largest <= HALF_FLOAT_MAX)
         )
     return (
         patched[~ok].astype(np.uint32),

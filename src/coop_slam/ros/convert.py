@@ -271,6 +271,7 @@ def keyframe_to_msg(
     )
     msg.pose = pose_to_msg(kf.T_map_cam)
     msg.delta = bool(delta)
+    ids, points = np.asarray(kf.map_point_ids, np.uint32), np.asarray(kf.map_points, np.float32)
     if signature is not None:
         gaps, weights, weight_max = encode_signature(signature.bow)
         msg.signature_only = True
@@ -295,10 +296,9 @@ def keyframe_to_msg(
             msg.depths_m = np.asarray(kf.depths_m, np.float32).tolist()
         else:
             msg.depths_f16 = depths
-    ids, points = np.asarray(kf.map_point_ids, np.uint32), np.asarray(kf.map_points, np.float32)
-    offsets = encode_point_offsets(_as_decoded(kf, msg)) if compact and not delta else None
-    if offsets is not None:
-        msg.map_point_offsets_f16, points = offsets
+        offsets = encode_point_offsets(_as_decoded(kf, msg)) if compact else None
+        if offsets is not None:
+            msg.map_point_offsets_f16, points = offsets
     if delta and patched is not None:
         ids, points = patch_of(kf, patched)
         msg.patched = np.asarray(patched, np.uint32).tolist()
@@ -323,9 +323,10 @@ def _bytes(field) -> np.ndarray:
 
 
 def _as_decoded(kf: KeyframeRecord, msg) -> KeyframeRecord:
-    """``kf`` with its keypoints, depths and pose as the server decodes them from ``msg``."""
+    """``kf`` with its keypoints, depths and pose as the server decodes them from ``msg`` (which
+    :func:`keyframe_to_msg` wrote: u, v per keypoint)."""
     flat, depths = keypoints_and_depths(msg, "keyframe")
-    uv = flat.reshape(-1, 2) if flat.size == 2 * len(depths) else flat.reshape(-1, 4)[:, :2]
+    uv = flat.reshape(-1, 2)
     keypoints = np.column_stack([uv, np.zeros(len(uv)), np.full(len(uv), -1.0)])
     return dataclasses.replace(
         kf, keypoints=keypoints, depths_m=depths, T_map_cam=pose_from_msg(msg.pose)

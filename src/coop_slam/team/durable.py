@@ -63,11 +63,6 @@ class PendingKeyframe:
     keyframe_id: int = 0  # (0: not known)
 
 
-def _keyframe_id(item) -> int:
-    """The keyframe id of an input (0 when a pending message does not say)."""
-    return int(getattr(item, "keyframe_id", 0) or 0)
-
-
 @dataclass
 class Taken:
     """What became of one arriving keyframe message."""
@@ -223,8 +218,7 @@ class DurableServer:
         v = order.arrive(session, sequence, (rec, sequence))
         out = Taken([], duplicate=v.duplicate, held=v.held, stale=v.stale)
         for item, seq in v.take:
-            refused = self._refused.setdefault(item.robot_id, deque(maxlen=REFUSED_KEPT))
-            keyframe_id = _keyframe_id(item)
+            refused, keyframe_id = self._refused[item.robot_id], int(item.keyframe_id)
             if keyframe_id in refused:
                 refused.remove(keyframe_id)
             try:

@@ -8,6 +8,7 @@ body at start (z up, REP-103), so poses and points are moved by ``T_base_cam`` o
 from __future__ import annotations
 
 import dataclasses
+import heapq
 import threading
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -375,14 +376,15 @@ class Uplink:
             return None, own
         server = own.copy()
         ids = np.asarray(rec.map_point_ids, np.uint32)
-        same = [k for k, h in self._held.items() if h.segment == rec.map_segment]
-        same = [k for k in same if k != rec.keyframe_id]
+        same = {k for k, h in self._held.items() if h.segment == rec.map_segment}
+        same.discard(rec.keyframe_id)
         by_weight = np.argsort(-np.asarray(rec.covisible_weights, np.int64), kind="stable")
-        covisible = [int(rec.covisible_ids[i]) for i in by_weight]
-        order = list(dict.fromkeys([k for k in covisible if k in same] + sorted(same)[::-1]))
+        covisible = [k for k in (int(rec.covisible_ids[i]) for i in by_weight) if k in same]
+        newest = heapq.nlargest(self.max_refs, same)
+        order = list(dict.fromkeys(covisible + newest))[: self.max_refs]
         refs = np.zeros(len(ids), np.uint8)
         used: list[int] = []
-        for kf_id in order[: self.max_refs]:
+        for kf_id in order:
             open_ = np.flatnonzero((refs == 0) & (ids != 0))
             if not len(open_):
                 break
