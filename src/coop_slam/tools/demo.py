@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import math
 import os
 import signal
 import socket
@@ -74,6 +75,13 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="play split segments at their original times (default: all start together)",
     )
     p.add_argument("--seed", type=int, default=0, help="synthetic world seed")
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        help="synthetic world length [s] (default: the scenario's own); a shorter one is the "
+        "scenario's beginning",
+    )
     p.add_argument("--camera", help="camera.yaml for a dataset folder without one")
     p.add_argument(
         "--rate", type=float, default=None, help="play at RATE x real time instead of lock-step"
@@ -153,6 +161,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error("--robots must be between 1 and 8")
     if args.rate is not None and args.rate <= 0:
         p.error("--rate must be > 0")
+    if args.duration is not None and (not args.scenario or not 0 < args.duration < math.inf):
+        p.error("--duration: a positive length in seconds, for a synthetic --scenario")
     if args.split and not args.dataset:
         p.error("--split needs --dataset")
     if args.bag and (args.robots is not None or args.keep_timing or args.camera or args.sensors):
@@ -196,6 +206,7 @@ def _write_run_info(
         "split": args.split,
         "robots": args.robots,
         "seed": args.seed,
+        "duration": args.duration,
         "camera": os.path.abspath(args.camera) if args.camera else None,
         "keep_timing": args.keep_timing,
         "bag": os.path.abspath(args.bag) if args.bag else None,
@@ -527,6 +538,8 @@ def run(args: argparse.Namespace) -> int:
         launch_args.append(f"only_robots:={','.join(map(str, robot_ids))}")
     if args.scenario:
         launch_args.append(f"scenario:={args.scenario}")
+        if args.duration:
+            launch_args.append(f"duration:={args.duration}")
     elif args.bag:
         launch_args.append(f"bag:={os.path.abspath(args.bag)}")
     else:

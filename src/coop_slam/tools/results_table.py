@@ -58,6 +58,8 @@ def describe(info: dict) -> str:
             what += f" --robots {info['robots']}"
         if info.get("seed"):
             what += f" --seed {info['seed']}"
+        if info.get("duration"):
+            what += f" --duration {info['duration']:g}"
     elif info.get("dataset"):
         what = f"--dataset {_dataset_name(info['dataset'])}"
         if info.get("split"):
