@@ -9,11 +9,10 @@ import pytest
 
 from helpers import REDKITCHEN, REPO
 
-
-# The rendezvous world's first 22 s: the robots meet face to face (~8 s) and see one scene
-# together from 18.6 s (the operator's call at 20 s); the rest of the world adds nothing these
-# tests check. One length for all of them renders one world.
-RENDEZVOUS = ("--scenario", "rendezvous", "--duration", "22")
+# The rendezvous world's first 26 s: the robots meet face to face (~8 s) and see one scene
+# together from 18.6 s (the operator's call at 20 s; co-observation alone merges at 23.9 s); the
+# rest of the world adds nothing these tests check. One length for all of them renders one world.
+RENDEZVOUS = ("--scenario", "rendezvous", "--duration", "26")
 
 
 def _demo(tmp_path, *args, timeout=1500):
@@ -66,30 +65,6 @@ def test_revisit_merges_by_place_recognition(tmp_path):
         # (2.5-2.9 mm apart when it only offset its odometry).
         assert robot["path_team_gap_m"] is not None and robot["path_team_gap_m"] < 0.001, robot
         assert robot["path_ate_rmse_m"] < 1.1 * robot["server_ate_rmse_m"] + 0.0005, robot
-
-
-def test_a_stereo_and_an_rgbd_robot_build_one_map(tmp_path):
-    """A mixed team on the rendezvous world: robot 1 carries a stereo camera (rectified pair, ROS
-    stereo topics), robot 2 an RGB-D camera; their maps merge, each tracks within 0.5 % of its
-    path, and robot 1's keyframes say they come from a stereo camera with its baseline."""
-    import rosbag
-
-    from coop_slam.datasets.base import SENSORS
-    from coop_slam.playback import SYNTHETIC_STEREO_BASELINE_M
-
-    report, log, out = _demo(tmp_path, *RENDEZVOUS, "--sensors", "stereo,rgbd")
-    assert report["groups"] == [[1, 2]], log
-    assert report["wrong_merges"] == 0
-    for robot in report["robots"]:
-        assert robot["ate_rmse_m"] < 0.005 * robot["path_length_m"], robot
-    cameras = {}
-    with rosbag.Bag(str(out / "run.bag")) as bag:
-        for topic, msg, _ in bag.read_messages(topics=["/robot_1/keyframes", "/robot_2/keyframes"]):
-            cameras[topic] = (msg.camera.sensor_type, msg.camera.baseline_m)
-    stereo, rgbd = cameras["/robot_1/keyframes"], cameras["/robot_2/keyframes"]
-    assert stereo[0] == SENSORS.index("stereo")
-    assert abs(stereo[1] - SYNTHETIC_STEREO_BASELINE_M) < 1e-6
-    assert rgbd[0] == SENSORS.index("rgbd")
 
 
 def test_a_monocular_robot_joins_an_rgbd_one_in_metres(tmp_path):
@@ -184,13 +159,22 @@ def test_redkitchen_two_robots_merge(tmp_path):
     assert report["team_ate_rmse_m"] < 0.04
 
 
-def test_demo_runs_on_a_sensor_bag(tmp_path):
-    """A bag with the robots' camera topics (here written by scripts/export_bag) runs through the
-    same demo in lock-step; accuracy comes from the ground-truth topics in the bag, and
-    scripts/evaluate re-derives the report from run.json + run.bag."""
+def test_a_stereo_and_an_rgbd_robot_build_one_map_from_a_sensor_bag(tmp_path):
+    """A mixed team on the rendezvous world, recorded as a sensor bag (written by
+    scripts/export_bag): robot 1 carries a stereo camera (rectified pair, ROS stereo topics), robot
+    2 an RGB-D camera. The bag runs through the same demo in lock-step; their maps merge, each
+    tracks within 0.5 % of its path (accuracy from the ground-truth topics in the bag), robot 1's
+    keyframes say they come from a stereo camera with its baseline, and scripts/evaluate
+    re-derives the report from run.json + run.bag."""
+    import rosbag
+
+    from coop_slam.datasets.base import SENSORS
+    from coop_slam.playback import SYNTHETIC_STEREO_BASELINE_M
+
     bag = tmp_path / "rendezvous.bag"
     proc = subprocess.run(
-        [os.path.join(REPO, "scripts", "export_bag"), *RENDEZVOUS, "--out", bag],
+        [os.path.join(REPO, "scripts", "export_bag"), *RENDEZVOUS, "--sensors", "stereo,rgbd"]
+        + ["--out", bag],
         capture_output=True,
         text=True,
         timeout=900,
@@ -200,14 +184,25 @@ def test_demo_runs_on_a_sensor_bag(tmp_path):
     assert report["groups"] == [[1, 2]], log
     assert report["wrong_merges"] == 0
     for robot in report["robots"]:
-        assert robot["frames"] >= 320  # lock-step: every frame of the bag (22 s at 15 Hz) tracked
-        assert robot["ate_rmse_m"] < 0.005 * robot["path_length_m"]
+        assert robot["frames"] >= 380  # lock-step: every frame of the bag (26 s at 15 Hz) tracked
+        assert robot["ate_rmse_m"] < 0.005 * robot["path_length_m"], robot
     assert report["team_ate_rmse_m"] < 0.03
+    assert [robot["sensor"] for robot in report["robots"]] == ["stereo", "rgbd"]
     with open(out / "run.json") as fh:
         assert json.load(fh)["bag"] == str(bag)
+    cameras = {}
+    with rosbag.Bag(str(out / "run.bag")) as recorded:
+        for topic, msg, _ in recorded.read_messages(
+            topics=["/robot_1/keyframes", "/robot_2/keyframes"]
+        ):
+            cameras[topic] = (msg.camera.sensor_type, msg.camera.baseline_m)
+    stereo, rgbd = cameras["/robot_1/keyframes"], cameras["/robot_2/keyframes"]
+    assert stereo[0] == SENSORS.index("stereo")
+    assert abs(stereo[1] - SYNTHETIC_STEREO_BASELINE_M) < 1e-6
+    assert rgbd[0] == SENSORS.index("rgbd")
     again = _evaluate_again(out)
     assert again["robots"] == report["robots"] and again["merges"] == report["merges"]
-    bag.unlink()  # ~1 GB
+    bag.unlink()
 
 
 def test_demo_operator_requests_parse_and_bad_ones_are_named():

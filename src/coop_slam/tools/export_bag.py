@@ -65,6 +65,11 @@ def main(argv=None) -> int:
     src.add_argument("--scenario", help="synthetic scenario")
     src.add_argument("--dataset", help="TUM RGB-D or KITTI odometry folder")
     p.add_argument("--robots", type=int, default=None, help="number of robots")
+    p.add_argument(
+        "--sensors",
+        help="each robot's camera, comma-separated, or one for all: rgbd, stereo, mono "
+        "(default: RGB-D for synthetic worlds, what a dataset has)",
+    )
     p.add_argument("--split", help="inclusive frame ranges, one robot each: 0-299,300-599")
     p.add_argument("--keep-timing", action="store_true", help="keep split segments' own times")
     p.add_argument("--seed", type=int, default=0, help="synthetic world seed")
