@@ -121,3 +121,39 @@ def test_planar_global_ba_holds_ground_robots_at_their_height_and_tilt():
         res = global_bundle_adjustment(records, start, links, {(1, 1)}, config)
         height_err[planar] = np.mean([abs(res.poses[k][2, 3] - truth[k][2, 3]) for k in truth])
     assert height_err[True] < height_err[False] and height_err[True] < 0.008
+
+
+def test_keyframes_sharing_no_point_keep_their_pose_graph_placement():
+    """Robot 2's keyframes share no point with robot 1's (no links): the images cannot place
+    them against robot 1, so their component is held at its first keyframe where the pose graph
+    put it (here 20 deg and 1 m off robot 1's truth), and refined within itself."""
+    records, truth, _ = _team()
+    off = se3_from_quat([1.0, 0.0, 0.0], [0, 0, np.sin(np.radians(10)), np.cos(np.radians(10))])
+    placed = {k: (off @ T if k[0] == 2 else T) for k, T in truth.items()}
+    start = _perturbed(placed, (1, 1), seed=5)
+    start[(2, 1)] = placed[(2, 1)]
+    res = global_bundle_adjustment(records, start, [], {(1, 1)}, EXACT_DEPTH)
+    assert {k: c for k, c in res.components.items()} == {k: k[0] - 1 for k in truth}
+    assert np.allclose(res.poses[(2, 1)], placed[(2, 1)], atol=1e-6)
+    for k in truth:
+        assert transform_error(res.poses[k], placed[k])[0] < 0.02, k
+
+
+def test_poses_refined_apart_are_not_tied_to_each_other():
+    """Two keyframes refined in different components of a global BA: the odometry factor between
+    them keeps the client's relative pose (the BA did not measure theirs); refined in one
+    component, it takes the refined one."""
+    turned = se3_from_quat(
+        [1.0, 0.0, 0.0], [0, 0, np.sin(np.radians(7.5)), np.cos(np.radians(7.5))]
+    )
+    for components, expected in (
+        ({(1, 1): 0, (1, 2): 1}, se3(np.eye(3), [1.0, 0, 0])),
+        (None, turned),
+    ):
+        graph = TeamPoseGraph()
+        graph.add_keyframe(1, 1, np.eye(4))
+        graph.add_keyframe(1, 2, se3(np.eye(3), [1.0, 0.0, 0.0]))
+        graph.optimize_full()
+        graph.adopt_estimates({(1, 1): np.eye(4), (1, 2): turned}, components)
+        graph.optimize_full()
+        assert np.allclose(graph.T_group_cam(1, 2), expected, atol=1e-4), components

@@ -7,11 +7,16 @@ maps are tied together by shared points, not only by the pose-graph constraints.
 factors are those of :func:`coop_slam.vo.local_ba.run_local_ba` (stereo-like factor from depth,
 projection factor without, Huber, sigma = scale**octave px); the gauge is the group's first
 keyframe, held fixed. One camera model per problem: robots with different intrinsics are refused.
+
+Keyframes that share no map point with the fixed one, directly or through others (a low-bandwidth
+robot's keyframes pulled far apart), form a component whose pose the images do not tie to the
+rest: each such component keeps its pose-graph placement (its first keyframe is held too), and
+only poses within one component are refined against each other (``GlobalBaResult.components``).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -91,6 +96,9 @@ class GlobalBaResult:
     rms_before: float  # RMS reprojection error [px] of the inlier observations, before
     rms_after: float  # ... and after (robust: the 95 % best observations)
     time_ms: float
+    # Key -> component: keyframes tied by shared map points, directly or through others
+    # (component 0 holds the fixed keyframe; each other one is held at its first keyframe).
+    components: dict = field(default_factory=dict)
 
 
 class _Landmarks:
@@ -148,8 +156,36 @@ def count_observations(records) -> int:
     return int(sum(np.count_nonzero(r.map_point_ids) for r in records))
 
 
+def keyframe_components(n_keyframes: int, obs_kf: np.ndarray, obs_pt: np.ndarray) -> np.ndarray:
+    """Component label per keyframe: keyframes observing one landmark are connected."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n_points = int(obs_pt.max()) + 1 if len(obs_pt) else 0
+    n = n_keyframes + n_points
+    edges = coo_matrix(
+        (np.ones(len(obs_kf)), (obs_kf, n_keyframes + obs_pt)), shape=(n, n)
+    )  # bipartite: keyframe -- landmark
+    _, labels = connected_components(edges, directed=False)
+    return labels[:n_keyframes]
+
+
+def _hold_each_component(fixed: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(fixed mask with the first keyframe of every component that has none held, component per
+    keyframe renumbered in order: the fixed keyframe's component first)."""
+    fixed = fixed.copy()
+    order = sorted(set(labels.tolist()), key=lambda c: (not fixed[labels == c].any(), c))
+    for c in order:
+        members = np.flatnonzero(labels == c)
+        if not fixed[members].any():
+            fixed[members[0]] = True
+    renumber = {c: i for i, c in enumerate(order)}
+    return fixed, np.array([renumber[c] for c in labels.tolist()], int)
+
+
 def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalBaConfig):
-    """(BaProblem in the group frame, keyframe keys in problem order, number of landmarks)."""
+    """(BaProblem in the group frame, keyframe keys in problem order, number of landmarks,
+    component per keyframe; see the module docstring)."""
     if not records:
         raise GlobalBaError("global BA: the group has no keyframes")
     K0 = records[0].camera.K
@@ -192,6 +228,9 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
     depth = np.array([records[k].depths_m[i] for k, _, i in obs], float)
     octave = np.array([records[k].octaves[i] for k, _, i in obs], int)
     fx, fy, cx, cy = K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2]
+    held, components = _hold_each_component(
+        np.array([k in fixed for k in keys]), keyframe_components(len(keys), obs_kf, obs_pt)
+    )
     usable = np.isfinite(depth) & (depth > config.min_depth_m) & (depth < config.max_depth_m)
     with np.errstate(divide="ignore", invalid="ignore"):
         u_right = np.where(usable, uv[:, 0] - fx * config.virtual_baseline_m / depth, np.nan)
@@ -199,7 +238,7 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
         segment=0,
         kf_ids=np.arange(len(keys)),
         T_map_cam=np.array([T_group_cam[k] for k in keys]),
-        fixed=np.array([k in fixed for k in keys]),
+        fixed=held,
         point_ids=np.arange(len(kept)),
         points_map=np.array([np.mean(position[root], axis=0) for root in kept]).reshape(-1, 3),
         obs_kf=obs_kf,
@@ -224,7 +263,7 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
             float(np.radians(config.planar_sigma_tilt_deg)),
             config.planar_sigma_height_m,
         )
-    return problem, keys, len(kept)
+    return problem, keys, len(kept), components
 
 
 def _planes(records, T_group_cam: dict, keys) -> tuple[np.ndarray, np.ndarray]:
@@ -257,7 +296,7 @@ def global_bundle_adjustment(
     config.validate()
     if not fixed and records:
         fixed = {(records[0].robot_id, records[0].keyframe_id)}
-    problem, keys, n_points = build_problem(records, T_group_cam, links, fixed, config)
+    problem, keys, n_points, components = build_problem(records, T_group_cam, links, fixed, config)
     res = run_local_ba(problem)
     if not res.ok:
         raise GlobalBaError(res.message)
@@ -292,4 +331,5 @@ def global_bundle_adjustment(
         rms_before=_reprojection_rms_px(problem, problem.T_map_cam, problem.points_map),
         rms_after=_reprojection_rms_px(problem, res.T_map_cam, res.points_map),
         time_ms=time_ms,
+        components={k: int(c) for k, c in zip(keys, components)},
     )

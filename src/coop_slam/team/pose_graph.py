@@ -244,7 +244,11 @@ class TeamPoseGraph:
         self._kernel = self._make_kernel(cfg.robust_k)
         self._client: dict[Key, np.ndarray] = {}  # T_map_cam as the client last sent it
         self._fresh: set[Key] = set()  # keyframes no optimisation has seen yet
-        self._refined: dict[Key, np.ndarray] = {}  # pose from global BA, until the client moves it
+        # Pose from global BA, until the client moves it, and which refinement it came from
+        # (a run and a component of it: poses are refined against each other only within one).
+        self._refined: dict[Key, np.ndarray] = {}
+        self._refined_in: dict[Key, tuple[int, int]] = {}
+        self._refinements = 0
         self._values: dict[Key, np.ndarray] = {}  # current estimate T_group_cam
         # Monocular maps whose scale may drift (see set_scale_drift): keyframe -> log scale
         self._scale_drift: set[int] = set()
@@ -313,7 +317,8 @@ class TeamPoseGraph:
         """Odometry-type factor from the client's current poses of two keyframes of one robot (from
         the refined poses when both were refined together, see :meth:`adopt_estimates`)."""
         cfg = self.config
-        if key_i in self._refined and key_j in self._refined:
+        together = key_i in self._refined and key_j in self._refined
+        if together and self._refined_in[key_i] == self._refined_in[key_j]:
             T_i_j = invert(self._refined[key_i]) @ self._refined[key_j]
             if key_i[0] in self._scale_drift:
                 # Refined poses hold the local scale; the factor applies it to map units.
@@ -504,6 +509,7 @@ class TeamPoseGraph:
             ref = chain[pos - 1] if pos > 0 else (chain[1] if len(chain) > 1 else None)
             self._chain_estimate(key, None if ref is None else (robot_id, ref))
         self._refined.pop(key, None)
+        self._refined_in.pop(key, None)
         for fid in list(self._by_key.get(key, ())):
             f = self._factors[fid]
             if f.kind in _CLIENT_KINDS:
@@ -539,23 +545,29 @@ class TeamPoseGraph:
         self._log_scale.pop(key, None)
         self._fresh.discard(key)
         self._refined.pop(key, None)
+        self._refined_in.pop(key, None)
         self._by_key.pop(key, None)
         self._priors.pop(key, None)
         self._scale_priors.pop(key, None)
         # iSAM2 cannot drop a variable: rebuild it at the next optimisation.
         self._rebuild = True
 
-    def adopt_estimates(self, poses: dict) -> None:
+    def adopt_estimates(self, poses: dict, components: dict | None = None) -> None:
         """Take refined keyframe poses (e.g. from global bundle adjustment) as the new estimate
-        *and* as the measurement of the odometry / covisible factors between two refined
-        keyframes, so later optimizations keep the refinement instead of pulling back to the
-        client's poses. Factors to keyframes that were not refined keep the client's relative pose,
-        and a client update of a keyframe (local BA) drops its refinement."""
+        *and* as the measurement of the odometry / covisible factors between two keyframes refined
+        together (in one call, and the same of its ``components`` when given: key -> label), so
+        later optimizations keep the refinement instead of pulling back to the client's poses.
+        Factors to keyframes that were not refined together keep the client's relative pose, and
+        a client update of a keyframe (local BA) drops its refinement."""
+        self._refinements += 1
+        components = components or {}
         for key, T in poses.items():
+            label = int(components.get(tuple(key), 0))
             key = self._check_key(*key)
             T = self._pose(T, f"refined pose of keyframe {key[1]} of robot {key[0]}")
             self._values[key] = T
             self._refined[key] = T
+            self._refined_in[key] = (self._refinements, label)
         for fid in {fid for key in poses for fid in self._by_key.get(tuple(key), ())}:
             f = self._factors[fid]
             if f.kind in _CLIENT_KINDS:

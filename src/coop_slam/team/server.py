@@ -574,14 +574,15 @@ class TeamServer:
         root = min(members)
         fixed = {min(k for k in keys if k[0] == root)} if any(k[0] == root for k in keys) else None
         result = global_bundle_adjustment(records, poses, links, fixed, self.config.global_ba)
-        graph_call(self.graph.adopt_estimates, result.poses)
+        graph_call(self.graph.adopt_estimates, result.poses, result.components)
         self.optimize(full=True)
         self.global_ba_runs.append(result)
         log.info(
-            "global BA of group %s: %d keyframes, %d points, %d observations (%d outliers), "
-            "reprojection RMS %.2f -> %.2f px, %.0f ms",
+            "global BA of group %s: %d keyframes (%d apart by shared points), %d points, "
+            "%d observations (%d outliers), reprojection RMS %.2f -> %.2f px, %.0f ms",
             sorted(members),
             result.keyframes,
+            len(set(result.components.values())),
             result.points,
             result.observations,
             result.outliers,
