@@ -204,6 +204,43 @@ def test_robots_seen_together_match_at_once():
         assert bool(asked) == expect_first
 
 
+def _at(sig, stamp_s):
+    return PlaceSignature(dataclasses.replace(sig.record, stamp_s=stamp_s), sig.bow)
+
+
+def test_robots_seen_close_by_have_their_keyframes_of_that_moment_asked_for():
+    """Face to face two robots' views do not look alike: a sighting closer than
+    pull.rendezvous_max_distance_m asks for each robot's keyframe nearest it at once (an
+    operator's call, with no distance, too); a far one does not; one not yet arrived is asked for
+    when it comes; robots already merged are not."""
+    rng = np.random.default_rng(6)
+
+    def planner_with(stamps_1, stamps_2, same_group=None):
+        planner = PullPlanner(PullConfig(), same_group=same_group)
+        for robot, stamps in ((1, stamps_1), (2, stamps_2)):
+            for kf, t in enumerate(stamps, 1):  # every view a place of its own
+                planner.add(_at(_sig(robot, kf, rng.choice(10**6, 200, replace=False)), t), t)
+        return planner
+
+    planner = planner_with([1, 2, 3, 4, 5, 6], [1, 2, 3, 4, 5, 6])
+    assert planner.cue(1, 2, 3.1, 6.0, distance_m=8.0) == []
+    assert planner.cue(1, 2, 3.1, 6.0, distance_m=2.0) == [(1, 3), (2, 3)]
+    assert planner.cue(2, 1, 3.4, 6.5, distance_m=2.0) == []  # those are on their way
+    assert planner.cue(1, 2, 5.4, 7.0, distance_m=1.5) == [(1, 5), (2, 5)]
+    assert planner.requested == 4
+
+    operator = planner_with([1, 2, 3, 4, 5], [1, 2, 3, 4, 5.5])
+    assert operator.cue(1, 2, None, 6.0) == [(1, 5), (2, 5)]
+
+    late = planner_with([1, 2, 3, 4, 5], [1, 2])
+    assert late.cue(1, 2, 5.0, 6.0, distance_m=2.0) == []
+    words = rng.choice(10**6, 200, replace=False)
+    assert late.add(_at(_sig(2, 3, words), 4.5), 6.5) == [(1, 5), (2, 3)]
+
+    merged = planner_with([1, 2, 3], [1, 2, 3], same_group=lambda a, b: True)
+    assert merged.cue(1, 2, 3.0, 6.0, distance_m=1.0) == []
+
+
 def test_a_lost_robots_view_has_the_matching_keyframe_asked_for():
     """Assisted relocalization in low-bandwidth mode: the place a lost robot sees is a signature
     of its teammate's; the planner asks for that keyframe (once), and when the server holds it

@@ -9,6 +9,7 @@ from it and carries on (``resume``), or starts from a saved map of an earlier se
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
 from collections import deque
@@ -295,13 +296,21 @@ class DurableServer:
             self.store.write_state(self.server)
             self.store.commit()
 
-    def _seen_together(self, robot_a: int, robot_b: int) -> None:
-        """Low-bandwidth mode: robots seen together -- their alike views are a rendezvous."""
+    def _seen_together(self, robot_a, robot_b, stamp_s=None, T_camA_bodyB=None) -> None:
+        """Low-bandwidth mode: robots seen together -- their alike views are a rendezvous, and
+        close by their keyframes of that moment are asked for (see PullPlanner.cue)."""
         if self.pull is not None and robot_a in self.order and robot_b in self.order:
-            self.pull.seen_together(robot_a, robot_b, self.clock())
+            distance_m = (
+                None if T_camA_bodyB is None else float(np.linalg.norm(T_camA_bodyB[:3, 3]))
+            )
+            self.pull.cue(robot_a, robot_b, stamp_s, self.clock(), distance_m)
 
     def sighting(self, observer, observed, stamp_s, T_camA_bodyB=None, T_body_cam=None):
-        self._seen_together(observer, observed)
+        # A sighting without the marker's pose says nothing of how close the robots are.
+        distance_m = (
+            math.inf if T_camA_bodyB is None else float(np.linalg.norm(T_camA_bodyB[:3, 3]))
+        )
+        self._seen_together(observer, observed, stamp_s, distance_m)
         return self._call(
             KIND_SIGHTING,
             lambda: self.server.sighting(observer, observed, stamp_s, T_camA_bodyB, T_body_cam),
@@ -315,7 +324,7 @@ class DurableServer:
     def request_rendezvous(
         self, robot_a, robot_b, stamp_s=None, T_camA_bodyB=None, T_body_cam=None
     ):
-        self._seen_together(robot_a, robot_b)
+        self._seen_together(robot_a, robot_b, stamp_s)
         return self._call(
             KIND_RENDEZVOUS,
             lambda: self.server.request_rendezvous(
