@@ -347,3 +347,39 @@ def test_results_table_gives_a_monocular_robots_sim3_ate_and_scale_errors():
     assert cells[3] == "0.30 / 0.80 (Sim3, scale +0.7 %)"
     assert cells[6] == "0.25 / –"  # the clients' published paths
     assert cells[7].endswith("scale -0.7 % (+1.2 % local)")
+
+
+class _FakeClock:
+    """time.monotonic / time.sleep of the demo on a virtual clock, with the server's stats as a
+    function of it."""
+
+    def __init__(self, stats_at):
+        self.now, self.stats_at = 0.0, stats_at
+        self.run = type("Run", (), {})()
+        self.run.server_stats = stats_at(0.0)
+
+    def monotonic(self):
+        return self.now
+
+    def sleep(self, s):
+        self.now += s
+        self.run.server_stats = self.stats_at(self.now)
+
+
+@pytest.mark.parametrize(
+    "stats_at, ends_at",
+    [
+        (lambda t: {"keyframes": 40, "idle": t >= 3.0}, 4.0),  # idle at 3 s, for 1 s
+        (lambda t: {"keyframes": 40, "idle": True}, 2.0),  # idle all along: the minimum wait
+        (lambda t: {"keyframes": min(40, int(t))}, 45.0),  # no idle said: 5 s without a change
+        (lambda t: {"keyframes": int(t)}, 180.0),  # busy without end: the cap
+    ],
+)
+def test_demo_settles_when_the_server_says_idle(monkeypatch, stats_at, ends_at):
+    from coop_slam.tools import demo
+
+    clock = _FakeClock(stats_at)
+    monkeypatch.setattr(demo.time, "monotonic", clock.monotonic)
+    monkeypatch.setattr(demo.time, "sleep", clock.sleep)
+    demo._settle(clock, 2.0, lambda *_: None)
+    assert abs(clock.now - ends_at) <= 0.5

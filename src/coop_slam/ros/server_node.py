@@ -220,6 +220,7 @@ class ServerNode:
         self.urgent: queue.Queue = queue.Queue()
         self.srv_reloc = rospy.Service("~relocalize", Relocalize, self._on_relocalize)
         self._map_dirty, self._last_stamp_s = False, 0.0
+        self._said_idle = False  # stats said idle since the last job
         self.worker = threading.Thread(target=self._work, daemon=True)
         self.worker.start()
         self._publish_tf(rospy.Time.now())
@@ -576,7 +577,14 @@ class ServerNode:
                     self._publish_tf(stamp)
                     self._publish_map(stamp)
                     self._publish_stats()
+                elif not self._map_dirty and not self.map_builder.busy and not self._said_idle:
+                    # Nothing waits and the map is shown: said once (scripts/demo stops then).
+                    self._said_idle = True
+                    self._publish_stats(idle=True)
                 continue
+            if self._said_idle:  # busy again: said at once (a keyframe held back till the end)
+                self._said_idle = False
+                self._publish_stats()
             if item is None:  # a wake-up: urgent work came
                 continue
             try:
@@ -821,7 +829,8 @@ class ServerNode:
             markers.markers.append(edge)
         self.pub_markers.publish(markers)
 
-    def _publish_stats(self) -> None:
+    def _publish_stats(self, idle: bool = False) -> None:
+        """``idle``: no job waits, no global BA is due and the team map shown is the latest."""
         ms = self.server.keyframe_ms
         opt = self.server.optimize_ms
         stats = {
@@ -848,6 +857,7 @@ class ServerNode:
                 for r in self.durable.robots
             },
             "map_file": self.durable.store.path if self.durable.store is not None else None,
+            "idle": idle,
         }
         self.pub_stats.publish(String(data=json.dumps(stats)))
 

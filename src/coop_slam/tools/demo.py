@@ -27,8 +27,10 @@ from ..playback import load_run_source
 from .progress import throttled
 
 DEFAULT_SCENARIO = "team"
-# After the last frame the server may still be working off its queue: wait while its stats change
-# (quiet for SETTLE_QUIET_S), at most SETTLE_MAX_S [s].
+# After the last frame the server may still be working off its queue: wait until its stats say it
+# is idle (and stayed so for SETTLE_IDLE_S), or, when they do not say, while they change (quiet
+# for SETTLE_QUIET_S); at most SETTLE_MAX_S [s].
+SETTLE_IDLE_S = 1.0
 SETTLE_QUIET_S = 5.0
 SETTLE_MAX_S = 180.0
 
@@ -151,8 +153,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument(
         "--settle",
         type=float,
-        default=5.0,
-        help="seconds to wait after the last frame for the last keyframes and merges",
+        default=2.0,
+        help="seconds to wait at least after the last frame for the last keyframes and merges "
+        "(then until the server is idle)",
     )
     args = p.parse_args(argv)
     if args.scenario is None and args.dataset is None and args.bag is None:
@@ -715,8 +718,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _settle(monitor, settle_s: float, say) -> None:
     """After the last frame: wait ``settle_s`` for the last keyframes and merges, and longer (at
-    most ``SETTLE_MAX_S``) while the server is still working off keyframes it received (its stats
-    keep changing): a team of eight on two cores leaves it a backlog."""
+    most ``SETTLE_MAX_S``) while the server is still working off keyframes it received (until its
+    stats say idle, or stop changing): a team of eight on two cores leaves it a backlog."""
     t_end = time.monotonic() + settle_s
     t_cap = time.monotonic() + max(settle_s, SETTLE_MAX_S)
     last, changed = None, time.monotonic()
@@ -726,7 +729,8 @@ def _settle(monitor, settle_s: float, say) -> None:
         stats = json.dumps(monitor.run.server_stats, sort_keys=True, default=str)
         if stats != last:
             last, changed = stats, now
-        if now >= t_end and now - changed >= SETTLE_QUIET_S:
+        idle = bool((monitor.run.server_stats or {}).get("idle"))
+        if now >= t_end and now - changed >= (SETTLE_IDLE_S if idle else SETTLE_QUIET_S):
             return
         if now >= t_end and not said:
             say("      the server is still working off its queue: waiting for it")
