@@ -40,3 +40,13 @@ def test_replay_takes_keyframes_sharing_descriptors_and_keeps_their_stamps(tmp_p
     assert result["rejected"] == 0 and result["keyframes"] == 2
     assert stamps == {(1, 1): 12.5, (1, 2): 13.5}
     np.testing.assert_array_equal(server.store.record((1, 2)).descriptors, b.descriptors)
+
+
+def test_replay_configures_the_server_as_the_launch_file_did():
+    from coop_slam.tools.replay import _server_config
+
+    path = os.path.join(REPO, "config", "server.yaml")
+    info = {"robot_ids": [1, 2], "ground_robots": True, "low_bandwidth": True}
+    cfg = _server_config(path, info, {})
+    assert cfg.pull.enabled and cfg.global_ba.planar_motion and cfg.robots == [1, 2]
+    assert not _server_config(path, {"robot_ids": [1, 2]}, {}).pull.enabled

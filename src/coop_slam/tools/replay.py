@@ -30,6 +30,8 @@ def _server_config(path: str, info: dict, overrides: dict):
         launch["global_ba"] = {"planar_motion": True}
     if info.get("split"):
         launch["rendezvous"] = {"min_separation_m": 0.0}
+    if info.get("low_bandwidth"):  # the robots sent place signatures
+        launch["pull"] = {"enabled": True}
     launch["robots"] = list(info["robot_ids"])
     return load_yaml_config(ServerConfig, path, "server", merge_overrides(launch, overrides))
 
