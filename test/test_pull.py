@@ -154,6 +154,40 @@ def test_a_pulled_pair_merges_two_robots_that_sent_only_signatures(world, tmp_pa
     assert durable.store.count_inputs() == sum(held.values()) and (1, gone) not in durable.pull.db
 
 
+def test_a_close_sighting_or_an_operators_call_pulls_the_keyframes_of_that_moment(world):
+    """Through the server: a marker sighting 2 m away asks both robots for their keyframes
+    nearest it, one 8 m away or without the marker's pose does not, an operator's call asks for
+    the newest."""
+    from coop_slam.geometry import se3
+
+    points, desc, kfs_a, vocab = world
+    kfs_b = team_keyframes(
+        2, np.linspace(2.0, 3.0, 8), points, desc, offset=(0.2, 0.1), seed=100, t0=100.0
+    )
+    kfs_a = [dataclasses.replace(k, stamp_s=100.0 + i) for i, k in enumerate(kfs_a[:8])]
+    durable, clock = _pull_server(world)
+    for kfs in (kfs_a, kfs_b):
+        for n, kf in enumerate(kfs, 1):
+            durable.add_keyframe(signature_of(kf, vocab), 7, n)
+    durable.pull.take_requests()  # whatever place recognition asked for
+
+    def sighting(distance_m, with_pose=True):
+        T = se3(np.eye(3), [0.0, 0.0, distance_m]) if with_pose else None
+        durable.sighting(1, 2, kfs_a[3].stamp_s, T, np.eye(4) if with_pose else None)
+        return durable.pull.take_requests()
+
+    assert sighting(8.0) == {} and sighting(2.0, with_pose=False) == {}
+    nearest_b = min(kfs_b, key=lambda k: abs(k.stamp_s - kfs_a[3].stamp_s)).keyframe_id
+    assert sighting(2.0) == {1: [kfs_a[3].keyframe_id], 2: [nearest_b]}
+    fresh, clock = _pull_server(world)
+    for kfs in (kfs_a, kfs_b):
+        for n, kf in enumerate(kfs, 1):
+            fresh.add_keyframe(signature_of(kf, vocab), 7, n)
+    fresh.pull.take_requests()
+    fresh.request_rendezvous(1, 2)
+    assert fresh.pull.take_requests() == {1: [kfs_a[-1].keyframe_id], 2: [kfs_b[-1].keyframe_id]}
+
+
 def test_signatures_to_a_server_not_in_low_bandwidth_mode_or_of_unknown_robots_are_refused(world):
     sig = signature_of(world[2][0], world[3])
     plain = DurableServer(team_server_config(), lambda c: TeamServer(c, world[3]), None)

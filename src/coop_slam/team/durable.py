@@ -296,13 +296,11 @@ class DurableServer:
             self.store.write_state(self.server)
             self.store.commit()
 
-    def _seen_together(self, robot_a, robot_b, stamp_s=None, T_camA_bodyB=None) -> None:
+    def _seen_together(self, robot_a, robot_b, stamp_s=None, distance_m=None) -> None:
         """Low-bandwidth mode: robots seen together -- their alike views are a rendezvous, and
-        close by their keyframes of that moment are asked for (see PullPlanner.cue)."""
+        close by (``distance_m``; None: an operator says so) their keyframes of that moment are
+        asked for (see PullPlanner.cue)."""
         if self.pull is not None and robot_a in self.order and robot_b in self.order:
-            distance_m = (
-                None if T_camA_bodyB is None else float(np.linalg.norm(T_camA_bodyB[:3, 3]))
-            )
             self.pull.cue(robot_a, robot_b, stamp_s, self.clock(), distance_m)
 
     def sighting(self, observer, observed, stamp_s, T_camA_bodyB=None, T_body_cam=None):
