@@ -154,40 +154,6 @@ def test_a_pulled_pair_merges_two_robots_that_sent_only_signatures(world, tmp_pa
     assert durable.store.count_inputs() == sum(held.values()) and (1, gone) not in durable.pull.db
 
 
-def test_a_close_sighting_or_an_operators_call_pulls_the_keyframes_of_that_moment(world):
-    """Through the server: a marker sighting 2 m away asks both robots for their keyframes
-    nearest it, one 8 m away or without the marker's pose does not, an operator's call asks for
-    the newest."""
-    from coop_slam.geometry import se3
-
-    points, desc, kfs_a, vocab = world
-    kfs_b = team_keyframes(
-        2, np.linspace(2.0, 3.0, 8), points, desc, offset=(0.2, 0.1), seed=100, t0=100.0
-    )
-    kfs_a = [dataclasses.replace(k, stamp_s=100.0 + i) for i, k in enumerate(kfs_a[:8])]
-    durable, clock = _pull_server(world)
-    for kfs in (kfs_a, kfs_b):
-        for n, kf in enumerate(kfs, 1):
-            durable.add_keyframe(signature_of(kf, vocab), 7, n)
-    durable.pull.take_requests()  # whatever place recognition asked for
-
-    def sighting(distance_m, with_pose=True):
-        T = se3(np.eye(3), [0.0, 0.0, distance_m]) if with_pose else None
-        durable.sighting(1, 2, kfs_a[3].stamp_s, T, np.eye(4) if with_pose else None)
-        return durable.pull.take_requests()
-
-    assert sighting(8.0) == {} and sighting(2.0, with_pose=False) == {}
-    nearest_b = min(kfs_b, key=lambda k: abs(k.stamp_s - kfs_a[3].stamp_s)).keyframe_id
-    assert sighting(2.0) == {1: [kfs_a[3].keyframe_id], 2: [nearest_b]}
-    fresh, clock = _pull_server(world)
-    for kfs in (kfs_a, kfs_b):
-        for n, kf in enumerate(kfs, 1):
-            fresh.add_keyframe(signature_of(kf, vocab), 7, n)
-    fresh.pull.take_requests()
-    fresh.request_rendezvous(1, 2)
-    assert fresh.pull.take_requests() == {1: [kfs_a[-1].keyframe_id], 2: [kfs_b[-1].keyframe_id]}
-
-
 def test_signatures_to_a_server_not_in_low_bandwidth_mode_or_of_unknown_robots_are_refused(world):
     sig = signature_of(world[2][0], world[3])
     plain = DurableServer(team_server_config(), lambda c: TeamServer(c, world[3]), None)
@@ -236,43 +202,6 @@ def test_robots_seen_together_match_at_once():
             planner.seen_together(2, 1, 0.6)
         asked = planner.add(_sig(2, 1, views[2]), 1.0)
         assert bool(asked) == expect_first
-
-
-def _at(sig, stamp_s):
-    return PlaceSignature(dataclasses.replace(sig.record, stamp_s=stamp_s), sig.bow)
-
-
-def test_robots_seen_close_by_have_their_keyframes_of_that_moment_asked_for():
-    """Face to face two robots' views do not look alike: a sighting closer than
-    pull.rendezvous_max_distance_m asks for each robot's keyframe nearest it at once (an
-    operator's call, with no distance, too); a far one does not; one not yet arrived is asked for
-    when it comes; robots already merged are not."""
-    rng = np.random.default_rng(6)
-
-    def planner_with(stamps_1, stamps_2, same_group=None):
-        planner = PullPlanner(PullConfig(), same_group=same_group)
-        for robot, stamps in ((1, stamps_1), (2, stamps_2)):
-            for kf, t in enumerate(stamps, 1):  # every view a place of its own
-                planner.add(_at(_sig(robot, kf, rng.choice(10**6, 200, replace=False)), t), t)
-        return planner
-
-    planner = planner_with([1, 2, 3, 4, 5, 6], [1, 2, 3, 4, 5, 6])
-    assert planner.cue(1, 2, 3.1, 6.0, distance_m=8.0) == []
-    assert planner.cue(1, 2, 3.1, 6.0, distance_m=2.0) == [(1, 3), (2, 3)]
-    assert planner.cue(2, 1, 3.4, 6.5, distance_m=2.0) == []  # those are on their way
-    assert planner.cue(1, 2, 5.4, 7.0, distance_m=1.5) == [(1, 5), (2, 5)]
-    assert planner.requested == 4
-
-    operator = planner_with([1, 2, 3, 4, 5], [1, 2, 3, 4, 5.5])
-    assert operator.cue(1, 2, None, 6.0) == [(1, 5), (2, 5)]
-
-    late = planner_with([1, 2, 3, 4, 5], [1, 2])
-    assert late.cue(1, 2, 5.0, 6.0, distance_m=2.0) == []
-    words = rng.choice(10**6, 200, replace=False)
-    assert late.add(_at(_sig(2, 3, words), 4.5), 6.5) == [(1, 5), (2, 3)]
-
-    merged = planner_with([1, 2, 3], [1, 2, 3], same_group=lambda a, b: True)
-    assert merged.cue(1, 2, 3.0, 6.0, distance_m=1.0) == []
 
 
 def test_a_lost_robots_view_has_the_matching_keyframe_asked_for():

@@ -9,7 +9,6 @@ from it and carries on (``resume``), or starts from a saved map of an earlier se
 from __future__ import annotations
 
 import logging
-import math
 import os
 import time
 from collections import deque
@@ -296,19 +295,13 @@ class DurableServer:
             self.store.write_state(self.server)
             self.store.commit()
 
-    def _seen_together(self, robot_a, robot_b, stamp_s=None, distance_m=None) -> None:
-        """Low-bandwidth mode: robots seen together -- their alike views are a rendezvous, and
-        close by (``distance_m``; None: an operator says so) their keyframes of that moment are
-        asked for (see PullPlanner.cue)."""
+    def _seen_together(self, robot_a: int, robot_b: int) -> None:
+        """Low-bandwidth mode: robots seen together -- their alike views are a rendezvous."""
         if self.pull is not None and robot_a in self.order and robot_b in self.order:
-            self.pull.cue(robot_a, robot_b, stamp_s, self.clock(), distance_m)
+            self.pull.seen_together(robot_a, robot_b, self.clock())
 
     def sighting(self, observer, observed, stamp_s, T_camA_bodyB=None, T_body_cam=None):
-        # A sighting without the marker's pose says nothing of how close the robots are.
-        distance_m = (
-            math.inf if T_camA_bodyB is None else float(np.linalg.norm(T_camA_bodyB[:3, 3]))
-        )
-        self._seen_together(observer, observed, stamp_s, distance_m)
+        self._seen_together(observer, observed)
         return self._call(
             KIND_SIGHTING,
             lambda: self.server.sighting(observer, observed, stamp_s, T_camA_bodyB, T_body_cam),
@@ -322,7 +315,7 @@ class DurableServer:
     def request_rendezvous(
         self, robot_a, robot_b, stamp_s=None, T_camA_bodyB=None, T_body_cam=None
     ):
-        self._seen_together(robot_a, robot_b, stamp_s)
+        self._seen_together(robot_a, robot_b)
         return self._call(
             KIND_RENDEZVOUS,
             lambda: self.server.request_rendezvous(

@@ -10,11 +10,6 @@ robot's place (a merge, or a link inside a merged group) or the robot's own plac
 before (a loop) -- it asks for both keyframes, the ones the server does not hold yet. The team
 server then stitches them as any keyframes (its own consistency check is already done here).
 
-Robots seen together close by (a marker sighting within ``rendezvous_max_distance_m``, or an
-operator's call) share their surroundings whether their views look alike or not (face to face,
-they do not): their keyframes nearest the sighting are asked for at once, so the server's
-rendezvous can verify them as it would in the default mode.
-
 Each robot has a budget of whole keyframes per minute (a token bucket), so the radio carries at
 most that; a request not answered within ``timeout_s`` is given up (the robot may be gone or the
 keyframe culled) and the keyframe may be asked for again later.
@@ -49,10 +44,6 @@ class PullConfig:
     # Robots seen together (a marker sighting): their alike signatures match at once for this
     # long [s] (the rendezvous; otherwise place recognition's consistency over keyframes).
     rendezvous_window_s: float = 10.0
-    # Robots seen closer than this (the marker's distance) [m], or an operator's call: their
-    # keyframes within rendezvous_near_s of the sighting are asked for at once, alike or not.
-    rendezvous_max_distance_m: float = 3.0
-    rendezvous_near_s: float = 2.0  # [s], as the server's rendezvous.request_window_s
 
     def validate(self) -> None:
         require(self.keyframes_per_min > 0, "pull.keyframes_per_min must be > 0")
@@ -61,10 +52,6 @@ class PullConfig:
         require(self.loop_min_keyframes >= 1, "pull.loop_min_keyframes must be >= 1")
         require(self.min_score_ratio >= 0, "pull.min_score_ratio must be >= 0")
         require(self.rendezvous_window_s >= 0, "pull.rendezvous_window_s must be >= 0 [s]")
-        require(
-            self.rendezvous_max_distance_m >= 0, "pull.rendezvous_max_distance_m must be >= 0 [m]"
-        )
-        require(self.rendezvous_near_s > 0, "pull.rendezvous_near_s must be > 0 [s]")
 
 
 class PullPlanner:
@@ -91,8 +78,6 @@ class PullPlanner:
         self.over_budget = 0  # consistent candidates left because a robot's budget was spent
         self._last: dict[int, Key] = {}  # robot -> its newest keyframe's key
         self._together: dict[tuple[int, int], float] = {}  # robot pair -> when seen together
-        self._stamps: dict[Key, float] = {}  # a signature's keyframe stamp (sim time) [s]
-        self._cues: dict[tuple[int, int], float] = {}  # robot pair -> stamp of a close sighting
 
     # --- inputs -----------------------------------------------------------------------------------
     def add(self, sig: PlaceSignature, now_s: float) -> list[Key]:
@@ -111,10 +96,6 @@ class PullPlanner:
             floor = self.config.min_score_ratio * l1_score(sig.bow, self.db.bow(*previous))
         self._last[robot] = key
         self.db.add(robot, kf, sig.bow, covisible)
-        self._stamps[key] = float(rec.stamp_s)
-        cued = self._cued(robot, float(rec.stamp_s), now_s)
-        if cued:
-            return cued
         gap = self.config.loop_min_keyframes
         candidates = [
             c
@@ -166,65 +147,6 @@ class PullPlanner:
         self._together[(int(robot_a), int(robot_b))] = now_s
         self._together[(int(robot_b), int(robot_a))] = now_s
 
-    def cue(
-        self,
-        robot_a: int,
-        robot_b: int,
-        stamp_s: float | None,
-        now_s: float,
-        distance_m: float | None = None,
-    ) -> list[Key]:
-        """Robots seen together at ``stamp_s`` (sim time; None: their newest keyframes'): a
-        marker sighting ``distance_m`` apart, or an operator's call (None). Within
-        ``rendezvous_max_distance_m`` each robot's keyframe nearest the sighting (within
-        ``rendezvous_near_s``) is asked for, unless the server holds or awaits one that near
-        already; a robot whose keyframe of that moment has not come yet is asked when it comes.
-        Returns the keyframes this asks for (maybe none)."""
-        robot_a, robot_b = int(robot_a), int(robot_b)
-        self.seen_together(robot_a, robot_b, now_s)
-        if robot_a == robot_b or self.same_group(robot_a, robot_b):
-            return []
-        if distance_m is not None and not distance_m <= self.config.rendezvous_max_distance_m:
-            return []
-        if stamp_s is None:
-            newest = [self._stamps.get(self._last.get(r)) for r in (robot_a, robot_b)]
-            if None in newest:
-                return []
-            stamp_s = max(newest)
-        pair = (min(robot_a, robot_b), max(robot_a, robot_b))
-        self._cues[pair] = float(stamp_s)
-        return self._ask_near(pair, float(stamp_s), now_s)
-
-    def _cued(self, robot: int, stamp_s: float, now_s: float) -> list[Key]:
-        """A new signature of a robot with an open close sighting near its stamp: ask now."""
-        near_s = self.config.rendezvous_near_s
-        for pair, cue_s in list(self._cues.items()):
-            if robot not in pair:
-                continue
-            if self.same_group(*pair) or stamp_s > cue_s + near_s:
-                del self._cues[pair]  # merged, or the moment has passed
-            elif abs(stamp_s - cue_s) <= near_s and (want := self._ask_near(pair, cue_s, now_s)):
-                return want
-        return []
-
-    def _ask_near(self, pair: tuple[int, int], cue_s: float, now_s: float) -> list[Key]:
-        near_s = self.config.rendezvous_near_s
-        want = []
-        for robot in pair:
-            near = [
-                (abs(t - cue_s), k)
-                for k, t in self._stamps.items()
-                if k[0] == robot and abs(t - cue_s) <= near_s
-            ]
-            if any(k in self.held or k in self.pending for _, k in near):
-                continue  # the server tries that one
-            if not near:
-                return []  # asked for when that moment's keyframe comes
-            want.append(min(near)[1])
-        if want and self._ask(want, now_s):
-            return want
-        return []
-
     def _ask(self, want: list[Key], now_s: float, force: bool = False) -> bool:
         """Ask for these keyframes if the robots' budgets allow all of them (``force``: in any
         case, the budgets going below zero)."""
@@ -248,7 +170,6 @@ class PullPlanner:
         key = (int(robot_id), int(keyframe_id))
         if key in self.db:
             self.db.remove(*key)
-        self._stamps.pop(key, None)
         self.held.discard(key)
         self.pending.pop(key, None)
 
