@@ -157,3 +157,26 @@ def test_poses_refined_apart_are_not_tied_to_each_other():
         graph.adopt_estimates({(1, 1): np.eye(4), (1, 2): turned}, components)
         graph.optimize_full()
         assert np.allclose(graph.T_group_cam(1, 2), expected, atol=1e-4), components
+
+
+def test_components_need_enough_shared_points_and_a_component_without_depth_holds_its_scale():
+    """Two keyframes sharing 2 landmarks are not tied (their relative pose stays free); one
+    without depth is held at two keyframes, the first and the farthest from it."""
+    from coop_slam.team.global_ba import _hold_each_component, keyframe_components
+
+    obs = [(0, p) for p in range(20)] + [(1, p) for p in range(20)]  # 0-1: 20 shared
+    obs += [(1, 30), (1, 31)] + [(2, 30), (2, 31)] + [(2, p) for p in range(40, 60)]
+    obs += [(3, p) for p in range(40, 60)]  # 2-3: 20 shared, 1-2: 2
+    obs_kf, obs_pt = (np.array(v) for v in zip(*obs))
+    assert keyframe_components(5, obs_kf, obs_pt, 15).tolist() == [0, 0, 1, 1, 2]
+    assert len(set(keyframe_components(5, obs_kf, obs_pt, 1).tolist())) == 2  # 4 alone
+    labels = np.array([0, 0, 1, 1, 1])
+    positions = np.array([[0, 0, 0], [1, 0, 0], [0, 5, 0], [0, 7, 0], [0, 6, 0]], float)
+    fixed, components = _hold_each_component(
+        np.array([True, False, False, False, False]),
+        labels,
+        np.array([True, True, False, False, False]),
+        positions,
+    )
+    assert fixed.tolist() == [True, False, True, True, False]
+    assert components.tolist() == [0, 0, 1, 1, 1]

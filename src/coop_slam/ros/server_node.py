@@ -577,7 +577,12 @@ class ServerNode:
                     self._publish_tf(stamp)
                     self._publish_map(stamp)
                     self._publish_stats()
-                elif not self._map_dirty and not self.map_builder.busy and not self._said_idle:
+                elif (
+                    not self._map_dirty
+                    and not self.map_builder.busy
+                    and not self._said_idle
+                    and not (self.durable.pull is not None and self.durable.pull.pending)
+                ):
                     # Nothing waits and the map is shown: said once (scripts/demo stops then).
                     self._said_idle = True
                     self._publish_stats(idle=True)
@@ -830,7 +835,8 @@ class ServerNode:
         self.pub_markers.publish(markers)
 
     def _publish_stats(self, idle: bool = False) -> None:
-        """``idle``: no job waits, no global BA is due and the team map shown is the latest."""
+        """``idle``: no job waits, no global BA is due, no keyframe asked for is awaited and the
+        team map shown is the latest."""
         ms = self.server.keyframe_ms
         opt = self.server.optimize_ms
         stats = {

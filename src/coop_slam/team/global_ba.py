@@ -8,10 +8,11 @@ factors are those of :func:`coop_slam.vo.local_ba.run_local_ba` (stereo-like fac
 projection factor without, Huber, sigma = scale**octave px); the gauge is the group's first
 keyframe, held fixed. One camera model per problem: robots with different intrinsics are refused.
 
-Keyframes that share no map point with the fixed one, directly or through others (a low-bandwidth
-robot's keyframes pulled far apart), form a component whose pose the images do not tie to the
-rest: each such component keeps its pose-graph placement (its first keyframe is held too), and
-only poses within one component are refined against each other (``GlobalBaResult.components``).
+Keyframes that share no map points with the fixed one (``component_min_shared``), directly or
+through others (a low-bandwidth robot's keyframes pulled far apart), form a component whose pose
+the images do not tie to the rest: each such component keeps its pose-graph placement (its first
+keyframe is held too; without depth also the one farthest from it, for its scale), and only poses
+within one component are refined against each other (``GlobalBaResult.components``).
 """
 
 from __future__ import annotations
@@ -59,6 +60,10 @@ class GlobalBaConfig:
     planar_motion: bool = False
     planar_sigma_height_m: float = 0.01  # [m]
     planar_sigma_tilt_deg: float = 0.2  # [deg]
+    # Keyframes observing fewer landmarks together than this are not tied by them: each set of
+    # keyframes tied so is held at its first keyframe (see the module docstring; ORB-SLAM's
+    # covisibility graph uses 15).
+    component_min_shared: int = 15
     after_merge: bool = True  # run automatically after a merge when the problem is small enough
     auto_max_observations: int = 40000  # ... i.e. its keyframes hold at most this many map-point
     # observations (a few seconds on this machine)
@@ -78,6 +83,7 @@ class GlobalBaConfig:
         )
         require(self.scale_factor > 1, "global_ba.scale_factor must be > 1")
         require(self.n_levels >= 1, "global_ba.n_levels must be >= 1")
+        require(self.component_min_shared >= 1, "global_ba.component_min_shared must be >= 1")
         require(self.auto_max_observations >= 0, "global_ba.auto_max_observations must be >= 0")
         require(
             self.planar_sigma_height_m > 0 and self.planar_sigma_tilt_deg > 0,
@@ -97,7 +103,8 @@ class GlobalBaResult:
     rms_after: float  # ... and after (robust: the 95 % best observations)
     time_ms: float
     # Key -> component: keyframes tied by shared map points, directly or through others
-    # (component 0 holds the fixed keyframe; each other one is held at its first keyframe).
+    # (component 0 holds the fixed keyframe when it is in the group; each other one is held at
+    # its first keyframe).
     components: dict = field(default_factory=dict)
 
 
@@ -156,29 +163,46 @@ def count_observations(records) -> int:
     return int(sum(np.count_nonzero(r.map_point_ids) for r in records))
 
 
-def keyframe_components(n_keyframes: int, obs_kf: np.ndarray, obs_pt: np.ndarray) -> np.ndarray:
-    """Component label per keyframe: keyframes observing one landmark are connected."""
-    from scipy.sparse import coo_matrix
+def keyframe_components(
+    n_keyframes: int, obs_kf: np.ndarray, obs_pt: np.ndarray, min_shared: int = 1
+) -> np.ndarray:
+    """Component label per keyframe: two keyframes observing at least ``min_shared`` landmarks
+    together are connected (a point or two leave their relative pose free)."""
+    from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import connected_components
 
     n_points = int(obs_pt.max()) + 1 if len(obs_pt) else 0
-    n = n_keyframes + n_points
-    edges = coo_matrix(
-        (np.ones(len(obs_kf)), (obs_kf, n_keyframes + obs_pt)), shape=(n, n)
-    )  # bipartite: keyframe -- landmark
-    _, labels = connected_components(edges, directed=False)
-    return labels[:n_keyframes]
+    seen = csr_matrix(
+        (np.ones(len(obs_kf)), (obs_kf, obs_pt)), shape=(n_keyframes, n_points)
+    )  # keyframe x landmark
+    seen.data[:] = 1.0  # a keypoint observed twice in one keyframe counts once
+    shared = (seen @ seen.T).tocoo()  # landmarks two keyframes observe together
+    keep = shared.data >= min_shared
+    graph = csr_matrix(
+        (np.ones(int(keep.sum())), (shared.row[keep], shared.col[keep])),
+        shape=(n_keyframes, n_keyframes),
+    )
+    _, labels = connected_components(graph, directed=False)
+    return labels
 
 
-def _hold_each_component(fixed: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(fixed mask with the first keyframe of every component that has none held, component per
-    keyframe renumbered in order: the fixed keyframe's component first)."""
+def _hold_each_component(
+    fixed: np.ndarray, labels: np.ndarray, metric: np.ndarray, positions: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(fixed mask with the first keyframe of every component that has none held -- and, in a
+    component without depth (``metric`` per keyframe: any usable depth), the keyframe farthest
+    from it too, which holds its scale -- component per keyframe renumbered in order: the fixed
+    keyframe's component first)."""
     fixed = fixed.copy()
     order = sorted(set(labels.tolist()), key=lambda c: (not fixed[labels == c].any(), c))
     for c in order:
         members = np.flatnonzero(labels == c)
         if not fixed[members].any():
             fixed[members[0]] = True
+        if not metric[members].any() and len(members) > 1 and fixed[members].sum() < 2:
+            first = members[fixed[members]][0]
+            distance = np.linalg.norm(positions[members] - positions[first], axis=1)
+            fixed[members[int(np.argmax(distance))]] = True
     renumber = {c: i for i, c in enumerate(order)}
     return fixed, np.array([renumber[c] for c in labels.tolist()], int)
 
@@ -228,10 +252,13 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
     depth = np.array([records[k].depths_m[i] for k, _, i in obs], float)
     octave = np.array([records[k].octaves[i] for k, _, i in obs], int)
     fx, fy, cx, cy = K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2]
-    held, components = _hold_each_component(
-        np.array([k in fixed for k in keys]), keyframe_components(len(keys), obs_kf, obs_pt)
-    )
     usable = np.isfinite(depth) & (depth > config.min_depth_m) & (depth < config.max_depth_m)
+    held, components = _hold_each_component(
+        np.array([k in fixed for k in keys]),
+        keyframe_components(len(keys), obs_kf, obs_pt, config.component_min_shared),
+        np.bincount(obs_kf[usable], minlength=len(keys)) > 0,
+        np.array([T_group_cam[k][:3, 3] for k in keys]),
+    )
     with np.errstate(divide="ignore", invalid="ignore"):
         u_right = np.where(usable, uv[:, 0] - fx * config.virtual_baseline_m / depth, np.nan)
     problem = BaProblem(

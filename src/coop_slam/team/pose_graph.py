@@ -247,7 +247,7 @@ class TeamPoseGraph:
         # Pose from global BA, until the client moves it, and which refinement it came from
         # (a run and a component of it: poses are refined against each other only within one).
         self._refined: dict[Key, np.ndarray] = {}
-        self._refined_in: dict[Key, tuple[int, int]] = {}
+        self._refined_in: dict[Key, tuple] = {}
         self._refinements = 0
         self._values: dict[Key, np.ndarray] = {}  # current estimate T_group_cam
         # Monocular maps whose scale may drift (see set_scale_drift): keyframe -> log scale
@@ -560,9 +560,9 @@ class TeamPoseGraph:
         Factors to keyframes that were not refined together keep the client's relative pose, and
         a client update of a keyframe (local BA) drops its refinement."""
         self._refinements += 1
-        components = components or {}
         for key, T in poses.items():
-            label = int(components.get(tuple(key), 0))
+            # No components: all refined together; a key given none: refined with no other.
+            label = 0 if components is None else components.get(tuple(key), ("alone", tuple(key)))
             key = self._check_key(*key)
             T = self._pose(T, f"refined pose of keyframe {key[1]} of robot {key[0]}")
             self._values[key] = T

@@ -8,6 +8,7 @@ it, and evaluates against the ground-truth topic when the bag has one.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -80,6 +81,8 @@ def main(argv=None) -> int:
     )
     p.add_argument("--out", required=True, help="bag file to write")
     args = p.parse_args(argv)
+    if args.duration is not None and (not args.scenario or not 0 < args.duration < math.inf):
+        p.error("--duration: a positive length in seconds, for a synthetic --scenario")
     t0 = time.monotonic()
     progress = throttled(
         lambda done, total: print(
