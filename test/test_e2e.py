@@ -233,6 +233,11 @@ def test_demo_duration_is_a_scenario_length():
     ):
         with pytest.raises(SystemExit):
             parse_args(bad)
+    from coop_slam.tools.export_bag import main as export_bag
+
+    for bad in (["--scenario", "team", "--duration", "0"], ["--dataset", "x", "--duration", "5"]):
+        with pytest.raises(SystemExit):
+            export_bag([*bad, "--out", "never.bag"])
 
 
 def test_a_kidnapped_robot_relocalizes_in_the_team_map(tmp_path):
