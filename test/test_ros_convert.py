@@ -577,3 +577,19 @@ def test_a_refused_keyframe_is_not_referred_to_after_the_acknowledgement():
     # Keyframe 1's next update goes whole and the server holds it again.
     msg, taken = send(dataclasses.replace(a, action=1))
     assert not msg.delta and not taken.rejected and durable.refused(1) == [2]
+
+
+def test_a_removal_and_a_keyframe_without_keypoints_go_in_compact_messages():
+    """A culled keyframe's removal carries no keypoints: its message must still be written (the
+    compact keypoint encoding once refused it, and the client lost the batch it was in)."""
+    from coop_slam.keyframe_record import ACTION_REMOVE, KeyframeRecord
+
+    kf = make_keyframe()
+    removal = KeyframeRecord(
+        kf.robot_id, kf.keyframe_id, 0.0, kf.camera, np.eye(4), action=ACTION_REMOVE
+    )
+    back = keyframe_from_msg(keyframe_to_msg(removal, "robot_1/map"))
+    assert back.action == ACTION_REMOVE and back.keyframe_id == kf.keyframe_id
+    empty = make_keyframe(n=0)
+    back = keyframe_from_msg(keyframe_to_msg(empty, "robot_1/map"))
+    assert len(back.keypoints) == 0 and back.keyframe_id == empty.keyframe_id

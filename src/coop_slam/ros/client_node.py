@@ -748,12 +748,18 @@ class ClientNode:
         for rec, out in outgoing:
             if out.skip:
                 continue
-            if out.signature:
-                msg = keyframe_to_msg(signature_of(rec, self.vocabulary), self.map_frame)
-            else:
-                msg = keyframe_to_msg(
-                    rec, self.map_frame, out.delta, out.patched, out.refs, moves=out.moves
+            try:
+                if out.signature:
+                    msg = keyframe_to_msg(signature_of(rec, self.vocabulary), self.map_frame)
+                else:
+                    msg = keyframe_to_msg(
+                        rec, self.map_frame, out.delta, out.patched, out.refs, moves=out.moves
+                    )
+            except CoopSlamError as exc:  # one record the encoder refuses must not stop the rest
+                rospy.logerr(
+                    "client robot_%d: keyframe %d not sent: %s", self.robot_id, rec.keyframe_id, exc
                 )
+                continue
             self.keyframes_sent += rec.action == ACTION_NEW
             self._send_keyframe(msg)
 
