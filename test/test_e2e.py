@@ -361,8 +361,7 @@ class _FakeClock:
 
     def __init__(self, stats_at):
         self.now, self.stats_at = 0.0, stats_at
-        self.run = type("Run", (), {})()
-        self.run.server_stats = stats_at(0.0)
+        self.run = SimpleNamespace(server_stats=stats_at(0.0))
 
     def monotonic(self):
         return self.now

@@ -278,8 +278,7 @@ def keyframe_to_msg(
         msg.bow_word_gaps, msg.bow_weights = gaps, weights
         msg.bow_weight_max = weight_max
     elif not delta:
-        keypoints = np.asarray(kf.keypoints, np.float32)
-        uv = keypoints[:, :2] if keypoints.ndim == 2 else np.zeros((0, 2), np.float32)
+        uv = np.asarray(kf.uv_px, np.float32)
         # (a removal, or a keyframe without keypoints, has none to encode)
         coded = encode_uv(uv, cam.width, cam.height) if compact and len(uv) else None
         if coded is None:

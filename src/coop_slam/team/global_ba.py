@@ -253,18 +253,19 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
     octave = np.array([records[k].octaves[i] for k, _, i in obs], int)
     fx, fy, cx, cy = K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2]
     usable = np.isfinite(depth) & (depth > config.min_depth_m) & (depth < config.max_depth_m)
+    T_cams = np.array([T_group_cam[k] for k in keys])
     held, components = _hold_each_component(
         np.array([k in fixed for k in keys]),
         keyframe_components(len(keys), obs_kf, obs_pt, config.component_min_shared),
         np.bincount(obs_kf[usable], minlength=len(keys)) > 0,
-        np.array([T_group_cam[k][:3, 3] for k in keys]),
+        T_cams[:, :3, 3],
     )
     with np.errstate(divide="ignore", invalid="ignore"):
         u_right = np.where(usable, uv[:, 0] - fx * config.virtual_baseline_m / depth, np.nan)
     problem = BaProblem(
         segment=0,
         kf_ids=np.arange(len(keys)),
-        T_map_cam=np.array([T_group_cam[k] for k in keys]),
+        T_map_cam=T_cams,
         fixed=held,
         point_ids=np.arange(len(kept)),
         points_map=np.array([np.mean(position[root], axis=0) for root in kept]).reshape(-1, 3),

@@ -246,8 +246,7 @@ class TeamPoseGraph:
         self._fresh: set[Key] = set()  # keyframes no optimisation has seen yet
         # Pose from global BA, until the client moves it, and which refinement it came from
         # (a run and a component of it: poses are refined against each other only within one).
-        self._refined: dict[Key, np.ndarray] = {}
-        self._refined_in: dict[Key, tuple] = {}
+        self._refined: dict[Key, tuple[np.ndarray, tuple]] = {}
         self._refinements = 0
         self._values: dict[Key, np.ndarray] = {}  # current estimate T_group_cam
         # Monocular maps whose scale may drift (see set_scale_drift): keyframe -> log scale
@@ -317,9 +316,9 @@ class TeamPoseGraph:
         """Odometry-type factor from the client's current poses of two keyframes of one robot (from
         the refined poses when both were refined together, see :meth:`adopt_estimates`)."""
         cfg = self.config
-        together = key_i in self._refined and key_j in self._refined
-        if together and self._refined_in[key_i] == self._refined_in[key_j]:
-            T_i_j = invert(self._refined[key_i]) @ self._refined[key_j]
+        ref_i, ref_j = self._refined.get(key_i), self._refined.get(key_j)
+        if ref_i is not None and ref_j is not None and ref_i[1] == ref_j[1]:
+            T_i_j = invert(ref_i[0]) @ ref_j[0]
             if key_i[0] in self._scale_drift:
                 # Refined poses hold the local scale; the factor applies it to map units.
                 s = 0.5 * (self._log_scale.get(key_i, 0.0) + self._log_scale.get(key_j, 0.0))
@@ -509,7 +508,6 @@ class TeamPoseGraph:
             ref = chain[pos - 1] if pos > 0 else (chain[1] if len(chain) > 1 else None)
             self._chain_estimate(key, None if ref is None else (robot_id, ref))
         self._refined.pop(key, None)
-        self._refined_in.pop(key, None)
         for fid in list(self._by_key.get(key, ())):
             f = self._factors[fid]
             if f.kind in _CLIENT_KINDS:
@@ -545,7 +543,6 @@ class TeamPoseGraph:
         self._log_scale.pop(key, None)
         self._fresh.discard(key)
         self._refined.pop(key, None)
-        self._refined_in.pop(key, None)
         self._by_key.pop(key, None)
         self._priors.pop(key, None)
         self._scale_priors.pop(key, None)
@@ -566,8 +563,7 @@ class TeamPoseGraph:
             key = self._check_key(*key)
             T = self._pose(T, f"refined pose of keyframe {key[1]} of robot {key[0]}")
             self._values[key] = T
-            self._refined[key] = T
-            self._refined_in[key] = (self._refinements, label)
+            self._refined[key] = (T, (self._refinements, label))
         for fid in {fid for key in poses for fid in self._by_key.get(tuple(key), ())}:
             f = self._factors[fid]
             if f.kind in _CLIENT_KINDS:
@@ -599,7 +595,8 @@ class TeamPoseGraph:
             self._client[key] = scale_translation(self._client[key], factor)
             self._values[key] = moved(self._values[key], key[0])
             if key in self._refined:
-                self._refined[key] = moved(self._refined[key], key[0])
+                T, origin = self._refined[key]
+                self._refined[key] = (moved(T, key[0]), origin)
         if not about_maps:
             for r in robots & set(self._map_hint):
                 self._map_hint[r] = scale_translation(self._map_hint[r], factor)

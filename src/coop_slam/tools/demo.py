@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import math
 import os
 import signal
 import socket
@@ -25,6 +24,7 @@ from ..evaluation.run_report import evaluate_results, run_input_of
 from ..geometry import T_base_cam_of, quat_from_se3
 from ..playback import load_run_source
 from .progress import throttled
+from .sequence_args import add_duration_argument, check_duration
 
 DEFAULT_SCENARIO = "team"
 # After the last frame the server may still be working off its queue: wait until its stats say it
@@ -77,13 +77,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="play split segments at their original times (default: all start together)",
     )
     p.add_argument("--seed", type=int, default=0, help="synthetic world seed")
-    p.add_argument(
-        "--duration",
-        type=float,
-        default=None,
-        help="synthetic world length [s] (default: the scenario's own); a shorter one is the "
-        "scenario's beginning",
-    )
+    add_duration_argument(p)
     p.add_argument("--camera", help="camera.yaml for a dataset folder without one")
     p.add_argument(
         "--rate", type=float, default=None, help="play at RATE x real time instead of lock-step"
@@ -164,8 +158,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error("--robots must be between 1 and 8")
     if args.rate is not None and args.rate <= 0:
         p.error("--rate must be > 0")
-    if args.duration is not None and (not args.scenario or not 0 < args.duration < math.inf):
-        p.error("--duration: a positive length in seconds, for a synthetic --scenario")
+    check_duration(p, args)
     if args.split and not args.dataset:
         p.error("--split needs --dataset")
     if args.bag and (args.robots is not None or args.keep_timing or args.camera or args.sensors):

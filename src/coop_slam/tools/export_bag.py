@@ -8,7 +8,6 @@ it, and evaluates against the ground-truth topic when the bag has one.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 import time
@@ -16,6 +15,7 @@ import time
 from ..errors import CoopSlamError
 from ..playback import build_schedule, ground_truth_by_frame, load_run_source
 from .progress import throttled
+from .sequence_args import add_duration_argument, check_duration
 
 
 class ExportError(CoopSlamError):
@@ -74,15 +74,14 @@ def main(argv=None) -> int:
     p.add_argument("--split", help="inclusive frame ranges, one robot each: 0-299,300-599")
     p.add_argument("--keep-timing", action="store_true", help="keep split segments' own times")
     p.add_argument("--seed", type=int, default=0, help="synthetic world seed")
-    p.add_argument("--duration", type=float, default=None, help="synthetic world length [s]")
+    add_duration_argument(p)
     p.add_argument("--camera", help="camera.yaml for a dataset folder without one")
     p.add_argument(
         "--depth-encoding", choices=("16UC1", "32FC1"), default="16UC1", help="depth image type"
     )
     p.add_argument("--out", required=True, help="bag file to write")
     args = p.parse_args(argv)
-    if args.duration is not None and (not args.scenario or not 0 < args.duration < math.inf):
-        p.error("--duration: a positive length in seconds, for a synthetic --scenario")
+    check_duration(p, args)
     t0 = time.monotonic()
     progress = throttled(
         lambda done, total: print(
