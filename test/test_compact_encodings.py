@@ -46,3 +46,32 @@ def test_a_move_beyond_a_half_float_goes_as_a_position():
         after = apply_moves(ids, held, got, moves)
         assert np.all(np.isfinite(after))
         np.testing.assert_allclose(after[got], now[got], rtol=2**-11)
+
+
+def test_packed_fields_come_back_as_packed_and_a_broken_stream_is_refused():
+    import zlib
+
+    from coop_slam.field_pack import MAX_UNPACKED_BYTES, PackError, pack_fields, unpack_fields
+
+    rng = np.random.default_rng(0)
+    arrays = {
+        "keypoints_uv": rng.integers(0, 2**16, 200).astype(np.uint16),
+        "octaves": np.repeat(np.arange(8, dtype=np.uint8), 25),
+        "map_point_ids": rng.integers(0, 2**32, 100, dtype=np.uint64).astype(np.uint32),
+        "bow_word_gaps": bytes(range(256)),
+    }
+    back = unpack_fields(pack_fields(arrays))
+    for name, values in arrays.items():
+        np.testing.assert_array_equal(
+            back[name], np.frombuffer(values, np.uint8) if isinstance(values, bytes) else values
+        )
+    assert back["patched"].dtype == np.uint32 and len(back["patched"]) == 0
+    assert len(pack_fields({"octaves": np.zeros(10000, np.uint8)})) < 100  # deflate does its job
+    with pytest.raises(PackError, match="cannot pack"):
+        pack_fields({"descriptors": np.zeros(32, np.uint8)})
+    with pytest.raises(PackError, match="more than"):
+        unpack_fields(zlib.compress(bytes(MAX_UNPACKED_BYTES + 1)))
+    with pytest.raises(PackError, match="ends inside its array lengths"):
+        unpack_fields(zlib.compress(b"\x01\x00\x80"))
+    with pytest.raises(PackError, match="lengths say 4"):  # two keypoint steps, no bytes
+        unpack_fields(zlib.compress(b"\x01\x02" + bytes(12)))

@@ -18,7 +18,7 @@ def test_replay_takes_keyframes_sharing_descriptors_and_keeps_their_stamps(tmp_p
 
     import rospy
 
-    from coop_slam.ros.convert import keyframe_to_msg
+    from coop_slam.ros.convert import keyframe_to_msg, unpacked
     from coop_slam.tools.replay import replay
     from coop_slam.vo.outbox import Uplink
 
@@ -33,7 +33,7 @@ def test_replay_takes_keyframes_sharing_descriptors_and_keeps_their_stamps(tmp_p
             out = uplink.prepare(rec)
             msg = keyframe_to_msg(rec, "robot_1/map", out.delta, out.patched, out.refs)
             bag.write("/robot_1/keyframes", msg, rospy.Time.from_sec(rec.stamp_s))
-    assert len(msg.descriptor_refs)  # b went without a's descriptors
+    assert len(unpacked(msg).descriptor_refs)  # b went without a's descriptors
     server, result, stamps = replay(
         bag_path, {"robot_ids": [1]}, os.path.join(REPO, "config", "server.yaml")
     )

@@ -19,10 +19,12 @@ from coop_slam.ros.convert import (  # noqa: E402
     image_to_msg,
     keyframe_from_msg,
     keyframe_to_msg,
+    needs_stored,
     pose_from_msg,
     pose_to_msg,
     transform_from_msg,
     transform_to_msg,
+    unpacked,
 )
 from coop_slam.ros.validation import RejectCounter  # noqa: E402
 
@@ -261,8 +263,10 @@ def test_a_map_points_descriptor_travels_once():
     ref_kfs, refs = out_b.refs
     assert list(ref_kfs) == [1] and np.array_equal(np.flatnonzero(refs), np.arange(0, 30, 2))
     assert len(msg_b.descriptors) == 32 * (80 - 15)
-    # 15 descriptors less, a byte per keypoint and a keyframe id more
-    assert _size(msg_b) == _size(_wire(keyframe_to_msg(b, "robot_2/map"))) - 15 * 32 + 80 + 4
+    # 15 descriptors less, a byte per keypoint and a keyframe id more (before packing)
+    unpacked_b = keyframe_to_msg(b, "robot_2/map", refs=out_b.refs, compact=False)
+    plain_b = keyframe_to_msg(b, "robot_2/map", compact=False)
+    assert _size(_wire(unpacked_b)) == _size(_wire(plain_b)) - 15 * 32 + 80 + 4
     # The server's b: a's descriptors for the tracked keypoints, b's own for the others; its
     # observations are b's (the points' positions travel: they moved).
     np.testing.assert_array_equal(got_b.descriptors[refs != 0], a.descriptors[refs != 0])
@@ -322,7 +326,7 @@ def test_malformed_descriptor_refs_are_rejected():
     kf = make_keyframe(n=20, robot_id=1, keyframe_id=5, seed=1)  # map points 1, 3, ... as held
     refs = np.where(kf.map_point_ids != 0, 1, 0).astype(np.uint8)
     stored = {4: held}.get
-    ok = _wire(keyframe_to_msg(kf, "robot_1/map", refs=(np.array([4]), refs)))
+    ok = _wire(unpacked(keyframe_to_msg(kf, "robot_1/map", refs=(np.array([4]), refs))))
     np.testing.assert_array_equal(
         keyframe_from_msg(ok, {1}, stored=stored).descriptors[refs != 0], held.descriptors[::2]
     )
@@ -334,7 +338,7 @@ def test_malformed_descriptor_refs_are_rejected():
         (dict(ref_keyframes=[6]), "keyframe 6, which the server does not hold"),
         (dict(ref_keyframes=[4] * 256), "ref_keyframes lists 256 keyframes, above the limit"),
     ):
-        msg = _wire(keyframe_to_msg(kf, "robot_1/map", refs=(np.array([4]), refs)))
+        msg = _wire(unpacked(keyframe_to_msg(kf, "robot_1/map", refs=(np.array([4]), refs))))
         for k, v in change.items():
             setattr(msg, k, v)
         with pytest.raises(MessageError, match=match):
@@ -535,6 +539,7 @@ def test_a_place_signature_round_trip_over_the_wire():
     msg.action = msg.ACTION_UPDATE
     with pytest.raises(MessageError, match="only a new keyframe"):
         keyframe_from_msg(msg, {1, 2})
+    msg = unpacked(msg)
     msg.action, msg.bow_weights = msg.ACTION_NEW, msg.bow_weights[:-1]
     with pytest.raises(MessageError, match="words but"):
         keyframe_from_msg(msg, {1, 2})
@@ -569,7 +574,7 @@ def test_a_refused_keyframe_is_not_referred_to_after_the_acknowledgement():
     assert taken.rejected and durable.refused(1) == [1]
     b = _sees(make_keyframe(n=80, keyframe_id=2, seed=1), a, np.arange(0, 20, 2))
     msg, taken = send(b)  # sent before the acknowledgement came: refused as well
-    assert len(msg.descriptor_refs) and taken.rejected and durable.refused(1) == [1, 2]
+    assert len(unpacked(msg).descriptor_refs) and taken.rejected and durable.refused(1) == [1, 2]
     uplink.forget(durable.refused(1))
     c = _sees(make_keyframe(n=80, keyframe_id=3, seed=2), a, np.arange(0, 20, 2))
     msg, taken = send(c)
@@ -593,3 +598,45 @@ def test_a_removal_and_a_keyframe_without_keypoints_go_in_compact_messages():
     empty = make_keyframe(n=0)
     back = keyframe_from_msg(keyframe_to_msg(empty, "robot_1/map"))
     assert len(back.keypoints) == 0 and back.keyframe_id == empty.keyframe_id
+
+
+def test_a_packed_message_decodes_to_the_keyframe_its_fields_would():
+    """Compact messages pack their integer arrays into one zlib stream: smaller, the same
+    keyframe; a broken stream, or a packed array also given in its own field, is refused."""
+    import zlib
+
+    from coop_slam.vo.outbox import Uplink
+
+    uplink = Uplink()
+    a = make_keyframe(n=80, robot_id=2, keyframe_id=1)
+    b = _sees(make_keyframe(n=80, robot_id=2, keyframe_id=2, seed=1), a, np.arange(0, 30, 2))
+    held = {}
+    for rec in (a, b):
+        out = uplink.prepare(rec)
+        msg = _wire(keyframe_to_msg(rec, "robot_2/map", out.delta, out.patched, out.refs))
+        assert len(msg.packed) and not len(msg.octaves) and not len(msg.keypoints_uv)
+        opened = _wire(unpacked(msg))
+        assert not len(opened.packed) and len(opened.octaves) == 80
+        assert _size(msg) < _size(opened)
+        assert needs_stored(msg) == needs_stored(opened) == (rec is b)
+        got = keyframe_from_msg(msg, {2}, stored=held.get)
+        want = keyframe_from_msg(opened, {2}, stored=held.get)
+        for name in ("keypoints", "octaves", "descriptors", "depths_m", "map_point_ids"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+        np.testing.assert_array_equal(got.map_points, want.map_points)
+        np.testing.assert_array_equal(got.covisible_ids, rec.covisible_ids)
+        held[rec.keyframe_id] = got
+    for change, match in (
+        (dict(packed=b"not zlib"), "packed is no deflate stream"),
+        (dict(packed=msg.packed[:-3]), "ends inside its deflate stream"),
+        (dict(packed=zlib.compress(b"\x07")), "packed is of format 7"),
+        (dict(packed=zlib.compress(b"\x01" + bytes(13) + b"x")), "packed holds 1 bytes"),
+        (dict(octaves=bytes(80)), "octaves given beside packed"),
+    ):
+        bad = _wire(msg)
+        for k, v in change.items():
+            setattr(bad, k, v)
+        with pytest.raises(MessageError, match=match):
+            keyframe_from_msg(bad, {2}, stored=held.get)
+        with pytest.raises(MessageError, match=match):
+            needs_stored(bad)

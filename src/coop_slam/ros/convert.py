@@ -6,6 +6,7 @@ function validates what it reads and raises :class:`MessageError` with a message
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from typing import Callable
 
@@ -17,6 +18,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from ..bow.signature import SignatureError, decode_signature, encode_signature
 from ..datasets.base import SENSORS, CameraModel, DatasetError
 from ..errors import CoopSlamError
+from ..field_pack import PACKED_FIELDS, PackError, pack_fields, unpack_fields
 from ..geometry import GeometryError, quat_from_se3, se3_from_quat
 from ..keyframe_record import (
     ACTION_NEW,
@@ -313,7 +315,45 @@ def keyframe_to_msg(
     msg.map_points = np.asarray(points, np.float32).ravel().tolist()
     msg.covisible_ids = np.asarray(kf.covisible_ids, np.uint32).tolist()
     msg.covisible_weights = np.asarray(kf.covisible_weights, np.uint16).tolist()
+    if compact:
+        _pack(msg)
     return msg
+
+
+def _pack(msg) -> None:
+    """Moves the message's integer arrays into ``packed`` where that makes it smaller."""
+    arrays = {name: getattr(msg, name) for name, _ in PACKED_FIELDS}
+    plain = sum(
+        len(v) * np.dtype(dtype).itemsize for (_, dtype), v in zip(PACKED_FIELDS, arrays.values())
+    )
+    if not plain:
+        return
+    blob = pack_fields(arrays)
+    if len(blob) < plain:
+        msg.packed = blob
+        for name, dtype in PACKED_FIELDS:
+            setattr(msg, name, b"" if np.dtype(dtype).itemsize == 1 else [])
+
+
+def unpacked(msg):
+    """A KeyFrame message with the arrays it packs (``packed``) in their own fields: a copy, or
+    the message itself when it packs none; raises MessageError."""
+    blob = _bytes(getattr(msg, "packed", b""))
+    if not len(blob):
+        return msg
+    where = f"keyframe {msg.keyframe_id} of robot {msg.robot_id}"
+    given = [name for name, _ in PACKED_FIELDS if len(getattr(msg, name, ()))]
+    if given:
+        raise MessageError(f"{where}: {', '.join(given)} given beside packed")
+    try:
+        arrays = unpack_fields(blob.tobytes())
+    except PackError as exc:
+        raise MessageError(f"{where}: {exc}") from None
+    out = copy.copy(msg)
+    for name, values in arrays.items():
+        setattr(out, name, values.tobytes() if values.dtype.itemsize == 1 else values.tolist())
+    out.packed = b""
+    return out
 
 
 def _bytes(field) -> np.ndarray:
@@ -365,7 +405,8 @@ def keypoints_and_depths(msg, where: str) -> tuple[np.ndarray, np.ndarray]:
 def needs_stored(msg) -> bool:
     """Whether a KeyFrame message is completed from keyframes the server holds (a delta update,
     or descriptors taken from other keyframes): when the server takes it, in order, not when it
-    arrives."""
+    arrives. Raises MessageError for arrays packed wrong."""
+    msg = unpacked(msg)
     return bool(getattr(msg, "delta", False)) or len(getattr(msg, "descriptor_refs", ())) > 0
 
 
@@ -381,6 +422,7 @@ def keyframe_from_msg(
     message with ``descriptor_refs`` the descriptors it leaves out from the keyframes it names
     (see :func:`needs_stored`). A message with ``signature_only`` gives a
     :class:`PlaceSignature`."""
+    msg = unpacked(msg)
     try:
         if msg.camera.sensor_type >= len(SENSORS):
             raise KeyframeError(f"camera sensor_type {msg.camera.sensor_type} unknown")

@@ -317,14 +317,16 @@ class ServerNode:
                 topic, f"keyframe of robot {msg.robot_id} on robot {topic_robot}'s topic"
             )
             return
-        if needs_stored(msg):  # needs keyframes as the server holds them when its turn comes
-            rec = PendingKeyframe(msg.robot_id, lambda: self._stored_record(msg), msg.keyframe_id)
-        else:
-            try:
+        try:
+            if needs_stored(msg):  # needs keyframes as the server holds them when its turn comes
+                rec = PendingKeyframe(
+                    msg.robot_id, lambda: self._stored_record(msg), msg.keyframe_id
+                )
+            else:
                 rec = keyframe_from_msg(msg, known_robots=self.server.known_robots)
-            except MessageError as exc:
-                self.rejects.reject(topic, str(exc))
-                return
+        except MessageError as exc:
+            self.rejects.reject(topic, str(exc))
+            return
         self.queue.put(_KeyframeJob(rec, msg.header.stamp.to_sec(), msg.session, msg.sequence))
 
     def _stored_record(self, msg) -> KeyframeRecord:

@@ -1,0 +1,95 @@
+"""Lossless packing of a keyframe message's integer arrays into one deflate stream (KeyFrame.msg
+``packed``): keypoint steps, octaves, depth halves, ids and references repeat and follow each other,
+so deflate shrinks them where each array on its own is already as small as its type allows.
+Descriptors and float moves are left out: they look random to deflate."""
+
+from __future__ import annotations
+
+import zlib
+from typing import Mapping
+
+import numpy as np
+
+from .errors import CoopSlamError
+from .varint import VarintError, decode_varints, encode_varints
+
+# The arrays a packed message carries, in stream order, with their little-endian element types.
+PACKED_FIELDS: tuple[tuple[str, str], ...] = (
+    ("keypoints_uv", "<u2"),
+    ("octaves", "u1"),
+    ("depths_f16", "u1"),
+    ("map_point_ids", "<u4"),
+    ("map_point_id_codes", "u1"),
+    ("patched", "<u4"),
+    ("moved", "<u2"),
+    ("ref_keyframes", "<u4"),
+    ("descriptor_refs", "u1"),
+    ("covisible_ids", "<u4"),
+    ("covisible_weights", "<u2"),
+    ("bow_word_gaps", "u1"),
+    ("bow_weights", "u1"),
+)
+_FORMAT = 1  # first byte of the stream; another value is a format this code does not read
+_LEVEL = 6
+# A keyframe of 10000 keypoints holds ~100 kB of these arrays; more is a broken or hostile stream.
+MAX_UNPACKED_BYTES = 8 << 20
+
+
+class PackError(CoopSlamError):
+    """A ``packed`` stream that does not decode to the arrays it names."""
+
+
+def pack_fields(arrays: Mapping[str, np.ndarray]) -> bytes:
+    """The deflate stream of ``arrays`` (names of :data:`PACKED_FIELDS`; a name left out is an
+    empty array): a format byte, each array's length as a varint, then their bytes."""
+    unknown = set(arrays) - {name for name, _ in PACKED_FIELDS}
+    if unknown:
+        raise PackError(f"cannot pack {sorted(unknown)}: not among the packed fields")
+    parts = [_as_array(arrays.get(name, ()), dtype) for name, dtype in PACKED_FIELDS]
+    head = bytes([_FORMAT]) + encode_varints([len(p) for p in parts])
+    return zlib.compress(head + b"".join(p.tobytes() for p in parts), _LEVEL)
+
+
+def _as_array(values, dtype: str) -> np.ndarray:
+    # uint8[] fields are bytes on the wire, lists when a message is built in-process
+    if isinstance(values, (bytes, bytearray)):
+        return np.frombuffer(values, np.uint8)
+    return np.asarray(values, dtype)
+
+
+def unpack_fields(blob: bytes) -> dict[str, np.ndarray]:
+    """The arrays of :func:`pack_fields`' stream, by name (every packed field, empty ones too);
+    PackError if it is not one."""
+    inflate = zlib.decompressobj()
+    try:
+        raw = inflate.decompress(bytes(blob), MAX_UNPACKED_BYTES)
+    except zlib.error as exc:
+        raise PackError(f"packed is no deflate stream ({exc})") from None
+    if inflate.unconsumed_tail:
+        raise PackError(f"packed unpacks to more than {MAX_UNPACKED_BYTES} bytes")
+    if not inflate.eof:
+        raise PackError("packed ends inside its deflate stream")
+    if not raw or raw[0] != _FORMAT:
+        raise PackError(
+            f"packed is of format {raw[0] if raw else 'none'}, this code reads {_FORMAT}: "
+            "client and server must run the same coop_slam"
+        )
+    # The lengths are the first varints: each ends at a byte below 0x80.
+    ends = np.flatnonzero(np.frombuffer(raw[1:], np.uint8) < 0x80)
+    if len(ends) < len(PACKED_FIELDS):
+        raise PackError("packed ends inside its array lengths")
+    body = 1 + int(ends[len(PACKED_FIELDS) - 1]) + 1
+    try:
+        lengths = decode_varints(raw[1:body], 5).tolist()
+    except VarintError as exc:
+        raise PackError(f"packed array lengths: {exc}") from None
+    sizes = [n * np.dtype(dtype).itemsize for n, (_, dtype) in zip(lengths, PACKED_FIELDS)]
+    if body + sum(sizes) != len(raw):
+        raise PackError(
+            f"packed holds {len(raw) - body} bytes of arrays, its lengths say {sum(sizes)}"
+        )
+    out, at = {}, body
+    for (name, dtype), size in zip(PACKED_FIELDS, sizes):
+        out[name] = np.frombuffer(raw, dtype, size // np.dtype(dtype).itemsize, at)
+        at += size
+    return out
