@@ -32,26 +32,36 @@ def test_map_point_ids_round_trip_in_any_order():
         decode_map_point_ids(encode_varints(np.array([2])))  # a step of -1 from 0
 
 
-def test_a_move_beyond_a_half_float_goes_as_a_position():
-    """split_moves: a point moved beyond the half float's range travels exact (it became inf
-    and the client's own bookkeeping failed), as does one whose move would lose too much."""
-    from coop_slam.keyframe_record import apply_moves, split_moves
+def test_a_move_beyond_the_steps_range_goes_as_a_position():
+    """split_moves: a move travels in steps of MOVE_STEP_M, half a step off at most; one beyond
+    the int16 steps' range travels as a position (exact), as does every move when the moves
+    left unsent are smaller than a step."""
+    from coop_slam.keyframe_record import MOVE_STEP_M, apply_moves, split_moves
 
-    ids = np.array([5, 6, 7], np.uint32)
-    held = np.zeros((3, 3))
-    now = np.array([[0.01, 0, 0], [70000.0, 0, 0], [30.0, 0, 0]])
-    for min_move_m, moved in ((100.0, [0, 2]), (0.002, [0])):
-        others, got, moves = split_moves(ids, held, np.arange(3), ids, now, min_move_m)
-        assert list(got) == moved and sorted(others) == sorted(set(range(3)) - set(moved))
+    ids = np.array([5, 6, 7, 8], np.uint32)
+    held = np.zeros((4, 3))
+    now = np.array([[0.01, 0, 0], [70000.0, 0, 0], [-7.9, 3e-5, 0], [8.1, 0, 0]])
+    for min_move_m, moved in ((0.002, [0, 2]), (MOVE_STEP_M / 2, [])):
+        others, got, moves = split_moves(ids, held, np.arange(4), ids, now, min_move_m)
+        assert list(got) == moved and sorted(others) == sorted(set(range(4)) - set(moved))
+        assert moves.dtype == np.float32 and np.all(
+            moves / MOVE_STEP_M == np.round(moves / MOVE_STEP_M)
+        )
         after = apply_moves(ids, held, got, moves)
         assert np.all(np.isfinite(after))
-        np.testing.assert_allclose(after[got], now[got], rtol=2**-11)
+        assert np.abs(after[got] - now[got]).max(initial=0) <= MOVE_STEP_M / 2
 
 
 def test_packed_fields_come_back_as_packed_and_a_broken_stream_is_refused():
     import zlib
 
-    from coop_slam.field_pack import MAX_UNPACKED_BYTES, PackError, pack_fields, unpack_fields
+    from coop_slam.field_pack import (
+        MAX_UNPACKED_BYTES,
+        PACKED_FIELDS,
+        PackError,
+        pack_fields,
+        unpack_fields,
+    )
 
     rng = np.random.default_rng(0)
     arrays = {
@@ -74,4 +84,4 @@ def test_packed_fields_come_back_as_packed_and_a_broken_stream_is_refused():
     with pytest.raises(PackError, match="ends inside its array lengths"):
         unpack_fields(zlib.compress(b"\x01\x00\x80"))
     with pytest.raises(PackError, match="lengths say 4"):  # two keypoint steps, no bytes
-        unpack_fields(zlib.compress(b"\x01\x02" + bytes(12)))
+        unpack_fields(zlib.compress(b"\x01\x02" + bytes(len(PACKED_FIELDS) - 1)))

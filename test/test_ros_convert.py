@@ -11,7 +11,7 @@ from helpers import make_keyframe
 msg_mod = pytest.importorskip(
     "coop_slam.msg", reason="generated messages need the catkin workspace"
 )
-from coop_slam.keyframe_record import encode_map_point_ids  # noqa: E402
+from coop_slam.keyframe_record import MOVE_STEP_M, encode_map_point_ids  # noqa: E402
 from coop_slam.ros.convert import (  # noqa: E402
     MessageError,
     depth_from_msg,
@@ -188,12 +188,13 @@ def test_delta_updates_carry_only_the_observations_that_changed():
         upd.map_point_ids = ids
         upd.map_points = per_kp[ids != 0].astype(np.float32)
         out = deltas.prepare(upd)
-        # The reassigned keypoints travel as a patch, the moved points as half-float moves.
+        # The reassigned keypoints travel as a patch, the moved points as moves.
         reassigned = np.flatnonzero(ids != kf.map_point_ids)
         assert out.delta and np.array_equal(out.patched, reassigned)
         assert 0 < len(out.moves[0]) <= 10
         msg = _wire(keyframe_to_msg(upd, "robot_2/map", out.delta, out.patched, moves=out.moves))
-        assert len(msg.moves_f16) == 6 * len(msg.moved)
+        opened = unpacked(msg)
+        assert len(opened.moves_q) == 3 * len(opened.moved) and not len(msg.moves_f16)
         sizes.append((_size(msg), _size(_wire(keyframe_to_msg(upd, "robot_2/map", True)))))
         held = keyframe_from_msg(msg, {1, 2}, stored=lambda _kf, base=held: base)
         np.testing.assert_array_equal(held.map_point_ids, upd.map_point_ids)
@@ -201,7 +202,7 @@ def test_delta_updates_carry_only_the_observations_that_changed():
         err = np.linalg.norm(held.map_points - upd.map_points, axis=1)
         assert err.max() <= move_m + 1e-6
         moved = held.map_points_per_keypoint()[out.moves[0]] - per_kp[out.moves[0]]
-        assert np.abs(moved).max() <= 0.06 * 2**-11 + 1e-6
+        assert np.abs(moved).max() <= MOVE_STEP_M / 2 + 1e-6
         kf = upd
     assert all(patch < whole / 2 for patch, whole in sizes)
     # A later map segment's keyframe: the server holds it under the segment's map id.
@@ -368,24 +369,37 @@ def test_malformed_patches_are_rejected():
     msg.patched, msg.map_point_ids = [1, 2, 3], [3, 0]
     with pytest.raises(MessageError, match="patched lists 3 keypoints"):
         keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
-    # Half-float moves of map points (keypoint 0 observes map point 1, keypoint 1 none)
+    # Moves of map points (keypoint 0 observes map point 1, keypoint 1 none)
     msg.patched, msg.map_point_ids, msg.map_points = [2], [0], []
-    for moved, nbytes, match in (
-        ([0], 5, "moves_f16 holds 5 bytes for 1 moved"),
-        ([25], 6, "moved names keypoint 25 of a keyframe with 20"),
-        ([0, 0], 12, "moved names a keypoint twice"),
-        ([1], 6, "moved names a keypoint that observes no map point"),
-        ([2], 6, "both patched and moved"),
+    for moved, n, match in (
+        ([0], 2, "moves_q holds 2 values for 1 moved"),
+        ([25], 3, "moved names keypoint 25 of a keyframe with 20"),
+        ([0, 0], 6, "moved names a keypoint twice"),
+        ([1], 3, "moved names a keypoint that observes no map point"),
+        ([2], 3, "both patched and moved"),
     ):
-        msg.moved, msg.moves_f16 = moved, bytes(nbytes)
+        msg.moved, msg.moves_q = moved, [0] * n
         with pytest.raises(MessageError, match=match):
             keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
-    msg.moved, msg.moves_f16 = [0], np.full(3, np.inf, "<f2").tobytes()
-    with pytest.raises(MessageError, match="NaN or inf"):
-        keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
+    msg.moved, msg.moves_q = [0], [2048, -1, 0]
+    got = keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
+    np.testing.assert_allclose(
+        got.map_points[0], held.map_points[0] + [0.5, -MOVE_STEP_M, 0], atol=1e-6
+    )
     msg.moves_f16 = np.array([0.5, 0, 0], "<f2").tobytes()
+    with pytest.raises(MessageError, match="moves_q and moves_f16 are both given"):
+        keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
+    # Recorded runs' moves: half floats
+    msg.moves_q = []
     got = keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
     np.testing.assert_allclose(got.map_points[0], held.map_points[0] + [0.5, 0, 0], atol=1e-6)
+    msg.moves_f16 = np.full(3, np.inf, "<f2").tobytes()
+    with pytest.raises(MessageError, match="NaN or inf"):
+        keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
+    msg.moves_f16 = bytes(5)
+    with pytest.raises(MessageError, match="moves_f16 holds 5 bytes for 1 moved"):
+        keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
+    msg.moves_f16 = np.array([0.5, 0, 0], "<f2").tobytes()
     msg.delta, msg.patched, msg.map_point_ids = False, [], list(sent.map_point_ids)
     with pytest.raises(MessageError, match="only a delta update with a patch moves"):
         keyframe_from_msg(msg, {1}, stored=lambda _kf: held)
@@ -420,7 +434,7 @@ def _remove_with_200k_keypoints(msg):
             True,
         ),
         (lambda m: setattr(m, "ref_keyframes", [4]), "ref_keyframes is given without", True),
-        (lambda m: setattr(m, "moves_f16", bytes(6)), "moves_f16 is given without moved", True),
+        (lambda m: setattr(m, "moves_q", [0, 0, 0]), "moves are given without moved", True),
         (lambda m: setattr(m, "keypoint_step_px", 0.0), "keypoint_step_px 0.0 is not in", True),
         (lambda m: setattr(m, "keypoint_step_px", float("nan")), "keypoint_step_px nan", True),
         (
@@ -449,7 +463,8 @@ def _remove_with_200k_keypoints(msg):
     ],
 )
 def test_malformed_keyframes_are_rejected(mutate, match, compact):
-    msg = _wire(keyframe_to_msg(make_keyframe(n=10, robot_id=1), "robot_1/map", compact=compact))
+    msg = keyframe_to_msg(make_keyframe(n=10, robot_id=1), "robot_1/map", compact=compact)
+    msg = _wire(unpacked(msg))  # the arrays in their own fields, to break them one by one
     mutate(msg)
     with pytest.raises(MessageError, match=match):
         keyframe_from_msg(msg, known_robots={1, 2})
@@ -605,8 +620,10 @@ def test_a_packed_message_decodes_to_the_keyframe_its_fields_would():
     keyframe; a broken stream, or a packed array also given in its own field, is refused."""
     import zlib
 
+    from coop_slam.field_pack import PACKED_FIELDS
     from coop_slam.vo.outbox import Uplink
 
+    n_fields = len(PACKED_FIELDS)
     uplink = Uplink()
     a = make_keyframe(n=80, robot_id=2, keyframe_id=1)
     b = _sees(make_keyframe(n=80, robot_id=2, keyframe_id=2, seed=1), a, np.arange(0, 30, 2))
@@ -630,7 +647,7 @@ def test_a_packed_message_decodes_to_the_keyframe_its_fields_would():
         (dict(packed=b"not zlib"), "packed is no deflate stream"),
         (dict(packed=msg.packed[:-3]), "ends inside its deflate stream"),
         (dict(packed=zlib.compress(b"\x07")), "packed is of format 7"),
-        (dict(packed=zlib.compress(b"\x01" + bytes(13) + b"x")), "packed holds 1 bytes"),
+        (dict(packed=zlib.compress(b"\x01" + bytes(n_fields) + b"x")), "packed holds 1 bytes"),
         (dict(octaves=bytes(80)), "octaves given beside packed"),
     ):
         bad = _wire(msg)

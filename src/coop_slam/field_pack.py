@@ -1,7 +1,7 @@
 """Lossless packing of a keyframe message's integer arrays into one deflate stream (KeyFrame.msg
 ``packed``): keypoint steps, octaves, depth halves, ids and references repeat and follow each other,
 so deflate shrinks them where each array on its own is already as small as its type allows.
-Descriptors and float moves are left out: they look random to deflate."""
+Descriptors and float positions are left out: they look random to deflate."""
 
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ PACKED_FIELDS: tuple[tuple[str, str], ...] = (
     ("map_point_id_codes", "u1"),
     ("patched", "<u4"),
     ("moved", "<u2"),
+    ("moves_q", "<i2"),
     ("ref_keyframes", "<u4"),
     ("descriptor_refs", "u1"),
     ("covisible_ids", "<u4"),

@@ -52,10 +52,13 @@ KEYPOINT_ANGLE_DEG = (-1.0, 360.0)  # OpenCV: [0, 360), -1 = no orientation
 _MAX_UINT32 = (1 << 32) - 1
 _MAX_KEYFRAME_ID = _MAX_UINT32  # KeyFrame.msg: uint32 keyframe_id
 _HALF = np.finfo(np.float16)
-HALF_FLOAT_ERROR = float(_HALF.eps) / 2  # a half float's rounding error, relative to its value
 HALF_FLOAT_MAX = float(_HALF.max)
 HALF_FLOAT_NORMAL_MIN = float(_HALF.tiny)  # below it a half float loses relative precision
 MAX_REF_KEYFRAMES = 255  # KeyFrame.msg: uint8 descriptor_refs
+# A moved map point's move travels in steps of 2^-12 m (0.24 mm: exact in float32) as int16
+# (KeyFrame.msg moves_q), up to 8 m; the client sends no move below uplink.point_move_m (2 mm).
+MOVE_STEP_M = 2.0**-12
+MOVE_MAX_M = 32767 * MOVE_STEP_M
 # A map point offset from its keypoint's depth travels as a half float up to this [m] (0.5 mm
 # error at most); local BA moves points mm to cm from where the depth put them.
 MAX_POINT_OFFSET_M = 1.0
@@ -409,10 +412,11 @@ def split_moves(
     min_move_m: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Of the keypoints ``patched`` (see :func:`observation_patch`; ``ids``, ``points`` the
-    keyframe's now, per keypoint), those whose map point only moved and whose move a half float
-    carries to within half of ``min_move_m`` per coordinate (0.87 of it in length): ``(others,
-    moved, moves)``, the rest of ``patched``, the moved keypoints and their (k, 3) float16 moves
-    [m] since ``held_points``. ``min_move_m`` 0: none (every position travels exact)."""
+    keyframe's now, per keypoint), those whose map point only moved, by at most ``MOVE_MAX_M``
+    per coordinate: ``(others, moved, moves)``, the rest of ``patched``, the moved keypoints and
+    their (k, 3) float32 moves [m] since ``held_points``, rounded to ``MOVE_STEP_M`` (half a step
+    off at most). ``min_move_m`` below a step: none (every position travels exact: the rounding
+    would be above the moves left unsent)."""
     patched = np.asarray(patched, np.int64)
     with np.errstate(invalid="ignore", over="ignore"):
         move = np.asarray(points, float)[patched] - np.asarray(held_points, float)[patched]
@@ -421,13 +425,13 @@ def split_moves(
             (np.asarray(held_ids)[patched] == np.asarray(ids)[patched])
             & (np.asarray(ids)[patched] != 0)
             & np.all(np.isfinite(move), axis=1)
-            & (largest * HALF_FLOAT_ERROR <= 0.5 * min_move_m)
-            & (largest <= HALF_FLOAT_MAX)
+            & (largest <= MOVE_MAX_M)
+            & (min_move_m >= MOVE_STEP_M)
         )
     return (
         patched[~ok].astype(np.uint32),
         patched[ok].astype(np.uint32),
-        move[ok].astype(np.float16).reshape(-1, 3),
+        (np.round(move[ok] / MOVE_STEP_M) * MOVE_STEP_M).astype(np.float32).reshape(-1, 3),
     )
 
 
@@ -435,14 +439,15 @@ def apply_moves(
     held_ids: np.ndarray, held_points: np.ndarray, moved: np.ndarray, moves: np.ndarray
 ) -> np.ndarray:
     """The per-keypoint points after the keypoints ``moved``'s map points moved by ``moves``
-    ((k, 3) float16 [m]), added in float32 as the message's points are (the client and the
-    server add alike; the server's position differs from the client's by the rounding of a
-    monocular map's scale at most). Raises KeyframeError when they do not fit."""
+    ((k, 3) [m], as the message carries them: see :func:`split_moves`), added in float32 as the
+    message's points are (the client and the server add alike; the server's position differs
+    from the client's by the rounding of a monocular map's scale at most). Raises KeyframeError
+    when they do not fit."""
     n = len(held_ids)
     moved = np.asarray(moved, np.int64)
-    moves = np.asarray(moves, np.float16).reshape(-1, 3)
+    moves = np.asarray(moves, np.float32).reshape(-1, 3)
     if len(moves) != len(moved):
-        raise KeyframeError(f"moves_f16 gives {len(moves)} moves for {len(moved)} moved keypoints")
+        raise KeyframeError(f"{len(moves)} moves for {len(moved)} moved keypoints")
     if len(moved) and (moved.min() < 0 or moved.max() >= n):
         raise KeyframeError(f"moved names keypoint {int(moved.max())} of a keyframe with {n}")
     if len(np.unique(moved)) != len(moved):
@@ -450,9 +455,9 @@ def apply_moves(
     if np.any(np.asarray(held_ids)[moved] == 0):
         raise KeyframeError("moved names a keypoint that observes no map point")
     if not np.all(np.isfinite(moves)):
-        raise KeyframeError("moves_f16 holds NaN or inf")
+        raise KeyframeError("a move is NaN or inf")
     out = np.array(held_points, float, copy=True)
-    out[moved] = np.asarray(out[moved], np.float32) + moves.astype(np.float32)
+    out[moved] = np.asarray(out[moved], np.float32) + moves
     return out
 
 
@@ -465,7 +470,7 @@ def complete_update(
     """A delta update as the server holds it: what the keyframe saw from ``base`` (the keyframe
     as stored), and its observations from ``sent`` -- all of them (``patched`` None), or a patch
     of ``base``'s (see :func:`apply_observation_patch`) and ``moves`` of its map points (moved
-    keypoints, their float16 moves: see :func:`apply_moves`)."""
+    keypoints, their moves: see :func:`apply_moves`)."""
     static = {k: getattr(base, k) for k in STATIC_ARRAYS}
     if patched is None:
         return dataclasses.replace(sent, **static)

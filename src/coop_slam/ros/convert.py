@@ -24,6 +24,7 @@ from ..keyframe_record import (
     ACTION_NEW,
     ACTION_UPDATE,
     MAX_POSITION_M,
+    MOVE_STEP_M,
     KeyframeError,
     KeyframeRecord,
     PlaceSignature,
@@ -307,7 +308,8 @@ def keyframe_to_msg(
         msg.patched = np.asarray(patched, np.uint32).tolist()
         if moves is not None:
             msg.moved = np.asarray(moves[0], np.uint16).tolist()
-            msg.moves_f16 = np.asarray(moves[1], "<f2").tobytes()
+            steps = np.round(np.asarray(moves[1]) / MOVE_STEP_M).astype(np.int16)
+            msg.moves_q = steps.ravel().tolist()
     if compact and not (delta and patched is not None):
         msg.map_point_id_codes = encode_map_point_ids(ids)
     else:
@@ -532,18 +534,30 @@ def keyframe_from_msg(
         )
         moved = np.asarray(getattr(msg, "moved", ()), np.int64)
         moves = None
-        if len(getattr(msg, "moves_f16", b"")) and not len(moved):
-            raise KeyframeError(f"{where}: moves_f16 is given without moved")
+        steps = np.asarray(getattr(msg, "moves_q", ()), np.int16)
+        half = _bytes(getattr(msg, "moves_f16", b""))  # (before moves_q: recorded runs)
+        if len(steps) and len(half):
+            raise KeyframeError(f"{where}: moves_q and moves_f16 are both given")
+        if (len(steps) or len(half)) and not len(moved):
+            raise KeyframeError(f"{where}: moves are given without moved")
         if len(moved):
             if not is_patch:
                 raise KeyframeError(f"{where}: only a delta update with a patch moves map points")
-            half = _bytes(getattr(msg, "moves_f16", b""))
-            if len(half) != 6 * len(moved):
+            if len(half):
+                if len(half) != 6 * len(moved):
+                    raise KeyframeError(
+                        f"{where}: moves_f16 holds {len(half)} bytes for {len(moved)} moved "
+                        "keypoints (6 each)"
+                    )
+                moves_m = np.frombuffer(half.tobytes(), "<f2").astype(np.float32)
+            elif len(steps) != 3 * len(moved):
                 raise KeyframeError(
-                    f"{where}: moves_f16 holds {len(half)} bytes for {len(moved)} moved "
-                    "keypoints (6 each)"
+                    f"{where}: moves_q holds {len(steps)} values for {len(moved)} moved "
+                    "keypoints (3 each)"
                 )
-            moves = (moved, np.frombuffer(half.tobytes(), "<f2").reshape(-1, 3))
+            else:
+                moves_m = steps.astype(np.float32) * np.float32(MOVE_STEP_M)
+            moves = (moved, moves_m.reshape(-1, 3))
         offsets = _bytes(getattr(msg, "map_point_offsets_f16", b""))
         if len(offsets):
             if getattr(msg, "delta", False):

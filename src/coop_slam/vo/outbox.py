@@ -165,8 +165,9 @@ class Outgoing(NamedTuple):
     ``signature`` as its place signature only; ``skip`` not at all; ``refs`` (a full message) the
     keyframes whose descriptors it refers to and, per keypoint, which (``KeyFrame``
     ``ref_keyframes``, ``descriptor_refs``; None: every descriptor goes); ``moves`` (a delta
-    update) keypoints whose map point only moved and the (k, 3) float16 moves (``KeyFrame``
-    ``moved``, ``moves_f16``; their observations are not in the patch)."""
+    update) keypoints whose map point only moved and their (k, 3) moves [m] in steps of
+    ``MOVE_STEP_M`` (``KeyFrame`` ``moved``, ``moves_q``; their observations are not in the
+    patch)."""
 
     delta: bool
     patched: np.ndarray | None = None
