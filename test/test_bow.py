@@ -125,6 +125,27 @@ def test_tf_idf_weights(world):
     assert idf.max() <= np.log(N_IMAGES) + 1e-12
 
 
+def test_a_signature_counts_the_features_on_its_words(world):
+    """word_counts: the counts behind a transform's vector give it back exactly; a vector that is
+    no such thing (weights not whole multiples of the IDF) has none, nor a word of 256 features."""
+    from coop_slam.bow.signature import counts_to_weights, word_counts
+
+    vocab, sets = world["vocab"], world["sets"]
+    idf = vocab.word_weights
+    for image in sets[:5]:
+        bow = vocab.transform(image)[0]
+        counts = word_counts(bow, idf)
+        words = vocab.words_of(image)
+        truth = np.bincount(words, minlength=vocab.n_words)[bow.words]
+        np.testing.assert_array_equal(counts, truth)  # (each image has a word seen once)
+        np.testing.assert_allclose(counts_to_weights(bow.words, counts, idf), bow.weights)
+    skewed = BowVector(bow.words, bow.weights * np.linspace(1.0, 1.3, len(bow)))
+    assert word_counts(BowVector(skewed.words, skewed.weights / skewed.weights.sum()), idf) is None
+    crowded = vocab.transform(np.concatenate([sets[0][1:2]] * 256 + [sets[0]]))[0]
+    assert word_counts(crowded, idf) is None
+    assert word_counts(bow, idf[: bow.words[-1]]) is None  # another vocabulary
+
+
 def test_scores(world):
     vocab, sets = world["vocab"], world["sets"]
     a, _ = vocab.transform(sets[0])

@@ -545,19 +545,43 @@ def test_a_place_signature_round_trip_over_the_wire():
 
     _, _, kfs, vocab = team_world(4)
     kf = kfs[1]
-    msg = _wire(keyframe_to_msg(signature_of(kf, vocab), "robot_1/map"))
-    back = keyframe_from_msg(msg, {1, 2})
+    idf = vocab.word_weights
+    bow = vocab.transform(kf.descriptors)[0]
+    signature = signature_of(kf, vocab)
+    msg = _wire(keyframe_to_msg(signature, "robot_1/map"))
+    back = keyframe_from_msg(msg, {1, 2}, word_idf=idf)
     assert isinstance(back, PlaceSignature) and back.keyframe_id == kf.keyframe_id
-    assert l1_score(back.bow, vocab.transform(kf.descriptors)[0]) > 0.99
+    # Feature counts travel: the server's vector is the client's (weights: within 1 %)
+    assert signature.counts is not None and len(unpacked(msg).bow_counts) == len(bow)
+    np.testing.assert_allclose(back.bow.weights, bow.weights, rtol=1e-9)
+    np.testing.assert_array_equal(back.bow.words, bow.words)
     np.testing.assert_allclose(back.record.T_map_cam, kf.T_map_cam, atol=1e-9)
-    assert _size(msg) < _size(_wire(keyframe_to_msg(kf, "robot_1/map"))) / 5
+    weighed = _wire(keyframe_to_msg(dataclasses.replace(signature, counts=None), "robot_1/map"))
+    assert l1_score(keyframe_from_msg(weighed, {1, 2}).bow, bow) > 0.99
+    assert _size(msg) < _size(weighed) < _size(_wire(keyframe_to_msg(kf, "robot_1/map"))) / 5
+    with pytest.raises(MessageError, match="needs the server's vocabulary"):
+        keyframe_from_msg(msg, {1, 2})
+    with pytest.raises(MessageError, match="must share one vocabulary"):
+        keyframe_from_msg(msg, {1, 2}, word_idf=idf[: bow.words[-1]])
     msg.action = msg.ACTION_UPDATE
     with pytest.raises(MessageError, match="only a new keyframe"):
-        keyframe_from_msg(msg, {1, 2})
+        keyframe_from_msg(msg, {1, 2}, word_idf=idf)
     msg = unpacked(msg)
-    msg.action, msg.bow_weights = msg.ACTION_NEW, msg.bow_weights[:-1]
+    msg.action = msg.ACTION_NEW
+    for change, match in (
+        (dict(bow_counts=msg.bow_counts[:-1]), "words but"),
+        (dict(bow_counts=bytes(len(bow))), "no feature on a word"),
+        (dict(bow_weights=bytes(len(bow))), "bow_weights and bow_counts are both given"),
+    ):
+        bad = _wire(msg)
+        for k, v in change.items():
+            setattr(bad, k, v)
+        with pytest.raises(MessageError, match=match):
+            keyframe_from_msg(bad, {1, 2}, word_idf=idf)
+    weighed = unpacked(weighed)
+    weighed.bow_weights = weighed.bow_weights[:-1]
     with pytest.raises(MessageError, match="words but"):
-        keyframe_from_msg(msg, {1, 2})
+        keyframe_from_msg(weighed, {1, 2})
 
 
 def test_a_refused_keyframe_is_not_referred_to_after_the_acknowledgement():

@@ -29,8 +29,11 @@ PACKED_FIELDS: tuple[tuple[str, str], ...] = (
     ("covisible_weights", "<u2"),
     ("bow_word_gaps", "u1"),
     ("bow_weights", "u1"),
+    ("bow_counts", "u1"),
 )
-_FORMAT = 1  # first byte of the stream; another value is a format this code does not read
+# First byte of the stream; another value is a format this code does not read. A change to
+# PACKED_FIELDS is a new format.
+_FORMAT = 1
 _LEVEL = 6
 # A keyframe of 10000 keypoints holds ~100 kB of these arrays; more is a broken or hostile stream.
 MAX_UNPACKED_BYTES = 8 << 20

@@ -305,10 +305,13 @@ class KeyframeRecord:
 class PlaceSignature:
     """A new keyframe in low-bandwidth mode (``uplink.mode: pull``): ``record`` without what the
     keyframe saw (no keypoints; pose, stamp, camera, covisible keyframes) and the keyframe's BoW
-    vector. The server asks the robot for the whole keyframe when it needs it."""
+    vector. The server asks the robot for the whole keyframe when it needs it. ``counts``: the
+    features on each of the vector's words, when they give it exactly (see
+    :func:`coop_slam.bow.signature.word_counts`): then they travel instead of the weights."""
 
     record: KeyframeRecord
     bow: BowVector
+    counts: np.ndarray | None = None
 
     @property
     def robot_id(self) -> int:

@@ -15,7 +15,12 @@ import rospy
 from geometry_msgs.msg import Pose, Transform
 from sensor_msgs.msg import CameraInfo, Image
 
-from ..bow.signature import SignatureError, decode_signature, encode_signature
+from ..bow.signature import (
+    SignatureError,
+    decode_counted_signature,
+    decode_signature,
+    encode_signature,
+)
 from ..datasets.base import SENSORS, CameraModel, DatasetError
 from ..errors import CoopSlamError
 from ..field_pack import PACKED_FIELDS, PackError, pack_fields, unpack_fields
@@ -276,10 +281,14 @@ def keyframe_to_msg(
     msg.delta = bool(delta)
     ids, points = np.asarray(kf.map_point_ids, np.uint32), np.asarray(kf.map_points, np.float32)
     if signature is not None:
-        gaps, weights, weight_max = encode_signature(signature.bow)
         msg.signature_only = True
-        msg.bow_word_gaps, msg.bow_weights = gaps, weights
-        msg.bow_weight_max = weight_max
+        if signature.counts is not None:
+            msg.bow_word_gaps = encode_signature(signature.bow)[0]
+            msg.bow_counts = np.asarray(signature.counts, np.uint8).tobytes()
+        else:
+            gaps, weights, weight_max = encode_signature(signature.bow)
+            msg.bow_word_gaps, msg.bow_weights = gaps, weights
+            msg.bow_weight_max = weight_max
     elif not delta:
         uv = np.asarray(kf.uv_px, np.float32)
         # (a removal, or a keyframe without keypoints, has none to encode)
@@ -416,6 +425,7 @@ def keyframe_from_msg(
     msg,
     known_robots: set[int] | None = None,
     stored: Callable[[int], KeyframeRecord | None] | None = None,
+    word_idf: np.ndarray | None = None,
 ) -> KeyframeRecord | PlaceSignature:
     """Validated :class:`KeyframeRecord` from a KeyFrame message; raises MessageError.
     ``stored(keyframe_id)`` gives a keyframe of the message's robot and map segment as the server
@@ -423,7 +433,8 @@ def keyframe_from_msg(
     from the keyframe's own, and, when it carries a patch, the observations it leaves out; a
     message with ``descriptor_refs`` the descriptors it leaves out from the keyframes it names
     (see :func:`needs_stored`). A message with ``signature_only`` gives a
-    :class:`PlaceSignature`."""
+    :class:`PlaceSignature` (``word_idf``: the vocabulary's ``word_weights``, which a signature
+    of feature counts needs)."""
     msg = unpacked(msg)
     try:
         if msg.camera.sensor_type >= len(SENSORS):
@@ -569,11 +580,19 @@ def keyframe_from_msg(
         if getattr(msg, "signature_only", False):
             if msg.action != ACTION_NEW or getattr(msg, "delta", False):
                 raise KeyframeError(f"{where}: only a new keyframe goes as a place signature")
-            bow = decode_signature(
-                _bytes(msg.bow_word_gaps).tobytes(),
-                _bytes(msg.bow_weights).tobytes(),
-                float(msg.bow_weight_max),
-            )
+            gaps, counts = _bytes(msg.bow_word_gaps), _bytes(getattr(msg, "bow_counts", b""))
+            if not len(counts):
+                bow = decode_signature(
+                    gaps.tobytes(), _bytes(msg.bow_weights).tobytes(), float(msg.bow_weight_max)
+                )
+            elif len(msg.bow_weights):
+                raise KeyframeError(f"{where}: bow_weights and bow_counts are both given")
+            elif word_idf is None:
+                raise KeyframeError(
+                    f"{where}: a signature of feature counts needs the server's vocabulary"
+                )
+            else:
+                bow = decode_counted_signature(gaps.tobytes(), counts.tobytes(), word_idf)
             return PlaceSignature(rec, bow).validate(known_robots)
         return rec.validate(known_robots)
     except (KeyframeError, GeometryError, SignatureError) as exc:

@@ -142,6 +142,7 @@ class ServerNode:
         with open(vocab_path, "rb") as fh:
             vocab_data = fh.read()
         self.vocabulary = Vocabulary.load(vocab_path)
+        self.word_idf = self.vocabulary.word_weights  # (signatures of feature counts)
         self.vocab_sha256 = hashlib.sha256(vocab_data).hexdigest()
         map_path = str(rospy.get_param("~map", "")).strip()
         self.map_path = None if map_path == "off" else (map_path or default_map_path())
@@ -323,7 +324,9 @@ class ServerNode:
                     msg.robot_id, lambda: self._stored_record(msg), msg.keyframe_id
                 )
             else:
-                rec = keyframe_from_msg(msg, known_robots=self.server.known_robots)
+                rec = keyframe_from_msg(
+                    msg, known_robots=self.server.known_robots, word_idf=self.word_idf
+                )
         except MessageError as exc:
             self.rejects.reject(topic, str(exc))
             return

@@ -90,7 +90,9 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
                         msg.keyframe_id,
                     )
                 else:
-                    rec = keyframe_from_msg(msg, known_robots=server.known_robots)
+                    rec = keyframe_from_msg(
+                        msg, known_robots=server.known_robots, word_idf=vocab.word_weights
+                    )
                 taken = durable.add_keyframe(
                     rec, getattr(msg, "session", 0), getattr(msg, "sequence", 0)
                 )

@@ -15,6 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..bow.signature import word_counts
 from ..config import require
 from ..datasets.base import CameraModel
 from ..descriptors import DESCRIPTOR_BYTES, hamming_rows
@@ -147,6 +148,7 @@ def signature_of(rec: KeyframeRecord, vocabulary) -> PlaceSignature:
     """The place signature of a new keyframe (low-bandwidth mode): its record without what it saw
     and its BoW vector in ``vocabulary`` (the server's)."""
     bow, _ = vocabulary.transform(rec.descriptors)
+    counts = word_counts(bow, vocabulary.word_weights)
     bare = dataclasses.replace(
         rec,
         keypoints=np.zeros((0, 4), np.float32),
@@ -156,7 +158,7 @@ def signature_of(rec: KeyframeRecord, vocabulary) -> PlaceSignature:
         map_point_ids=np.zeros(0, np.uint32),
         map_points=np.zeros((0, 3), np.float32),
     )
-    return PlaceSignature(bare, bow)
+    return PlaceSignature(bare, bow, counts)
 
 
 class Outgoing(NamedTuple):
