@@ -387,7 +387,9 @@ def _as_decoded(kf: KeyframeRecord, msg) -> KeyframeRecord:
 
 def keypoints_and_depths(msg, where: str) -> tuple[np.ndarray, np.ndarray]:
     """A KeyFrame message's keypoints (flat float32: u, v per keypoint, or u, v, size, angle)
-    and depths [m], from whichever encoding it carries them in; raises KeyframeError."""
+    and depths [m], from whichever encoding it carries them in (packed too); raises
+    KeyframeError or MessageError."""
+    msg = unpacked(msg)
     keypoints = np.asarray(msg.keypoints, np.float32)
     coded = np.asarray(getattr(msg, "keypoints_uv", ()), np.uint16)
     if len(coded):
