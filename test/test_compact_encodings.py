@@ -1,4 +1,5 @@
-"""Compact encodings of keyframe messages: varints, map point id codes, half-float moves."""
+"""Compact encodings of keyframe messages: varints, map point id codes, moves in steps, packed
+integer arrays."""
 
 import numpy as np
 import pytest
@@ -36,7 +37,7 @@ def test_a_move_beyond_the_steps_range_goes_as_a_position():
     """split_moves: a move travels in steps of MOVE_STEP_M, half a step off at most; one beyond
     the int16 steps' range travels as a position (exact), as does every move when the moves
     left unsent are smaller than a step."""
-    from coop_slam.keyframe_record import MOVE_STEP_M, apply_moves, split_moves
+    from coop_slam.keyframe_record import MOVE_STEP_M, apply_moves, move_steps, split_moves
 
     ids = np.array([5, 6, 7, 8], np.uint32)
     held = np.zeros((4, 3))
@@ -50,6 +51,8 @@ def test_a_move_beyond_the_steps_range_goes_as_a_position():
         after = apply_moves(ids, held, got, moves)
         assert np.all(np.isfinite(after))
         assert np.abs(after[got] - now[got]).max(initial=0) <= MOVE_STEP_M / 2
+    with pytest.raises(KeyframeError, match="beyond 8.0 m"):
+        move_steps(np.array([[8.1, 0.0, 0.0]]))
 
 
 def test_packed_fields_come_back_as_packed_and_a_broken_stream_is_refused():
@@ -83,5 +86,7 @@ def test_packed_fields_come_back_as_packed_and_a_broken_stream_is_refused():
         unpack_fields(zlib.compress(bytes(MAX_UNPACKED_BYTES + 1)))
     with pytest.raises(PackError, match="ends inside its array lengths"):
         unpack_fields(zlib.compress(b"\x01\x00\x80"))
+    with pytest.raises(PackError, match="3 bytes after its deflate stream"):
+        unpack_fields(pack_fields(arrays) + b"abc")
     with pytest.raises(PackError, match="lengths say 4"):  # two keypoint steps, no bytes
         unpack_fields(zlib.compress(b"\x01\x02" + bytes(len(PACKED_FIELDS) - 1)))

@@ -79,6 +79,41 @@ def test_straight_line_falls_back_to_origin_alignment():
     assert ate(stamps, moved, stamps, line).rmse_m < 1e-6
 
 
+def test_a_run_recorded_before_packed_messages_still_reads(tmp_path):
+    """A bag's keyframe messages are read with the bag's own definition: a run recorded before
+    the message gained fields (packed arrays, moves in steps, signature counts) still reads."""
+    import genpy.dynamic
+    import rosbag
+    import rospy
+
+    from coop_slam.msg import KeyFrame
+    from coop_slam.ros.run_recorder import run_data_from_bag
+
+    new_fields = ("int16[] moves_q", "uint8[] bow_counts", "uint8[] packed")
+    main, _, deps = KeyFrame._full_text.partition("\n" + "=" * 80 + "\n")
+    old_main = "\n".join(f for f in main.splitlines() if not f.startswith(new_fields))
+    old_text = old_main + "\n" + "=" * 80 + "\n" + deps
+    OldKeyFrame = genpy.dynamic.generate_dynamic("coop_slam/KeyFrame", old_text)[
+        "coop_slam/KeyFrame"
+    ]
+    assert OldKeyFrame._md5sum != KeyFrame._md5sum and not hasattr(OldKeyFrame(), "packed")
+    bag_path = str(tmp_path / "run.bag")
+    with rosbag.Bag(bag_path, "w") as bag:
+        for k in range(1, 4):
+            msg = OldKeyFrame(robot_id=1, keyframe_id=k, action=0)
+            msg.header.frame_id, msg.header.stamp = "robot_1/map", rospy.Time.from_sec(k)
+            msg.pose.orientation.w = 1.0
+            msg.pose.position.x = 0.1 * k
+            msg.keypoints, msg.depths_m, msg.octaves = [320.0, 240.0], [2.0], b"\x00"
+            msg.camera.fx = msg.camera.fy = 500.0
+            msg.camera.cx, msg.camera.cy = 320.0, 240.0
+            bag.write("/robot_1/keyframes", msg, rospy.Time.from_sec(k))
+    run = run_data_from_bag(bag_path, [1])
+    assert sorted(run.robots[1].keyframes) == [1, 2, 3]
+    np.testing.assert_allclose(run.robots[1].keyframes[3][1][0, 3], 0.3)
+    np.testing.assert_allclose(run.robots[1].keyframe_points[2], [[0.0, 0.0, 2.0]])
+
+
 def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path):
     """RunRecorder fed from a bag (what scripts/evaluate reads): a malformed pose is skipped; a
     merge's registration error is its cameras' relative pose against the truth, unchanged when

@@ -95,7 +95,7 @@ def test_uplink_offers_through_its_holdback_and_prepares_deltas_in_sending_order
     uplink.offer(again, 0.6)
     ((rec, out),) = uplink.due(1.1)
     assert rec.action == ACTION_UPDATE and out.delta and len(out.patched) == 0
-    # (they moved 5 cm: a half float carries that to 25 um)
+    # (they moved 5 cm: a move in steps of 0.24 mm)
     assert sorted(rec.map_point_ids[out.moves[0]]) == sorted(
         rec.map_point_ids[rec.map_point_ids != 0][:3]
     )

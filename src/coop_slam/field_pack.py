@@ -73,6 +73,8 @@ def unpack_fields(blob: bytes) -> dict[str, np.ndarray]:
         raise PackError(f"packed unpacks to more than {MAX_UNPACKED_BYTES} bytes")
     if not inflate.eof:
         raise PackError("packed ends inside its deflate stream")
+    if inflate.unused_data:
+        raise PackError(f"packed holds {len(inflate.unused_data)} bytes after its deflate stream")
     if not raw or raw[0] != _FORMAT:
         raise PackError(
             f"packed is of format {raw[0] if raw else 'none'}, this code reads {_FORMAT}: "

@@ -59,6 +59,21 @@ MAX_REF_KEYFRAMES = 255  # KeyFrame.msg: uint8 descriptor_refs
 # (KeyFrame.msg moves_q), up to 8 m; the client sends no move below uplink.point_move_m (2 mm).
 MOVE_STEP_M = 2.0**-12
 MOVE_MAX_M = 32767 * MOVE_STEP_M
+
+
+def move_steps(moves_m: np.ndarray) -> np.ndarray:
+    """Moves [m] as int16 steps of MOVE_STEP_M (the nearest); KeyframeError beyond MOVE_MAX_M."""
+    steps = np.round(np.asarray(moves_m, float) / MOVE_STEP_M)
+    if len(steps) and not np.all(np.abs(steps) <= 32767):
+        raise KeyframeError(f"a move beyond {MOVE_MAX_M:.1f} m (or not finite) has no int16 steps")
+    return steps.astype(np.int16)
+
+
+def moves_from_steps(steps: np.ndarray) -> np.ndarray:
+    """The float32 moves [m] of int16 steps (exact: steps are powers of two apart)."""
+    return np.asarray(steps, np.int16).astype(np.float32) * np.float32(MOVE_STEP_M)
+
+
 # A map point offset from its keypoint's depth travels as a half float up to this [m] (0.5 mm
 # error at most); local BA moves points mm to cm from where the depth put them.
 MAX_POINT_OFFSET_M = 1.0
@@ -434,7 +449,7 @@ def split_moves(
     return (
         patched[~ok].astype(np.uint32),
         patched[ok].astype(np.uint32),
-        (np.round(move[ok] / MOVE_STEP_M) * MOVE_STEP_M).astype(np.float32).reshape(-1, 3),
+        moves_from_steps(move_steps(move[ok])).reshape(-1, 3),
     )
 
 

@@ -1,13 +1,13 @@
 """A keyframe's place signature as it travels in low-bandwidth mode (``uplink.mode: pull``): its
-BoW vector in about two bytes a word instead of the keyframe's 50-60 kB.
+BoW vector in about two bytes a word or less instead of the keyframe's 35-40 kB.
 
 Word ids go as increasing gaps, each a little-endian base-128 varint (LEB128: one byte for gaps
 below 128, which most are); with them either the number of the keyframe's features on each word,
 which the server weighs with its vocabulary's IDF as the client did (exact; mostly ones, which the
-message's packing all but removes), or weights as uint8 fractions of the largest weight (the
-server's relocalization requests, and signatures recorded before counts). The server scores
-signatures with the L1 score of :mod:`.vocabulary`; quantising the weights moves a score by well
-under 1 %.
+message's packing all but removes), or weights as uint8 fractions of the largest weight (a
+client's relocalization request, a vector counts do not give, signatures recorded before counts).
+The server scores signatures with the L1 score of :mod:`.vocabulary`; quantising the weights
+moves a score by well under 1 %.
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ def decode_counted_signature(gaps: bytes, counts: bytes, word_idf: np.ndarray) -
     """The BoW vector of word-id gaps and per-word feature counts (see :func:`word_counts`);
     SignatureError if they do not fit this vocabulary."""
     n = np.frombuffer(bytes(counts), np.uint8)
-    words = _words(gaps, len(n))
+    words = _words(gaps, len(n), "counts")
     if len(words) and words[-1] >= len(word_idf):
         raise SignatureError(
             f"signature word id {int(words[-1])} beyond the vocabulary's {len(word_idf)} words: "
@@ -80,14 +80,15 @@ def decode_counted_signature(gaps: bytes, counts: bytes, word_idf: np.ndarray) -
     return BowVector(words.astype(np.int32), counts_to_weights(words, n, word_idf))
 
 
-def _words(gaps: bytes, n: int) -> np.ndarray:
-    """The word ids of varint gaps, ``n`` of them (int64); SignatureError if they are not."""
+def _words(gaps: bytes, n: int, values: str = "weights") -> np.ndarray:
+    """The word ids of varint gaps, ``n`` of them (as many as the signature's ``values``; int64);
+    SignatureError if they are not."""
     try:
         gap = decode_varints(gaps, _MAX_VARINT_BYTES)
     except VarintError as exc:
         raise SignatureError(f"signature word ids: {exc}") from None
     if len(gap) != n:
-        raise SignatureError(f"signature lists {len(gap)} words but {n} weights")
+        raise SignatureError(f"signature lists {len(gap)} words but {n} {values}")
     if (gap <= 0).any():
         raise SignatureError("signature word ids must increase")
     words = np.cumsum(gap) - 1

@@ -29,7 +29,6 @@ from ..keyframe_record import (
     ACTION_NEW,
     ACTION_UPDATE,
     MAX_POSITION_M,
-    MOVE_STEP_M,
     KeyframeError,
     KeyframeRecord,
     PlaceSignature,
@@ -43,6 +42,8 @@ from ..keyframe_record import (
     encode_map_point_ids,
     encode_point_offsets,
     encode_uv,
+    move_steps,
+    moves_from_steps,
     patch_of,
     shared_descriptors,
 )
@@ -250,9 +251,11 @@ def keyframe_to_msg(
     descriptor travels; see :class:`coop_slam.vo.outbox.Outgoing`). ``compact``: keypoint
     positions and depths in their compact encodings (``keypoints_uv``, ``depths_f16``) where they
     fit, map point ids as varints (not in a patch), map points as half-float offsets from their
-    keypoints' depths (a full message, where they fit). ``moves`` (a delta update with a patch):
-    keypoints whose map point moved, and the moves as half floats. A place signature goes as a
-    new keyframe with only its BoW vector (``signature_only``)."""
+    keypoints' depths (a full message, where they fit), and the integer arrays packed into one
+    zlib stream (``packed``) where that is smaller. ``moves`` (a delta update with a patch):
+    keypoints whose map point moved, and the moves [m] (``moves_q``: steps of ``MOVE_STEP_M``).
+    A place signature goes as a new keyframe with only its BoW vector (``signature_only``: its
+    feature counts when the signature has them, else 8-bit weights)."""
     from coop_slam.msg import CameraModel as CameraModelMsg
     from coop_slam.msg import KeyFrame
 
@@ -283,6 +286,11 @@ def keyframe_to_msg(
     if signature is not None:
         msg.signature_only = True
         if signature.counts is not None:
+            if len(signature.counts) != len(signature.bow):
+                raise KeyframeError(
+                    f"keyframe {kf.keyframe_id}: {len(signature.counts)} feature counts for "
+                    f"{len(signature.bow)} words"
+                )
             msg.bow_word_gaps = encode_signature(signature.bow)[0]
             msg.bow_counts = np.asarray(signature.counts, np.uint8).tobytes()
         else:
@@ -317,8 +325,7 @@ def keyframe_to_msg(
         msg.patched = np.asarray(patched, np.uint32).tolist()
         if moves is not None:
             msg.moved = np.asarray(moves[0], np.uint16).tolist()
-            steps = np.round(np.asarray(moves[1]) / MOVE_STEP_M).astype(np.int16)
-            msg.moves_q = steps.ravel().tolist()
+            msg.moves_q = move_steps(moves[1]).ravel().tolist()
     if compact and not (delta and patched is not None):
         msg.map_point_id_codes = encode_map_point_ids(ids)
     else:
@@ -569,7 +576,7 @@ def keyframe_from_msg(
                     "keypoints (3 each)"
                 )
             else:
-                moves_m = steps.astype(np.float32) * np.float32(MOVE_STEP_M)
+                moves_m = moves_from_steps(steps)
             moves = (moved, moves_m.reshape(-1, 3))
         offsets = _bytes(getattr(msg, "map_point_offsets_f16", b""))
         if len(offsets):

@@ -240,7 +240,7 @@ def run_data_from_bag(bag_path: str, robot_ids: list[int]) -> RunData:
         raise EvaluationError(f"cannot read bag {bag_path}: {exc}") from exc
     with bag:
         for topic, raw, t in bag.read_messages(topics=list(topics), raw=True):
-            msg = message_class(topics[topic])()
+            msg = raw[4]()  # the bag's own definition: runs recorded by older code read too
             msg.deserialize(raw[1])
             rec.feed(topic, msg, t.to_sec(), len(raw[1]))
     return rec.run

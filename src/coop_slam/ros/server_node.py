@@ -50,6 +50,7 @@ from .convert import (
     pose_to_msg,
     transform_stamped,
     transform_to_msg,
+    unpacked,
 )
 from .log_bridge import forward_core_logs
 from .validation import RejectCounter
@@ -319,6 +320,7 @@ class ServerNode:
             )
             return
         try:
+            msg = unpacked(msg)  # (once: needs_stored and keyframe_from_msg take it as it is)
             if needs_stored(msg):  # needs keyframes as the server holds them when its turn comes
                 rec = PendingKeyframe(
                     msg.robot_id, lambda: self._stored_record(msg), msg.keyframe_id
@@ -338,6 +340,7 @@ class ServerNode:
             msg,
             known_robots=self.server.known_robots,
             stored=functools.partial(self.server.stored_record, msg.robot_id, msg.map_segment),
+            word_idf=self.word_idf,
         )
 
     def _on_sighting(self, msg) -> None:

@@ -357,17 +357,18 @@ def _complete_msg(
     return keyframe_from_msg(msg, known_robots=known_robots, stored=stored)
 
 
-def run_streams(run_dir: str) -> tuple[list[Arrival], dict]:
+def run_streams(run_dir: str, word_idf: np.ndarray | None = None) -> tuple[list[Arrival], dict]:
     """The keyframe messages of a recorded demo run (``RUN/run.bag``, ``RUN/run.json``), arriving
     at the bag's receive times, and the run's info. Marker sightings are not part of the streams.
     Messages the node would refuse on arrival are left out (and counted on stderr), and so are
     messages a client sent again (same session and sequence): resending answers a server that
-    was slow to acknowledge in that run, which a replay without acknowledgements cannot model."""
+    was slow to acknowledge in that run, which a replay without acknowledgements cannot model.
+    ``word_idf``: the vocabulary's ``word_weights`` (for low-bandwidth runs' signatures)."""
     import json
 
     import rosbag
 
-    from ..ros.convert import MessageError, keyframe_from_msg, needs_stored
+    from ..ros.convert import MessageError, keyframe_from_msg, needs_stored, unpacked
 
     with open(os.path.join(run_dir, "run.json"), encoding="utf-8") as fh:
         info = json.load(fh)
@@ -386,21 +387,22 @@ def run_streams(run_dir: str) -> tuple[list[Arrival], dict]:
                     again += 1
                     continue
                 seen.add((msg.robot_id, session, sequence))
-            if needs_stored(msg):  # completed when taken, as the node does
-                item = NeedsStored(
-                    msg.robot_id,
-                    msg.map_segment,
-                    msg.keyframe_id,
-                    msg.header.stamp.to_sec(),
-                    functools.partial(_complete_msg, msg),
-                    msg.action,
-                )
-            else:
-                try:
-                    item = keyframe_from_msg(msg, known_robots=robots)
-                except MessageError:
-                    refused += 1
-                    continue
+            try:
+                msg = unpacked(msg)
+                if needs_stored(msg):  # completed when taken, as the node does
+                    item = NeedsStored(
+                        msg.robot_id,
+                        msg.map_segment,
+                        msg.keyframe_id,
+                        msg.header.stamp.to_sec(),
+                        functools.partial(_complete_msg, msg),
+                        msg.action,
+                    )
+                else:
+                    item = keyframe_from_msg(msg, known_robots=robots, word_idf=word_idf)
+            except MessageError:
+                refused += 1
+                continue
             arrivals.append(Arrival(t.to_sec(), msg.robot_id, item, session, sequence))
     if refused or again:
         _log(f"left out: {refused} keyframe messages refused on arrival, {again} sent again")
@@ -762,8 +764,9 @@ def bench_server_scale(
     from .replay import _server_config
 
     t = time.perf_counter()
+    vocab = Vocabulary.load(ensure_default_vocabulary())
     if run_dir:
-        arrivals, info = run_streams(run_dir)
+        arrivals, info = run_streams(run_dir, vocab.word_weights)
         cfg = _server_config(os.path.join(CONFIG_DIR, "server.yaml"), info, {})
         what = f"run {os.path.basename(os.path.normpath(run_dir))}"
     else:
@@ -771,7 +774,6 @@ def bench_server_scale(
         cfg = _synthetic_server_config(DEFAULT_SCENARIO, sorted({a.robot_id for a in arrivals}))
         what = f"synthetic {DEFAULT_SCENARIO}"
     _log(f"{len(arrivals)} messages ready in {time.perf_counter() - t:.1f} s; replaying")
-    vocab = Vocabulary.load(ensure_default_vocabulary())
     with tempfile.TemporaryDirectory() as tmp:
         # The node keeps a map file by default (server.launch map:=): so does the replay.
         durable = DurableServer(

@@ -45,12 +45,13 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
     from ..bow.training import ensure_default_vocabulary
     from ..geometry import invert, se3_from_quat
     from ..keyframe_record import ACTION_REMOVE
-    from ..ros.convert import MessageError, keyframe_from_msg, needs_stored, pose_from_msg
+    from ..ros.convert import MessageError, keyframe_from_msg, needs_stored, pose_from_msg, unpacked
     from ..team.durable import DurableServer, PendingKeyframe
     from ..team.server import TeamServer
 
     cfg = _server_config(config_path, info, overrides or {})
     vocab = Vocabulary.load(ensure_default_vocabulary())
+    word_idf = vocab.word_weights
     # Messages as the server node takes them: each client message once, in order (a run with
     # faults holds messages sent again).
     durable = DurableServer(cfg, lambda c: TeamServer(c, vocab), None)
@@ -79,6 +80,7 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
             if msg.action != ACTION_REMOVE:  # a removal carries no stamp
                 stamps.setdefault((msg.robot_id, msg.keyframe_id), msg.header.stamp.to_sec())
             try:
+                msg = unpacked(msg)
                 if needs_stored(msg):  # completed from the keyframes as stored then
                     rec = PendingKeyframe(
                         msg.robot_id,
@@ -86,12 +88,13 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
                             m,
                             server.known_robots,
                             functools.partial(server.stored_record, m.robot_id, m.map_segment),
+                            word_idf,
                         ),
                         msg.keyframe_id,
                     )
                 else:
                     rec = keyframe_from_msg(
-                        msg, known_robots=server.known_robots, word_idf=vocab.word_weights
+                        msg, known_robots=server.known_robots, word_idf=word_idf
                     )
                 taken = durable.add_keyframe(
                     rec, getattr(msg, "session", 0), getattr(msg, "sequence", 0)

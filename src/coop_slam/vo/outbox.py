@@ -250,9 +250,9 @@ class Uplink:
     since they last went:
     keypoints that observe another map point (or none), or whose map point moved more than
     ``point_move_m`` (local BA moves most points of a keyframe a little, and an update that
-    sent them all was most of a client's traffic); a move goes as a half-float offset when that
-    carries it to within half of ``point_move_m``. ``delta_updates`` False: every update goes in
-    full.
+    sent them all was most of a client's traffic); a point that only moved goes as its move in
+    int16 steps of ``MOVE_STEP_M`` (when ``point_move_m`` is at least a step). ``delta_updates``
+    False: every update goes in full.
 
     In pull mode a new keyframe goes as its place signature, and whole only when the server asks
     (:meth:`answer`); updates of keyframes the server holds move their pose only (no points),
