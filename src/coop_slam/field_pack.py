@@ -49,13 +49,14 @@ def pack_fields(arrays: Mapping[str, np.ndarray]) -> bytes:
     unknown = set(arrays) - {name for name, _ in PACKED_FIELDS}
     if unknown:
         raise PackError(f"cannot pack {sorted(unknown)}: not among the packed fields")
-    parts = [_as_array(arrays.get(name, ()), dtype) for name, dtype in PACKED_FIELDS]
+    parts = [field_array(arrays.get(name, ()), dtype) for name, dtype in PACKED_FIELDS]
     head = bytes([_FORMAT]) + encode_varints([len(p) for p in parts])
     return zlib.compress(head + b"".join(p.tobytes() for p in parts), _LEVEL)
 
 
-def _as_array(values, dtype: str) -> np.ndarray:
-    # uint8[] fields are bytes on the wire, lists when a message is built in-process
+def field_array(values, dtype: str = "u1") -> np.ndarray:
+    """A message field's values as an array of ``dtype``: a uint8[] field is bytes on the wire, a
+    list when a message is built in-process."""
     if isinstance(values, (bytes, bytearray)):
         return np.frombuffer(values, np.uint8)
     return np.asarray(values, dtype)

@@ -13,6 +13,7 @@ The tree is stored as flat arrays (parent, children table, node descriptors, nod
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import time
@@ -229,10 +230,13 @@ class Vocabulary:
     def n_words(self) -> int:
         return len(self.word_node)
 
-    @property
+    @functools.cached_property
     def word_weights(self) -> np.ndarray:
-        """IDF weight of every word (0 = stop word, ignored by transform)."""
-        return self.weights[self.word_node]
+        """IDF weight of every word (0 = stop word, ignored by transform); gathered once (every
+        place signature's counts are weighed with it), after training has set the weights."""
+        out = self.weights[self.word_node]
+        out.setflags(write=False)
+        return out
 
     def __repr__(self) -> str:
         return (

@@ -23,7 +23,7 @@ from ..bow.signature import (
 )
 from ..datasets.base import SENSORS, CameraModel, DatasetError
 from ..errors import CoopSlamError
-from ..field_pack import PACKED_FIELDS, PackError, pack_fields, unpack_fields
+from ..field_pack import PACKED_FIELDS, PackError, field_array, pack_fields, unpack_fields
 from ..geometry import GeometryError, quat_from_se3, se3_from_quat
 from ..keyframe_record import (
     ACTION_NEW,
@@ -356,7 +356,7 @@ def _pack(msg) -> None:
 def unpacked(msg):
     """A KeyFrame message with the arrays it packs (``packed``) in their own fields: a copy, or
     the message itself when it packs none; raises MessageError."""
-    blob = _bytes(getattr(msg, "packed", b""))
+    blob = field_array(getattr(msg, "packed", b""))
     if not len(blob):
         return msg
     where = f"keyframe {msg.keyframe_id} of robot {msg.robot_id}"
@@ -372,13 +372,6 @@ def unpacked(msg):
         setattr(out, name, values.tobytes() if values.dtype.itemsize == 1 else values.tolist())
     out.packed = b""
     return out
-
-
-def _bytes(field) -> np.ndarray:
-    # uint8[] arrives as bytes from the wire, but as a list when a message is built in-process.
-    if isinstance(field, (bytes, bytearray)):
-        return np.frombuffer(field, dtype=np.uint8)
-    return np.asarray(field, dtype=np.uint8)
 
 
 def _as_decoded(kf: KeyframeRecord, msg) -> KeyframeRecord:
@@ -414,7 +407,7 @@ def keypoints_and_depths(msg, where: str) -> tuple[np.ndarray, np.ndarray]:
     elif float(getattr(msg, "keypoint_step_px", 0.0)):
         raise KeyframeError(f"{where}: keypoint_step_px is given without keypoints_uv")
     depths = np.asarray(msg.depths_m, np.float32)
-    half = _bytes(getattr(msg, "depths_f16", b""))
+    half = field_array(getattr(msg, "depths_f16", b""))
     if len(half):
         if depths.size:
             raise KeyframeError(f"{where}: depths_m and depths_f16 are both given")
@@ -461,12 +454,12 @@ def keyframe_from_msg(
         where = f"keyframe {msg.keyframe_id} of robot {msg.robot_id}"
         keypoints, depths = keypoints_and_depths(msg, where)
         ids = np.asarray(msg.map_point_ids, np.uint32)
-        codes = _bytes(getattr(msg, "map_point_id_codes", b""))
+        codes = field_array(getattr(msg, "map_point_id_codes", b""))
         if len(codes):
             if len(ids):
                 raise KeyframeError(f"{where}: map_point_ids and map_point_id_codes are both given")
             ids = decode_map_point_ids(codes.tobytes())
-        descriptors = _bytes(msg.descriptors)
+        descriptors = field_array(msg.descriptors)
         map_points = np.asarray(msg.map_points, np.float32)
         n = len(msg.octaves)
         if n and keypoints.size == 2 * n:  # u, v: size not given, no angle
@@ -495,11 +488,11 @@ def keyframe_from_msg(
             raise KeyframeError(f"{where}: pose position contains NaN or inf")
         static = dict(
             keypoints=keypoints.reshape(-1, 4),
-            octaves=_bytes(msg.octaves),
+            octaves=field_array(msg.octaves),
             descriptors=descriptors.reshape(-1, 32),
             depths_m=depths,
         )
-        refs = _bytes(getattr(msg, "descriptor_refs", b""))
+        refs = field_array(getattr(msg, "descriptor_refs", b""))
         if len(getattr(msg, "ref_keyframes", ())) and not len(refs):
             raise KeyframeError(f"{where}: ref_keyframes is given without descriptor_refs")
         if len(refs):
@@ -555,7 +548,7 @@ def keyframe_from_msg(
         moved = np.asarray(getattr(msg, "moved", ()), np.int64)
         moves = None
         steps = np.asarray(getattr(msg, "moves_q", ()), np.int16)
-        half = _bytes(getattr(msg, "moves_f16", b""))  # (before moves_q: recorded runs)
+        half = field_array(getattr(msg, "moves_f16", b""))  # (before moves_q: recorded runs)
         if len(steps) and len(half):
             raise KeyframeError(f"{where}: moves_q and moves_f16 are both given")
         if (len(steps) or len(half)) and not len(moved):
@@ -578,7 +571,7 @@ def keyframe_from_msg(
             else:
                 moves_m = moves_from_steps(steps)
             moves = (moved, moves_m.reshape(-1, 3))
-        offsets = _bytes(getattr(msg, "map_point_offsets_f16", b""))
+        offsets = field_array(getattr(msg, "map_point_offsets_f16", b""))
         if len(offsets):
             if getattr(msg, "delta", False):
                 raise KeyframeError(f"{where}: only a full message carries map point offsets")
@@ -589,10 +582,14 @@ def keyframe_from_msg(
         if getattr(msg, "signature_only", False):
             if msg.action != ACTION_NEW or getattr(msg, "delta", False):
                 raise KeyframeError(f"{where}: only a new keyframe goes as a place signature")
-            gaps, counts = _bytes(msg.bow_word_gaps), _bytes(getattr(msg, "bow_counts", b""))
+            gaps, counts = field_array(msg.bow_word_gaps), field_array(
+                getattr(msg, "bow_counts", b"")
+            )
             if not len(counts):
                 bow = decode_signature(
-                    gaps.tobytes(), _bytes(msg.bow_weights).tobytes(), float(msg.bow_weight_max)
+                    gaps.tobytes(),
+                    field_array(msg.bow_weights).tobytes(),
+                    float(msg.bow_weight_max),
                 )
             elif len(msg.bow_weights):
                 raise KeyframeError(f"{where}: bow_weights and bow_counts are both given")

@@ -143,7 +143,6 @@ class ServerNode:
         with open(vocab_path, "rb") as fh:
             vocab_data = fh.read()
         self.vocabulary = Vocabulary.load(vocab_path)
-        self.word_idf = self.vocabulary.word_weights  # (signatures of feature counts)
         self.vocab_sha256 = hashlib.sha256(vocab_data).hexdigest()
         map_path = str(rospy.get_param("~map", "")).strip()
         self.map_path = None if map_path == "off" else (map_path or default_map_path())
@@ -327,7 +326,9 @@ class ServerNode:
                 )
             else:
                 rec = keyframe_from_msg(
-                    msg, known_robots=self.server.known_robots, word_idf=self.word_idf
+                    msg,
+                    known_robots=self.server.known_robots,
+                    word_idf=self.vocabulary.word_weights,
                 )
         except MessageError as exc:
             self.rejects.reject(topic, str(exc))
@@ -340,7 +341,7 @@ class ServerNode:
             msg,
             known_robots=self.server.known_robots,
             stored=functools.partial(self.server.stored_record, msg.robot_id, msg.map_segment),
-            word_idf=self.word_idf,
+            word_idf=self.vocabulary.word_weights,
         )
 
     def _on_sighting(self, msg) -> None:

@@ -51,7 +51,6 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
 
     cfg = _server_config(config_path, info, overrides or {})
     vocab = Vocabulary.load(ensure_default_vocabulary())
-    word_idf = vocab.word_weights
     # Messages as the server node takes them: each client message once, in order (a run with
     # faults holds messages sent again).
     durable = DurableServer(cfg, lambda c: TeamServer(c, vocab), None)
@@ -88,13 +87,13 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
                             m,
                             server.known_robots,
                             functools.partial(server.stored_record, m.robot_id, m.map_segment),
-                            word_idf,
+                            vocab.word_weights,
                         ),
                         msg.keyframe_id,
                     )
                 else:
                     rec = keyframe_from_msg(
-                        msg, known_robots=server.known_robots, word_idf=word_idf
+                        msg, known_robots=server.known_robots, word_idf=vocab.word_weights
                     )
                 taken = durable.add_keyframe(
                     rec, getattr(msg, "session", 0), getattr(msg, "sequence", 0)
