@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """rostest node: a client's camera model changes (new intrinsics) mid-run; it starts a new map,
 whose keyframes and map segment continue after those of the first one: reused ids would make the
-server take a new keyframe for an old one."""
+server take a new keyframe for an old one. The very first frame comes before any camera info
+(separate topics, no order between them): it waits for the info and is tracked, not rejected."""
 import dataclasses
 import os
 import sys
@@ -14,7 +15,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import helpers_vo  # noqa: E402
-from coop_slam.msg import KeyFrame  # noqa: E402
+from coop_slam.msg import FrameStats, KeyFrame  # noqa: E402
 from coop_slam.ros.convert import camera_info_to_msg, image_to_msg  # noqa: E402
 from helpers import wait_until  # noqa: E402
 
@@ -24,10 +25,11 @@ NEW = KeyFrame.ACTION_NEW
 class CameraChangeTest(unittest.TestCase):
     def test_new_map_continues_the_ids(self):
         rospy.init_node("camera_change_test")
-        got = []
-        sub = rospy.Subscriber(  # noqa: F841
-            "/robot_1/keyframes", KeyFrame, lambda m: got.append(m), queue_size=100
-        )
+        got, stats = [], []
+        subs = [  # noqa: F841 - keeps the subscribers referenced for the whole test
+            rospy.Subscriber("/robot_1/keyframes", KeyFrame, got.append, queue_size=100),
+            rospy.Subscriber("/robot_1/frame_stats", FrameStats, stats.append, queue_size=100),
+        ]
         cam = "/robot_1/camera"
         pub_info = rospy.Publisher(f"{cam}/color/camera_info", CameraInfo, queue_size=5)
         pub_depth = rospy.Publisher(f"{cam}/depth/image_raw", Image, queue_size=5)
@@ -40,21 +42,29 @@ class CameraChangeTest(unittest.TestCase):
         stamps, frames, _ = helpers_vo.sequence(n_frames=12)
         other = dataclasses.replace(helpers_vo.CAMERA, fx=helpers_vo.CAMERA.fx * 1.1)
 
-        def play(camera, first_s: float, n: int) -> None:
+        def play(camera, first_s: float, n: int, info_late: bool = False) -> None:
             for i in range(n):
                 stamp = rospy.Time.from_sec(first_s + i / 30.0)
                 bgr, depth = frames[i]
-                pub_info.publish(camera_info_to_msg(camera, stamp, "robot_1/camera_optical"))
+                info = camera_info_to_msg(camera, stamp, "robot_1/camera_optical")
+                if not (info_late and i == 0):
+                    pub_info.publish(info)
                 pub_depth.publish(image_to_msg(depth, "32FC1", stamp, "robot_1/camera_optical"))
                 pub_color.publish(image_to_msg(bgr, "bgr8", stamp, "robot_1/camera_optical"))
+                if info_late and i == 0:
+                    time.sleep(0.5)
+                    pub_info.publish(info)
                 time.sleep(0.3)  # a slow camera: the client tracks every frame
 
         def new_keyframes():  # (without a server to acknowledge them, messages go again)
             first_sends = {(m.session, m.sequence): m for m in got}.values()
             return sorted((m.keyframe_id, m.map_segment) for m in first_sends if m.action == NEW)
 
-        play(helpers_vo.CAMERA, 100.0, 6)
+        play(helpers_vo.CAMERA, 100.0, 6, info_late=True)
         wait_until(lambda: new_keyframes(), 30.0, "a keyframe of the first map")
+        first_frame = [s for s in stats if abs(s.header.stamp.to_sec() - 100.0) < 1e-6]
+        self.assertTrue(first_frame, "no frame statistics of the first frame")
+        self.assertTrue(first_frame[0].tracking_ok, "the frame before its camera info was lost")
         first = new_keyframes()
         self.assertTrue(all(seg == 0 for _, seg in first), first)
         play(other, 110.0, 6)

@@ -62,6 +62,10 @@ from .convert import (
 from .log_bridge import forward_core_logs
 from .validation import RejectCounter
 
+# How long a frame that came before any camera info waits for one [s]: a camera publishes its
+# info with every frame, so it is at most a frame or a loaded machine's scheduling delay behind.
+CAMERA_INFO_WAIT_S = 2.0
+
 
 class ClientNode:
     def __init__(self):
@@ -100,6 +104,8 @@ class ClientNode:
         self._VisualOdometry = VisualOdometry
         self.vo = None
         self.camera = None
+        self._camera_ready = threading.Event()  # set once a camera model is known
+        self._camera_wait_s = CAMERA_INFO_WAIT_S
         self.lock = threading.Lock()
         self.rejects = RejectCounter(f"client {self.name}")
         # Pose-graph sharing: the team map's poses of our keyframes over what we publish (path,
@@ -447,6 +453,7 @@ class ClientNode:
                     )
                     self._close_vo()
                 self.camera = cam
+                self._camera_ready.set()
 
     def _close_vo(self) -> None:
         if self.vo is not None:
@@ -530,6 +537,11 @@ class ClientNode:
         stamp = image_msg.header.stamp
         stats = FrameStats(robot_id=self.robot_id, tracking_ok=False)
         stats.header.stamp = stamp
+        # Images and their camera info come on topics of their own, in no order between them:
+        # the very first image may come before any info (a loaded machine makes that likely), and
+        # rejecting it would start a monocular map from a later view. It waits for the info.
+        if not self._camera_ready.wait(self._camera_wait_s):
+            self._camera_wait_s = 0.0  # none came: no info is published, later frames go at once
         try:
             with self.lock:
                 if self.camera is None:
