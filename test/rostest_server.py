@@ -185,6 +185,11 @@ class ServerTeamMapTest(unittest.TestCase):
         )
         self.assertEqual(acks[-1].last_keyframe_id, 8)
         self.assertTrue(acks[-1].durable)
+        # Receipts on arrival (not sent again while the server is busy), from one server run.
+        received = {a.received_sequence for a in acks if a.received_session == 5}
+        self.assertEqual(received, set(range(1, 9)))
+        self.assertEqual({a.server_session for a in acks}, {acks[-1].server_session})
+        self.assertNotEqual(acks[-1].server_session, 0)
         wait_until(
             lambda: json.loads(got["stats"].data)["duplicates"] >= 1,
             30.0,

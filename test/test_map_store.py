@@ -257,6 +257,29 @@ def test_outbox_waits_as_long_as_acknowledgements_take():
     assert not resent and box.wait_s < 1.5
 
 
+def test_outbox_does_not_send_again_what_the_server_received():
+    """A server busy storing (a merge, a global BA) says which messages it has received: they
+    do not go again while it works, for up to max_resend_after_s, unless another server run
+    acknowledges (a restart lost them); receipts of another client session count for nothing."""
+    box = Outbox(resend_after_s=1.0, max_resend_after_s=10.0)
+    box.server_is(41)
+    for m in "abc":
+        box.add(m, now=0.0)
+    box.received(box.session, 1, now=0.1)
+    box.received(box.session, 3, now=0.1)
+    box.received(box.session + 1, 2, now=0.1)  # an earlier client run's message 2
+    assert box.due(now=1.0) == ["b"]  # only the one the server did not get
+    assert box.due(now=5.0) == ["b"]
+    assert box.due(now=10.1) == ["a", "b", "c"]  # a, c: 10 s not stored, maybe dropped
+    box.received(box.session, 1, now=11.0)
+    box.received(box.session, 3, now=11.0)
+    box.server_is(41)  # the same run: nothing changes
+    assert box.due(now=12.5) == []  # (b backs off: 8 s now)
+    box.server_is(42)  # restarted: what it had received is gone
+    assert box.due(now=13.0) == ["a", "c"]
+    assert box.ack(box.session, 3, now=13.5) == 3 and box.unacked == 0
+
+
 def test_outbox_backs_off_per_message_while_the_server_lags():
     """The oldest unacknowledged message (the one the server waits for) goes again every 1 s; any
     other 1 s after it was sent, then 2 s, 4 s later (at most the cap); at most resend_window

@@ -104,7 +104,11 @@ class Outbox:
     that commits keyframes later than a fixed wait (busy with a verification or a global BA, on
     a loaded machine) got each of them twice, over a radio that has no bandwidth to spare. Each
     acknowledgement gives one delay: its newest message's, from its first sending (a message sent
-    again may be acknowledged for either copy; the first overestimates, the safe side)."""
+    again may be acknowledged for either copy; the first overestimates, the safe side).
+
+    The server also says which messages it has received (:meth:`received`) before it stores
+    them: a server busy for seconds (a merge, a global BA) would otherwise get every message that
+    came meanwhile twice."""
 
     def __init__(
         self,
@@ -129,20 +133,21 @@ class Outbox:
         self.session = new_session()
         self.sequence = 0  # of the last message
         # sequence -> [message, when it was last sent, the wait before it goes again,
-        #              when it was first sent]
+        #              when it was first sent, when the server said it received it (or None)]
         self._unacked: OrderedDict[int, list] = OrderedDict()
         self.dropped = 0  # unacknowledged messages given up because the bound was reached
         self.resent = 0
         self.wait_s = resend_after_s  # before an unacknowledged message goes again [s]
         self.delay_s: float | None = None  # smoothed acknowledgement delay [s]
         self._delay_dev_s = 0.0  # its smoothed mean deviation [s]
+        self._server_session = 0  # the server run acknowledging
 
     def add(self, message: Any, now: float | None = None) -> tuple[int, int, bool]:
         """Number a new message (sent now): (session, sequence, whether an old message was given
         up)."""
         now = time.monotonic() if now is None else now
         self.sequence += 1
-        self._unacked[self.sequence] = [message, now, self.wait_s, now]
+        self._unacked[self.sequence] = [message, now, self.wait_s, now, None]
         overflow = len(self._unacked) > self.max_unacked
         if overflow:
             self._unacked.popitem(last=False)
@@ -160,6 +165,25 @@ class Outbox:
         for s in done:
             del self._unacked[s]
         return len(done)
+
+    def server_is(self, server_session: int) -> None:
+        """Acknowledgements come from this server run. A new one (the server restarted) lost
+        what it had received and not stored: those messages go again as any others."""
+        if server_session != self._server_session:
+            self._server_session = server_session
+            for entry in self._unacked.values():
+                entry[4] = None
+
+    def received(self, session: int, sequence: int, now: float | None = None) -> None:
+        """The server has received this message and queued it to store: it does not go again
+        while the server is busy storing what came before it, for up to ``max_resend_after_s``
+        (then it goes again as any other: the server may have dropped it, e.g. beyond what it
+        holds out of order) or until another server run acknowledges."""
+        if session != self.session:
+            return
+        entry = self._unacked.get(sequence)
+        if entry is not None:
+            entry[4] = time.monotonic() if now is None else now
 
     def _note_delay(self, delay_s: float) -> None:
         delay_s = max(delay_s, 0.0)
@@ -179,6 +203,8 @@ class Outbox:
             if len(out) >= self.resend_window:
                 break
             oldest = i == 0  # what the server waits for: never backed off
+            if entry[4] is not None and now - entry[4] < self.max_resend_after_s:
+                continue  # the server has it
             if now - entry[1] >= (self.wait_s if oldest else entry[2]):
                 if not oldest:
                     entry[2] = min(2.0 * max(entry[2], self.wait_s), self.max_resend_after_s)

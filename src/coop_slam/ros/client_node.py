@@ -342,7 +342,10 @@ class ClientNode:
             self.rejects.reject("keyframe_ack", f"acknowledgement for robot {msg.robot_id}")
             return
         with self._outbox_lock:
+            self.outbox.server_is(msg.server_session)
             self.outbox.ack(msg.session, msg.sequence)
+            if msg.received_session:
+                self.outbox.received(msg.received_session, msg.received_sequence)
         # Keyframes the server refused: later messages must not count on it holding them.
         self.uplink.forget(getattr(msg, "refused_keyframe_ids", ()))
 

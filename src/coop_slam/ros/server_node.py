@@ -16,6 +16,7 @@ session. Services ``~save_map`` and ``~load_map``.
 
 from __future__ import annotations
 
+import copy
 import functools
 import hashlib
 import json
@@ -33,6 +34,7 @@ from std_msgs.msg import String
 
 from ..bow import Vocabulary
 from ..config import load_yaml_config
+from ..delivery import new_session
 from ..errors import CoopSlamError
 from ..geometry import invert, se3_from_quat
 from ..keyframe_record import KeyframeRecord
@@ -198,6 +200,11 @@ class ServerNode:
 
         self._KeyframeRequest, self.pub_request, self._request_count = KeyframeRequest, {}, 0
         self.pub_path, self.pub_corr, self.pub_ack, self.subs = {}, {}, {}, []
+        # Acknowledgements: what the worker stored, the newest per robot (a receipt repeats it),
+        # and this run's id (a restarted server lost what it had received and not stored).
+        self._acks: dict = {}
+        self._ack_lock = threading.Lock()
+        self.server_session = new_session()
         self._robot_topics()
         from coop_slam.msg import RobotSighting
         from coop_slam.srv import Rendezvous
@@ -307,9 +314,26 @@ class ServerNode:
             last_map_segment=last_seg,
             durable=self.durable.store is not None,
             refused_keyframe_ids=self.durable.refused(robot_id),
+            server_session=self.server_session,
         )
         msg.header.stamp = rospy.Time.now()
-        self.pub_ack[robot_id].publish(msg)
+        with self._ack_lock:
+            self._acks[robot_id] = msg
+            self.pub_ack[robot_id].publish(msg)
+
+    def _publish_receipt(self, robot_id: int, session: int, sequence: int) -> None:
+        """A numbered message arrived and waits in the queue to be stored: the client need not
+        send it again while this server is busy with what came before (from the callback
+        thread: the newest acknowledgement of what is stored, with the receipt added)."""
+        with self._ack_lock:
+            stored = self._acks.get(robot_id)
+            if stored is None or robot_id not in self.pub_ack:
+                return
+            msg = copy.copy(stored)
+            msg.header = copy.copy(stored.header)
+            msg.header.stamp = rospy.Time.now()
+            msg.received_session, msg.received_sequence = session, sequence
+            self.pub_ack[robot_id].publish(msg)
 
     def _on_keyframe(self, msg, topic_robot: int) -> None:
         topic = f"/robot_{topic_robot}/keyframes"
@@ -334,6 +358,8 @@ class ServerNode:
             self.rejects.reject(topic, str(exc))
             return
         self.queue.put(_KeyframeJob(rec, msg.header.stamp.to_sec(), msg.session, msg.sequence))
+        if msg.session:
+            self._publish_receipt(topic_robot, msg.session, msg.sequence)
 
     def _stored_record(self, msg) -> KeyframeRecord:
         """A message completed from the keyframes the server holds (in the worker thread)."""
