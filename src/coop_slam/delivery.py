@@ -92,23 +92,17 @@ class Outbox:
 
     The server takes a robot's messages in order, so the oldest unacknowledged message is the one
     it needs to make progress (a radio lost it, or it never arrived): it goes again every
-    ``wait_s``. Any other goes again ``wait_s`` after it was sent, then after twice as long, up to
-    ``max_resend_after_s``; at most ``resend_window`` messages per call. A server that lags
-    behind (its queue tens of seconds long with eight robots) thus gets each waiting message a few
-    times, not every two seconds: sending everything again every two seconds made a resend storm
-    that buried it further. Backing off the oldest message too stalled delivery after a server
-    restart.
-
-    ``wait_s`` follows how long acknowledgements take (TCP's retransmission timeout, RFC 6298:
-    smoothed delay plus four times its mean deviation), at least ``resend_after_s``: a server
-    that commits keyframes later than a fixed wait (busy with a verification or a global BA, on
-    a loaded machine) got each of them twice, over a radio that has no bandwidth to spare. Each
-    acknowledgement gives one delay: its newest message's, from its first sending (a message sent
-    again may be acknowledged for either copy; the first overestimates, the safe side).
+    ``resend_after_s``. Any other goes again ``resend_after_s`` after it was sent, then after
+    twice as long, up to ``max_resend_after_s``; at most ``resend_window`` messages per call. A
+    server that lags behind (its queue tens of seconds long with eight robots) thus gets each
+    waiting message a few times, not every two seconds: sending everything again every two
+    seconds made a resend storm that buried it further. Backing off the oldest message too
+    stalled delivery after a server restart.
 
     The server also says which messages it has received (:meth:`received`) before it stores
-    them: a server busy for seconds (a merge, a global BA) would otherwise get every message that
-    came meanwhile twice."""
+    them: a server busy for seconds (a merge, a global BA) got every message that came meanwhile
+    twice. (A wait that follows the acknowledgements' delay, as TCP's does, grew without bound
+    behind a lossy radio: a lost message holds back the acknowledgement of all after it.)"""
 
     def __init__(
         self,
@@ -133,13 +127,10 @@ class Outbox:
         self.session = new_session()
         self.sequence = 0  # of the last message
         # sequence -> [message, when it was last sent, the wait before it goes again,
-        #              when it was first sent, when the server said it received it (or None)]
+        #              when the server said it received it (or None)]
         self._unacked: OrderedDict[int, list] = OrderedDict()
         self.dropped = 0  # unacknowledged messages given up because the bound was reached
         self.resent = 0
-        self.wait_s = resend_after_s  # before an unacknowledged message goes again [s]
-        self.delay_s: float | None = None  # smoothed acknowledgement delay [s]
-        self._delay_dev_s = 0.0  # its smoothed mean deviation [s]
         self._server_session = 0  # the server run acknowledging
 
     def add(self, message: Any, now: float | None = None) -> tuple[int, int, bool]:
@@ -147,21 +138,18 @@ class Outbox:
         up)."""
         now = time.monotonic() if now is None else now
         self.sequence += 1
-        self._unacked[self.sequence] = [message, now, self.wait_s, now, None]
+        self._unacked[self.sequence] = [message, now, self.resend_after_s, None]
         overflow = len(self._unacked) > self.max_unacked
         if overflow:
             self._unacked.popitem(last=False)
             self.dropped += 1
         return self.session, self.sequence, overflow
 
-    def ack(self, session: int, sequence: int, now: float | None = None) -> int:
+    def ack(self, session: int, sequence: int) -> int:
         """The server stored everything up to ``sequence``: forget those; returns how many."""
         if session != self.session:
             return 0
-        now = time.monotonic() if now is None else now
         done = [s for s in self._unacked if s <= sequence]
-        if done:
-            self._note_delay(now - self._unacked[done[-1]][3])
         for s in done:
             del self._unacked[s]
         return len(done)
@@ -172,7 +160,7 @@ class Outbox:
         if server_session != self._server_session:
             self._server_session = server_session
             for entry in self._unacked.values():
-                entry[4] = None
+                entry[3] = None
 
     def received(self, session: int, sequence: int, now: float | None = None) -> None:
         """The server has received this message and queued it to store: it does not go again
@@ -183,17 +171,7 @@ class Outbox:
             return
         entry = self._unacked.get(sequence)
         if entry is not None:
-            entry[4] = time.monotonic() if now is None else now
-
-    def _note_delay(self, delay_s: float) -> None:
-        delay_s = max(delay_s, 0.0)
-        if self.delay_s is None:
-            self.delay_s, self._delay_dev_s = delay_s, delay_s / 2.0
-        else:
-            self._delay_dev_s = 0.75 * self._delay_dev_s + 0.25 * abs(self.delay_s - delay_s)
-            self.delay_s = 0.875 * self.delay_s + 0.125 * delay_s
-        wait = self.delay_s + 4.0 * self._delay_dev_s
-        self.wait_s = min(max(wait, self.resend_after_s), self.max_resend_after_s)
+            entry[3] = time.monotonic() if now is None else now
 
     def due(self, now: float | None = None) -> list[Any]:
         """The messages to send again now (oldest first), or none."""
@@ -203,11 +181,11 @@ class Outbox:
             if len(out) >= self.resend_window:
                 break
             oldest = i == 0  # what the server waits for: never backed off
-            if entry[4] is not None and now - entry[4] < self.max_resend_after_s:
+            if entry[3] is not None and now - entry[3] < self.max_resend_after_s:
                 continue  # the server has it
-            if now - entry[1] >= (self.wait_s if oldest else entry[2]):
+            if now - entry[1] >= (self.resend_after_s if oldest else entry[2]):
                 if not oldest:
-                    entry[2] = min(2.0 * max(entry[2], self.wait_s), self.max_resend_after_s)
+                    entry[2] = min(2.0 * entry[2], self.max_resend_after_s)
                 entry[1] = now
                 out.append(entry[0])
         self.resent += len(out)

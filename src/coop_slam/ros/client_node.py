@@ -21,11 +21,10 @@ odometry's own map frame is the first camera frame; this node re-expresses every
 
 Keyframe messages are numbered (client session and sequence, :mod:`coop_slam.delivery`): the
 client keeps those the server has not acknowledged on ``/robot_k/keyframe_ack`` (at most
-``~max_unacked``) and sends each again when an acknowledgement is overdue (as long as they have
-been taking, at least ``~resend_after_s``), then after twice as long, up to
-``~max_resend_after_s`` (at most ``~resend_window`` at once), so a server that restarts or a radio
-that drops messages loses nothing and a slow or lagging server is neither sent everything twice
-nor flooded. A
+``~max_unacked``) and sends each again ``~resend_after_s`` after it was sent, then after twice
+as long, up to ``~max_resend_after_s`` (at most ``~resend_window`` at once), so a server that
+restarts or a radio that drops messages loses nothing and a lagging server is not flooded; not
+those the server says it has received (the same topic), while that server run stores them. A
 restarted client continues above the keyframe ids and map segments the server has stored for its
 robot, in a new map segment.
 """

@@ -470,7 +470,12 @@ class ServerNode:
                     remove_map_file(self.map_path)  # nothing taken yet: the file starts again
                 self.durable = self._open_map(False, job.path)
                 self.server = self.durable.server
+                # A new run for the clients: what the old one received and had not stored (held
+                # out of order) is gone, so their receipts no longer count.
+                self.server_session = new_session()
                 self._robot_topics()
+                for r in self.durable.robots:
+                    self._publish_ack(r)
                 stamp = rospy.Time.from_sec(self._last_stamp_s)
                 self._publish_tf(stamp)
                 self._publish_map(stamp)
