@@ -25,17 +25,21 @@ class SignatureError(CoopSlamError):
     """A place signature is malformed (gaps, weights or scale do not fit together)."""
 
 
+def encode_word_ids(bow: BowVector) -> bytes:
+    """A BoW vector's (increasing) word ids as varint gaps from -1."""
+    words = np.asarray(bow.words, np.int64)
+    return encode_varints(np.diff(np.concatenate([[-1], words]))) if len(words) else b""
+
+
 def encode_signature(bow: BowVector) -> tuple[bytes, bytes, float]:
     """(word-id gaps as varints, uint8 weights, the largest weight) of an L1-normalised BoW
     vector."""
-    words = np.asarray(bow.words, np.int64)
     weights = np.asarray(bow.weights, float)
-    if len(words) == 0:
+    if len(weights) == 0:
         return b"", b"", 0.0
-    gaps = np.diff(np.concatenate([[-1], words]))
     scale = float(weights.max())
     q = np.clip(np.rint(weights / scale * 255.0), 1, 255).astype(np.uint8)
-    return encode_varints(gaps), q.tobytes(), scale
+    return encode_word_ids(bow), q.tobytes(), scale
 
 
 def word_counts(bow: BowVector, word_idf: np.ndarray) -> np.ndarray | None:

@@ -343,8 +343,8 @@ class ClientNode:
         with self._outbox_lock:
             self.outbox.server_is(msg.server_session)
             self.outbox.ack(msg.session, msg.sequence)
-            if msg.received_session:
-                self.outbox.received(msg.received_session, msg.received_sequence)
+            # (received_session 0, an ack naming no receipt, is no client's session)
+            self.outbox.received(msg.received_session, msg.received_sequence)
         # Keyframes the server refused: later messages must not count on it holding them.
         self.uplink.forget(getattr(msg, "refused_keyframe_ids", ()))
 

@@ -20,6 +20,7 @@ from ..bow.signature import (
     decode_counted_signature,
     decode_signature,
     encode_signature,
+    encode_word_ids,
 )
 from ..datasets.base import SENSORS, CameraModel, DatasetError
 from ..errors import CoopSlamError
@@ -291,7 +292,7 @@ def keyframe_to_msg(
                     f"keyframe {kf.keyframe_id}: {len(signature.counts)} feature counts for "
                     f"{len(signature.bow)} words"
                 )
-            msg.bow_word_gaps = encode_signature(signature.bow)[0]
+            msg.bow_word_gaps = encode_word_ids(signature.bow)
             msg.bow_counts = np.asarray(signature.counts, np.uint8).tobytes()
         else:
             gaps, weights, weight_max = encode_signature(signature.bow)

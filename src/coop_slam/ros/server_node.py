@@ -326,8 +326,8 @@ class ServerNode:
         send it again while this server is busy with what came before (from the callback
         thread: the newest acknowledgement of what is stored, with the receipt added)."""
         with self._ack_lock:
-            stored = self._acks.get(robot_id)
-            if stored is None or robot_id not in self.pub_ack:
+            stored = self._acks.get(robot_id)  # (set only by _publish_ack, with its publisher)
+            if stored is None:
                 return
             msg = copy.copy(stored)
             msg.header = copy.copy(stored.header)
