@@ -8,9 +8,9 @@ import time
 import cv2
 import numpy as np
 
-from coop_slam.datasets import CameraModel
+from coop_slam.camera import CameraModel
 from coop_slam.geometry import se3_from_quat
-from coop_slam.keyframe_record import KeyframeRecord
+from coop_slam.wire.record import KeyframeRecord
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 REDKITCHEN = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "redkitchen_0000_0599"))

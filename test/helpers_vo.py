@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from coop_slam.datasets.base import CameraModel
+from coop_slam.camera import CameraModel
 from coop_slam.geometry import invert, se3
 
 CAMERA = CameraModel(width=640, height=480, fx=525.0, fy=525.0, cx=319.5, cy=239.5)

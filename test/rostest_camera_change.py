@@ -15,11 +15,14 @@ from sensor_msgs.msg import CameraInfo, Image
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import helpers_vo  # noqa: E402
-from coop_slam.msg import FrameStats, KeyFrame  # noqa: E402
+from coop_slam.msg import FrameStats, KeyframeMessage  # noqa: E402
 from coop_slam.ros.convert import camera_info_to_msg, image_to_msg  # noqa: E402
 from helpers import wait_until  # noqa: E402
 
-NEW = KeyFrame.ACTION_NEW
+
+def _new(m) -> bool:
+    """A new keyframe (sent whole for the first time)."""
+    return m.kind == m.KIND_KEYFRAME and not m.keyframe[0].replaces
 
 
 class CameraChangeTest(unittest.TestCase):
@@ -27,7 +30,7 @@ class CameraChangeTest(unittest.TestCase):
         rospy.init_node("camera_change_test")
         got, stats = [], []
         subs = [  # noqa: F841 - keeps the subscribers referenced for the whole test
-            rospy.Subscriber("/robot_1/keyframes", KeyFrame, got.append, queue_size=100),
+            rospy.Subscriber("/robot_1/keyframes", KeyframeMessage, got.append, queue_size=100),
             rospy.Subscriber("/robot_1/frame_stats", FrameStats, stats.append, queue_size=100),
         ]
         cam = "/robot_1/camera"
@@ -58,7 +61,7 @@ class CameraChangeTest(unittest.TestCase):
 
         def new_keyframes():  # (without a server to acknowledge them, messages go again)
             first_sends = {(m.session, m.sequence): m for m in got}.values()
-            return sorted((m.keyframe_id, m.map_segment) for m in first_sends if m.action == NEW)
+            return sorted((m.keyframe_id, m.map_segment) for m in first_sends if _new(m))
 
         play(helpers_vo.CAMERA, 100.0, 6, info_late=True)
         wait_until(lambda: new_keyframes(), 30.0, "a keyframe of the first map")

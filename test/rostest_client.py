@@ -19,14 +19,16 @@ from std_msgs.msg import Bool
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from coop_slam.geometry import se3  # noqa: E402
-from coop_slam.msg import FrameStats, KeyFrame, MapCorrection  # noqa: E402
+from coop_slam.msg import FrameStats, KeyframeMessage, MapCorrection  # noqa: E402
 from coop_slam.ros.convert import (  # noqa: E402
     cloud_from_msg,
-    keyframe_from_msg,
     pose_from_msg,
     pose_to_msg,
     transform_to_msg,
 )
+from coop_slam.ros.wire_bridge import from_ros  # noqa: E402
+from coop_slam.wire import messages as wm  # noqa: E402
+from coop_slam.wire.codec import Incomplete, decode  # noqa: E402
 from helpers import wait_until  # noqa: E402
 
 
@@ -37,7 +39,10 @@ class ClientOutputsTest(unittest.TestCase):
         done = threading.Event()
         subs = [  # noqa: F841 - keeps the subscribers referenced for the whole test
             rospy.Subscriber(
-                "/robot_1/keyframes", KeyFrame, lambda m: got["kf"].append(m), queue_size=100
+                "/robot_1/keyframes",
+                KeyframeMessage,
+                lambda m: got["kf"].append(m),
+                queue_size=100,
             ),
             rospy.Subscriber(
                 "/robot_1/pose", PoseStamped, lambda m: got["pose"].append(m), queue_size=100
@@ -83,9 +88,11 @@ class ClientOutputsTest(unittest.TestCase):
         seen = {}  # keyframe id -> as held (delta updates and shared descriptors come from it)
         for _, m in sorted(by_sequence.items()):
             self.assertEqual(m.header.frame_id, "robot_1/map")
-            kf = keyframe_from_msg(m, known_robots={1}, stored=seen.get)
+            kf = decode(from_ros(m, wm.KeyframeMessage), known_robots={1})
+            if isinstance(kf, Incomplete):
+                kf = kf.complete(seen.get)
             self.assertTrue(m.sequence > 0 and m.session > 0)  # numbered for delivery
-            if m.action == 2:
+            if m.kind == m.KIND_REMOVAL:
                 seen.pop(m.keyframe_id, None)
             else:
                 seen[m.keyframe_id] = kf

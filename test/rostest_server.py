@@ -24,13 +24,10 @@ from visualization_msgs.msg import MarkerArray
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from coop_slam.geometry import invert, transform_error  # noqa: E402
-from coop_slam.msg import KeyFrame, MapCorrection, MergeEvent  # noqa: E402
-from coop_slam.ros.convert import (  # noqa: E402
-    cloud_from_msg,
-    keyframe_to_msg,
-    pose_from_msg,
-    transform_from_msg,
-)
+from coop_slam.msg import KeyframeMessage, MapCorrection, MergeEvent  # noqa: E402
+from coop_slam.ros.convert import cloud_from_msg, pose_from_msg, transform_from_msg  # noqa: E402
+from coop_slam.ros.wire_bridge import to_ros  # noqa: E402
+from coop_slam.wire.codec import encode  # noqa: E402
 from helpers import TEAM_T_WORLD_MAP, cylinder_world, team_keyframes, wait_until  # noqa: E402
 
 
@@ -78,7 +75,8 @@ class ServerTeamMapTest(unittest.TestCase):
         buf = tf2_ros.Buffer()
         tf2_ros.TransformListener(buf)
         pubs = {
-            r: rospy.Publisher(f"/robot_{r}/keyframes", KeyFrame, queue_size=100) for r in (1, 2)
+            r: rospy.Publisher(f"/robot_{r}/keyframes", KeyframeMessage, queue_size=100)
+            for r in (1, 2)
         }
         wait_until(
             lambda: all(p.get_num_connections() > 0 for p in pubs.values()),
@@ -109,7 +107,7 @@ class ServerTeamMapTest(unittest.TestCase):
         subs.append(rospy.Subscriber("/robot_2/keyframe_ack", KeyframeAck, acks.append))
         msgs = []
         for kf in kfs:
-            msg = keyframe_to_msg(kf, f"robot_{kf.robot_id}/map")
+            msg = to_ros(encode(kf, frame_id=f"robot_{kf.robot_id}/map"))
             if kf.robot_id == 2:  # a client's numbered messages (session 5)
                 msg.session, msg.sequence = 5, len(msgs) + 1
                 msgs.append(msg)
@@ -122,7 +120,7 @@ class ServerTeamMapTest(unittest.TestCase):
             time.sleep(0.05)
         bad = team_keyframes(1, [0.5], points, desc, kid0=99)[0]
         bad.robot_id = 7  # unknown robot: rejected with a log line, nothing stored changes
-        pubs[1].publish(keyframe_to_msg(bad, "robot_7/map"))
+        pubs[1].publish(to_ros(encode(bad, frame_id="robot_7/map")))
         for name, ev in event.items():
             self.assertTrue(ev.wait(300.0), f"nothing (valid) on the {name} topic")
         truth = invert(TEAM_T_WORLD_MAP[1]) @ TEAM_T_WORLD_MAP[2]

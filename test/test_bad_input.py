@@ -13,7 +13,11 @@ import numpy as np
 import pytest
 
 from coop_slam.errors import CoopSlamError
-from coop_slam.keyframe_record import (
+from coop_slam.registration import matching
+from coop_slam.ros.validation import MAX_REASONS, RejectCounter, reason_kind
+from coop_slam.team.config import ServerConfig
+from coop_slam.team.server import ServerError, TeamServer
+from coop_slam.wire.record import (
     ACTION_NEW,
     ACTION_REMOVE,
     ACTION_UPDATE,
@@ -22,10 +26,6 @@ from coop_slam.keyframe_record import (
     MAX_KEYPOINTS,
     KeyframeError,
 )
-from coop_slam.registration import matching
-from coop_slam.ros.validation import MAX_REASONS, RejectCounter, reason_kind
-from coop_slam.team.config import ServerConfig
-from coop_slam.team.server import ServerError, TeamServer
 from helpers import cylinder_world, team_keyframes, team_vocabulary
 
 N_BAD = 5000
@@ -262,6 +262,7 @@ def bad_keyframe(valid, rng, stored):
     return kf, "; ".join(done)
 
 
+@pytest.mark.slow
 def test_a_barrage_of_bad_keyframes_leaves_the_team_map_untouched(team):
     valid, vocab = team
     reference = _server(vocab)
@@ -317,6 +318,7 @@ def test_a_barrage_of_bad_keyframes_leaves_the_team_map_untouched(team):
     assert sum(counter.reason_counts.values()) == len(reasons)
 
 
+@pytest.mark.slow
 def test_a_failing_pose_graph_step_is_survived_by_the_server(team, monkeypatch, caplog):
     """A pose graph whose optimizer throws once: the server logs why, keeps its map and optimizes
     normally afterwards."""
@@ -482,6 +484,7 @@ def _store_checksum(path: str) -> str:
     return h.hexdigest()
 
 
+@pytest.mark.slow
 def test_bad_keyframes_leave_the_map_file_unchanged(team, tmp_path):
     """Through the durable server: a rejected message writes nothing to the map file, and the
     file after the barrage rebuilds the team map of a server that never saw it."""

@@ -7,51 +7,43 @@ import dataclasses
 import numpy as np
 import pytest
 
-from coop_slam.keyframe_record import ACTION_REMOVE, ACTION_UPDATE, KeyframeError, KeyframeRecord
-from coop_slam.team.durable import DurableServer
-from coop_slam.team.server import TeamServer
 from coop_slam.tools.bench_server_scale import (
     Arrival,
-    ClientSender,
-    NeedsStored,
-    NodeWork,
-    as_sent,
     backlog_at,
-    complete_stripped,
+    bench_worker,
     plot_run,
     replay_at_rate,
     scale_figures,
 )
-from coop_slam.vo.map import MapKeyframe
-from coop_slam.vo.types import (
-    EVENT_KEYFRAME_NEW,
-    EVENT_KEYFRAME_REMOVE,
-    EVENT_KEYFRAME_UPDATE,
-    EVENT_WARNING,
-    VoEvent,
-)
-from helpers import make_keyframe, team_keyframes, team_server_config, team_world
+from coop_slam.wire.codec import Outgoing, encode
+from coop_slam.wire.record import ACTION_REMOVE, ACTION_UPDATE, KeyframeRecord
+from helpers import team_keyframes, team_server_config, team_world
 
 RATE = 50.0  # x the stream's real rate: its 25 s arrive in 0.5 s
+
+
+def _sent(t_s, rec, session, sequence, how=None):
+    msg = encode(rec, how or Outgoing(False), f"robot_{rec.robot_id}/map")
+    msg.session, msg.sequence = session, sequence
+    return Arrival(t_s, rec.robot_id, msg)
 
 
 def _stream(kfs_a, kfs_b) -> list[Arrival]:
     """Robot 1 sends a keyframe a second, robot 2 from 8 s on, interleaved; then robot 1 sends a
     delta update of its keyframe 3 (moved 1 cm), removes keyframe 5, and robot 2 sends a delta
     update of a keyframe the server never got (refused)."""
-    out = [Arrival(float(k), 1, as_sent(kf, False), 11, k + 1) for k, kf in enumerate(kfs_a)]
-    out += [Arrival(8.5 + k, 2, as_sent(kf, False), 22, k + 1) for k, kf in enumerate(kfs_b)]
+    out = [_sent(float(k), kf, 11, k + 1) for k, kf in enumerate(kfs_a)]
+    out += [_sent(8.5 + k, kf, 22, k + 1) for k, kf in enumerate(kfs_b)]
     moved = dataclasses.replace(kfs_a[2], action=ACTION_UPDATE, T_map_cam=kfs_a[2].T_map_cam.copy())
     moved.T_map_cam[:3, 3] += 0.01
-    removal = KeyframeRecord(
-        1, 5, 0.0, kfs_a[4].camera, np.eye(4), map_segment=0, action=ACTION_REMOVE
-    )
+    removal = KeyframeRecord(1, 5, 0.0, None, np.eye(4), map_segment=0, action=ACTION_REMOVE)
     unknown = dataclasses.replace(kfs_b[0], keyframe_id=999, action=ACTION_UPDATE)
     t_end, n_a, n_b = float(len(kfs_a)), len(kfs_a), len(kfs_b)
+    patch = Outgoing(True, np.zeros(0, np.uint32))  # the pose only
     out += [
-        Arrival(t_end, 1, as_sent(moved, True), 11, n_a + 1),
-        Arrival(t_end + 0.5, 1, removal, 11, n_a + 2),
-        Arrival(t_end + 1.0, 2, as_sent(unknown, True), 22, n_b + 1),
+        _sent(t_end, moved, 11, n_a + 1, patch),
+        _sent(t_end + 0.5, removal, 11, n_a + 2),
+        _sent(t_end + 1.0, unknown, 22, n_b + 1, patch),
     ]
     return sorted(out, key=lambda a: a.t_s)
 
@@ -64,23 +56,19 @@ def replayed(tmp_path_factory):
     )
     arrivals = _stream(kfs_a, kfs_b)
     path = str(tmp_path_factory.mktemp("scale") / "team_map.db")
-    durable = DurableServer(team_server_config(), lambda c: TeamServer(c, vocab), path)
-    work = NodeWork(durable)
+    worker = bench_worker(team_server_config(), vocab, path)
     try:
-        run = replay_at_rate(arrivals, work, RATE)
-        assert work.builder.wait_idle(60.0)
-        yield arrivals, run, durable.server, kfs_a, work
+        run = replay_at_rate(arrivals, worker, RATE)
+        assert worker.map_builder.wait_idle(60.0)
+        yield arrivals, run, worker.server, kfs_a, worker
     finally:
-        work.close()
-        durable.close()
+        worker.close()
+        worker.durable.close()
 
 
 def test_every_message_is_processed_once_in_arrival_order(replayed):
     arrivals, run, server, kfs_a, _ = replayed
-    assert [(m.robot_id, m.kind) for m in run.messages] == [
-        (a.robot_id, "update" if isinstance(a.item, NeedsStored) else m.kind)
-        for a, m in zip(arrivals, run.messages)
-    ]
+    assert [m.robot_id for m in run.messages] == [a.robot_id for a in arrivals]
     assert len(run.messages) == len(arrivals) == 24 + 6 + 3
     assert [m.kind for m in run.messages].count("remove") == 1
     ends = [m.end_s for m in run.messages]
@@ -97,8 +85,9 @@ def test_every_message_is_processed_once_in_arrival_order(replayed):
 
 
 def test_backlog_and_merges_agree_with_the_server(replayed):
-    arrivals, run, server, _, work = replayed
-    assert work.builder.built >= 1 and work.builder.failed == 0  # team clouds, beside the worker
+    arrivals, run, server, _, worker = replayed
+    builder = worker.map_builder
+    assert builder.built >= 1 and builder.failed == 0  # team clouds, beside the worker
     arr = run.arrays()
     t = np.linspace(0.0, arr["end_s"][-1], 500)
     backlog = backlog_at(run, t)
@@ -138,59 +127,3 @@ def test_figures_are_consistent(replayed, tmp_path):
     png = plot_run(run, str(tmp_path / "scale.png"), "test")
     with open(png, "rb") as fh:
         assert fh.read(8) == b"\x89PNG\r\n\x1a\n"
-
-
-def _map_keyframe(rec: KeyframeRecord):
-    """The odometry's keyframe a record is made of (see ``vo.outbox.keyframe_record``)."""
-    return MapKeyframe(
-        keyframe_id=rec.keyframe_id,
-        stamp_s=rec.stamp_s,
-        map_segment=rec.map_segment,
-        T_map_cam=rec.T_map_cam.copy(),
-        uv_px=rec.keypoints[:, :2],
-        size_px=rec.keypoints[:, 2],
-        angle_deg=rec.keypoints[:, 3],
-        octaves=rec.octaves,
-        descriptors=rec.descriptors,
-        depths_m=rec.depths_m,
-        map_point_ids=rec.map_point_ids,
-        covisible_ids=rec.covisible_ids,
-        covisible_weights=rec.covisible_weights,
-        map_points_xyz=rec.map_points,
-    )
-
-
-def test_the_synthesised_client_sends_as_the_client_node():
-    """New keyframes go whole, an update without what the keyframe saw when that is unchanged
-    (else whole), a removal by id; numbered 1, 2, ... in one session; events that are no keyframe
-    send nothing. With the uplink's holdback (client.yaml) a keyframe made and culled within
-    hold_new_s sends nothing at all."""
-    from coop_slam.vo.outbox import UplinkConfig
-
-    rec = make_keyframe(n=40, keyframe_id=7)
-    kf = _map_keyframe(rec)
-    moved = dataclasses.replace(kf, T_map_cam=kf.T_map_cam.copy())
-    moved.T_map_cam[:3, 3] += 0.05
-    seen_again = dataclasses.replace(moved, depths_m=kf.depths_m * 1.01)
-    events = [
-        VoEvent(EVENT_KEYFRAME_NEW, 0, 7, kf),
-        VoEvent(EVENT_WARNING, 0, message="time went back"),
-        VoEvent(EVENT_KEYFRAME_UPDATE, 0, 7, moved),
-        VoEvent(EVENT_KEYFRAME_UPDATE, 0, 7, seen_again),
-        VoEvent(EVENT_KEYFRAME_REMOVE, 0, 7),
-    ]
-    assert ClientSender(3, rec.camera, np.eye(4)).send(events, t_s=4.5, last=True) == []
-    at_once = UplinkConfig(hold_new_s=0.0, coalesce_updates_s=0.0)
-    sender = ClientSender(3, rec.camera, np.eye(4), at_once)
-    sent = sender.send(events, t_s=4.5)
-    assert [(a.t_s, a.robot_id, a.sequence) for a in sent] == [(4.5, 3, k) for k in (1, 2, 3, 4)]
-    new, delta, whole, removal = (a.item for a in sent)
-    assert isinstance(new, KeyframeRecord) and new.keypoints.dtype == np.float32
-    assert isinstance(delta, NeedsStored) and delta.keyframe_id == 7
-    completed = delta.complete({7: new}.get, {3})
-    np.testing.assert_array_equal(completed.descriptors, new.descriptors)
-    np.testing.assert_allclose(completed.T_map_cam, moved.T_map_cam)
-    with pytest.raises(KeyframeError, match="does not hold"):
-        complete_stripped(completed, {}.get, {3})
-    assert isinstance(whole, KeyframeRecord) and whole.action == ACTION_UPDATE
-    assert isinstance(removal, KeyframeRecord) and removal.action == ACTION_REMOVE

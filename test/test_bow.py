@@ -128,7 +128,7 @@ def test_tf_idf_weights(world):
 def test_a_signature_counts_the_features_on_its_words(world):
     """word_counts: the counts behind a transform's vector give it back exactly; a vector that is
     no such thing (weights not whole multiples of the IDF) has none, nor a word of 256 features."""
-    from coop_slam.bow.signature import counts_to_weights, word_counts
+    from coop_slam.wire.bow_signature import counts_to_weights, word_counts
 
     vocab, sets = world["vocab"], world["sets"]
     idf = vocab.word_weights
@@ -481,6 +481,7 @@ def _write_images(folder, n: int = 4) -> None:
         cv2.imwrite(str(folder / ("sub" if i % 2 else "") / f"img{i}.png"), img)
 
 
+@pytest.mark.slow
 def test_train_from_images_and_cli(tmp_path):
     _write_images(tmp_path / "imgs")
     paths = image_files(str(tmp_path / "imgs"))
@@ -514,8 +515,9 @@ def test_train_from_images_and_cli(tmp_path):
 
 def test_synthetic_sequences(monkeypatch):
     import coop_slam.datasets as datasets
-    from coop_slam.bow.training import synthetic_sequences
-    from coop_slam.datasets import CameraModel, Sequence
+    from coop_slam.camera import CameraModel
+    from coop_slam.datasets import Sequence
+    from coop_slam.default_vocabulary import synthetic_sequences
 
     cam = CameraModel(64, 48, 50.0, 50.0, 32.0, 24.0)
     seqs = {2: Sequence("b", cam, []), 1: Sequence("a", cam, [])}
@@ -537,6 +539,7 @@ def _near(t_a: np.ndarray, t_b: np.ndarray, max_m: float = 0.5, max_deg: float =
     return bool(np.linalg.norm(rel[:3, 3]) < max_m and angle < max_deg)
 
 
+@pytest.mark.slow
 def test_redkitchen_retrieval():
     """Frames 300-599 (robot 1) must find robot 0's keyframes (0-299) seen from a nearby pose."""
     if not os.path.isdir(REDKITCHEN):

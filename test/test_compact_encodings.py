@@ -4,8 +4,9 @@ integer arrays."""
 import numpy as np
 import pytest
 
-from coop_slam.keyframe_record import KeyframeError, decode_map_point_ids, encode_map_point_ids
-from coop_slam.varint import VarintError, decode_varints, encode_varints
+from coop_slam.wire.encodings import decode_map_point_ids, encode_map_point_ids
+from coop_slam.wire.record import KeyframeError
+from coop_slam.wire.varint import VarintError, decode_varints, encode_varints
 
 
 def test_varints_round_trip_and_take_a_byte_below_128():
@@ -37,7 +38,8 @@ def test_a_move_beyond_the_steps_range_goes_as_a_position():
     """split_moves: a move travels in steps of MOVE_STEP_M, half a step off at most; one beyond
     the int16 steps' range travels as a position (exact), as does every move when the moves
     left unsent are smaller than a step."""
-    from coop_slam.keyframe_record import MOVE_STEP_M, apply_moves, move_steps, split_moves
+    from coop_slam.wire.encodings import MOVE_STEP_M, move_steps
+    from coop_slam.wire.observations import apply_moves, split_moves
 
     ids = np.array([5, 6, 7, 8], np.uint32)
     held = np.zeros((4, 3))
@@ -58,14 +60,20 @@ def test_a_move_beyond_the_steps_range_goes_as_a_position():
 def test_packed_fields_come_back_as_packed_and_a_broken_stream_is_refused():
     import zlib
 
-    from coop_slam.field_pack import (
-        MAX_UNPACKED_BYTES,
-        PACKED_FIELDS,
-        PackError,
-        pack_fields,
-        unpack_fields,
-    )
+    from coop_slam.wire.pack import MAX_UNPACKED_BYTES, PackError, Schema, pack_fields
+    from coop_slam.wire.pack import unpack_fields as unpack
 
+    schema = Schema(
+        9,
+        "test message",
+        (
+            ("keypoints_uv", "<u2"),
+            ("octaves", "u1"),
+            ("map_point_ids", "<u4"),
+            ("patched", "<u4"),
+            ("bow_word_gaps", "u1"),
+        ),
+    )
     rng = np.random.default_rng(0)
     arrays = {
         "keypoints_uv": rng.integers(0, 2**16, 200).astype(np.uint16),
@@ -73,20 +81,22 @@ def test_packed_fields_come_back_as_packed_and_a_broken_stream_is_refused():
         "map_point_ids": rng.integers(0, 2**32, 100, dtype=np.uint64).astype(np.uint32),
         "bow_word_gaps": bytes(range(256)),
     }
-    back = unpack_fields(pack_fields(arrays))
+    back = unpack(pack_fields(arrays, schema), schema)
     for name, values in arrays.items():
         np.testing.assert_array_equal(
             back[name], np.frombuffer(values, np.uint8) if isinstance(values, bytes) else values
         )
     assert back["patched"].dtype == np.uint32 and len(back["patched"]) == 0
-    assert len(pack_fields({"octaves": np.zeros(10000, np.uint8)})) < 100  # deflate does its job
-    with pytest.raises(PackError, match="cannot pack"):
-        pack_fields({"descriptors": np.zeros(32, np.uint8)})
+    assert len(pack_fields({"octaves": np.zeros(10000, np.uint8)}, schema)) < 100  # deflate works
+    with pytest.raises(PackError, match="cannot pack .'descriptors'. in a test message"):
+        pack_fields({"descriptors": np.zeros(32, np.uint8)}, schema)
     with pytest.raises(PackError, match="more than"):
-        unpack_fields(zlib.compress(bytes(MAX_UNPACKED_BYTES + 1)))
+        unpack(zlib.compress(bytes(MAX_UNPACKED_BYTES + 1)), schema)
     with pytest.raises(PackError, match="ends inside its array lengths"):
-        unpack_fields(zlib.compress(b"\x01\x00\x80"))
+        unpack(zlib.compress(b"\x09\x00\x80"), schema)
     with pytest.raises(PackError, match="3 bytes after its deflate stream"):
-        unpack_fields(pack_fields(arrays) + b"abc")
+        unpack(pack_fields(arrays, schema) + b"abc", schema)
     with pytest.raises(PackError, match="lengths say 4"):  # two keypoint steps, no bytes
-        unpack_fields(zlib.compress(b"\x01\x02" + bytes(len(PACKED_FIELDS) - 1)))
+        unpack(zlib.compress(b"\x09\x02" + bytes(len(schema.fields) - 1)), schema)
+    with pytest.raises(PackError, match="format 1, a test message is format 9"):
+        unpack(zlib.compress(b"\x01" + bytes(len(schema.fields))), schema)

@@ -10,8 +10,8 @@ from coop_slam.config import load_yaml_config
 from coop_slam.errors import ConfigError
 from coop_slam.markers import MarkerConfig
 from coop_slam.team.config import ServerConfig
+from coop_slam.uplink.config import UplinkConfig
 from coop_slam.vo.config import VoConfig
-from coop_slam.vo.outbox import UplinkConfig
 from helpers import REPO
 
 SECTIONS = {  # file -> section -> config class

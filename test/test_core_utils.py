@@ -17,7 +17,7 @@ from coop_slam.geometry import (
     transform_error,
     transform_points,
 )
-from coop_slam.keyframe_record import KeyframeError
+from coop_slam.wire.record import KeyframeError
 from helpers import make_keyframe
 
 

@@ -10,6 +10,8 @@ import pytest
 
 from helpers import REDKITCHEN, REPO
 
+pytestmark = pytest.mark.slow  # (scripts/test --quick leaves these out)
+
 # The rendezvous world's first 26 s: the robots meet face to face (~8 s) and see one scene
 # together from 18.6 s (the operator's call at 20 s; co-observation alone merges at 23.9 s); the
 # rest of the world adds nothing these tests check. One length for all of them renders one world.
@@ -172,7 +174,7 @@ def test_a_stereo_and_an_rgbd_robot_build_one_map_from_a_sensor_bag(tmp_path):
     re-derives the report from run.json + run.bag."""
     import rosbag
 
-    from coop_slam.datasets.base import SENSORS
+    from coop_slam.camera import SENSORS
     from coop_slam.playback import SYNTHETIC_STEREO_BASELINE_M
 
     bag = tmp_path / "rendezvous.bag"
@@ -199,7 +201,9 @@ def test_a_stereo_and_an_rgbd_robot_build_one_map_from_a_sensor_bag(tmp_path):
         for topic, msg, _ in recorded.read_messages(
             topics=["/robot_1/keyframes", "/robot_2/keyframes"]
         ):
-            cameras[topic] = (msg.camera.sensor_type, msg.camera.baseline_m)
+            if msg.kind == msg.KIND_KEYFRAME:  # (a whole keyframe carries its camera)
+                camera = msg.keyframe[0].camera
+                cameras[topic] = (camera.sensor_type, camera.baseline_m)
     stereo, rgbd = cameras["/robot_1/keyframes"], cameras["/robot_2/keyframes"]
     assert stereo[0] == SENSORS.index("stereo")
     assert abs(stereo[1] - SYNTHETIC_STEREO_BASELINE_M) < 1e-6

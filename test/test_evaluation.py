@@ -1,5 +1,7 @@
 """ATE/RPE wrappers around evo, team ATE with one alignment, merge error."""
 
+import os
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -15,6 +17,8 @@ from coop_slam.evaluation import (
 )
 from coop_slam.geometry import invert, se3, se3_from_quat
 from coop_slam.timestamps import associate
+
+FIXTURES = os.path.join(os.path.dirname(os.path.abspath(__file__)), "fixtures")
 
 
 def _circle(n=50, r=2.0):
@@ -81,14 +85,21 @@ def test_straight_line_falls_back_to_origin_alignment():
 
 def test_a_run_recorded_before_packed_messages_still_reads(tmp_path):
     """A bag's keyframe messages are read with the bag's own definition: a run recorded before
-    the message gained fields (packed arrays, moves in steps, signature counts) still reads."""
+    the message gained fields (packed arrays, moves in steps, signature counts) still reads, and
+    so does one recorded before each kind had its own message (test/fixtures/legacy_keyframes)."""
     import genpy.dynamic
     import rosbag
     import rospy
 
-    from coop_slam.msg import KeyFrame
     from coop_slam.ros.run_recorder import run_data_from_bag
 
+    with rosbag.Bag(os.path.join(FIXTURES, "legacy_keyframes.bag")) as bag:
+        (legacy_text,) = {c.msg_def for c in bag._get_connections()}
+    run = run_data_from_bag(os.path.join(FIXTURES, "legacy_keyframes.bag"), [1, 2])
+    assert len(run.robots[2].keyframes) == 7 and len(run.robots[2].keyframe_points[1]) > 500
+    KeyFrame = genpy.dynamic.generate_dynamic("coop_slam/KeyFrame", legacy_text)[
+        "coop_slam/KeyFrame"
+    ]
     new_fields = ("int16[] moves_q", "uint8[] bow_counts", "uint8[] packed")
     main, _, deps = KeyFrame._full_text.partition("\n" + "=" * 80 + "\n")
     old_main = "\n".join(f for f in main.splitlines() if not f.startswith(new_fields))
@@ -125,10 +136,16 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
     from nav_msgs.msg import Path
 
     from coop_slam.evaluation.run_report import _local_merge_error
-    from coop_slam.keyframe_record import ACTION_REMOVE, ACTION_UPDATE
     from coop_slam.msg import FrameStats, MergeEvent
-    from coop_slam.ros.convert import keyframe_to_msg, pose_to_msg, transform_to_msg
+    from coop_slam.ros.convert import pose_to_msg, transform_to_msg
     from coop_slam.ros.run_recorder import run_data_from_bag
+    from coop_slam.ros.wire_bridge import to_ros
+    from coop_slam.wire.codec import encode
+
+    def keyframe_to_msg(rec, frame_id):
+        return to_ros(encode(rec, frame_id=frame_id))
+
+    from coop_slam.wire.record import ACTION_REMOVE, ACTION_UPDATE
     from helpers import make_keyframe
 
     bag_path = str(tmp_path / "run.bag")

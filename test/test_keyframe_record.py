@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from coop_slam.keyframe_record import (
+from coop_slam.wire.record import (
     ACTION_REMOVE,
     MAX_COVISIBLE,
     MAX_DEPTH_M,

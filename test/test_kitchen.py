@@ -13,7 +13,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import coop_slam.synthetic.generate as generate_mod
-from coop_slam.datasets import CameraModel, read_synthetic
+from coop_slam.camera import CameraModel
+from coop_slam.datasets import read_synthetic
 from coop_slam.geometry import se3
 from coop_slam.synthetic.overlap import OverlapConfig, compute_overlap
 from coop_slam.synthetic.render import (

@@ -7,11 +7,11 @@ import sqlite3
 import numpy as np
 import pytest
 
-from coop_slam.delivery import DeliveryError, InOrder, Outbox
-from coop_slam.keyframe_record import KeyframeError
 from coop_slam.team.durable import DurableServer, poses_equal
 from coop_slam.team.map_store import MapStore, MapStoreError, decode_record, encode_record
 from coop_slam.team.server import TeamServer
+from coop_slam.wire.delivery import DeliveryError, InOrder, Outbox
+from coop_slam.wire.record import KeyframeError
 from helpers import make_keyframe, team_keyframes, team_server_config, team_world
 
 
@@ -50,7 +50,7 @@ def test_record_round_trip():
 def test_an_update_is_stored_without_what_the_keyframe_saw(tmp_path):
     import dataclasses
 
-    from coop_slam.keyframe_record import ACTION_UPDATE
+    from coop_slam.wire.record import ACTION_UPDATE
 
     store = MapStore(str(tmp_path / "m.db"), [3])
     new = make_keyframe(n=200, robot_id=3, keyframe_id=7)

@@ -12,7 +12,7 @@ from coop_slam.synthetic.world import DEFAULT_T_BASE_CAM, body_model, build_worl
 
 @pytest.mark.parametrize("yaw_deg", [180.0, 150.0, 90.0])
 def test_marker_pose_of_a_rendered_body(yaw_deg):
-    from coop_slam.datasets import CameraModel
+    from coop_slam.camera import CameraModel
     from coop_slam.synthetic.render import DynamicObject, NoiseConfig
 
     camera = CameraModel(width=640, height=480, fx=525.0, fy=525.0, cx=319.5, cy=239.5)
@@ -44,7 +44,7 @@ def test_empty_image_and_bad_config():
 
 def test_body_box_covers_the_rendered_body():
     """The box the odometry ignores after a sighting contains every pixel of the seen body."""
-    from coop_slam.datasets import CameraModel
+    from coop_slam.camera import CameraModel
     from coop_slam.markers import body_box_cam
     from coop_slam.synthetic.render import DynamicObject, NoiseConfig
 

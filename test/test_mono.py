@@ -14,7 +14,9 @@ from scipy.spatial.transform import Rotation
 
 import helpers_vo
 from coop_slam.datasets import Frame, Sequence, read_synthetic
+from coop_slam.evaluation.vo_run import run_sequence
 from coop_slam.geometry import invert, path_length, se3, transform_points
+from coop_slam.optim.bundle import BaProblem, reprojection_chi2, run_local_ba
 from coop_slam.vo import (
     EVENT_KEYFRAME_NEW,
     EVENT_NEW_SEGMENT,
@@ -27,9 +29,7 @@ from coop_slam.vo import (
     VoConfig,
     VoError,
 )
-from coop_slam.vo.evaluate import run_sequence
 from coop_slam.vo.features import OrbExtractor
-from coop_slam.vo.local_ba import BaProblem, reprojection_chi2, run_local_ba
 from coop_slam.vo.local_mapping import LocalMapper
 from coop_slam.vo.map import Map, MapKeyframe
 from coop_slam.vo.sensor import MonoSensor, make_sensor
@@ -400,6 +400,7 @@ def revisit_run(tmp_path_factory):
     return seq, run, messages
 
 
+@pytest.mark.slow
 def test_monocular_odometry_on_a_synthetic_world(revisit_run):
     seq, run, messages = revisit_run
     gt = seq.frame_poses()

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from coop_slam.camera import CameraModel
 from coop_slam.config import ConfigError, load_config
-from coop_slam.datasets import CameraModel
 from coop_slam.errors import CoopSlamError
 from coop_slam.geometry import invert, rotation_angle_deg, se3
 from coop_slam.vo.initialization import (

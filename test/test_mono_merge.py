@@ -216,7 +216,8 @@ def test_a_delta_update_of_a_rescaled_map_keeps_its_other_points(world):
     server had them (they were scaled a second time)."""
     import dataclasses
 
-    from coop_slam.keyframe_record import ACTION_UPDATE, complete_update, patch_of
+    from coop_slam.wire.observations import complete_update, patch_of
+    from coop_slam.wire.record import ACTION_UPDATE
 
     points, desc, kfs_a, vocab = world
     server = TeamServer(_config(), vocab)

@@ -6,9 +6,16 @@ import dataclasses
 import numpy as np
 import pytest
 
-from coop_slam.bow.signature import SignatureError, decode_signature, encode_signature
 from coop_slam.bow.vocabulary import BowVector, l1_score
-from coop_slam.keyframe_record import (
+from coop_slam.team.durable import DurableServer
+from coop_slam.team.map_store import MapStoreError
+from coop_slam.team.pull import PullConfig, PullPlanner
+from coop_slam.team.server import TeamServer
+from coop_slam.uplink.config import UplinkConfig
+from coop_slam.uplink.planner import Planner
+from coop_slam.uplink.records import signature_of
+from coop_slam.wire.bow_signature import SignatureError, decode_signature, encode_signature
+from coop_slam.wire.record import (
     ACTION_NEW,
     ACTION_REMOVE,
     ACTION_UPDATE,
@@ -16,11 +23,6 @@ from coop_slam.keyframe_record import (
     KeyframeRecord,
     PlaceSignature,
 )
-from coop_slam.team.durable import DurableServer
-from coop_slam.team.map_store import MapStoreError
-from coop_slam.team.pull import PullConfig, PullPlanner
-from coop_slam.team.server import TeamServer
-from coop_slam.vo.outbox import Uplink, UplinkConfig, signature_of
 from helpers import make_keyframe, team_keyframes, team_server_config, team_world
 
 
@@ -168,7 +170,7 @@ def test_signatures_to_a_server_not_in_low_bandwidth_mode_or_of_unknown_robots_a
 
 
 def test_the_client_uplink_in_pull_mode():
-    up = Uplink(UplinkConfig(mode="pull"))
+    up = Planner(UplinkConfig(mode="pull"))
     kf = make_keyframe(n=40, robot_id=1, keyframe_id=3)
     assert up.prepare(kf).signature
     moved = dataclasses.replace(kf, action=ACTION_UPDATE)
@@ -178,8 +180,8 @@ def test_the_client_uplink_in_pull_mode():
     assert out.delta and len(out.patched) == 0  # then its pose only
     assert not up.prepare(dataclasses.replace(kf, action=ACTION_REMOVE)).skip
     with pytest.raises(Exception, match="uplink.mode"):
-        Uplink(UplinkConfig(mode="push"))
-    assert UplinkConfig().mode == "full" and not Uplink().prepare(kf).signature
+        Planner(UplinkConfig(mode="push"))
+    assert UplinkConfig().mode == "full" and not Planner().prepare(kf).signature
     assert kf.action == ACTION_NEW
 
 

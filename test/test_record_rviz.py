@@ -21,11 +21,14 @@ import pytest
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCRIPT = os.path.join(REPO, "scripts", "record_rviz")
 MISSING = [b for b in ("Xvfb", "rviz", "ffmpeg") if shutil.which(b) is None]
-pytestmark = pytest.mark.skipif(
-    bool(MISSING),
-    reason=f"{', '.join(MISSING)} not installed (Debian "
-    "packages xvfb, rviz, ffmpeg in debian-packages.txt): cannot record",
-)
+pytestmark = [
+    pytest.mark.slow,  # (scripts/test --quick leaves these out)
+    pytest.mark.skipif(
+        bool(MISSING),
+        reason=f"{', '.join(MISSING)} not installed (Debian "
+        "packages xvfb, rviz, ffmpeg in debian-packages.txt): cannot record",
+    ),
+]
 
 BACKGROUND = (25, 25, 30)  # rviz/coop_slam.rviz Global Options / Background Color
 FLOOR_RGB = (255, 200, 0)  # amber floor plane of the test cloud

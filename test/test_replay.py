@@ -18,22 +18,23 @@ def test_replay_takes_keyframes_sharing_descriptors_and_keeps_their_stamps(tmp_p
 
     import rospy
 
-    from coop_slam.ros.convert import keyframe_to_msg, unpacked
+    from coop_slam.ros.wire_bridge import to_ros
     from coop_slam.tools.replay import replay
-    from coop_slam.vo.outbox import Uplink
+    from coop_slam.uplink.planner import Planner
+    from coop_slam.wire.codec import encode
 
     a = make_keyframe(n=80, keyframe_id=1)
     b = make_keyframe(n=80, keyframe_id=2, seed=1)
     b = dataclasses.replace(b, stamp_s=13.5, descriptors=b.descriptors.copy())
     b.map_point_ids = a.map_point_ids.copy()  # b tracks a's map points, seen alike
     b.descriptors[::2] = a.descriptors[::2]
-    uplink, bag_path = Uplink(), str(tmp_path / "run.bag")
+    uplink, bag_path = Planner(), str(tmp_path / "run.bag")
     with rosbag.Bag(bag_path, "w") as bag:
         for rec in (a, b):
             out = uplink.prepare(rec)
-            msg = keyframe_to_msg(rec, "robot_1/map", out.delta, out.patched, out.refs)
+            msg = to_ros(encode(rec, out, "robot_1/map"))
             bag.write("/robot_1/keyframes", msg, rospy.Time.from_sec(rec.stamp_s))
-    assert len(unpacked(msg).descriptor_refs)  # b went without a's descriptors
+    assert out.refs is not None  # b went without a's descriptors
     server, result, stamps = replay(
         bag_path, {"robot_ids": [1]}, os.path.join(REPO, "config", "server.yaml")
     )

@@ -8,6 +8,8 @@ import subprocess
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.slow  # (scripts/test --quick leaves these out)
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROSTESTS = sorted(glob.glob(os.path.join(HERE, "rostest", "*.test")))
 

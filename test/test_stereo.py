@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 import helpers_vo
-from coop_slam.datasets import DatasetError
+from coop_slam.camera import CameraError
+from coop_slam.evaluation.vo_run import ate_rmse, frame_ate, run_sequence
 from coop_slam.geometry import path_length, se3
 from coop_slam.vo.config import VoConfig
-from coop_slam.vo.evaluate import ate_rmse, frame_ate, run_sequence
 from coop_slam.vo.features import OrbExtractor
 from coop_slam.vo.pipeline import VisualOdometry
 from coop_slam.vo.sensor import StereoSensor
@@ -55,6 +55,7 @@ def test_stereo_matching_finds_the_rendered_disparity():
     )
 
 
+@pytest.mark.slow
 def test_stereo_odometry_tracks_a_rendered_sequence():
     planes = helpers_vo.room(np.random.default_rng(0))
     gt = helpers_vo.trajectory(40)
@@ -80,9 +81,9 @@ def test_bad_stereo_input_is_named():
         with pytest.raises(VoError, match="right image is 320x240"):
             vo.track(1.0, left, right[::2, ::2])
         assert vo.track(1.0, left, right).ok  # the node keeps going after bad frames
-    with pytest.raises(DatasetError, match="baseline"):
+    with pytest.raises(CameraError, match="baseline"):
         dataclasses.replace(STEREO, baseline_m=0.0)
-    with pytest.raises(DatasetError, match="baseline"):
+    with pytest.raises(CameraError, match="baseline"):
         dataclasses.replace(STEREO, baseline_m=-0.1)
 
 
@@ -100,6 +101,7 @@ def test_an_unrectified_pair_is_reported():
     assert any("rectified" in w for w in warnings), warnings
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not os.path.isdir(EUROC), reason=f"EuRoC clip not found at {EUROC}")
 def test_euroc_reader_rectifies_rows_onto_rows_and_a_still_camera_stays_still():
     import cv2
@@ -136,6 +138,7 @@ def test_euroc_reader_rectifies_rows_onto_rows_and_a_still_camera_stays_still():
     assert np.linalg.norm(pos - pos[0], axis=1).max() < 0.01  # the drone stood still
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not os.path.isdir(KITTI), reason=f"KITTI clip not found at {KITTI}")
 def test_kitti_clip_as_one_stereo_robot():
     from coop_slam.datasets import read_kitti

@@ -12,16 +12,11 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 import coop_slam.synthetic.generate as generate_mod
-from coop_slam.datasets import CameraModel, DatasetError, read_synthetic
+from coop_slam.camera import CameraModel
+from coop_slam.datasets import DatasetError, read_synthetic
 from coop_slam.geometry import invert, se3, transform_points
 from coop_slam.synthetic.overlap import OverlapConfig, compute_overlap
-from coop_slam.synthetic.render import (
-    DynamicObject,
-    NoiseConfig,
-    Renderer,
-    apply_noise,
-    bench_render,
-)
+from coop_slam.synthetic.render import DynamicObject, NoiseConfig, Renderer, apply_noise
 from coop_slam.synthetic.scenarios import SCENARIOS, ScenarioError, make_scenario
 from coop_slam.synthetic.world import (
     DEFAULT_T_BASE_CAM,
@@ -172,12 +167,14 @@ def test_orb_finds_many_well_spread_keypoints(ring):
 
 
 def test_bench_render_leaves_opencv_threads_as_it_found_them():
+    from coop_slam.tools.bench import render_fps
+
     """The render benchmark measures one core (cv2.setNumThreads(1)); the rest of the process
     must get its threads back."""
     threads = cv2.getNumThreads()
     cv2.setNumThreads(2)
     try:
-        bench_render(frames=2, camera=SMALL_CAMERA)
+        render_fps(frames=2, camera=SMALL_CAMERA)
         assert cv2.getNumThreads() == 2
     finally:
         cv2.setNumThreads(threads)

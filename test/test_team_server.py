@@ -5,10 +5,10 @@ import pytest
 
 from coop_slam.errors import ConfigError
 from coop_slam.geometry import invert, transform_error
-from coop_slam.keyframe_record import KeyframeError
 from coop_slam.team.keyframe_store import track
 from coop_slam.team.plausibility import interpolate_track
 from coop_slam.team.server import TeamServer
+from coop_slam.wire.record import KeyframeError
 from helpers import (
     TEAM_T_WORLD_MAP,
     cylinder_world,
@@ -603,7 +603,7 @@ def test_updates_wait_for_an_incremental_optimization_of_their_own_count(world):
     keyframes), not after every few messages."""
     import dataclasses
 
-    from coop_slam.keyframe_record import ACTION_UPDATE
+    from coop_slam.wire.record import ACTION_UPDATE
 
     server = _merged_server(world)
     server.optimize(full=False)  # start counting from here

@@ -16,7 +16,9 @@ from scipy.spatial.transform import Rotation
 import helpers_vo
 from coop_slam.config import load_config
 from coop_slam.errors import ConfigError
+from coop_slam.evaluation.vo_run import ate_rmse, keyframe_ate, run_sequence
 from coop_slam.geometry import invert, se3, transform_error, transform_points
+from coop_slam.optim.bundle import BaProblem, BaResult, planar_prior, run_local_ba
 from coop_slam.vo import (
     EVENT_KEYFRAME_NEW,
     EVENT_KEYFRAME_REMOVE,
@@ -32,9 +34,7 @@ from coop_slam.vo import (
     VoConfig,
     VoError,
 )
-from coop_slam.vo.evaluate import ate_rmse, keyframe_ate, run_sequence
 from coop_slam.vo.features import OrbExtractor
-from coop_slam.vo.local_ba import BaProblem, BaResult, planar_prior, run_local_ba
 from coop_slam.vo.pose_opt import optimize_pose
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -249,6 +249,7 @@ def test_tracks_synthetic_room(room_sequence):
     assert len(kf.covisible_ids) == len(kf.covisible_weights) >= 1
 
 
+@pytest.mark.slow
 def test_keyframe_culling_keeps_map_consistent(room_sequence):
     stamps, frames, _ = room_sequence
     # A keyframe at (almost) every frame makes most keyframes redundant, so culling has work to do.
@@ -464,6 +465,7 @@ def test_vo_config_typos_and_bad_ranges_are_rejected():
 @pytest.mark.skipif(
     not os.path.isdir(REDKITCHEN), reason=f"RedKitchen data not found at {REDKITCHEN}"
 )
+@pytest.mark.slow
 def test_redkitchen_first_150_frames_accuracy():
     from coop_slam.datasets import read_tum
 

@@ -1,4 +1,5 @@
 """Vocabulary training from image data: ORB extraction over sequences/folders, then :func:`train`.
+A sequence is anything with ``frames`` and ``load_color(frame)`` (a datasets ``Sequence``).
 
 This is the glue behind ``scripts/train_vocabulary`` and what setup code calls
 (:func:`train_from_sequences`); one descriptor set per used frame is one training "image" for IDF.
@@ -16,7 +17,6 @@ import cv2
 import numpy as np
 
 from ..config import require
-from ..datasets import Frame, Sequence
 from ..descriptors import DESCRIPTOR_BYTES
 from ..errors import CoopSlamError
 from .vocabulary import (
@@ -81,33 +81,8 @@ def image_files(folder: str) -> list[str]:
     return sorted(out)
 
 
-def synthetic_sequences(folder: str) -> list[Sequence]:
-    """Every robot's sequence in a synthetic world folder (via datasets.read_synthetic).
-
-    Raises VocabularyError if this checkout has no synthetic reader.
-    """
-    from .. import datasets
-
-    reader = getattr(datasets, "read_synthetic", None)
-    if reader is None:
-        raise VocabularyError(
-            "reading synthetic worlds needs coop_slam.datasets.read_synthetic, which this version "
-            "does not provide; use --images on the world's image folders instead"
-        )
-    result = reader(folder)
-    result = getattr(result, "sequences", result)  # a SyntheticWorld holds {robot_id: Sequence}
-    if isinstance(result, Sequence):
-        result = [result]
-    elif isinstance(result, dict):
-        result = [result[key] for key in sorted(result)]
-    seqs = [s for s in result if isinstance(s, Sequence)]
-    if not seqs:
-        raise VocabularyError(f"synthetic world {folder} has no robot sequences")
-    return seqs
-
-
 def collect_descriptors(
-    sequences: Iterable[Sequence] = (),
+    sequences: Iterable = (),
     image_paths: Iterable[str] = (),
     extraction: ExtractionConfig | None = None,
     progress: ProgressCallback | None = None,
@@ -117,9 +92,7 @@ def collect_descriptors(
     cfg.validate()
     orb = make_orb(cfg)
     # Frames to read: (sequence, frame) for datasets, a path for loose images.
-    jobs: list[tuple[Sequence, Frame] | str] = [
-        (seq, frame) for seq in sequences for frame in seq.frames[:: cfg.every]
-    ]
+    jobs: list = [(seq, frame) for seq in sequences for frame in seq.frames[:: cfg.every]]
     jobs.extend(list(image_paths)[:: cfg.every])
     if not jobs:
         raise VocabularyError("no training frames: give at least one sequence or image")
@@ -138,7 +111,7 @@ def collect_descriptors(
 
 
 def train_from_sequences(
-    sequences: Iterable[Sequence] = (),
+    sequences: Iterable = (),
     image_paths: Iterable[str] = (),
     *,
     extraction: ExtractionConfig | None = None,
@@ -191,50 +164,5 @@ __all__ = [
     "image_files",
     "make_orb",
     "orb_descriptors",
-    "synthetic_sequences",
     "train_from_sequences",
 ]
-
-
-# --- the default vocabulary -----------------------------------------------------------------------
-# Built by the project itself from its own synthetic world (never downloaded). The training world
-# uses a seed no test or demo scenario uses, so the vocabulary has not seen the places it must
-# recognise.
-DEFAULT_VOCABULARY_VERSION = 1
-DEFAULT_TRAINING_WORLD = {"scenario": "team", "seed": 1000, "robots": 4}
-DEFAULT_TRAINING_EVERY = 6  # every 6th frame at 15 Hz: ~2.5 training images per second of travel
-
-
-def default_vocabulary_path() -> str:
-    """Where the default vocabulary is cached (``$COOP_SLAM_CACHE`` or ``~/.cache/coop_slam``)."""
-    root = os.environ.get("COOP_SLAM_CACHE") or os.path.join(
-        os.path.expanduser("~"), ".cache", "coop_slam"
-    )
-    return os.path.join(
-        root,
-        "vocabulary",
-        f"default-v{DEFAULT_VOCABULARY_VERSION}-k{DEFAULT_K}-L{DEFAULT_LEVELS}.npz",
-    )
-
-
-def ensure_default_vocabulary(progress: ProgressCallback | None = None, world_progress=None) -> str:
-    """Return the default vocabulary's path, training it first (world + ORB + k-majority tree) if
-    it is not cached yet. Written atomically, so an interrupted run leaves no half file."""
-    path = default_vocabulary_path()
-    if os.path.isfile(path):
-        return path
-    from ..datasets.synthetic import read_synthetic
-    from ..synthetic.generate import generate
-
-    folder = generate(**DEFAULT_TRAINING_WORLD, progress=world_progress, workers=2)
-    world = read_synthetic(folder)
-    sequences = [world.sequences[k] for k in sorted(world.sequences)]
-    tmp = f"{path}.{os.getpid()}.tmp.npz"
-    train_from_sequences(
-        sequences,
-        extraction=ExtractionConfig(every=DEFAULT_TRAINING_EVERY),
-        out=tmp,
-        progress=progress,
-    )
-    os.replace(tmp, path)
-    return path

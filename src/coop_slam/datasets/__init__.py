@@ -1,7 +1,6 @@
 """Data sources: readers for TUM RGB-D, KITTI odometry, the synthetic world, and a splitter."""
 
 from .base import (
-    CameraModel,
     DatasetError,
     Frame,
     Sequence,
@@ -16,7 +15,6 @@ from .synthetic import SyntheticWorld, read_synthetic
 from .tum import read_tum, read_tum_trajectory, tum_benchmark_camera, write_tum_trajectory
 
 __all__ = [
-    "CameraModel",
     "DatasetError",
     "Frame",
     "Sequence",

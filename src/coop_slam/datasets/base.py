@@ -14,48 +14,14 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from ..camera import CameraError, CameraModel
 from ..errors import CoopSlamError
 from ..geometry import invert
 from ..timestamps import associate
 
-SENSORS = ("rgbd", "stereo", "mono")
-
 
 class DatasetError(CoopSlamError):
     """A dataset folder or file is missing or malformed."""
-
-
-@dataclass(frozen=True)
-class CameraModel:
-    """Pinhole model of rectified images (REP-103 units: pixels and metres)."""
-
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    sensor: str = "rgbd"  # one of SENSORS
-    depth_scale: float = 5000.0  # raw 16-bit depth units per metre (TUM: 5000)
-    baseline_m: float = 0.0  # stereo baseline [m]
-
-    def __post_init__(self):
-        if self.width <= 0 or self.height <= 0:
-            raise DatasetError(f"camera image size {self.width}x{self.height} must be positive")
-        vals = (self.fx, self.fy, self.cx, self.cy, self.depth_scale, self.baseline_m)
-        if not all(np.isfinite(vals)) or self.fx <= 0 or self.fy <= 0:
-            raise DatasetError(f"camera intrinsics must be finite with fx, fy > 0, got {self}")
-        if self.sensor not in SENSORS:
-            raise DatasetError(f"camera sensor '{self.sensor}' unknown; use one of {SENSORS}")
-        if self.sensor == "stereo" and self.baseline_m <= 0:
-            raise DatasetError("a stereo camera needs baseline_m > 0")
-
-    @property
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
 
 
 @dataclass(frozen=True)
@@ -182,6 +148,15 @@ def read_camera_file(path: str, sensor: str = "rgbd") -> tuple[CameraModel, np.n
     return _camera_from(data, path, sensor), _distortion_from(data, path)
 
 
+def dataset_camera(where: str, **kwargs) -> CameraModel:
+    """A camera model read from a dataset (``where``); DatasetError naming it if the values do
+    not describe a camera."""
+    try:
+        return CameraModel(**kwargs)
+    except CameraError as exc:
+        raise DatasetError(f"{where}: {exc}") from None
+
+
 def _camera_from(data: dict, path: str, sensor: str) -> CameraModel:
     missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in data]
     if missing:
@@ -189,7 +164,7 @@ def _camera_from(data: dict, path: str, sensor: str) -> CameraModel:
     known = {f.name for f in dataclasses.fields(CameraModel)}
     kwargs = {k: v for k, v in data.items() if k in known}
     kwargs.setdefault("sensor", sensor)
-    return CameraModel(**kwargs)
+    return dataset_camera(f"camera file {path}", **kwargs)
 
 
 # OpenCV's order of the lens distortion coefficients; TUM's calibration tables call them d0..d4.
@@ -325,7 +300,8 @@ class StereoRectification:
                 "camera of the pair?"
             )
         width, height = left.size
-        camera = CameraModel(
+        camera = dataset_camera(
+            "stereo rectification",
             width=width,
             height=height,
             fx=P1[0, 0],

@@ -14,7 +14,7 @@ import os
 import cv2
 import numpy as np
 
-from .base import CameraModel, DatasetError, Frame, Sequence
+from .base import DatasetError, Frame, Sequence, dataset_camera
 
 
 def _read_calib(path: str) -> dict[str, np.ndarray]:
@@ -79,7 +79,8 @@ def read_kitti(
     first = cv2.imread(left[0], cv2.IMREAD_UNCHANGED)
     if first is None:
         raise DatasetError(f"cannot decode {left[0]}")
-    camera = CameraModel(
+    camera = dataset_camera(
+        os.path.join(sequence_dir, "calib.txt"),
         width=first.shape[1],
         height=first.shape[0],
         fx=P0[0, 0],

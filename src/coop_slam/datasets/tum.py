@@ -16,9 +16,10 @@ import re
 
 import numpy as np
 
+from ..camera import CameraModel
 from ..geometry import quat_from_se3, se3_from_quat
 from ..timestamps import associate
-from .base import CameraModel, DatasetError, Frame, Sequence, Undistortion, read_camera_file
+from .base import DatasetError, Frame, Sequence, Undistortion, dataset_camera, read_camera_file
 
 # The TUM RGB-D benchmark's published colour calibration per Kinect (fx, fy, cx, cy, distortion
 # k1 k2 p1 p2 k3, depth units per metre); its depth images are registered to the colour camera.
@@ -38,7 +39,17 @@ def tum_benchmark_camera(folder: str) -> tuple[CameraModel, np.ndarray] | None:
     if m is None:
         return None
     fx, fy, cx, cy, dist, depth_scale = TUM_BENCHMARK_CAMERAS[m.group(1)]
-    return CameraModel(640, 480, fx, fy, cx, cy, depth_scale=depth_scale), np.array(dist)
+    camera = dataset_camera(
+        "TUM benchmark camera",
+        width=640,
+        height=480,
+        fx=fx,
+        fy=fy,
+        cx=cx,
+        cy=cy,
+        depth_scale=depth_scale,
+    )
+    return camera, np.array(dist)
 
 
 def _read_list(path: str) -> list[tuple[float, str]]:

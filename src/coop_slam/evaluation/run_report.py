@@ -24,6 +24,9 @@ from .overlap_view import plot_overlap
 from .plots import plot_path_errors, plot_team, plot_trajectories, write_ply
 from .report import count_wrong_merges, new_report, write_report
 
+# Server -> robot k (the downlink of its radio), relative to /robot_k
+DOWNLINK_TOPICS = ("correction", "keyframe_ack")
+
 
 @dataclass
 class RobotRun:
@@ -41,7 +44,7 @@ class RobotRun:
     # id -> stamp_s of every keyframe ever published, culled ones included: a merge may rest on
     # a keyframe the client culls while the merge is on its way
     keyframe_stamps: dict = field(default_factory=dict)
-    kf_bytes: list = field(default_factory=list)  # (sim stamp_s, bytes) per KeyFrame message
+    kf_bytes: list = field(default_factory=list)  # (sim stamp_s, bytes) per keyframe message
     T_world_map: np.ndarray | None = None  # latest correction, when merged
     map_scale: float = 1.0  # ... and its metres per unit of the robot's map (monocular)
     # server's optimized keyframe poses in world (latest /team_map/robot_k/path, when merged):
@@ -592,8 +595,6 @@ def _first_evidence(overlap: dict | None, kind: str, a: int, b: int) -> float | 
 def _downlink_kBps(run: RunData, robot_id: int) -> float | None:
     """Server -> robot: its corrections and acknowledgements, kB/s over the run (None when neither
     was recorded)."""
-    from ..ros.run_recorder import DOWNLINK_TOPICS
-
     entries = [
         n for t in DOWNLINK_TOPICS for _, n in run.topic_bytes.get(f"/robot_{robot_id}/{t}", ())
     ]

@@ -14,24 +14,21 @@ import threading
 
 import numpy as np
 
-from ..errors import CoopSlamError
 from ..evaluation import EvaluationError
 from ..evaluation.run_report import RobotRun, RunData, RunInput
-from ..keyframe_record import ACTION_REMOVE
 from ..playback import COLOR_TOPIC, GROUND_TRUTH_TOPIC, camera_topics, image_topic
-from ..registration.camera import backproject
 from ..team.results import TYPE_LINK, TYPE_LOOP
 from .convert import (
     MessageError,
     cloud_colours_from_msg,
     cloud_from_msg,
-    keypoints_and_depths,
     pose_from_msg,
     transform_from_msg,
 )
+from .recorded import keyframe_seen
 
 ROBOT_TOPICS = {  # relative to /robot_k; the message type of each
-    "keyframes": "coop_slam/KeyFrame",
+    "keyframes": "coop_slam/KeyframeMessage",
     "frame_stats": "coop_slam/FrameStats",
     "correction": "coop_slam/MapCorrection",
     "pose": "geometry_msgs/PoseStamped",
@@ -39,10 +36,6 @@ ROBOT_TOPICS = {  # relative to /robot_k; the message type of each
     "local_map": "sensor_msgs/PointCloud2",
     "keyframe_ack": "coop_slam/KeyframeAck",
 }
-# Server -> robot k (the downlink of its radio), relative to /robot_k
-DOWNLINK_TOPICS = ("correction", "keyframe_ack")
-# CameraModel.msg sensor_type -> the sensor's name
-SENSOR_NAMES = {0: "rgbd", 1: "stereo", 2: "mono"}
 TEAM_TOPICS = {
     "/merge_events": "coop_slam/MergeEvent",
     "/server/stats": "std_msgs/String",
@@ -127,23 +120,21 @@ class RunRecorder:
 
     def _on_keyframes(self, msg, r: RobotRun, t_s, nbytes) -> None:
         r.kf_bytes.append((float(t_s), int(nbytes)))
-        if msg.action == ACTION_REMOVE:
-            r.keyframes.pop(msg.keyframe_id, None)
-            r.keyframe_points.pop(msg.keyframe_id, None)
+        kf = keyframe_seen(msg)
+        if kf.removal:
+            r.keyframes.pop(kf.keyframe_id, None)
+            r.keyframe_points.pop(kf.keyframe_id, None)
             return
-        try:
-            T = pose_from_msg(msg.pose)
-        except MessageError:
+        if kf.T_map_cam is None:
             return
-        stamp = msg.header.stamp.to_sec()
-        r.sensor = SENSOR_NAMES.get(msg.camera.sensor_type, r.sensor)
-        r.keyframes[msg.keyframe_id] = (stamp, T)
-        if not getattr(msg, "delta", False):  # a delta update saw the same (camera frame)
-            r.keyframe_points[msg.keyframe_id] = _points_cam(msg)
-        r.keyframe_stamps[msg.keyframe_id] = stamp
-        r.keyframe_segments[msg.keyframe_id] = int(msg.map_segment)
+        r.sensor = kf.sensor or r.sensor
+        r.keyframes[kf.keyframe_id] = (kf.stamp_s, kf.T_map_cam)
+        if kf.points_cam is not None:  # (a delta update saw the same, in the camera frame)
+            r.keyframe_points[kf.keyframe_id] = kf.points_cam
+        r.keyframe_stamps[kf.keyframe_id] = kf.stamp_s
+        r.keyframe_segments[kf.keyframe_id] = int(kf.map_segment)
         if r.first_keyframe is None:
-            r.first_keyframe = (stamp, T)
+            r.first_keyframe = (kf.stamp_s, kf.T_map_cam)
 
     def _on_path(self, msg, r: RobotRun, t_s, nbytes) -> None:
         path = []
@@ -208,22 +199,6 @@ class RunRecorder:
                 "published_s": self.newest_frame_s or None,  # data time it was published at
             }
         )
-
-
-def _points_cam(msg) -> np.ndarray:
-    """(N, 3) float32 points of a KeyFrame message's keypoints with depth, in its camera frame
-    (empty when the message is malformed: the report then leaves the keyframe out)."""
-    try:
-        kp, z = keypoints_and_depths(msg, "keyframe")
-        kp = kp.reshape(-1, 2 if kp.size == 2 * len(z) else 4)  # u, v (or + size, angle)
-        c = msg.camera
-        ok = (z > 0) & np.isfinite(z)
-        if len(z) != len(kp) or not (c.fx > 0 and c.fy > 0):
-            return np.zeros((0, 3), np.float32)
-        K = np.array([[c.fx, 0.0, c.cx], [0.0, c.fy, c.cy], [0.0, 0.0, 1.0]])
-        return backproject(kp[ok, :2], z[ok], K).astype(np.float32)
-    except (ValueError, TypeError, CoopSlamError):
-        return np.zeros((0, 3), np.float32)
 
 
 def run_data_from_bag(bag_path: str, robot_ids: list[int]) -> RunData:

@@ -7,7 +7,7 @@ the robots' ground-truth routes, ``overlap`` derives when robots could first be 
 read back with ``coop_slam.datasets.read_synthetic``).
 """
 
-from .render import DEFAULT_CAMERA, DynamicObject, NoiseConfig, Renderer, bench_render
+from .render import DEFAULT_CAMERA, DynamicObject, NoiseConfig, Renderer
 from .scenarios import DEFAULT_SCENARIO, SCENARIOS, Scenario, make_scenario
 from .world import DEFAULT_T_BASE_CAM, body_model, build_world
 
@@ -20,7 +20,6 @@ __all__ = [
     "NoiseConfig",
     "Renderer",
     "Scenario",
-    "bench_render",
     "body_model",
     "build_world",
     "make_scenario",

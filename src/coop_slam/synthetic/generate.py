@@ -33,7 +33,8 @@ import cv2
 import numpy as np
 import yaml
 
-from ..datasets import CameraModel, write_camera_yaml, write_tum_trajectory
+from ..camera import CameraModel
+from ..datasets import write_camera_yaml, write_tum_trajectory
 from ..errors import CoopSlamError
 from ..geometry import se3
 from .overlap import OverlapConfig, compute_overlap

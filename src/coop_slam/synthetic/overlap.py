@@ -25,7 +25,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy import sparse
 
-from ..datasets import CameraModel
+from ..camera import CameraModel
 from ..errors import CoopSlamError
 from ..geometry import invert, transform_points
 from .render import DEFAULT_CAMERA, NoiseConfig, Renderer

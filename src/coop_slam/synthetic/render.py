@@ -21,7 +21,6 @@ auto-exposure gain changes (``exposure_gains``). Effects that need the camera's 
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable
 from collections.abc import Sequence as Seq
 from dataclasses import dataclass
@@ -29,7 +28,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..datasets import CameraModel
+from ..camera import CameraModel
 from ..errors import CoopSlamError
 from ..geometry import check_se3, invert, se3
 from .world import QuadModel, World
@@ -626,34 +625,3 @@ def apply_noise(
         depth[holes > 0] = 0.0
     depth[(depth < cfg.depth_min_m) | (depth > cfg.depth_max_m)] = 0.0
     return out, depth
-
-
-def bench_render(
-    frames: int = 60, camera: CameraModel = DEFAULT_CAMERA, noise: bool = True
-) -> float:
-    """Frames per second of ``Renderer.render`` at the camera's size on ONE core (noise on).
-
-    Uses the first robot's route of the 'revisit' scenario; textures are built in a warm-up pass
-    first, so the figure is the steady-state rendering rate.
-    """
-    from .scenarios import make_scenario
-    from .world import build_world
-
-    threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        scenario = make_scenario("revisit", seed=0, robots=2)
-        world = build_world(scenario.layout, seed=0)
-        renderer = Renderer(world, camera, NoiseConfig(enabled=noise))
-        traj = scenario.trajectories[0]
-        idx = np.linspace(0, len(traj.stamps_s) - 1, max(1, frames)).astype(int)
-        poses = [traj.poses_se3[i] @ scenario.T_base_cam for i in idx]
-        for T in poses:
-            renderer.render(T)  # warm-up: build the textures this route sees
-        start = time.perf_counter()
-        for k, T in enumerate(poses):
-            renderer.render(T, noise_seed=k)
-        elapsed = time.perf_counter() - start
-    finally:
-        cv2.setNumThreads(threads)
-    return len(poses) / elapsed

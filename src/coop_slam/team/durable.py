@@ -1,13 +1,14 @@
 """The server core made durable: every input it takes is committed to the map store (one
 transaction: the logged input, the derived tables, the acknowledgement) before it is
 acknowledged, each robot's keyframe messages are taken in order exactly once (see
-:mod:`coop_slam.delivery`), and a server started on an existing map file rebuilds the team state
-from it and carries on (``resume``), or starts from a saved map of an earlier session
+:mod:`coop_slam.wire.delivery`), and a server started on an existing map file rebuilds the team
+state from it and carries on (``resume``), or starts from a saved map of an earlier session
 (``load``).
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import time
@@ -17,9 +18,10 @@ from typing import Callable
 
 import numpy as np
 
-from ..delivery import UNSEQUENCED, InOrder
 from ..errors import CoopSlamError
-from ..keyframe_record import ACTION_NEW, ACTION_REMOVE, KeyframeRecord, PlaceSignature
+from ..wire.codec import Incomplete
+from ..wire.delivery import UNSEQUENCED, InOrder
+from ..wire.record import ACTION_NEW, ACTION_REMOVE, KeyframeRecord, PlaceSignature
 from .config import ServerConfig
 from .global_ba import GlobalBaError
 from .map_store import (
@@ -50,17 +52,6 @@ def _has_inputs(path: str) -> bool:
 
 
 REFUSED_KEPT = 64  # refused keyframes acknowledged per robot (the newest)
-
-
-@dataclass
-class PendingKeyframe:
-    """A keyframe message that becomes a record only when it is taken, in order: a delta update,
-    or a keyframe whose descriptors are other keyframes', needs the keyframes as the server holds
-    them then. ``resolve()`` raises CoopSlamError when the message cannot be taken."""
-
-    robot_id: int
-    resolve: Callable[[], KeyframeRecord]
-    keyframe_id: int = 0  # (0: not known)
 
 
 @dataclass
@@ -204,7 +195,7 @@ class DurableServer:
     # --- inputs ---------------------------------------------------------------------------------
     def add_keyframe(
         self,
-        rec: KeyframeRecord | PendingKeyframe | PlaceSignature,
+        rec: KeyframeRecord | Incomplete | PlaceSignature,
         session: int = UNSEQUENCED,
         sequence: int = 0,
     ) -> Taken:
@@ -230,7 +221,7 @@ class DurableServer:
             out.taken += 1
         return out
 
-    def _take(self, rec: KeyframeRecord | PendingKeyframe | PlaceSignature, sequence: int):
+    def _take(self, rec: KeyframeRecord | Incomplete | PlaceSignature, sequence: int):
         """Apply one input and commit it (with the acknowledgement) in one transaction. A message
         the core refuses is not logged, but acknowledged (sending it again changes nothing).
         In low-bandwidth mode, signatures (and removals of keyframes the server never held) go to
@@ -240,8 +231,10 @@ class DurableServer:
             store.begin()
         logged = False
         try:
-            if isinstance(rec, PendingKeyframe):
-                rec = rec.resolve()
+            if isinstance(rec, Incomplete):  # completed from the keyframes as stored now
+                rec = rec.complete(
+                    functools.partial(self.server.stored_record, rec.robot_id, rec.map_segment)
+                )
             pull = self.pull
             if isinstance(rec, PlaceSignature):
                 if pull is None:

@@ -24,7 +24,7 @@ import numpy as np
 from ..config import require
 from ..errors import CoopSlamError
 from ..geometry import invert, se3, transform_points
-from ..vo.local_ba import BaProblem, run_local_ba
+from ..optim.bundle import BaProblem, run_local_ba
 
 Key = tuple[int, int]  # (robot_id, keyframe_id)
 Landmark = tuple[int, int]  # (robot_id, map_point_id)

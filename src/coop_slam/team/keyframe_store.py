@@ -14,8 +14,8 @@ import numpy as np
 from ..bow import Vocabulary
 from ..bow.database import DatabaseConfig, KeyframeDatabase
 from ..bow.vocabulary import BowVector
-from ..keyframe_record import KeyframeRecord
 from ..registration.keyframe_view import KeyframeView
+from ..wire.record import KeyframeRecord
 
 Key = tuple[int, int]  # (robot_id, keyframe_id)
 

@@ -33,9 +33,9 @@ import numpy as np
 from ..config import require
 from ..errors import CoopSlamError
 from ..geometry import invert
-from ..keyframe_record import KeyframeRecord
 from ..registration.relative_pose import RegistrationConfig, RelativePoseResult, estimate_similarity
 from ..registration.sim3 import sim3_matrix
+from ..wire.record import KeyframeRecord
 from .groups import MergeGroups
 from .keyframe_store import Key, KeyframeStore, is_mono
 

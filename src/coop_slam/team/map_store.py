@@ -50,15 +50,9 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from ..datasets.base import CameraModel
+from ..camera import CameraModel
 from ..errors import CoopSlamError
-from ..keyframe_record import (
-    ACTION_REMOVE,
-    ACTION_UPDATE,
-    ARRAY_FIELDS,
-    STATIC_ARRAYS,
-    KeyframeRecord,
-)
+from ..wire.record import ACTION_REMOVE, ACTION_UPDATE, ARRAY_FIELDS, STATIC_ARRAYS, KeyframeRecord
 
 log = logging.getLogger(__name__)
 
@@ -123,7 +117,7 @@ def encode_record(rec: KeyframeRecord, omit: tuple[str, ...] = ()) -> bytes:
         "robot_id": int(rec.robot_id),
         "keyframe_id": int(rec.keyframe_id),
         "stamp_s": float(rec.stamp_s),
-        "camera": rec.camera.to_dict(),
+        "camera": None if rec.camera is None else rec.camera.to_dict(),  # None: a removal
         "map_segment": int(rec.map_segment),
         "action": int(rec.action),
         "arrays": [[name, a.dtype.str, list(a.shape)] for name, a in arrays],
@@ -161,7 +155,7 @@ def decode_record(blob: bytes, previous: KeyframeRecord | None = None) -> Keyfra
             robot_id=header["robot_id"],
             keyframe_id=header["keyframe_id"],
             stamp_s=header["stamp_s"],
-            camera=CameraModel(**header["camera"]),
+            camera=None if header["camera"] is None else CameraModel(**header["camera"]),
             T_map_cam=T_map_cam,
             map_segment=header["map_segment"],
             action=header["action"],

@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 
 from ..bow.database import ConsistencyChecker, ConsistencyConfig
 from ..bow.vocabulary import BowVector
-from ..keyframe_record import KeyframeRecord
 from ..registration.relative_pose import RelativePoseResult, estimate_pnp
+from ..wire.record import KeyframeRecord
 from .config import LoopClosureConfig, PlaceRecognitionConfig, RendezvousConfig
 from .groups import MergeGroups
 from .keyframe_store import Key, KeyframeStore

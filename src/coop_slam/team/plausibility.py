@@ -14,9 +14,9 @@ import logging
 import numpy as np
 
 from ..geometry import invert, transform_points
-from ..keyframe_record import KeyframeRecord
 from ..registration.camera import project
 from ..registration.relative_pose import RelativePoseResult
+from ..wire.record import KeyframeRecord
 from .config import RendezvousConfig
 from .keyframe_store import KeyframeStore, track
 from .map_scale import MapScales, rescale_record, scale_translation

@@ -1,7 +1,7 @@
 """Low-bandwidth mode's server side: which whole keyframes to ask the robots for.
 
 In low-bandwidth mode (``uplink.mode: pull`` on the clients, ``pull.enabled`` on the server) a
-robot sends each new keyframe as a :class:`~coop_slam.keyframe_record.PlaceSignature` (pose and
+robot sends each new keyframe as a :class:`~coop_slam.wire.record.PlaceSignature` (pose and
 BoW vector, 2-3 kB) and its whole keyframe (50-60 kB) only when the server asks. The planner keeps
 every signature in a BoW database of its own and runs place recognition on signatures as the
 server does on keyframes (candidates scored against the query's covisible keyframes, temporal
@@ -23,7 +23,7 @@ from typing import Callable
 from ..bow.database import ConsistencyChecker, ConsistencyConfig, DatabaseConfig, KeyframeDatabase
 from ..bow.vocabulary import l1_score
 from ..config import require
-from ..keyframe_record import PlaceSignature
+from ..wire.record import PlaceSignature
 
 Key = tuple[int, int]  # (robot_id, keyframe_id)
 

@@ -27,9 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import transform_error
-from ..keyframe_record import KeyframeRecord
 from ..registration.relative_pose import RelativePoseResult, estimate_3d3d
 from ..registration.sim3 import sim3_inverse, sim3_matrix
+from ..wire.record import KeyframeRecord
 from .config import RendezvousConfig
 from .groups import MergeGroups
 from .keyframe_store import Key, KeyframeStore

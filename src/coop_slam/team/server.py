@@ -32,7 +32,7 @@ import numpy as np
 from ..bow import Vocabulary
 from ..errors import CoopSlamError
 from ..geometry import invert
-from ..keyframe_record import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE, KeyframeRecord
+from ..wire.record import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE, KeyframeRecord
 from .config import ServerConfig
 from .global_ba import GlobalBaError, GlobalBaResult, count_observations, global_bundle_adjustment
 from .groups import MergeGroups

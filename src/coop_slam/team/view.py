@@ -13,7 +13,7 @@ from typing import Callable
 import numpy as np
 
 from ..geometry import invert
-from ..keyframe_record import KeyframeRecord
+from ..wire.record import KeyframeRecord
 from .fusion import fuse_points, gather_map_points, robot_colours, voxel_downsample
 from .groups import MergeGroups
 from .results import ConstraintResult, MergeResult

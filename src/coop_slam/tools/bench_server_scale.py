@@ -2,13 +2,15 @@
 
 The keyframe streams of a team (a recorded demo run's, or synthesised from the synthetic ``multi``
 world with 8 robots) are replayed into the server core at their real rate (or ``rate`` times it):
-a feeder puts each message into a queue when it arrived, and ONE consumer takes them in order and
-does what the server node's worker does for a keyframe message (the durable server with a map file,
-then the core work behind its TF, correction and team-map publishing), so the queue grows exactly
-when the node would fall behind. Reported: server time per message, the backlog over time (and
-whether it grows), merge latency, and the full optimization of the final team graph and of a
-1,000-keyframe one. Figures are printed, never asserted; a picture of the backlog and of the time
-per message is written next to the bench output.
+a feeder puts each message into a queue when it arrived, and ONE consumer hands them in order to
+the server node's own worker (:class:`coop_slam.team.worker.ServerWorker`, with a map file as the
+node keeps one, building the team map as the node does, publishing nothing), so the queue grows
+exactly when the node would fall behind. Messages are decoded before the replay starts (the node
+decodes them in its receiving threads, not its worker). The synthesised streams come from the
+clients' own uplink (:class:`coop_slam.uplink.engine.ClientUplink`). Reported: server time per
+message, the backlog over time (and whether it grows), merge latency, and the full optimization
+of the final team graph and of a 1,000-keyframe one. Figures are printed, never asserted; a
+picture of the backlog and of the time per message is written next to the bench output.
 
 Synthesising the default streams runs the clients' visual odometry offline over 8 x 90 s of
 rendered frames, one robot after the other on one core (some 15-20 minutes on the 2-core machine,
@@ -19,7 +21,6 @@ plus 5 to render the world when it is not cached yet): the result is cached unde
 from __future__ import annotations
 
 import dataclasses
-import functools
 import hashlib
 import os
 import pickle
@@ -28,50 +29,25 @@ import sys
 import tempfile
 import threading
 import time
-from typing import Callable, Iterator, NamedTuple
+from typing import Iterator, NamedTuple
 
 import numpy as np
 
 from ..errors import CoopSlamError
-from ..keyframe_record import (
-    ACTION_NEW,
-    ACTION_REMOVE,
-    ACTION_UPDATE,
-    STATIC_ARRAYS,
-    KeyframeError,
-    KeyframeRecord,
-    complete_update,
-    decode_depths,
-    decode_uv,
-    encode_depths,
-    encode_uv,
-    patch_of,
-    shared_descriptors,
-)
-from ..team.map_builder import TeamMapBuilder
-from ..team.publish_cadence import PublishCadence, PublishCadenceConfig
+from ..team.worker import ServerOutputs, ServerWorker
+from ..wire.legacy import is_legacy
+from ..wire.messages import KIND_DELTA, KIND_KEYFRAME, KIND_REMOVAL, KeyframeMessage
+from ..wire.record import ACTION_NEW, ACTION_REMOVE
 
 Figure = tuple[str, float, str]
-# Bump when what the synthesised streams hold changes (client behaviour, record layout): the cache
+# Bump when what the synthesised streams hold changes (client behaviour, message layout): the cache
 # key has it, so an old cache is not replayed as if it were current.
-STREAM_VERSION = "3"
+STREAM_VERSION = "4"
 DEFAULT_SCENARIO, DEFAULT_ROBOTS = "multi", 8
-SESSION = 1  # the synthesised clients' delivery session (one start each, sequences from 1)
 _REPO = os.path.normpath(
     os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", "..")
 )
 CONFIG_DIR = os.path.join(_REPO, "config")
-# The dtypes of the KeyFrame message's arrays: a record crosses the wire as these.
-_WIRE_DTYPES = {
-    "keypoints": np.float32,
-    "octaves": np.uint8,
-    "descriptors": np.uint8,
-    "depths_m": np.float32,
-    "map_point_ids": np.uint32,
-    "map_points": np.float32,
-    "covisible_ids": np.uint32,
-    "covisible_weights": np.uint16,
-}
 
 
 def _log(text: str) -> None:
@@ -79,174 +55,24 @@ def _log(text: str) -> None:
 
 
 # --- the streams ----------------------------------------------------------------------------------
-@dataclasses.dataclass
-class NeedsStored:
-    """A message completed from keyframes the server holds (an update sent without what the
-    keyframe saw, ``KeyFrame.delta``, or a keyframe whose descriptors are other keyframes'): the
-    server completes it when it takes it. ``complete(stored, known_robots)``, ``stored(keyframe
-    id)`` the robot's keyframe of that map segment as the server holds it then (None: not held),
-    raises CoopSlamError when it cannot."""
-
-    robot_id: int
-    map_segment: int
-    keyframe_id: int
-    stamp_s: float
-    complete: Callable[[Callable[[int], KeyframeRecord | None], set], KeyframeRecord]
-    action: int = ACTION_UPDATE
-
-
 class Arrival(NamedTuple):
-    """One keyframe message of a robot's stream."""
+    """One keyframe message of a robot's stream (a wire message; a recorded run's older format
+    as it was recorded)."""
 
     t_s: float  # arrival on the stream's clock [s] (bag receive time or frame stamp)
     robot_id: int
-    item: KeyframeRecord | NeedsStored
-    session: int  # delivery (see coop_slam.delivery)
-    sequence: int
+    msg: KeyframeMessage
 
 
-def message_kind(item: KeyframeRecord | NeedsStored) -> str:
-    if isinstance(item, NeedsStored):
-        return "new" if item.action == ACTION_NEW else "update"
-    return {ACTION_NEW: "new", ACTION_UPDATE: "update", ACTION_REMOVE: "remove"}[item.action]
-
-
-def header_stamp_s(item: KeyframeRecord | NeedsStored) -> float:
-    """The message's header stamp, as the node reads it (a removal's is 0)."""
-    return float(item.stamp_s)
-
-
-def complete_stripped(
-    sent: KeyframeRecord,
-    stored: Callable[[int], KeyframeRecord | None],
-    known_robots: set,
-    patched: np.ndarray | None = None,
-    moves: tuple[np.ndarray, np.ndarray] | None = None,
-) -> KeyframeRecord:
-    """A delta update (``sent``, its static arrays empty, its observations a patch when
-    ``patched`` is given) completed as ``keyframe_from_msg`` does it: from the keyframe as the
-    server holds it (``stored``)."""
-    base = stored(sent.keyframe_id)
-    if base is None:
-        raise KeyframeError(
-            f"keyframe {sent.keyframe_id} of robot {sent.robot_id}: a delta update of a keyframe "
-            "the server does not hold"
-        )
-    return complete_update(sent, base, patched, moves).validate(known_robots)
-
-
-def complete_refs(
-    sent: KeyframeRecord,
-    refs: tuple[np.ndarray, np.ndarray],
-    stored: Callable[[int], KeyframeRecord | None],
-    known_robots: set,
-) -> KeyframeRecord:
-    """A full message whose descriptors partly come from keyframes the server holds (``refs``,
-    see :class:`coop_slam.vo.outbox.Outgoing`), completed as ``keyframe_from_msg`` does it."""
-    ref_keyframes, per_keypoint = refs
-    descriptors = shared_descriptors(
-        sent.map_point_ids,
-        sent.descriptors[np.asarray(per_keypoint) == 0],
-        per_keypoint,
-        ref_keyframes,
-        stored,
-        f"keyframe {sent.keyframe_id} of robot {sent.robot_id}",
-    )
-    return dataclasses.replace(sent, descriptors=descriptors).validate(known_robots)
-
-
-def as_sent(
-    rec: KeyframeRecord,
-    delta: bool,
-    patched: np.ndarray | None = None,
-    refs: tuple[np.ndarray, np.ndarray] | None = None,
-    moves: tuple[np.ndarray, np.ndarray] | None = None,
-) -> KeyframeRecord | NeedsStored:
-    """The record as the server gets it from the wire: arrays in the message's dtypes, keypoints
-    without their size and angle, keypoints and depths in their compact encodings, for a delta
-    update without what the keyframe saw (and with only the ``patched`` keypoints' observations
-    and ``moves``, when given), and with ``refs`` with the descriptors of other keyframes the
-    server holds."""
-    arrays = {k: np.asarray(getattr(rec, k), dtype) for k, dtype in _WIRE_DTYPES.items()}
-    keypoints = arrays["keypoints"].reshape(-1, 4).copy()
-    keypoints[:, 2], keypoints[:, 3] = 0.0, -1.0  # not sent
-    coded = encode_uv(keypoints[:, :2], rec.camera.width, rec.camera.height)
-    if coded is not None:  # as keyframe_to_msg sends them
-        keypoints[:, :2] = decode_uv(*coded)
-    half = encode_depths(arrays["depths_m"])
-    if half is not None:
-        arrays["depths_m"] = decode_depths(half)
-    arrays["keypoints"] = keypoints
-    arrays["descriptors"] = arrays["descriptors"].reshape(-1, 32)
-    arrays["map_points"] = arrays["map_points"].reshape(-1, 3)
-    rec = dataclasses.replace(rec, **arrays)
-    if not delta:
-        if refs is None:
-            return rec
-        return NeedsStored(
-            rec.robot_id,
-            rec.map_segment,
-            rec.keyframe_id,
-            rec.stamp_s,
-            functools.partial(complete_refs, rec, refs),
-            rec.action,
-        )
-    empty = {k: np.zeros((0,) + getattr(rec, k).shape[1:], _WIRE_DTYPES[k]) for k in STATIC_ARRAYS}
-    if patched is not None:
-        empty["map_point_ids"], empty["map_points"] = patch_of(rec, patched)
-    stripped = dataclasses.replace(rec, **empty)
-    return NeedsStored(
-        rec.robot_id,
-        rec.map_segment,
-        rec.keyframe_id,
-        rec.stamp_s,
-        functools.partial(complete_stripped, stripped, patched=patched, moves=moves),
-    )
-
-
-class ClientSender:
-    """What a client node sends for its odometry's events (``ClientNode._publish_events``, first
-    start: keyframe ids and map segments as the odometry gives them): a record per keyframe event,
-    an update without what the keyframe saw when that is unchanged since it went as new, each
-    message numbered in the client's session."""
-
-    def __init__(self, robot_id: int, camera, T_base_cam: np.ndarray, uplink=None):
-        from ..vo.outbox import Uplink
-
-        self.robot_id, self.camera, self.T_base_cam = robot_id, camera, T_base_cam
-        self.uplink = Uplink(uplink)
-        self.sequence = 0
-        self.new_keyframes = 0
-
-    def send(self, events, t_s: float, last: bool = False) -> list[Arrival]:
-        """The messages that go at data time ``t_s`` for ``events`` (and what the uplink held
-        before); ``last``: everything it holds goes too."""
-        from ..vo.outbox import event_record
-        from ..vo.types import EVENT_NEW_SEGMENT, KEYFRAME_ACTIONS
-
-        going = []
-        for ev in events:
-            if ev.kind == EVENT_NEW_SEGMENT:  # the old map's keyframes go first
-                going += self.uplink.flush()
-            if ev.kind not in KEYFRAME_ACTIONS:  # warnings, new segments: nothing sent
-                continue
-            rec = event_record(ev, self.robot_id, self.camera, self.T_base_cam)
-            going += self.uplink.offer(rec, t_s)
-        going += self.uplink.flush() if last else self.uplink.due(t_s)
-        out = []
-        for rec, how in going:
-            self.new_keyframes += rec.action == ACTION_NEW
-            self.sequence += 1
-            out.append(
-                Arrival(
-                    t_s,
-                    self.robot_id,
-                    as_sent(rec, how.delta, how.patched, how.refs, how.moves),
-                    SESSION,
-                    self.sequence,
-                )
-            )
-        return out
+def message_kind(msg) -> str:
+    """new, update or remove (the figures' kinds)."""
+    if is_legacy(msg):
+        return {ACTION_NEW: "new", ACTION_REMOVE: "remove"}.get(msg.action, "update")
+    if msg.kind == KIND_REMOVAL:
+        return "remove"
+    if msg.kind == KIND_DELTA or (msg.kind == KIND_KEYFRAME and msg.keyframe[0].replaces):
+        return "update"
+    return "new"
 
 
 def client_vo_config(T_base_cam: np.ndarray, ground_robot: bool):
@@ -263,14 +89,17 @@ def client_vo_config(T_base_cam: np.ndarray, ground_robot: bool):
 
 
 def robot_stream(robot_id: int, seq, cfg, T_base_cam: np.ndarray, label: str = "") -> list[Arrival]:
-    """One robot's keyframe messages: its odometry run offline over the sequence, every event
-    arriving at the stamp of the frame it appeared at."""
+    """One robot's keyframe messages: its odometry run offline over the sequence and its events
+    through the client's own uplink (:class:`coop_slam.uplink.engine.ClientUplink`), every message
+    arriving at the stamp of the frame it went at."""
     from ..config import load_yaml_config
-    from ..vo.outbox import UplinkConfig
+    from ..uplink.config import UplinkConfig
+    from ..uplink.engine import ClientUplink
     from ..vo.pipeline import VisualOdometry
 
-    uplink = load_yaml_config(UplinkConfig, os.path.join(CONFIG_DIR, "client.yaml"), "uplink")
-    sender = ClientSender(robot_id, seq.camera, T_base_cam, uplink)
+    uplink_cfg = load_yaml_config(UplinkConfig, os.path.join(CONFIG_DIR, "client.yaml"), "uplink")
+    uplink = ClientUplink(robot_id, uplink_cfg, T_base_cam=T_base_cam)
+    uplink.camera = seq.camera
     vo = VisualOdometry(cfg, seq.camera)
     out: list[Arrival] = []
     t0, n = time.perf_counter(), len(seq)
@@ -281,14 +110,16 @@ def robot_stream(robot_id: int, seq, cfg, T_base_cam: np.ndarray, label: str = "
             else:
                 image, second = seq.load_frame(frame)
             vo.track(frame.stamp_s, image, second)
-            out += sender.send(vo.drain_events(), frame.stamp_s)
+            step = uplink.events(vo.drain_events(), frame.stamp_s)
+            out += [Arrival(frame.stamp_s, robot_id, m) for m in step.messages]
             if (i + 1) % 150 == 0 or i + 1 == n:
                 _log(
-                    f"{label}frame {i + 1}/{n}, {sender.new_keyframes} keyframes, "
+                    f"{label}frame {i + 1}/{n}, {uplink.keyframes_sent} keyframes, "
                     f"{len(out)} messages, {time.perf_counter() - t0:.0f} s"
                 )
         vo.flush()
-        out += sender.send(vo.drain_events(), seq.frames[-1].stamp_s if n else 0.0, last=True)
+        last_s = seq.frames[-1].stamp_s if n else 0.0
+        out += [Arrival(last_s, robot_id, m) for m in uplink.events(vo.drain_events(), None)[0]]
     finally:
         vo.close()
     return out
@@ -349,35 +180,25 @@ def synthesized_streams(
     return arrivals
 
 
-def _complete_msg(
-    msg, stored: Callable[[int], KeyframeRecord | None], known_robots: set
-) -> KeyframeRecord:
-    from ..ros.convert import keyframe_from_msg
-
-    return keyframe_from_msg(msg, known_robots=known_robots, stored=stored)
-
-
-def run_streams(run_dir: str, word_idf: np.ndarray | None = None) -> tuple[list[Arrival], dict]:
+def run_streams(run_dir: str) -> tuple[list[Arrival], dict]:
     """The keyframe messages of a recorded demo run (``RUN/run.bag``, ``RUN/run.json``), arriving
     at the bag's receive times, and the run's info. Marker sightings are not part of the streams.
-    Messages the node would refuse on arrival are left out (and counted on stderr), and so are
-    messages a client sent again (same session and sequence): resending answers a server that
-    was slow to acknowledge in that run, which a replay without acknowledgements cannot model.
-    ``word_idf``: the vocabulary's ``word_weights`` (for low-bandwidth runs' signatures)."""
+    Messages a client sent again (same session and sequence) are left out: resending answers a
+    server that was slow to acknowledge in that run, which a replay without acknowledgements
+    cannot model."""
     import json
 
     import rosbag
 
-    from ..ros.convert import MessageError, keyframe_from_msg, needs_stored, unpacked
+    from ..ros.recorded import KEYFRAME_TOPIC, keyframe_message
 
     with open(os.path.join(run_dir, "run.json"), encoding="utf-8") as fh:
         info = json.load(fh)
     bag_path = os.path.join(run_dir, "run.bag")
     if not os.path.isfile(bag_path):
         raise CoopSlamError(f"{bag_path} not found: the run was not recorded")
-    robots = set(info["robot_ids"])
-    topics = [f"/robot_{r}/keyframes" for r in sorted(robots)]
-    arrivals, refused, again = [], 0, 0
+    topics = [KEYFRAME_TOPIC.format(r) for r in sorted(info["robot_ids"])]
+    arrivals, again = [], 0
     seen: set[tuple[int, int, int]] = set()  # (robot, session, sequence) of sequenced messages
     with rosbag.Bag(bag_path) as bag:
         for _, msg, t in bag.read_messages(topics=topics):
@@ -387,131 +208,29 @@ def run_streams(run_dir: str, word_idf: np.ndarray | None = None) -> tuple[list[
                     again += 1
                     continue
                 seen.add((msg.robot_id, session, sequence))
-            try:
-                msg = unpacked(msg)
-                if needs_stored(msg):  # completed when taken, as the node does
-                    item = NeedsStored(
-                        msg.robot_id,
-                        msg.map_segment,
-                        msg.keyframe_id,
-                        msg.header.stamp.to_sec(),
-                        functools.partial(_complete_msg, msg),
-                        msg.action,
-                    )
-                else:
-                    item = keyframe_from_msg(msg, known_robots=robots, word_idf=word_idf)
-            except MessageError:
-                refused += 1
-                continue
-            arrivals.append(Arrival(t.to_sec(), msg.robot_id, item, session, sequence))
-    if refused or again:
-        _log(f"left out: {refused} keyframe messages refused on arrival, {again} sent again")
+            arrivals.append(Arrival(t.to_sec(), msg.robot_id, keyframe_message(msg)))
+    if again:
+        _log(f"left out: {again} keyframe messages sent again")
     return arrivals, info
 
 
 # --- the replay -----------------------------------------------------------------------------------
-class NodeWork:
-    """The server node's worker without ROS (``ServerNode._do`` for a keyframe job, and its idle
-    branch): the durable server takes the message; then the core work behind the node's
-    publishing -- the robots' corrections and TF after a merge or an optimization, the team map
-    (paths and merge edges here, the cloud in the map builder's thread,
-    :mod:`coop_slam.team.map_builder`) when its cadence allows
-    (:mod:`coop_slam.team.publish_cadence`), and when the queue has been empty for 0.5 s the
-    global BA a merge left due, then both again. Building and serialising the ROS messages is left
-    out. ``close()`` stops the builder."""
+class BenchOutputs(ServerOutputs):
+    """The worker's outputs as the bench needs them: the team map is built (its cost is the
+    node's), nothing is published."""
 
-    def __init__(self, durable, cadence: PublishCadenceConfig | None = None):
-        self.durable = durable
-        self.cadence = PublishCadence(cadence)
-        self.builder = TeamMapBuilder(lambda cloud, stamp_s: None, self.cadence)
-        self.rejected = 0  # messages the server refused
-        self.ack: tuple | None = None  # the last acknowledgement's content
-        self._last_stamp_s, self._dirty, self._merge_unshown = 0.0, False, False
+    wants_team_map = True
 
-    def close(self) -> None:
-        self.builder.close(timeout_s=None)
 
-    @property
-    def server(self):
-        return self.durable.server
+def bench_worker(cfg, vocab, map_path: str | None) -> ServerWorker:
+    """The server node's worker, as the node makes it (a map file, global BA when idle)."""
+    from ..team.durable import DurableServer
+    from ..team.server import TeamServer
 
-    def _pending(self, delta: NeedsStored):
-        from ..team.durable import PendingKeyframe
+    def open_map(resume, load_path):
+        return DurableServer(cfg, lambda c: TeamServer(c, vocab), map_path, defer_global_ba=True)
 
-        server = self.server
-        return PendingKeyframe(
-            delta.robot_id,
-            lambda: delta.complete(
-                functools.partial(server.stored_record, delta.robot_id, delta.map_segment),
-                server.known_robots,
-            ),
-            delta.keyframe_id,
-        )
-
-    def keyframe(self, a: Arrival) -> tuple[list, float]:
-        """One message through the worker: (merges it made, wall time they were decided)."""
-        rec = self._pending(a.item) if isinstance(a.item, NeedsStored) else a.item
-        try:
-            taken = self.durable.add_keyframe(rec, a.session, a.sequence)
-        except CoopSlamError:
-            self.rejected += 1
-            return [], time.perf_counter()
-        finally:  # what the acknowledgement carries (the node sends one for every message)
-            if a.robot_id in self.durable.robots:
-                self.ack = (self.durable.acknowledged(a.robot_id), self.durable.last_ids())
-        decided = time.perf_counter()
-        self.rejected += len(taken.rejected or [])
-        if not taken.taken:
-            return [], decided
-        merges = taken.merges
-        # A late message must not move the map back in time (the node's rule).
-        stamp_s = max(header_stamp_s(a.item), self._last_stamp_s)
-        if merges or self.server.map_moved:
-            self._corrections()
-        self._dirty, self._last_stamp_s = True, stamp_s
-        self._merge_unshown |= bool(merges)
-        if self.cadence.due(stamp_s, self._merge_unshown, time.monotonic()):
-            self._team_map()
-        return merges, decided
-
-    def idle(self) -> bool:
-        """The queue drained: the global BA a merge left due, then the final state of the map
-        (when it changed, and once the builder is free); True if work done."""
-        ran = self.durable.run_due_global_ba()
-        if ran:
-            self._dirty = True
-        if not self._dirty or self.builder.busy:
-            return ran
-        self._corrections()
-        self._team_map()
-        return True
-
-    def _corrections(self) -> dict:
-        """``ServerNode._publish_tf``: robot -> (T_group_map, merged, metric, corrected keyframe
-        poses in the robot's own units), what the TF and correction messages carry."""
-        server, out = self.server, {}
-        for r in self.durable.robots:
-            m = server.current_map(r)
-            corrected = server.pose_corrections(m)
-            out[r] = (server.T_group_map(m), server.in_world(m), server.is_metric(m), corrected)
-        return out
-
-    def _team_map(self) -> tuple | None:
-        """``ServerNode._publish_map``: the stitched cloud handed to the builder, every robot's
-        path (and the frame it is drawn in), the merge edges; None while the builder is busy."""
-        if self.builder.busy:
-            return None
-        self._dirty = self._merge_unshown = False
-        server = self.server
-        self.builder.submit(server.team_cloud_job(), self._last_stamp_s)
-        paths = {}
-        for r in self.durable.robots:
-            poses = server.robot_keyframes(r)
-            if poses:
-                m = server.current_map(r)
-                root = server.robot_of(server.groups.root(m))
-                paths[r] = (server.in_world(m), root, poses)
-        return paths, server.team_view()
+    return ServerWorker(cfg, open_map, BenchOutputs())
 
 
 @dataclasses.dataclass
@@ -551,12 +270,14 @@ class ScaleRun:
 
 
 def replay_at_rate(
-    arrivals: list[Arrival], work: NodeWork, rate: float = 1.0, idle_timeout_s: float = 0.5
+    arrivals: list[Arrival], worker: ServerWorker, rate: float = 1.0, idle_timeout_s: float = 0.5
 ) -> ScaleRun:
     """Feed ``arrivals`` at ``rate`` x their real rate (a feeder thread puts each into a queue at
-    t0 + t / rate) to one consumer (this thread) doing the node worker's ``work``."""
+    t0 + t / rate) to one consumer (this thread) handing them to the node's ``worker``
+    (:meth:`ServerWorker.idle` when none came for ``idle_timeout_s``, as the node)."""
     if rate <= 0:
         raise CoopSlamError(f"rate must be > 0, got {rate}")
+    jobs = [worker.intake(a.msg, a.robot_id) for a in arrivals]  # refused ones: None
     q: queue.Queue = queue.Queue()
     first_s = arrivals[0].t_s if arrivals else 0.0
     t0 = time.perf_counter()
@@ -581,7 +302,7 @@ def replay_at_rate(
             got = q.get(timeout=idle_timeout_s)
         except queue.Empty:
             s = time.perf_counter() - t0
-            if work.idle():
+            if worker.idle():
                 idle.append((s, time.perf_counter() - t0))
             continue
         if got is None:
@@ -589,15 +310,14 @@ def replay_at_rate(
         i, arrive = got
         a = arrivals[i]
         start = time.perf_counter() - t0
-        merges, decided = work.keyframe(a)
+        merges = worker.handle(jobs[i]) if jobs[i] is not None else []
         end = time.perf_counter() - t0
+        decided = worker.last_decided_s
         for _ in merges:
             latencies.append(decided - t0 - arrive)
             merge_own.append(decided - t0 - start)
             merge_times.append(decided - t0)
-        messages.append(
-            Processed(a.robot_id, message_kind(a.item), arrive, start, end, len(merges))
-        )
+        messages.append(Processed(a.robot_id, message_kind(a.msg), arrive, start, end, len(merges)))
     feeder.join()
     return ScaleRun(
         messages,
@@ -607,7 +327,7 @@ def replay_at_rate(
         idle,
         (arrivals[-1].t_s - first_s) if arrivals else 0.0,
         rate,
-        work.rejected,
+        worker.rejected,
     )
 
 
@@ -757,16 +477,14 @@ def bench_server_scale(
     """The keyframe streams of a recorded run (``run_dir``) or of the synthetic ``multi`` world
     with 8 robots, replayed into the server at ``rate`` x their real rate."""
     from ..bow import Vocabulary
-    from ..bow.training import ensure_default_vocabulary
-    from ..team.durable import DurableServer
+    from ..default_vocabulary import ensure_default_vocabulary
     from ..team.pose_graph import bench_full_optimization
-    from ..team.server import TeamServer
     from .replay import _server_config
 
     t = time.perf_counter()
     vocab = Vocabulary.load(ensure_default_vocabulary())
     if run_dir:
-        arrivals, info = run_streams(run_dir, vocab.word_weights)
+        arrivals, info = run_streams(run_dir)
         cfg = _server_config(os.path.join(CONFIG_DIR, "server.yaml"), info, {})
         what = f"run {os.path.basename(os.path.normpath(run_dir))}"
     else:
@@ -776,28 +494,22 @@ def bench_server_scale(
     _log(f"{len(arrivals)} messages ready in {time.perf_counter() - t:.1f} s; replaying")
     with tempfile.TemporaryDirectory() as tmp:
         # The node keeps a map file by default (server.launch map:=): so does the replay.
-        durable = DurableServer(
-            cfg,
-            lambda c: TeamServer(c, vocab),
-            os.path.join(tmp, "team_map.db"),
-            defer_global_ba=True,  # as the node: when no message waits
-        )
-        work = NodeWork(durable)
+        worker = bench_worker(cfg, vocab, os.path.join(tmp, "team_map.db"))
         try:
             t = time.perf_counter()
-            run = replay_at_rate(arrivals, work, rate)
+            run = replay_at_rate(arrivals, worker, rate)
             took = time.perf_counter() - t
-            _log(f"replay took {took:.1f} s; {work.builder.built} team clouds built")
+            _log(f"replay took {took:.1f} s; {worker.map_builder.built} team clouds built")
             yield from scale_figures(run)
-            server = durable.server
+            server = worker.server
             yield ("server_scale_final_graph_keyframes", float(len(server.store)), "keyframes")
             t = time.perf_counter()
             server.optimize(full=True)
             full_ms = 1e3 * (time.perf_counter() - t)
             yield ("server_scale_full_optimization_final_graph", full_ms, "ms")
         finally:
-            work.close()
-            durable.close()
+            worker.close()
+            worker.durable.close()
     if run.messages:
         os.makedirs(out_dir or ".", exist_ok=True)
         title = f"server_scale: {what}, {run.robots} robots, {len(run.messages)} messages"

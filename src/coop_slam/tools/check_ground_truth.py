@@ -22,8 +22,8 @@ import numpy as np
 
 from ..errors import CoopSlamError
 from ..evaluation import EvaluationError, noise_split, rotation_gain
+from ..evaluation.vo_run import ate_rmse, run_sequence
 from ..vo.config import VoConfig
-from ..vo.evaluate import ate_rmse, run_sequence
 from .progress import throttled
 from .sequence_args import add_sequence_arguments, load_sequence
 

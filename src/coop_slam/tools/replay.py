@@ -10,7 +10,6 @@ refactor must replay identically) and a quick way to try server parameters on re
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import os
 import sys
@@ -37,71 +36,58 @@ def _server_config(path: str, info: dict, overrides: dict):
 
 
 def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None = None) -> dict:
-    """Replay the bag through a fresh server core; returns the server, the summary (see
-    :func:`summary`) and the stamp of every keyframe received."""
+    """Replay the bag through a fresh server worker (the node's, without ROS); returns the
+    server, the summary (see :func:`summary`) and the stamp of every keyframe received."""
     import rosbag
 
     from ..bow import Vocabulary
-    from ..bow.training import ensure_default_vocabulary
-    from ..geometry import invert, se3_from_quat
-    from ..keyframe_record import ACTION_REMOVE
-    from ..ros.convert import MessageError, keyframe_from_msg, needs_stored, pose_from_msg, unpacked
-    from ..team.durable import DurableServer, PendingKeyframe
+    from ..default_vocabulary import ensure_default_vocabulary
+    from ..geometry import se3_from_quat
+    from ..ros.convert import MessageError, pose_from_msg
+    from ..ros.recorded import KEYFRAME_TOPIC, is_removal, keyframe_message
+    from ..team.durable import DurableServer
     from ..team.server import TeamServer
+    from ..team.worker import RendezvousJob, ServerWorker
 
     cfg = _server_config(config_path, info, overrides or {})
     vocab = Vocabulary.load(ensure_default_vocabulary())
-    # Messages as the server node takes them: each client message once, in order (a run with
-    # faults holds messages sent again).
-    durable = DurableServer(cfg, lambda c: TeamServer(c, vocab), None)
-    server = durable.server
     base_cam = info.get("T_base_cam") or []
-    T_body_cam = invert(se3_from_quat(base_cam[:3], base_cam[3:])) if base_cam else None
-    topics = [f"/robot_{r}/keyframes" for r in cfg.robots] + ["/robot_sightings"]
+    T_base_cam = se3_from_quat(base_cam[:3], base_cam[3:]) if base_cam else None
+    # The node's worker, its global BA at once after a merge (the node runs it when no message
+    # waits, which a bag does not record): the same input gives the same decisions.
+    worker = ServerWorker(
+        cfg,
+        lambda resume, load: DurableServer(cfg, lambda c: TeamServer(c, vocab), None),
+        T_base_cam=T_base_cam,
+    )
+    server = worker.server
+    topics = [KEYFRAME_TOPIC.format(r) for r in cfg.robots] + ["/robot_sightings"]
     rejected = 0
     stamps = {}  # (robot, keyframe) -> stamp_s of every keyframe received, culled ones included
-    with rosbag.Bag(bag_path) as bag:
-        for topic, msg, _ in bag.read_messages(topics=topics):
-            if topic == "/robot_sightings":
-                try:
-                    T_cam_body = pose_from_msg(msg.T_cam_body, "T_cam_body")
-                except MessageError:
-                    rejected += 1
+    try:
+        with rosbag.Bag(bag_path) as bag:
+            for topic, msg, _ in bag.read_messages(topics=topics):
+                if topic == "/robot_sightings":
+                    try:
+                        T_cam_body = pose_from_msg(msg.T_cam_body, "T_cam_body")
+                    except MessageError:
+                        rejected += 1
+                        continue
+                    stamp_s = msg.header.stamp.to_sec()
+                    worker.handle(
+                        RendezvousJob(msg.observer_id, msg.observed_id, stamp_s, T_cam_body, True)
+                    )
                     continue
-                server.sighting(
-                    msg.observer_id,
-                    msg.observed_id,
-                    msg.header.stamp.to_sec(),
-                    T_cam_body if T_body_cam is not None else None,
-                    T_body_cam,
-                )
-                continue
-            if msg.action != ACTION_REMOVE:  # a removal carries no stamp
-                stamps.setdefault((msg.robot_id, msg.keyframe_id), msg.header.stamp.to_sec())
-            try:
-                msg = unpacked(msg)
-                if needs_stored(msg):  # completed from the keyframes as stored then
-                    rec = PendingKeyframe(
-                        msg.robot_id,
-                        lambda m=msg: keyframe_from_msg(
-                            m,
-                            server.known_robots,
-                            functools.partial(server.stored_record, m.robot_id, m.map_segment),
-                            vocab.word_weights,
-                        ),
-                        msg.keyframe_id,
-                    )
-                else:
-                    rec = keyframe_from_msg(
-                        msg, known_robots=server.known_robots, word_idf=vocab.word_weights
-                    )
-                taken = durable.add_keyframe(
-                    rec, getattr(msg, "session", 0), getattr(msg, "sequence", 0)
-                )
-                rejected += len(taken.rejected or [])
-            except CoopSlamError:
-                rejected += 1
-    return server, summary(server, rejected), stamps
+                msg = keyframe_message(msg)
+                if not is_removal(msg):  # a removal carries no stamp
+                    key = (msg.robot_id, msg.keyframe_id)
+                    stamps.setdefault(key, msg.header.stamp.to_sec())
+                job = worker.intake(msg, msg.robot_id)
+                if job is not None:
+                    worker.handle(job)
+    finally:
+        worker.close()
+    return server, summary(server, worker.rejected + rejected), stamps
 
 
 def summary(server, rejected: int = 0) -> dict:

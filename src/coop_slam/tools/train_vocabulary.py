@@ -7,15 +7,10 @@ import argparse
 import sys
 import time
 
-from ..bow.training import (
-    ConsoleProgress,
-    ExtractionConfig,
-    image_files,
-    synthetic_sequences,
-    train_from_sequences,
-)
+from ..bow.training import ConsoleProgress, ExtractionConfig, image_files, train_from_sequences
 from ..bow.vocabulary import DEFAULT_K, DEFAULT_LEVELS, VocabularyConfig
 from ..datasets import read_tum
+from ..default_vocabulary import synthetic_sequences
 from ..errors import CoopSlamError
 
 

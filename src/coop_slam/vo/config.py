@@ -121,7 +121,7 @@ class VoConfig:
     ba_huber_mono: float = 2.447  # Huber threshold of (u, v) factors [whitened px], sqrt(5.991)
     ba_huber_stereo: float = 2.796  # Huber threshold of (u, v, u_right) factors, sqrt(7.815)
     # A keyframe local BA moved less than both of these since it was last sent is not sent again
-    # (each update is a whole KeyFrame message). Off by default: on RedKitchen as 2 robots, 2 mm /
+    # (each update goes whole). Off by default: on RedKitchen as 2 robots, 2 mm /
     # 0.05 deg cut the keyframe stream 2.7 -> 1.1 MB/s per robot but cost 0.2-0.3 cm team ATE.
     update_min_trans_m: float = 0.0  # [m]
     update_min_rot_deg: float = 0.0  # [deg]

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from ..datasets.base import CameraModel
+from ..camera import CameraModel
 from .config import VoConfig
 
 

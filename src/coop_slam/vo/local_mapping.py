@@ -31,10 +31,10 @@ import numpy as np
 
 from ..descriptors import hamming_rows
 from ..geometry import invert, transform_error, transform_points
+from ..optim.bundle import BaProblem, BaResult, BaWorker, run_local_ba
 from .config import VoConfig
 from .features import FrameFeatures, level_scales
 from .initialization import fundamental_from_pose
-from .local_ba import BaProblem, BaResult, BaWorker, run_local_ba
 from .map import Map, MapKeyframe
 from .matching import project_points, rotation_consistent, search_by_projection
 from .sensor import Sensor

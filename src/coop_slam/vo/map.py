@@ -1,7 +1,7 @@
 """Keyframes and map points of one robot's map segment.
 
 Map points live in growable numpy arrays indexed by their id (ids are positive, unique per robot
-and increasing, as the KeyFrame message requires), so projection, culling and statistics are array
+and increasing, as keyframe messages require), so projection, culling and statistics are array
 operations. Each point also has a small ``{keyframe_id: keypoint_index}`` dict of observations; each
 keyframe's ``map_point_ids`` is the inverse relation. ``check_consistency`` verifies that the two
 agree (no dangling references), which local mapping and keyframe culling must preserve.
@@ -24,7 +24,7 @@ from ..descriptors import hamming_rows
 @dataclass
 class MapKeyframe:
     """A keyframe of the client's own map (its pose, keypoints and observed map points); what it
-    sends the server is a :class:`coop_slam.keyframe_record.KeyframeRecord` made from it
+    sends the server is a :class:`coop_slam.wire.record.KeyframeRecord` made from it
     (:mod:`.outbox`). N keypoints, M observed map points."""
 
     keyframe_id: int
@@ -50,7 +50,7 @@ class MapKeyframe:
         return len(self.uv_px)
 
     def keypoints_flat(self) -> np.ndarray:
-        """(4N,) float32 ``u, v, size, angle`` per keypoint, the layout of KeyFrame.keypoints."""
+        """(4N,) float32 ``u, v, size, angle`` per keypoint (a keyframe record's keypoints)."""
         return (
             np.column_stack([self.uv_px, self.size_px, self.angle_deg]).astype(np.float32).ravel()
         )

@@ -42,7 +42,7 @@ from typing import Self
 
 import numpy as np
 
-from ..datasets.base import CameraModel
+from ..camera import CameraModel
 from ..geometry import invert, rotation_angle_deg, transform_points
 from .config import VoConfig
 from .features import FrameFeatures, OrbExtractor, level_scales
@@ -83,7 +83,7 @@ class VisualOdometry:
             raise VoError("VisualOdometry needs the camera model (intrinsics and image size)")
         self.config = config or VoConfig()
         self.config.validate()
-        # The colour camera the keypoints come from (KeyFrame.camera should carry this one).
+        # The colour camera the keypoints come from (keyframe messages carry this one).
         self.camera = camera = self.config.color_camera(camera)
         self.K = camera.K
         self.scales = level_scales(self.config)

@@ -15,7 +15,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..datasets.base import CameraModel
+from ..camera import CameraModel
 from .config import VoConfig
 from .features import FrameFeatures, OrbExtractor, OrbKeypoints, level_scales
 from .stereo_matching import level_images, match_stereo

@@ -22,7 +22,7 @@ STATE_LOST = "lost"  # pose unknown; T_map_cam is the last good one
 STATE_RELOCALIZED = "relocalized"  # tracking recovered against the robot's own keyframes
 STATE_NEW_SEGMENT = "new_segment"  # a new map was started: T_map_cam is in a new map frame
 
-# Kinds of VoEvent. The first three map onto KeyFrame.ACTION_NEW / _UPDATE / _REMOVE.
+# Kinds of VoEvent. The first three map onto the records' ACTION_NEW / _UPDATE / _REMOVE.
 EVENT_KEYFRAME_NEW = "keyframe_new"
 EVENT_KEYFRAME_UPDATE = "keyframe_update"
 EVENT_KEYFRAME_REMOVE = "keyframe_remove"

@@ -18,7 +18,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
 
-from .errors import CoopSlamError
+from ..errors import CoopSlamError
 
 UNSEQUENCED = 0
 
@@ -87,6 +87,17 @@ class InOrder:
         return len(self._held)
 
 
+@dataclass
+class DeliveryConfig:
+    """How a client sends again what the server has not acknowledged (``client.launch``
+    parameters of the same names)."""
+
+    max_unacked: int = 1000  # messages kept for the server; beyond it the oldest are given up
+    resend_after_s: float = 2.0  # the first wait before a message goes again [s]
+    resend_window: int = 100  # at most this many go again at once
+    max_resend_after_s: float = 30.0  # the longest wait between sends of one message [s]
+
+
 class Outbox:
     """The client side: messages sent and not yet acknowledged, to send again.
 
@@ -111,6 +122,7 @@ class Outbox:
         resend_window: int = 100,
         max_resend_after_s: float = 30.0,
     ):
+        """See :class:`DeliveryConfig` (``Outbox(**vars(config))``)."""
         if max_unacked < 1:
             raise DeliveryError(f"max_unacked must be >= 1, got {max_unacked}")
         if resend_after_s <= 0:

@@ -3,7 +3,7 @@
 The problem is plain numpy data (picklable) so it can run in a worker process (:class:`BaWorker`):
 GTSAM's Python bindings hold the GIL while optimizing (measured: a 370 ms optimize() stalled another
 Python thread for 330 ms), so a background *thread* would stall tracking for the whole optimization.
-The worker is a plain ``python -m coop_slam.vo.local_ba`` child fed pickles over a pipe rather than
+The worker is a plain ``python -m coop_slam.optim.bundle`` child fed pickles over a pipe rather than
 a multiprocessing pool: "spawn" re-imports the caller's ``__main__`` (breaks scripts and ROS nodes
 without a main guard) and "fork" of a multi-threaded process can deadlock.
 
@@ -281,7 +281,7 @@ class BaWorker:
         # PYTHONPATH=src).
         env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
         self._proc = subprocess.Popen(
-            [sys.executable, "-c", "from coop_slam.vo.local_ba import serve; serve()"],
+            [sys.executable, "-c", "from coop_slam.optim.bundle import serve; serve()"],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             env=env,

@@ -15,12 +15,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..datasets.base import Sequence
-from ..evaluation import ate
 from ..timestamps import associate
-from .config import VoConfig
-from .map import MapKeyframe
-from .pipeline import VisualOdometry
-from .types import EVENT_KEYFRAME_NEW, EVENT_KEYFRAME_REMOVE, STATE_LOST
+from ..vo.config import VoConfig
+from ..vo.map import MapKeyframe
+from ..vo.pipeline import VisualOdometry
+from ..vo.types import EVENT_KEYFRAME_NEW, EVENT_KEYFRAME_REMOVE, STATE_LOST
+from .metrics import ate
 
 
 @dataclass

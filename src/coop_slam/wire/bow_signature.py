@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..bow.vocabulary import BowVector
 from ..errors import CoopSlamError
-from ..varint import VarintError, decode_varints, encode_varints
-from .vocabulary import BowVector
+from .varint import VarintError, decode_varints, encode_varints
 
 _MAX_VARINT_BYTES = 5  # word ids are int32
 

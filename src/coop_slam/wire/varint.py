@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import CoopSlamError
+from ..errors import CoopSlamError
 
 
 class VarintError(CoopSlamError):

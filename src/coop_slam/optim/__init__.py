@@ -1,0 +1,2 @@
+"""Nonlinear least squares shared by the client and the server: bundle adjustment of keyframe
+poses and map points with GTSAM (:mod:`.bundle`), in a worker process or in-process."""

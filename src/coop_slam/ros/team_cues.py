@@ -1,0 +1,114 @@
+"""What a client tells the team besides its keyframes: the other robots it sees (their markers,
+``/robot_sightings``, a rendezvous cue; their bodies are masked for the odometry, a robot being a
+moving object), and, when it is lost and its own map cannot place the camera, its view, asking the
+server for the team's local map there (``/server/relocalize``)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Callable
+
+import numpy as np
+import rospy
+
+from ..errors import CoopSlamError
+from ..geometry import invert, transform_points
+from ..markers import MarkerDetector, body_box_cam
+from ..wire.bow_signature import encode_signature
+from .convert import pose_to_msg
+
+ASK_EVERY_S = 1.0  # at most one relocalization question a second, one at a time
+
+
+class TeamCues:
+    """``vocabulary()`` gives the server's vocabulary (fetched on first use);
+    ``segment_base()`` the map segment the odometry's segment 0 is sent as."""
+
+    def __init__(
+        self,
+        robot_id: int,
+        T_base_cam: np.ndarray,
+        markers: MarkerDetector,
+        marker_every: int,
+        vocabulary: Callable[[], object],
+        segment_base: Callable[[], int],
+    ):
+        from coop_slam.msg import RobotSighting
+
+        self.robot_id, self.T_base_cam = robot_id, T_base_cam
+        self.name, self.cam_frame = f"robot_{robot_id}", f"robot_{robot_id}/camera_optical"
+        self.markers, self.marker_every = markers, marker_every
+        self.vocabulary, self.segment_base = vocabulary, segment_base
+        self.pub_sighting = rospy.Publisher("/robot_sightings", RobotSighting, queue_size=10)
+        self._RobotSighting = RobotSighting
+        self._busy, self._last_s = False, 0.0
+
+    # --- markers ----------------------------------------------------------------------------------
+    def sightings(self, frames: int, stamp, image, res, vo, K: np.ndarray) -> None:
+        """Every ``marker_every`` frames: other robots' markers in the image."""
+        if not self.marker_every or frames % self.marker_every:
+            return
+        cfg = self.markers.config
+        for s in self.markers.detect(image, K):
+            if s.marker_id == self.robot_id or s.marker_id < 1:
+                continue  # our own body, or not a robot id
+            if res.ok and cfg.mask_s > 0:  # a robot is a moving object, not a landmark
+                corners_map = transform_points(res.T_map_cam, body_box_cam(cfg, s.T_cam_body))
+                vo.ignore_region(corners_map, stamp.to_sec() + cfg.mask_s)
+            msg = self._RobotSighting(
+                observer_id=self.robot_id,
+                observed_id=s.marker_id,
+                marker_id=s.marker_id,
+                T_cam_body=pose_to_msg(s.T_cam_body),
+                reprojection_error_px=s.reprojection_error_px,
+            )
+            msg.header.stamp, msg.header.frame_id = stamp, self.cam_frame
+            self.pub_sighting.publish(msg)
+
+    # --- a lost robot -----------------------------------------------------------------------------
+    def maybe_ask(self, vo) -> None:
+        """Lost, and the own map does not place the camera: ask the server (in a thread)."""
+        view = vo.lost_view()
+        if view is None or self._busy or time.monotonic() - self._last_s < ASK_EVERY_S:
+            return
+        self._busy, self._last_s = True, time.monotonic()
+        vo.expect_local_map()
+        threading.Thread(target=self._ask, args=(vo, view, vo.map_segment), daemon=True).start()
+
+    def _ask(self, vo, descriptors: np.ndarray, segment: int) -> None:
+        from coop_slam.srv import Relocalize
+
+        points, desc, pending = None, None, False
+        try:
+            bow, _ = self.vocabulary().transform(descriptors)
+            gaps, weights, weight_max = encode_signature(bow)
+            ask = rospy.ServiceProxy("/server/relocalize", Relocalize)
+            ask.wait_for_service(timeout=2.0)
+            rep = ask(
+                robot_id=self.robot_id,
+                map_segment=segment + self.segment_base(),
+                bow_word_gaps=gaps,
+                bow_weights=weights,
+                bow_weight_max=weight_max,
+            )
+            pending = bool(getattr(rep, "pending", False))
+            answer = (
+                "sends the team's local map"
+                if rep.found
+                else ("fetches it" if pending else "cannot place it")
+            )
+            rospy.loginfo("client %s: lost; the server %s: %s", self.name, answer, rep.message)
+            if rep.found and vo.map_segment == segment:
+                pts = np.asarray(rep.points, float).reshape(-1, 3)
+                # Sent in robot_k/map; the odometry's map frame is its first camera frame.
+                points = transform_points(invert(self.T_base_cam), pts)
+                desc = np.frombuffer(rep.descriptors, np.uint8).reshape(-1, 32)
+        except (rospy.ROSException, rospy.ServiceException, CoopSlamError, ValueError) as exc:
+            rospy.logwarn("client %s: lost; asking the server failed: %s", self.name, exc)
+        finally:
+            if pending:  # keep waiting, and ask again soon
+                self._last_s = time.monotonic() - 0.7
+            else:
+                vo.offer_local_map(points, desc)
+            self._busy = False

@@ -1,0 +1,66 @@
+"""What a client's keyframe messages carry and when they go (``config/client.yaml`` section
+``uplink``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..config import require
+from ..descriptors import DESCRIPTOR_BYTES
+from ..wire.record import MAX_REF_KEYFRAMES
+
+UPLINK_MODES = ("full", "pull")
+
+
+@dataclass
+class UplinkConfig:
+    """What a client's keyframe messages carry (``config/client.yaml`` section ``uplink``)."""
+
+    # Updates leave out what the keyframe saw when the server has it, and carry only the
+    # observations that changed (false: every update in full, as a new keyframe).
+    delta_updates: bool = True
+    # A map point that moved less than this since it last went to the server is not sent
+    # again with an update [m]; 0 = every point that moved at all.
+    point_move_m: float = 0.002
+    # full: every keyframe goes whole. pull (low-bandwidth mode, the server's pull.enabled): a
+    # new keyframe goes as its place signature; whole when the server asks for it, and only
+    # then its updates.
+    mode: str = "full"
+    # Full mode: a new keyframe waits this long before it goes [s of data time], and goes with
+    # what local BA made of it meanwhile; one the client culls within it (most culled keyframes
+    # are) never travels. 0 = at once.
+    hold_new_s: float = 1.0
+    # Full mode: the updates of a keyframe the server has go at most once per this long, the
+    # latest of them [s of data time] (local BA moves every keyframe of its window after each new
+    # keyframe). 0 = each as it comes.
+    coalesce_updates_s: float = 1.0
+    # Full mode: a keyframe leaves out the descriptors of keypoints observing a map point the
+    # server has in another keyframe (it takes them there): a map point's descriptor travels
+    # once. false: every keyframe carries all its descriptors.
+    share_descriptors: bool = True
+    # ... when the descriptor there differs from the keypoint's own in at most this many bits
+    # (of 256): a map point's descriptor changes with the view (median 33 bits between keyframes
+    # of our worlds), and matching across robots, which the server does with them, needs them
+    # close to what the camera saw. 256: always.
+    share_max_bits: int = 32
+    # How many of the keyframes the server holds are searched for a new keyframe's map points:
+    # its covisible ones first, then the newest.
+    ref_keyframes: int = 32
+    # Wall-clock seconds without a camera frame after which whatever is held goes (the camera
+    # stopped, or the run ended).
+    idle_flush_s: float = 2.0
+
+    def validate(self) -> None:
+        require(self.point_move_m >= 0, "uplink.point_move_m must be >= 0 [m]")
+        require(self.mode in UPLINK_MODES, f"uplink.mode must be one of {UPLINK_MODES}")
+        require(self.hold_new_s >= 0, "uplink.hold_new_s must be >= 0 [s]")
+        require(self.coalesce_updates_s >= 0, "uplink.coalesce_updates_s must be >= 0 [s]")
+        require(self.idle_flush_s > 0, "uplink.idle_flush_s must be > 0 [s]")
+        require(
+            0 <= self.share_max_bits <= 8 * DESCRIPTOR_BYTES,
+            f"uplink.share_max_bits must be in [0, {8 * DESCRIPTOR_BYTES}]",
+        )
+        require(
+            1 <= self.ref_keyframes <= MAX_REF_KEYFRAMES,
+            f"uplink.ref_keyframes must be in [1, {MAX_REF_KEYFRAMES}]",
+        )

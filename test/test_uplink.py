@@ -1,0 +1,230 @@
+"""A client's uplink (coop_slam.uplink): when its keyframe records go (the holdback: new keyframes
+wait and go as local BA left them, culled ones never, updates of sent keyframes go coalesced),
+and the engine the client node and the bench drive: events in, numbered messages of each kind out,
+requests answered, acknowledgements taken, a restart continuing above the server's ids."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from coop_slam.config import ConfigError
+from coop_slam.uplink.config import UplinkConfig
+from coop_slam.uplink.holdback import Holdback
+from coop_slam.uplink.planner import Planner
+from coop_slam.wire.record import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE
+from helpers import make_keyframe
+
+
+def _moved(rec, action, dx):
+    out = dataclasses.replace(rec, action=action, T_map_cam=rec.T_map_cam.copy())
+    out.T_map_cam[0, 3] += dx
+    return out
+
+
+def _what(records):
+    return [(r.keyframe_id, r.action, round(float(r.T_map_cam[0, 3]), 3)) for r in records]
+
+
+def test_new_keyframes_wait_and_go_as_they_are_then_culled_ones_never():
+    hold = Holdback(hold_new_s=1.0, coalesce_s=1.0)
+    kf1, kf2 = make_keyframe(keyframe_id=1), make_keyframe(keyframe_id=2, seed=1)
+    x1 = float(kf1.T_map_cam[0, 3])
+    assert hold.offer(kf1, 0.0) == []
+    assert hold.offer(_moved(kf1, ACTION_UPDATE, 0.01), 0.4) == []
+    assert hold.offer(kf2, 0.5) == []
+    assert hold.offer(dataclasses.replace(kf2, action=ACTION_REMOVE), 0.8) == []  # culled
+    assert hold.due(0.99) == [] and len(hold) == 1
+    # keyframe 1 goes as new, with local BA's pose; keyframe 2 never goes
+    assert _what(hold.due(1.0)) == [(1, ACTION_NEW, round(x1 + 0.01, 3))]
+    assert len(hold) == 0 and hold.due(10.0) == []
+
+
+def test_updates_of_a_sent_keyframe_go_once_per_interval_the_latest():
+    hold = Holdback(hold_new_s=1.0, coalesce_s=1.0)
+    kf = make_keyframe(keyframe_id=4)
+    x = float(kf.T_map_cam[0, 3])
+    hold.offer(kf, 0.0)
+    assert len(hold.due(1.0)) == 1
+    for t, dx in ((1.2, 0.01), (1.5, 0.02), (2.1, 0.03)):
+        assert hold.offer(_moved(kf, ACTION_UPDATE, dx), t) == []
+    assert hold.due(2.19) == []
+    assert _what(hold.due(2.2)) == [(4, ACTION_UPDATE, round(x + 0.03, 3))]
+    hold.offer(_moved(kf, ACTION_UPDATE, 0.04), 2.3)
+    # a removal goes at once and takes the held update with it
+    assert _what(hold.offer(dataclasses.replace(kf, action=ACTION_REMOVE), 2.5)) == [
+        (4, ACTION_REMOVE, round(x, 3))
+    ]
+    assert len(hold) == 0
+
+
+def test_data_time_going_back_lets_what_is_held_go():
+    """A looped bag or a reset clock: records held at a later data time go at once, not when
+    data time has caught up with them."""
+    hold = Holdback(hold_new_s=1.0, coalesce_s=1.0)
+    hold.offer(make_keyframe(keyframe_id=1), 100.0)
+    hold.offer(make_keyframe(keyframe_id=2), 100.5)
+    assert [r.keyframe_id for r in hold.due(100.6)] == []
+    assert [r.keyframe_id for r in hold.due(3.0)] == [1, 2]
+
+
+def test_flush_sends_everything_held_and_zero_waits_send_at_once():
+    hold = Holdback(hold_new_s=1.0, coalesce_s=1.0)
+    hold.offer(make_keyframe(keyframe_id=1), 0.0)
+    hold.offer(make_keyframe(keyframe_id=2), 0.1)
+    assert [r.keyframe_id for r in hold.flush()] == [1, 2]
+    now = Holdback()
+    kf = make_keyframe(keyframe_id=3)
+    assert _what(now.offer(kf, 0.0)) == _what([kf])
+    upd = _moved(kf, ACTION_UPDATE, 0.01)
+    assert _what(now.offer(upd, 0.1)) == _what([upd]) and len(now) == 0
+
+
+def test_uplink_offers_through_its_holdback_and_prepares_deltas_in_sending_order():
+    """What the server ends up holding is the keyframe's last state, with the delta protocol
+    intact: the update after a held new keyframe is a patch against what that new carried (the
+    points local BA moved while it was held), not against the keyframe as first made."""
+    uplink = Planner(UplinkConfig(hold_new_s=0.5, coalesce_updates_s=0.5))
+    kf = make_keyframe(n=60, keyframe_id=7)
+    assert uplink.offer(kf, 0.0) == []
+    moved = _moved(kf, ACTION_UPDATE, 0.02)
+    moved.map_points = kf.map_points + np.float32(0.05)  # every point moved while held
+    uplink.offer(moved, 0.3)
+    going = uplink.due(0.5)
+    assert len(going) == 1 and going[0][0].action == ACTION_NEW and not going[0][1].delta
+    np.testing.assert_array_equal(going[0][0].map_points, moved.map_points)
+    again = _moved(moved, ACTION_UPDATE, 0.01)
+    again.map_points = moved.map_points.copy()
+    again.map_points[:3] += np.float32(0.05)  # three points moved since the new went
+    uplink.offer(again, 0.6)
+    ((rec, out),) = uplink.due(1.1)
+    assert rec.action == ACTION_UPDATE and out.delta and len(out.patched) == 0
+    # (they moved 5 cm: a move in steps of 0.24 mm)
+    assert sorted(rec.map_point_ids[out.moves[0]]) == sorted(
+        rec.map_point_ids[rec.map_point_ids != 0][:3]
+    )
+    # pull mode (low-bandwidth): no holding, its own rules
+    pull = Planner(UplinkConfig(mode="pull"))
+    ((rec, out),) = pull.offer(make_keyframe(keyframe_id=8), 0.0)
+    assert out.signature
+
+
+@pytest.mark.parametrize(
+    "field, value", [("hold_new_s", -1.0), ("coalesce_updates_s", -0.1), ("idle_flush_s", 0.0)]
+)
+def test_bad_holdback_settings_are_named(field, value):
+    with pytest.raises(ConfigError, match=f"uplink.{field}"):
+        UplinkConfig(**{field: value}).validate()
+
+
+def test_keyframe_points_travel_with_the_held_new_keyframe():
+    hold = Holdback(hold_new_s=1.0)
+    kf = make_keyframe(n=40, keyframe_id=2)
+    upd = dataclasses.replace(kf, action=ACTION_UPDATE, map_points=kf.map_points + 0.5)
+    hold.offer(kf, 0.0)
+    hold.offer(upd, 0.5)
+    (sent,) = hold.due(1.0)
+    np.testing.assert_array_equal(sent.map_points, upd.map_points)
+
+
+# --- the engine ----------------------------------------------------------------------------------
+def _map_keyframe(rec):
+    """The odometry's keyframe a record is made of (see ``uplink.records.keyframe_record``)."""
+    from coop_slam.vo.map import MapKeyframe
+
+    return MapKeyframe(
+        keyframe_id=rec.keyframe_id,
+        stamp_s=rec.stamp_s,
+        map_segment=rec.map_segment,
+        T_map_cam=rec.T_map_cam.copy(),
+        uv_px=rec.keypoints[:, :2],
+        size_px=rec.keypoints[:, 2],
+        angle_deg=rec.keypoints[:, 3],
+        octaves=rec.octaves,
+        descriptors=rec.descriptors,
+        depths_m=rec.depths_m,
+        map_point_ids=rec.map_point_ids,
+        covisible_ids=rec.covisible_ids,
+        covisible_weights=rec.covisible_weights,
+        map_points_xyz=rec.map_points,
+    )
+
+
+def test_the_client_uplink_sends_each_kind_numbered_and_what_it_held_on_flush():
+    """New keyframes go whole, an update as a delta when what the keyframe saw is unchanged (else
+    whole), a removal by id; numbered 1, 2, ... in one session; events that are no keyframe send
+    nothing. With the holdback (client.yaml) a keyframe made and culled within hold_new_s sends
+    nothing at all."""
+    from coop_slam.uplink.engine import ClientUplink
+    from coop_slam.vo.types import (
+        EVENT_KEYFRAME_NEW,
+        EVENT_KEYFRAME_REMOVE,
+        EVENT_KEYFRAME_UPDATE,
+        EVENT_WARNING,
+        VoEvent,
+    )
+    from coop_slam.wire.codec import Incomplete, decode
+    from coop_slam.wire.messages import KIND_DELTA, KIND_KEYFRAME, KIND_REMOVAL
+
+    rec = make_keyframe(n=40, keyframe_id=7)
+    kf = _map_keyframe(rec)
+    moved = dataclasses.replace(kf, T_map_cam=kf.T_map_cam.copy())
+    moved.T_map_cam[:3, 3] += 0.05
+    seen_again = dataclasses.replace(moved, depths_m=kf.depths_m * 1.01)
+    events = [
+        VoEvent(EVENT_KEYFRAME_NEW, 0, 7, kf),
+        VoEvent(EVENT_WARNING, 0, message="time went back"),
+        VoEvent(EVENT_KEYFRAME_UPDATE, 0, 7, moved),
+        VoEvent(EVENT_KEYFRAME_UPDATE, 0, 7, seen_again),
+        VoEvent(EVENT_KEYFRAME_REMOVE, 0, 7),
+    ]
+    held = ClientUplink(3, T_base_cam=np.eye(4))
+    held.camera = rec.camera
+    step = held.events(events, 4.5)
+    assert step.messages == [] and held.held == 0  # made and culled while held: never sent
+    assert [n.kind for n in step.notes] == [
+        "keyframe",
+        "warning",
+        "keyframe",
+        "keyframe",
+        "keyframe",
+    ]
+    uplink = ClientUplink(
+        3, UplinkConfig(hold_new_s=0.0, coalesce_updates_s=0.0), T_base_cam=np.eye(4)
+    )
+    uplink.camera = rec.camera
+    sent = uplink.events(events, 4.5).messages
+    assert [m.sequence for m in sent] == [1, 2, 3, 4] and {m.robot_id for m in sent} == {3}
+    assert len({m.session for m in sent}) == 1 and uplink.unacked == 4
+    assert [m.kind for m in sent] == [KIND_KEYFRAME, KIND_DELTA, KIND_KEYFRAME, KIND_REMOVAL]
+    new = decode(sent[0], {3})
+    delta = decode(sent[1], {3})
+    assert isinstance(delta, Incomplete) and delta.keyframe_id == 7
+    completed = delta.complete({7: new}.get)
+    np.testing.assert_array_equal(completed.descriptors, new.descriptors)
+    np.testing.assert_allclose(completed.T_map_cam, moved.T_map_cam, atol=1e-9)
+    assert sent[2].keyframe[0].replaces
+    # The server acknowledges the first two: the rest stay to be sent again.
+    from coop_slam.wire.messages import KeyframeAck
+
+    uplink.acknowledged(KeyframeAck(robot_id=3, session=sent[0].session, sequence=2))
+    assert uplink.unacked == 2
+    assert [m.sequence for m in uplink.due_again(now=1e12)] == [3, 4]
+
+
+def test_a_restarted_client_continues_above_the_servers_keyframes_and_answers_requests_once():
+    from coop_slam.uplink.engine import ClientUplink
+    from coop_slam.vo.types import EVENT_KEYFRAME_NEW, VoEvent
+    from coop_slam.wire.messages import KIND_KEYFRAME, KeyframeRequest
+
+    rec = make_keyframe(n=20, keyframe_id=2)
+    kf = _map_keyframe(rec)
+    uplink = ClientUplink(4, UplinkConfig(hold_new_s=0.0), T_base_cam=np.eye(4))
+    uplink.camera = rec.camera
+    uplink.continue_after(last_keyframe_id=30, last_map_segment=1)
+    (msg,) = uplink.events([VoEvent(EVENT_KEYFRAME_NEW, 0, 2, kf)], 1.0).messages
+    assert (msg.keyframe_id, msg.map_segment) == (32, 2)
+    request = KeyframeRequest(robot_id=4, request=1, keyframe_ids=[32, 33])
+    answered = uplink.answer(request, {2: kf}.get)  # keyframe 33 (odometry's 3) is gone
+    assert [(m.kind, m.keyframe_id) for m in answered] == [(KIND_KEYFRAME, 32)]
+    assert uplink.answer(request, {2: kf}.get) == []  # latched: answered already
