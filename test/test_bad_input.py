@@ -63,9 +63,7 @@ def checksum(server: TeamServer) -> str:
         h.update(server.groups.T_root_map(robot).tobytes())
     h.update(repr(server.graph.edges()).encode())
     h.update(repr(server.groups.groups()).encode())
-    h.update(
-        repr([(m.robot_a, m.keyframe_a, m.robot_b, m.keyframe_b) for m in server.merges]).encode()
-    )
+    h.update(repr([(m.map_a, m.keyframe_a, m.map_b, m.keyframe_b) for m in server.merges]).encode())
     h.update(repr([(c.key_a, c.key_b) for c in server.constraints]).encode())
     return h.hexdigest()
 

@@ -8,6 +8,7 @@ import pytest
 
 from coop_slam.geometry import invert, se3, se3_from_quat, transform_error
 from coop_slam.team.global_ba import GlobalBaConfig, GlobalBaError, global_bundle_adjustment
+from coop_slam.team.keyframe_store import stored_keyframe
 from coop_slam.team.pose_graph import TeamPoseGraph
 from helpers import camera, cylinder_world, looking_out_pose, observe
 
@@ -27,7 +28,7 @@ def _team():
             rec = observe(
                 points, desc, T_world_cam, T_WORLD_MAP[robot], robot, k + 1, seed=k + 10 * robot
             )
-            records.append(rec)
+            records.append(stored_keyframe(rec, robot))  # (as the server holds it: map = robot)
             truth[(robot, k + 1)] = T_world_cam
     # observe() numbers map points by world point: the same id in both robots is one point.
     ids = set(records[0].map_point_ids.tolist())

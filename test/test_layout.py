@@ -17,7 +17,6 @@ SRC = os.path.join(REPO, "src")
 MAX_MODULE, MAX_NODE_MODULE, MAX_FUNCTION = 700, 400, 100
 # Still above the limits (lines today): to be split.
 OVER_MODULE = {
-    "team/pose_graph.py": 1120,
     "registration/sim3.py": 927,
     "tools/demo.py": 748,
     "synthetic/scenarios.py": 748,

@@ -91,8 +91,8 @@ def test_resume_after_a_crash_at_any_point_equals_an_uninterrupted_server(team, 
             out = resumed.add_keyframe(rec, session, seq)
             assert out.duplicate == (seq <= acked[rec.robot_id])
         assert poses_equal(resumed.server, whole.server)
-        assert [(m.robot_a, m.robot_b, m.keyframe_b) for m in resumed.server.merges] == [
-            (m.robot_a, m.robot_b, m.keyframe_b) for m in whole.server.merges
+        assert [(m.map_a, m.map_b, m.keyframe_b) for m in resumed.server.merges] == [
+            (m.map_a, m.map_b, m.keyframe_b) for m in whole.server.merges
         ]
         resumed.close()
     whole.close()
@@ -158,7 +158,7 @@ def test_save_and_load_into_a_later_session(team, tmp_path):
     merges = []
     for i, kf in enumerate(kfs_b):
         merges += second.add_keyframe(kf, 9, i + 1).merges
-    assert [(m.robot_a, m.robot_b) for m in merges] == [(1, 2)]
+    assert [(m.map_a, m.map_b) for m in merges] == [(1, 2)]
     # The new map file holds both sessions: it resumes alone.
     second.close()
     again = _durable(vocab, str(tmp_path / "day2.db"), robots=(2,), resume=True)

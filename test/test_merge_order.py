@@ -19,7 +19,7 @@ SINGLETONS = [[r] for r in range(1, 7)]
 
 def test_two_clusters_grow_independently():
     steps = plan_merge_steps(TWO_CLUSTERS, SINGLETONS, min_matches=5)
-    assert [(s.robot_a, s.robot_b) for s in steps] == [(1, 2), (4, 5), (2, 3), (5, 6)]
+    assert [(s.map_a, s.map_b) for s in steps] == [(1, 2), (4, 5), (2, 3), (5, 6)]
     # Merged groups re-enter as one candidate with summed counts: {1,2}-3 = 30 + 10.
     assert [s.matches for s in steps] == [50, 45, 40, 37]
     assert steps[2].group_a == [1, 2] and steps[2].group_b == [3]
@@ -33,7 +33,7 @@ def test_link_between_clusters_merges_them_last():
     steps = plan_merge_steps(counts, SINGLETONS, min_matches=5)
     assert len(steps) == 5
     last = steps[-1]
-    assert (last.robot_a, last.robot_b) == (3, 4) and last.matches == 12
+    assert (last.map_a, last.map_b) == (3, 4) and last.matches == 12
     assert last.group == [1, 2, 3, 4, 5, 6]
 
 

@@ -14,10 +14,8 @@ from coop_slam.team.pose_graph import (
     PoseGraphConfig,
     PoseGraphError,
     TeamPoseGraph,
-    bench_full_optimization,
-    build_graph,
-    synthetic_team,
 )
+from coop_slam.team.synthetic_team import bench_full_optimization, build_graph, synthetic_team
 
 N_KF = 60
 

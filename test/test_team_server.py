@@ -41,7 +41,7 @@ def test_revisit_merges_with_the_true_transform(world):
         merges += server.add_keyframe(kf)
     assert len(merges) == 1
     m = merges[0]
-    assert (m.robot_a, m.robot_b, m.type) == (1, 2, "place_recognition")
+    assert (m.map_a, m.map_b, m.type) == (1, 2, "place_recognition")
     dt, dr = transform_error(m.T_mapA_mapB, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[2])
     assert dt < 0.02 and dr < 0.5
     assert server.groups.groups() == [[1, 2]]
@@ -142,7 +142,9 @@ def test_robot_position_between_keyframes_is_known_only_across_short_gaps(world)
     p0, p1 = (kf.T_map_cam[:3, 3] for kf in kfs[:2])
 
     def position_at(robot, segment, stamp_s):
-        return interpolate_track(*track(server.store.segment_records(robot, segment)), stamp_s)
+        map_id = server.segments.find(robot, segment)
+        records = server.store.map_records(map_id) if map_id is not None else []
+        return interpolate_track(*track(records), stamp_s)
 
     np.testing.assert_allclose(position_at(1, 0, 0.25), 0.75 * p0 + 0.25 * p1)
     np.testing.assert_allclose(position_at(1, 0, 1.0), p1)
@@ -291,7 +293,7 @@ def test_three_robots_end_in_one_group(world):
     ):
         server.add_keyframe(kf)
     assert server.groups.groups() == [[1, 2, 3]]
-    assert [(m.robot_a, m.robot_b) for m in server.merges] == [(1, 3), (2, 3)]
+    assert [(m.map_a, m.map_b) for m in server.merges] == [(1, 3), (2, 3)]
     for r in (2, 3):
         T, merged = server.T_group_map(r), server.in_world(r)
         dt, dr = transform_error(T, invert(T_WORLD_MAP[1]) @ T_WORLD_MAP[r])

@@ -19,8 +19,7 @@ import numpy as np
 from ..bow.vocabulary import BowVector
 from ..config import require
 from ..geometry import invert, transform_points
-
-Key = tuple[int, int]  # (map id, keyframe id)
+from ..ids import KeyframeKey
 
 
 @dataclass
@@ -43,7 +42,7 @@ class LocalMap:
     points_map: np.ndarray  # (M, 3) float32
     descriptors: np.ndarray  # (M, 32) uint8: the observing keyframe's descriptor of each point
     octaves: np.ndarray  # (M,) uint8: that keypoint's pyramid level
-    keyframes: list[Key] = field(default_factory=list)  # where they come from, best first
+    keyframes: list[KeyframeKey] = field(default_factory=list)  # where they come from, best first
     score: float = 0.0  # BoW score of the best keyframe against the robot's view
 
 

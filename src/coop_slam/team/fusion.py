@@ -47,20 +47,21 @@ def robot_colours(robot_ids) -> np.ndarray:
 
 
 def gather_map_points(
-    records, T_view_map, per_keyframe: bool = False
+    records, T_view_map, per_keyframe: bool = False, map_of=lambda rec: rec.robot_id
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(points (N, 3), robot_ids (N,), point_ids (N,)) from keyframe records, each robot's map
-    points moved into the frame shown by ``T_view_map(robot_id)`` (a callable or a dict); with
-    ``per_keyframe`` the callable takes the record instead, so a pose graph that bent a robot's
-    trajectory moves each keyframe's points with its own keyframe. A map point seen by several
-    keyframes of a robot appears once, at its position in the latest of them."""
+    """(points (N, 3), map ids (N,), point_ids (N,)) from keyframe records, each map's points
+    moved into the frame shown by ``T_view_map(map id)`` (a callable or a dict); ``map_of(rec)``
+    a record's map (a client's: its robot; the server's: its map id). With ``per_keyframe`` the
+    callable takes the record instead, so a pose graph that bent a robot's trajectory moves each
+    keyframe's points with its own keyframe. A map point seen by several keyframes of a map
+    appears once, at its position in the latest of them."""
     lookup = T_view_map if callable(T_view_map) else T_view_map.__getitem__
     chunks, robots, ids, order = [], [], [], []
     for rec in records:
         pid = rec.map_point_ids[rec.map_point_ids != 0].astype(np.int64)
-        T = lookup(rec) if per_keyframe else lookup(rec.robot_id)
+        T = lookup(rec) if per_keyframe else lookup(map_of(rec))
         chunks.append(transform_points(T, rec.map_points))
-        robots.append(np.full(len(pid), rec.robot_id, np.int64))
+        robots.append(np.full(len(pid), map_of(rec), np.int64))
         ids.append(pid)
         order.append(np.full(len(pid), rec.keyframe_id, np.int64))
     if not chunks:

@@ -1,7 +1,7 @@
 """Global bundle adjustment of a merged group: every keyframe pose and map point of the group's
 robots, in the group frame, refined together (GTSAM, through the client's BA solver).
 
-Landmarks are the robots' map points, keyed ``(robot_id, map_point_id)``. Points that the server
+Landmarks are the maps' points, keyed ``(map_id, map_point_id)``. Points that the server
 matched across keyframes (merge and loop inliers) are *linked* and become one landmark, so the
 maps are tied together by shared points, not only by the pose-graph constraints. Observations and
 factors are those of :func:`coop_slam.vo.local_ba.run_local_ba` (stereo-like factor from depth,
@@ -26,7 +26,6 @@ from ..errors import CoopSlamError
 from ..geometry import invert, se3, transform_points
 from ..optim.bundle import BaProblem, run_local_ba
 
-Key = tuple[int, int]  # (robot_id, keyframe_id)
 Landmark = tuple[int, int]  # (robot_id, map_point_id)
 
 
@@ -93,7 +92,7 @@ class GlobalBaConfig:
 
 @dataclass
 class GlobalBaResult:
-    poses: dict  # Key -> refined T_group_cam
+    poses: dict  # KeyframeKey -> refined T_group_cam
     keyframes: int
     points: int
     observations: int
@@ -102,7 +101,7 @@ class GlobalBaResult:
     rms_before: float  # RMS reprojection error [px] of the inlier observations, before
     rms_after: float  # ... and after (robust: the 95 % best observations)
     time_ms: float
-    # Key -> component: keyframes tied by shared map points, directly or through others
+    # KeyframeKey -> component: keyframes tied by shared map points, directly or through others
     # (component 0 holds the fixed keyframe when it is in the group; each other one is held at
     # its first keyframe).
     components: dict = field(default_factory=dict)
@@ -223,7 +222,7 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
     lm = _Landmarks()
     for a, b in links:
         lm.union(tuple(a), tuple(b))
-    keys = [(r.robot_id, r.keyframe_id) for r in records]
+    keys = [(r.map_id, r.keyframe_id) for r in records]
     # Observations (keyframe index, landmark root, keypoint index) and a position per landmark.
     obs, seen_by, position = [], {}, {}
     for k, r in enumerate(records):
@@ -232,7 +231,7 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
         idx = np.flatnonzero(r.map_point_ids)
         points_group = transform_points(T_group_map, r.map_points_per_keypoint()[idx])
         for i, p in zip(idx.tolist(), points_group):
-            root = lm.find((r.robot_id, int(r.map_point_ids[i])))
+            root = lm.find((r.map_id, int(r.map_point_ids[i])))
             obs.append((k, root, i))
             seen_by.setdefault(root, set()).add(k)
             if np.all(np.isfinite(p)):
@@ -317,13 +316,14 @@ def global_bundle_adjustment(
     fixed: set | None = None,
     config: GlobalBaConfig | None = None,
 ) -> GlobalBaResult:
-    """Refine the poses of ``records`` (keyframes of one group, initial poses ``T_group_cam``) and
+    """Refine the poses of ``records`` (stored keyframes of one group, keyed by their map: initial
+    poses ``T_group_cam``) and
     their map points; ``links`` are pairs of landmarks that are one physical point; ``fixed``
     keys hold the gauge (default: the first record's keyframe)."""
     config = config or GlobalBaConfig()
     config.validate()
     if not fixed and records:
-        fixed = {(records[0].robot_id, records[0].keyframe_id)}
+        fixed = {(records[0].map_id, records[0].keyframe_id)}
     problem, keys, n_points, components = build_problem(records, T_group_cam, links, fixed, config)
     res = run_local_ba(problem)
     if not res.ok:

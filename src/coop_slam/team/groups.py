@@ -1,8 +1,8 @@
-"""Merged groups of robot maps (union-find) and the chaining that turns one accepted keyframe-to-
+"""Merged groups of maps (union-find) and the chaining that turns one accepted keyframe-to-
 keyframe constraint into a map-to-map transform.
 
-Each group's frame is the map of its smallest robot id, so the group holding robot 1 (the master)
-is expressed in robot 1's map, which the server publishes as ``world``.
+Each group's frame is the map with its smallest map id, so the group holding robot 1 (the master)
+is expressed in robot 1's first map, which the server publishes as ``world``.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ import numpy as np
 
 from ..errors import CoopSlamError, GeometryError
 from ..geometry import check_se3, invert
+from ..ids import MapId
 
 
 class GroupError(CoopSlamError):
@@ -25,48 +26,48 @@ def chain_map_transform(
 
 
 class MergeGroups:
-    """Union-find over robot ids with, for each robot, ``T_root_map``: its map in its group's
-    frame."""
+    """Union-find over map ids (see coop_slam.ids) with, for each map, ``T_root_map``: the map in
+    its group's frame. It starts with the robots' first maps (map id = robot id)."""
 
-    def __init__(self, robot_ids=()):
+    def __init__(self, map_ids=()):
         self._parent: dict[int, int] = {}
         self._T_root_map: dict[int, np.ndarray] = {}
-        for rid in robot_ids:
-            self.add_robot(rid)
+        for mid in map_ids:
+            self.add_map(mid)
 
-    def add_robot(self, robot_id: int) -> None:
-        if robot_id not in self._parent:
-            self._parent[robot_id] = robot_id
-            self._T_root_map[robot_id] = np.eye(4)
+    def add_map(self, map_id: MapId) -> None:
+        if map_id not in self._parent:
+            self._parent[map_id] = map_id
+            self._T_root_map[map_id] = np.eye(4)
 
-    def _check(self, robot_id: int) -> None:
-        if robot_id not in self._parent:
-            raise GroupError(f"robot {robot_id} is unknown to the team map (known: {self.robots})")
+    def _check(self, map_id: int) -> None:
+        if map_id not in self._parent:
+            raise GroupError(f"robot {map_id} is unknown to the team map (known: {self.robots})")
 
     @property
     def robots(self) -> list[int]:
         return sorted(self._parent)
 
-    def root(self, robot_id: int) -> int:
-        self._check(robot_id)
+    def root(self, map_id: int) -> int:
+        self._check(map_id)
         # Groups are re-rooted eagerly in merge(), so every robot points at its root directly.
-        return self._parent[robot_id]
+        return self._parent[map_id]
 
     def same_group(self, a: int, b: int) -> bool:
         return self.root(a) == self.root(b)
 
-    def members(self, robot_id: int) -> list[int]:
-        r = self.root(robot_id)
+    def members(self, map_id: int) -> list[int]:
+        r = self.root(map_id)
         return sorted(k for k, p in self._parent.items() if p == r)
 
     def groups(self) -> list[list[int]]:
         roots = sorted({p for p in self._parent.values()})
         return [self.members(r) for r in roots]
 
-    def T_root_map(self, robot_id: int) -> np.ndarray:
+    def T_root_map(self, map_id: int) -> np.ndarray:
         """Robot's map expressed in its group's frame (identity for a group root)."""
-        self._check(robot_id)
-        return self._T_root_map[robot_id].copy()
+        self._check(map_id)
+        return self._T_root_map[map_id].copy()
 
     def T_mapA_mapB(self, a: int, b: int) -> np.ndarray:
         """Current transform between two robots' maps; they must be in one group."""
@@ -96,10 +97,10 @@ class MergeGroups:
                 self._T_root_map[rid] = T_new_old @ self._T_root_map[rid]
         return self.members(new_root)
 
-    def set_T_root_map(self, robot_id: int, T_root_map: np.ndarray) -> None:
+    def set_T_root_map(self, map_id: int, T_root_map: np.ndarray) -> None:
         """Replace a robot's transform after global optimization (group membership unchanged)."""
-        self._check(robot_id)
+        self._check(map_id)
         try:
-            self._T_root_map[robot_id] = check_se3(T_root_map, f"T_root_map of robot {robot_id}")
+            self._T_root_map[map_id] = check_se3(T_root_map, f"T_root_map of robot {map_id}")
         except GeometryError as exc:
             raise GroupError(str(exc)) from None

@@ -1,12 +1,15 @@
-"""The server's keyframe store: every robot's current keyframes, their BoW vectors in the team
-keyframe database, and the lookups the stitching stages share (by robot, by time, a robot's track).
+"""The server's keyframe store: every map's current keyframes, their BoW vectors in the team
+keyframe database, and the lookups the stitching stages share (by map, by time, a map's track).
 
-Keys are ``(robot_id, keyframe_id)``. A keyframe's BoW vector is computed once, when it arrives as
-new: local-BA updates move its pose and points, never its descriptors.
+A stored keyframe (:class:`StoredKeyframe`) is the client's record with the map it belongs to on
+the server (its robot's map segment, see :mod:`coop_slam.ids`); keys are ``(map_id,
+keyframe_id)``. A keyframe's BoW vector is computed once, when it arrives as new: local-BA updates
+move its pose and points, never its descriptors.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,15 +17,32 @@ import numpy as np
 from ..bow import Vocabulary
 from ..bow.database import DatabaseConfig, KeyframeDatabase
 from ..bow.vocabulary import BowVector
+from ..ids import KeyframeKey, MapId
 from ..registration.keyframe_view import KeyframeView
 from ..wire.record import KeyframeRecord
 
-Key = tuple[int, int]  # (robot_id, keyframe_id)
+
+@dataclass
+class StoredKeyframe(KeyframeRecord):
+    """A keyframe as the server holds it: the client's record (``robot_id`` its robot's) and the
+    map it belongs to on the server."""
+
+    map_id: MapId = MapId(0)
+
+    @property
+    def key(self) -> KeyframeKey:
+        return (self.map_id, self.keyframe_id)
+
+
+def stored_keyframe(rec: KeyframeRecord, map_id: MapId) -> StoredKeyframe:
+    """``rec`` as the keyframe of map ``map_id`` (its arrays shared, not copied)."""
+    fields = {f.name: getattr(rec, f.name) for f in dataclasses.fields(KeyframeRecord)}
+    return StoredKeyframe(**fields, map_id=map_id)
 
 
 @dataclass
 class _Stored:
-    record: KeyframeRecord
+    record: StoredKeyframe
     view: KeyframeView | None = None  # built on first use by a registration
 
 
@@ -32,23 +52,22 @@ class KeyframeStore:
     def __init__(self, vocabulary: Vocabulary, database: DatabaseConfig):
         self.vocabulary = vocabulary
         self.database = KeyframeDatabase(database)
-        self._stored: dict[Key, _Stored] = {}
+        self._stored: dict[KeyframeKey, _Stored] = {}
 
     # --- changes ----------------------------------------------------------------------------------
-    def add(self, rec: KeyframeRecord) -> tuple[BowVector, list[Key]]:
+    def add(self, rec: StoredKeyframe) -> tuple[BowVector, list[KeyframeKey]]:
         """Store a new keyframe and index it; returns its BoW vector and covisible keys."""
-        key = (rec.robot_id, rec.keyframe_id)
         bow, _ = self.vocabulary.transform(rec.descriptors)
-        covisible = [(rec.robot_id, int(k)) for k in rec.covisible_ids]
-        self._stored[key] = _Stored(rec)
-        self.database.add(rec.robot_id, rec.keyframe_id, bow, covisible)
+        covisible = [(rec.map_id, int(k)) for k in rec.covisible_ids]
+        self._stored[rec.key] = _Stored(rec)
+        self.database.add(rec.map_id, rec.keyframe_id, bow, covisible)
         return bow, covisible
 
-    def update(self, rec: KeyframeRecord) -> None:
+    def update(self, rec: StoredKeyframe) -> None:
         """A stored keyframe's new pose and points (its place in the arrival order stays)."""
-        self._stored[(rec.robot_id, rec.keyframe_id)] = _Stored(rec)
+        self._stored[rec.key] = _Stored(rec)
 
-    def remove(self, key: Key) -> bool:
+    def remove(self, key: KeyframeKey) -> bool:
         """Forget a keyframe; whether it was stored."""
         if key not in self._stored:
             return False
@@ -57,27 +76,27 @@ class KeyframeStore:
         return True
 
     # --- lookups ----------------------------------------------------------------------------------
-    def __contains__(self, key: Key) -> bool:
+    def __contains__(self, key: KeyframeKey) -> bool:
         return key in self._stored
 
     def __len__(self) -> int:
         return len(self._stored)
 
-    def keys(self) -> list[Key]:
+    def keys(self) -> list[KeyframeKey]:
         """Every stored key, in arrival order."""
         return list(self._stored)
 
-    def records(self) -> list[KeyframeRecord]:
+    def records(self) -> list[StoredKeyframe]:
         """Every stored keyframe, in arrival order."""
         return [s.record for s in self._stored.values()]
 
-    def record(self, key: Key) -> KeyframeRecord:
+    def record(self, key: KeyframeKey) -> StoredKeyframe:
         return self._stored[key].record
 
-    def stamp(self, key: Key) -> float:
+    def stamp(self, key: KeyframeKey) -> float:
         return self._stored[key].record.stamp_s
 
-    def view(self, key: Key) -> KeyframeView:
+    def view(self, key: KeyframeKey) -> KeyframeView:
         """The keyframe as registration sees it (keypoints, descriptors, intrinsics, 3D points:
         from depth, or a monocular keyframe's from its map points, in its map's units)."""
         stored = self._stored[key]
@@ -91,36 +110,32 @@ class KeyframeStore:
                 stored.view = KeyframeView(r.uv_px, r.descriptors, r.depths_m, r.camera.K)
         return stored.view
 
-    def is_mono(self, key: Key) -> bool:
+    def is_mono(self, key: KeyframeKey) -> bool:
         return is_mono(self._stored[key].record)
 
-    def bow(self, key: Key) -> BowVector:
+    def bow(self, key: KeyframeKey) -> BowVector:
         return self.database.bow(*key)
 
-    def robots(self) -> list[int]:
-        """Robots with at least one stored keyframe."""
-        return sorted({r for r, _ in self._stored})
+    def maps(self) -> list[MapId]:
+        """Maps with at least one stored keyframe."""
+        return sorted({m for m, _ in self._stored})
 
-    def keyframe_ids(self, robot_id: int) -> list[int]:
-        return sorted(k for (r, k) in self._stored if r == robot_id)
+    def keyframe_ids(self, map_id: MapId) -> list[int]:
+        return sorted(k for (m, k) in self._stored if m == map_id)
 
-    def latest_stamp(self, robot_id: int) -> float | None:
+    def latest_stamp(self, map_id: MapId) -> float | None:
         return max(
-            (s.record.stamp_s for k, s in self._stored.items() if k[0] == robot_id), default=None
+            (s.record.stamp_s for k, s in self._stored.items() if k[0] == map_id), default=None
         )
 
-    def segment_records(self, robot_id: int, map_segment: int) -> list[KeyframeRecord]:
-        """A robot's keyframes of one map segment, in arrival order."""
-        return [
-            s.record
-            for k, s in self._stored.items()
-            if k[0] == robot_id and s.record.map_segment == map_segment
-        ]
+    def map_records(self, map_id: MapId) -> list[StoredKeyframe]:
+        """A map's keyframes, in arrival order."""
+        return [s.record for k, s in self._stored.items() if k[0] == map_id]
 
     def near_in_time(
-        self, robot_id: int, stamp_s: float, window_s: float, latest_fallback: bool = False
-    ) -> list[Key]:
-        """Keys of robot_id's keyframes within window_s of stamp_s, nearest first. A robot that
+        self, map_id: MapId, stamp_s: float, window_s: float, latest_fallback: bool = False
+    ) -> list[KeyframeKey]:
+        """Keys of a map's keyframes within window_s of stamp_s, nearest first. A robot that
         stands still makes no new keyframes: with ``latest_fallback`` its latest keyframe before
         the window stands for what it sees. Only for requests that bring their own cue (a marker
         sighting, an operator): for the automatic test, being seen at the same time is part of the
@@ -128,13 +143,13 @@ class KeyframeStore:
         keys = [
             (k, abs(s.record.stamp_s - stamp_s))
             for k, s in self._stored.items()
-            if k[0] == robot_id and abs(s.record.stamp_s - stamp_s) <= window_s
+            if k[0] == map_id and abs(s.record.stamp_s - stamp_s) <= window_s
         ]
         if not keys and latest_fallback:
             before = [
                 (k, s.record.stamp_s)
                 for k, s in self._stored.items()
-                if k[0] == robot_id and s.record.stamp_s < stamp_s
+                if k[0] == map_id and s.record.stamp_s < stamp_s
             ]
             return [max(before, key=lambda ks: ks[1])[0]] if before else []
         return [k for k, _ in sorted(keys, key=lambda kd: kd[1])]

@@ -33,11 +33,12 @@ import numpy as np
 from ..config import require
 from ..errors import CoopSlamError
 from ..geometry import invert
+from ..ids import KeyframeKey
 from ..registration.relative_pose import RegistrationConfig, RelativePoseResult, estimate_similarity
 from ..registration.sim3 import sim3_matrix
 from ..wire.record import KeyframeRecord
 from .groups import MergeGroups
-from .keyframe_store import Key, KeyframeStore, is_mono
+from .keyframe_store import KeyframeStore, is_mono
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +102,12 @@ def split_similarity(S: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def register_pair(
-    store: KeyframeStore, key_a: Key, key_b: Key, cfg: RegistrationConfig, rigid, **rigid_kw
+    store: KeyframeStore,
+    key_a: KeyframeKey,
+    key_b: KeyframeKey,
+    cfg: RegistrationConfig,
+    rigid,
+    **rigid_kw,
 ) -> RelativePoseResult:
     """Register two stored keyframes: a similarity when either is monocular (its map points in its
     map's units, a rigid estimate would carry the wrong length), else ``rigid(view_a, view_b, cfg,
@@ -129,7 +135,7 @@ class MapScales:
     def note(self, rec: KeyframeRecord) -> None:
         """A keyframe arrived: its camera says whether its robot's map has a metric scale."""
         if is_mono(rec):
-            self._mono.add(rec.robot_id)
+            self._mono.add(rec.map_id)
 
     def is_mono(self, robot_id: int) -> bool:
         return robot_id in self._mono
@@ -149,7 +155,7 @@ class MapScales:
 
     def to_stored(self, rec: KeyframeRecord) -> KeyframeRecord:
         """An incoming keyframe in the server's units for its robot."""
-        s = self.scale(rec.robot_id)
+        s = self.scale(rec.map_id)
         return rec if s == 1.0 else rescale_record(rec, s)
 
     def rescaled(self, robots, factor: float) -> None:
@@ -171,7 +177,9 @@ class MapScales:
             return "a", 1.0 / s_a_b
         return "b", s_a_b
 
-    def observe_link(self, key_a: Key, key_b: Key, s_a_b: float) -> tuple[int, float] | None:
+    def observe_link(
+        self, key_a: KeyframeKey, key_b: KeyframeKey, s_a_b: float
+    ) -> tuple[int, float] | None:
         """A verified similarity between keyframes of one metric group; returns ``(robot,
         factor)`` when the monocular robot of the pair is due a rescale (see the module doc)."""
         cfg = self.config

@@ -326,8 +326,8 @@ class MapStore:
                 "T_mapA_mapB, inliers, residual_px) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
                     m.type,
-                    m.robot_a,
-                    m.robot_b,
+                    m.map_a,
+                    m.map_b,
                     m.keyframe_a,
                     m.keyframe_b,
                     m.stamp_s,

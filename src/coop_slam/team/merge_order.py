@@ -22,8 +22,8 @@ class MergeOrderError(CoopSlamError):
 
 @dataclass
 class MergeStep:
-    robot_a: int  # robot of the reference group (smallest robot id of the two groups)
-    robot_b: int  # robot of the joining group; (robot_a, robot_b) has the most matches between them
+    map_a: int  # map of the reference group (smallest map id of the two groups)
+    map_b: int  # map of the joining group; (map_a, map_b) has the most matches between them
     matches: int  # summed matches between the two groups
     group_a: list[int]  # members before the merge
     group_b: list[int]
@@ -107,5 +107,5 @@ def plan_merge_steps(
 def plan_merges(
     match_counts: dict[tuple[int, int], int], groups: list[list[int]], min_matches: int = 1
 ) -> list[tuple[int, int]]:
-    """Ordered (robot_a, robot_b) merges; robot_a's group keeps its frame."""
-    return [(s.robot_a, s.robot_b) for s in plan_merge_steps(match_counts, groups, min_matches)]
+    """Ordered (map_a, map_b) merges; map_a's group keeps its frame."""
+    return [(s.map_a, s.map_b) for s in plan_merge_steps(match_counts, groups, min_matches)]

@@ -29,8 +29,9 @@ import numpy as np
 
 from ..config import require
 from ..geometry import invert, transform_error, transform_points
+from ..ids import KeyframeKey
 from ..registration.relative_pose import RegistrationConfig, estimate_3d3d
-from .keyframe_store import Key, KeyframeStore
+from .keyframe_store import KeyframeStore
 from .map_scale import register_pair
 from .results import TYPE_OVERLAP, Verified
 
@@ -103,29 +104,29 @@ class OverlapLinks:
         self,
         config: OverlapLinkConfig,
         store: KeyframeStore,
-        T_group_cam: Callable[[Key], np.ndarray],
+        T_group_cam: Callable[[KeyframeKey], np.ndarray],
     ):
         self.config = config
         self.store = store
         self._T_group_cam = T_group_cam
         self.verifications = 0
 
-    def _points(self, key: Key) -> np.ndarray:
+    def _points(self, key: KeyframeKey) -> np.ndarray:
         view = self.store.view(key)
         return view.points_cam[view.has_point]
 
-    def view_angle_deg(self, key_a: Key, key_b: Key) -> float:
+    def view_angle_deg(self, key_a: KeyframeKey, key_b: KeyframeKey) -> float:
         """Angle between two keyframes' optical axes at the current estimate [deg]."""
         cos = float(self._T_group_cam(key_a)[:3, 2] @ self._T_group_cam(key_b)[:3, 2])
         return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
     def best_partners(
         self,
-        key_b: Key,
-        candidates: Iterable[Key],
+        key_b: KeyframeKey,
+        candidates: Iterable[KeyframeKey],
         n: int = 1,
         max_angle_deg: float | None = None,
-    ) -> list[Key]:
+    ) -> list[KeyframeKey]:
         """Up to ``n`` of ``candidates`` that see most of keyframe b's scene, best first (each at
         least ``min_shared``, both ways; optical axes within ``max_angle_deg``, default
         ``max_view_angle_deg``)."""
@@ -166,7 +167,7 @@ class OverlapLinks:
         scored.sort(key=lambda sk: -sk[0])
         return [k for _, k in scored[:n]]
 
-    def verify(self, key_a: Key, key_b: Key, stamp_s: float) -> Verified | None:
+    def verify(self, key_a: KeyframeKey, key_b: KeyframeKey, stamp_s: float) -> Verified | None:
         """Registration of the pair seeded with the predicted relative pose; the verified match, or
         None when it fails or lies further than the gate from the prediction."""
         cfg = self.config
@@ -190,7 +191,7 @@ class OverlapLinks:
             return None
         return Verified(TYPE_OVERLAP, key_a, key_b, res, stamp_s)
 
-    def window(self, key: Key) -> list[Key]:
+    def window(self, key: KeyframeKey) -> list[KeyframeKey]:
         """The keyframe's covisible neighbours (same robot, stored), most covisible first, up to
         ``weld_window``."""
         rec = self.store.record(key)
@@ -204,8 +205,8 @@ class OverlapLinks:
 
     def weld(
         self,
-        key_a: Key,
-        key_b: Key,
+        key_a: KeyframeKey,
+        key_b: KeyframeKey,
         robots_a: set[int],
         robots_b: set[int],
         stamp_s: float,

@@ -13,14 +13,15 @@ from dataclasses import dataclass, field
 
 from ..bow.database import ConsistencyChecker, ConsistencyConfig
 from ..bow.vocabulary import BowVector
+from ..ids import KeyframeKey
 from ..registration.relative_pose import RelativePoseResult, estimate_pnp
 from ..wire.record import KeyframeRecord
 from .config import LoopClosureConfig, PlaceRecognitionConfig, RendezvousConfig
 from .groups import MergeGroups
-from .keyframe_store import Key, KeyframeStore
+from .keyframe_store import KeyframeStore
 from .map_scale import MapScales, register_pair
 from .plausibility import match_is_look_alike
-from .results import TYPE_PLACE_RECOGNITION, Verified, robot_pair
+from .results import TYPE_PLACE_RECOGNITION, Verified, map_pair
 
 log = logging.getLogger(__name__)
 
@@ -31,7 +32,7 @@ class PlaceMatches:
     merged), and consistent candidates inside the keyframe's own group (not yet verified)."""
 
     cross: list[Verified] = field(default_factory=list)
-    inner: list[Key] = field(default_factory=list)
+    inner: list[KeyframeKey] = field(default_factory=list)
     budget: int = 0  # verifications left for this keyframe
 
 
@@ -57,10 +58,12 @@ class PlaceRecognition:
         self.match_counts: dict[tuple[int, int], int] = {}  # robot pair -> keyframe matches
         self.verifications = 0
 
-    def query(self, rec: KeyframeRecord, bow: BowVector, covisible: list[Key]) -> PlaceMatches:
+    def query(
+        self, rec: KeyframeRecord, bow: BowVector, covisible: list[KeyframeKey]
+    ) -> PlaceMatches:
         """Consistent candidates of a new keyframe; those in other groups verified, best first,
         within ``max_verifications``."""
-        rb, key_b = rec.robot_id, (rec.robot_id, rec.keyframe_id)
+        rb, key_b = rec.map_id, rec.key
         candidates = [
             c
             for c in self.store.database.query(
@@ -80,7 +83,7 @@ class PlaceRecognition:
         cross = [k for k in consistent if not self.groups.same_group(k[0], rb)]
         found = PlaceMatches(inner=[k for k in consistent if self.groups.same_group(k[0], rb)])
         for k in cross:
-            pair = robot_pair(k[0], rb)
+            pair = map_pair(k[0], rb)
             self.match_counts[pair] = self.match_counts.get(pair, 0) + 1
         budget = self.config.max_verifications
         verified_roots = set()
@@ -113,7 +116,7 @@ class PlaceRecognition:
         found.budget = budget
         return found
 
-    def verify(self, key_a: Key, key_b: Key) -> RelativePoseResult:
+    def verify(self, key_a: KeyframeKey, key_b: KeyframeKey) -> RelativePoseResult:
         """PnP RANSAC of b's keypoints against a's points, refined by two-view BA; a similarity
         when either keyframe is monocular (PnP would give b's pose, not b's map's scale)."""
         self.verifications += 1

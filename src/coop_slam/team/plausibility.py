@@ -137,8 +137,8 @@ def is_look_alike(
     dt = abs(rec_a.stamp_s - rec_b.stamp_s)
     if config.min_separation_m <= 0 or key_a[0] == key_b[0] or dt > config.window_s:
         return False
-    segment_a = store.segment_records(rec_a.robot_id, rec_a.map_segment)
-    segment_b = store.segment_records(rec_b.robot_id, rec_b.map_segment)
+    segment_a = store.map_records(rec_a.map_id)
+    segment_b = store.map_records(rec_b.map_id)
     if s_a_b != 1.0:
         if into_b:
             factor = 1.0 / s_a_b

@@ -25,7 +25,7 @@ from ..bow.vocabulary import l1_score
 from ..config import require
 from ..wire.record import PlaceSignature
 
-Key = tuple[int, int]  # (robot_id, keyframe_id)
+RobotKey = tuple[int, int]  # (robot id, keyframe id): the pull planner works per robot
 
 
 @dataclass
@@ -69,18 +69,18 @@ class PullPlanner:
         self.db = KeyframeDatabase(database or DatabaseConfig())
         self.consistency = ConsistencyChecker(ConsistencyConfig(min_consecutive=min_consecutive))
         self.same_group = same_group or (lambda a, b: a == b)
-        self.held: set[Key] = set()  # keyframes the server holds whole
-        self.pending: dict[Key, float] = {}  # asked for, not arrived yet: when asked
+        self.held: set[RobotKey] = set()  # keyframes the server holds whole
+        self.pending: dict[RobotKey, float] = {}  # asked for, not arrived yet: when asked
         self._tokens: dict[int, tuple[float, float]] = {}  # robot -> (tokens, at)
         self._out: dict[int, list[int]] = {}  # robot -> keyframe ids to ask for
         self.requested = 0  # keyframes asked for
         self.timeouts = 0  # requests given up
         self.over_budget = 0  # consistent candidates left because a robot's budget was spent
-        self._last: dict[int, Key] = {}  # robot -> its newest keyframe's key
+        self._last: dict[int, RobotKey] = {}  # robot -> its newest keyframe's key
         self._together: dict[tuple[int, int], float] = {}  # robot pair -> when seen together
 
     # --- inputs -----------------------------------------------------------------------------------
-    def add(self, sig: PlaceSignature, now_s: float) -> list[Key]:
+    def add(self, sig: PlaceSignature, now_s: float) -> list[RobotKey]:
         """One new keyframe's signature; returns the keyframes this asks for (maybe none)."""
         self.expire(now_s)
         rec = sig.record
@@ -119,7 +119,7 @@ class PullPlanner:
                 return want
         return []
 
-    def ask_for_view(self, robot_id: int, bow, now_s: float) -> Key | None:
+    def ask_for_view(self, robot_id: int, bow, now_s: float) -> RobotKey | None:
         """A lost robot's view (server-assisted relocalization): the best-matching signature of
         the robots of its group. Asks for that keyframe when the server does not hold it (within
         the budget); returns its key while it is asked for, None when the server holds it (its
@@ -147,7 +147,7 @@ class PullPlanner:
         self._together[(int(robot_a), int(robot_b))] = now_s
         self._together[(int(robot_b), int(robot_a))] = now_s
 
-    def _ask(self, want: list[Key], now_s: float, force: bool = False) -> bool:
+    def _ask(self, want: list[RobotKey], now_s: float, force: bool = False) -> bool:
         """Ask for these keyframes if the robots' budgets allow all of them (``force``: in any
         case, the budgets going below zero)."""
         if not self._spend(want, now_s, force):
@@ -195,7 +195,7 @@ class PullPlanner:
         out, self._out = self._out, {}
         return out
 
-    def expire(self, now_s: float) -> list[Key]:
+    def expire(self, now_s: float) -> list[RobotKey]:
         """Requests older than ``timeout_s``, given up now (they may be asked for again)."""
         late = [k for k, t in self.pending.items() if now_s - t > self.config.timeout_s]
         for k in late:
@@ -203,7 +203,7 @@ class PullPlanner:
         self.timeouts += len(late)
         return late
 
-    def _spend(self, keys: list[Key], now_s: float, force: bool = False) -> bool:
+    def _spend(self, keys: list[RobotKey], now_s: float, force: bool = False) -> bool:
         """Take one token per keyframe from its robot's bucket, all or none."""
         rate = self.config.keyframes_per_min / 60.0
         burst = float(self.config.burst)

@@ -27,15 +27,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import transform_error
+from ..ids import KeyframeKey
 from ..registration.relative_pose import RelativePoseResult, estimate_3d3d
 from ..registration.sim3 import sim3_inverse, sim3_matrix
 from ..wire.record import KeyframeRecord
 from .config import RendezvousConfig
 from .groups import MergeGroups
-from .keyframe_store import Key, KeyframeStore
+from .keyframe_store import KeyframeStore
 from .map_scale import MapScales, chain_similarity, register_pair, split_similarity
 from .plausibility import match_is_look_alike
-from .results import TYPE_RENDEZVOUS, Verified, robot_pair
+from .results import TYPE_RENDEZVOUS, Verified, map_pair
 
 log = logging.getLogger(__name__)
 _CLOCK_RESET_S = 10.0  # a keyframe this much older than the newest seen restarts the budget's clock
@@ -86,7 +87,7 @@ class Rendezvous:
     def together(self, robot_a: int, robot_b: int, stamp_s: float) -> bool:
         """Whether a sighting / operator request put the two robots together shortly before
         (or after: keyframes reach the server late) stamp_s."""
-        cue = self._seen_together.get(robot_pair(robot_a, robot_b))
+        cue = self._seen_together.get(map_pair(robot_a, robot_b))
         return cue is not None and abs(stamp_s - cue) <= self.config.together_s
 
     def kind_of(self, v: Verified) -> str:
@@ -104,11 +105,11 @@ class Rendezvous:
         most ``auto_max_verifications`` 3D-3D verifications per keyframe: with eight robots every
         pair at every keyframe was most of the server's time; and at most
         ``auto_verifications_per_s`` over the team); the first verified match."""
-        key_b = (rec.robot_id, rec.keyframe_id)
+        key_b = rec.key
         bow_b = self.store.bow(key_b)
         candidates = []
         for other in self.groups.robots:
-            if self.groups.same_group(other, rec.robot_id):
+            if self.groups.same_group(other, rec.map_id):
                 continue
             keys = self.store.near_in_time(other, rec.stamp_s, self.config.window_s)[:2]
             if keys:
@@ -116,7 +117,7 @@ class Rendezvous:
                 candidates.append((-best, other, keys))
         budget = self.verifications + self._auto_budget(rec.stamp_s)
         for _, other, keys in sorted(candidates):
-            cued = self.together(other, rec.robot_id, rec.stamp_s)
+            cued = self.together(other, rec.map_id, rec.stamp_s)
             for key_a in keys:
                 if self.verifications >= budget:
                     return None
@@ -185,7 +186,13 @@ class Rendezvous:
         return True
 
     def _verify(
-        self, key_a: Key, key_b: Key, stamp_s: float, T_init=None, prior_sigma=None, confirm=False
+        self,
+        key_a: KeyframeKey,
+        key_b: KeyframeKey,
+        stamp_s: float,
+        T_init=None,
+        prior_sigma=None,
+        confirm=False,
     ) -> Verified | None:
         """3D-3D verification of one keyframe pair, with every acceptance rule of a merge."""
         cfg = self.config
@@ -238,7 +245,7 @@ class Rendezvous:
             if None in latest:
                 return None, "no keyframes yet from one of the robots"
             stamp_s = max(latest)  # now; a robot that stands still falls back to its latest
-        pair = robot_pair(robot_a, robot_b)
+        pair = map_pair(robot_a, robot_b)
         self._seen_together[pair] = max(stamp_s, self._seen_together.get(pair, stamp_s))
         near = self.store.near_in_time
         keys_a = near(robot_a, stamp_s, cfg.request_window_s, latest_fallback=True)
@@ -282,14 +289,14 @@ class Rendezvous:
         window = self.config.request_window_s
         for pair, request in list(self._open_requests.items()):
             if self.groups.same_group(request.robot_a, request.robot_b) or (
-                rec.robot_id in pair and rec.stamp_s > request.stamp_s + window
+                rec.map_id in pair and rec.stamp_s > request.stamp_s + window
             ):
                 del self._open_requests[pair]
                 continue
-            if rec.robot_id not in pair or abs(rec.stamp_s - request.stamp_s) > window:
+            if rec.map_id not in pair or abs(rec.stamp_s - request.stamp_s) > window:
                 continue
-            key_new = (rec.robot_id, rec.keyframe_id)
-            other = request.robot_b if rec.robot_id == request.robot_a else request.robot_a
+            key_new = rec.key
+            other = request.robot_b if rec.map_id == request.robot_a else request.robot_a
             # The other robot's views nearest the cue, and nearest this keyframe (what it saw at
             # the same moment: keyframes reach the server a while after they were made, so the
             # ones nearest the cue can be older than this one).
@@ -300,7 +307,7 @@ class Rendezvous:
                     + near(other, request.stamp_s, window, latest_fallback=True)[:3]
                 )
             )
-            if rec.robot_id == request.robot_a:
+            if rec.map_id == request.robot_a:
                 v = self._verify_request(request, [key_new], keys_other, len(keys_other))
             else:
                 v = self._verify_request(request, keys_other, [key_new], len(keys_other))

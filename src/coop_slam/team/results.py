@@ -7,10 +7,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..ids import KeyframeKey, MapId
 from ..registration.relative_pose import RelativePoseResult
-from .pose_graph import KIND_LOOP
 
-TYPE_LOOP = KIND_LOOP  # a robot's own loop closure (a loop factor in the pose graph)
+TYPE_LOOP = "loop"  # a robot's own loop closure (a loop factor in the pose graph)
 
 TYPE_PLACE_RECOGNITION = "place_recognition"
 TYPE_RENDEZVOUS = "rendezvous"
@@ -19,8 +19,6 @@ TYPE_OVERLAP = "overlap"
 # a constraint between two robots already in one group, as a merge event (whatever found it)
 TYPE_LINK = "link"
 
-Key = tuple[int, int]  # (robot_id, keyframe_id)
-
 
 @dataclass
 class Verified:
@@ -28,8 +26,8 @@ class Verified:
     not yet a merge or a constraint. ``kind`` is what found it (a TYPE_*)."""
 
     kind: str
-    key_a: Key
-    key_b: Key
+    key_a: KeyframeKey
+    key_b: KeyframeKey
     result: RelativePoseResult
     stamp_s: float  # when the match became possible (the later keyframe or cue)
 
@@ -37,8 +35,8 @@ class Verified:
 @dataclass
 class MergeResult:
     type: str
-    robot_a: int  # reference robot (its group's frame is kept)
-    robot_b: int
+    map_a: MapId  # reference map (its group's frame is kept)
+    map_b: MapId
     keyframe_a: int
     keyframe_b: int
     stamp_s: float  # stamp of the keyframe that triggered the merge
@@ -61,14 +59,14 @@ class ConstraintResult:
     between two merged robots."""
 
     type: str
-    key_a: Key
-    key_b: Key
+    key_a: KeyframeKey
+    key_b: KeyframeKey
     stamp_s: float
     T_camA_camB: np.ndarray
     inliers: int
     residual_px: float
 
 
-def robot_pair(a: int, b: int) -> tuple[int, int]:
+def map_pair(a: MapId, b: MapId) -> tuple[MapId, MapId]:
     """A robot pair as the key of pair tables (match counts, pending merges, cues)."""
     return (min(a, b), max(a, b))

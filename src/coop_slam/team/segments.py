@@ -13,9 +13,7 @@ its segments in that map's group.
 from __future__ import annotations
 
 from ..errors import CoopSlamError
-
-# gtsam.Symbol keys a map by one byte above 'a' (see .pose_graph)
-MAX_MAP_ID = 255 - ord("a")
+from ..ids import MAX_MAP_ID, MapId, RobotId
 
 
 class SegmentError(CoopSlamError):
@@ -30,7 +28,7 @@ class MapSegments:
         self._current: dict[int, int] = {}  # robot -> map id of its newest segment
         self._next = max(self.robots, default=0) + 1
 
-    def map_id(self, robot_id: int, segment: int) -> tuple[int, bool]:
+    def map_id(self, robot_id: RobotId, segment: int) -> tuple[MapId, bool]:
         """The map id of a robot's segment, and whether it is new."""
         key = (int(robot_id), int(segment))
         if key in self._ids:
@@ -50,19 +48,19 @@ class MapSegments:
             self._current[int(robot_id)] = mid
         return mid, True
 
-    def find(self, robot_id: int, segment: int) -> int | None:
+    def find(self, robot_id: RobotId, segment: int) -> MapId | None:
         """The map id of a robot's segment, None when it has not been seen."""
         return self._ids.get((int(robot_id), int(segment)))
 
-    def robot_of(self, map_id: int) -> int:
+    def robot_of(self, map_id: MapId) -> RobotId:
         return self._robot.get(int(map_id), int(map_id))
 
-    def current(self, robot_id: int) -> int:
+    def current(self, robot_id: RobotId) -> MapId:
         """The map id of the robot's newest segment (its id before it sent anything)."""
         return self._current.get(int(robot_id), int(robot_id))
 
-    def maps_of(self, robot_id: int) -> list[int]:
+    def maps_of(self, robot_id: RobotId) -> list[MapId]:
         return sorted(m for m, r in self._robot.items() if r == robot_id) or [int(robot_id)]
 
-    def segment_of(self, map_id: int) -> int:
+    def segment_of(self, map_id: MapId) -> int:
         return next((s for (r, s), m in self._ids.items() if m == map_id), 0)

@@ -13,7 +13,8 @@ The data flow, one module per stage:
 
 Monocular robots' maps have a scale of their own (:mod:`.map_scale`): matches involving one are
 similarities, a merge rescales the side without metric scale, and the server converts the robot's
-keyframes to its group's units as they arrive, so stages 3-5 stay rigid.
+keyframes to its group's units as they arrive, so stages 3-5 stay rigid; every change of a map's
+scale goes through :mod:`.scale_keeper`.
 
 :class:`TeamServer` runs them in that order for each keyframe. A group's frame is the map of its
 smallest robot; the group holding the team's smallest robot id is the one published as ``world``.
@@ -21,7 +22,6 @@ smallest robot; the group holding the team's smallest robot id is the one publis
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import logging
 import time
@@ -32,20 +32,20 @@ import numpy as np
 from ..bow import Vocabulary
 from ..errors import CoopSlamError
 from ..geometry import invert
+from ..ids import MapId, RobotId
 from ..wire.record import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE, KeyframeRecord
 from .config import ServerConfig
 from .global_ba import GlobalBaError, GlobalBaResult, count_observations, global_bundle_adjustment
 from .groups import MergeGroups
-from .keyframe_store import KeyframeStore, track
-from .map_scale import MapScales, rescale_record, scale_translation
-from .marker_scale import MarkerScale
+from .keyframe_store import KeyframeStore, StoredKeyframe, stored_keyframe
+from .map_scale import rescale_record, scale_translation
 from .overlap_links import OverlapLinks
 from .place_recognition import PlaceRecognition
-from .plausibility import interpolate_track
 from .pose_feedback import PoseFeedback
 from .pose_graph import PoseGraphError, TeamPoseGraph
 from .rendezvous import Rendezvous
-from .results import TYPE_PLACE_RECOGNITION, MergeResult, Verified, robot_pair
+from .results import TYPE_PLACE_RECOGNITION, MergeResult, Verified, map_pair
+from .scale_keeper import ScaleKeeper
 from .segments import MapSegments
 from .stitching import Stitcher, graph_call
 from .view import build_cloud, cloud_snapshot, team_paths_and_edges, view_offsets
@@ -73,9 +73,16 @@ class TeamServer:
         self.store = KeyframeStore(vocabulary, config.place_recognition.database)
         self.graph = TeamPoseGraph(config.pose_graph)
         self._kf_count: dict[int, int] = {}  # keyframes received per robot
-        self.scales = MapScales(config.map_scale, self.groups)
-        self.marker_scale = MarkerScale(config.marker_scale)
-        self._due_rescale: dict[int, float] = {}  # robot -> factor its links asked for
+        # Monocular maps' scales: every change to them goes through the keeper.
+        self.scale_keeper = ScaleKeeper(
+            config.map_scale,
+            config.marker_scale,
+            self.store,
+            self.graph,
+            self.groups,
+            self.map_name,
+        )
+        self.scales = self.scale_keeper.scales  # (read only: which maps are monocular, metric)
         self.links = OverlapLinks(config.links, self.store, lambda key: self.T_group_cam(*key))
         self.stitcher = Stitcher(
             config.loops,
@@ -84,8 +91,8 @@ class TeamServer:
             self.graph,
             lambda robot: self._kf_count.get(robot, 0),
             self.links,
-            self._prepare_merge,
-            self._observe_constraint,
+            self.scale_keeper.prepare_merge,
+            self.scale_keeper.observe_link,
             self.map_name,
         )
         self.rendezvous = Rendezvous(config.rendezvous, self.store, self.groups, self.scales)
@@ -136,12 +143,11 @@ class TeamServer:
         t0 = time.perf_counter()
         self.map_moved = False
         rec.validate(self.known_robots)
-        rec = self._to_map_id(rec)
-        key = (rec.robot_id, rec.keyframe_id)
+        rec = self._stored(rec)
+        key = rec.key
         merges: list[MergeResult] = []
         if rec.action != ACTION_REMOVE:
-            self.scales.note(rec)
-            rec = self.scales.to_stored(rec)
+            rec = self.scale_keeper.note(rec)
         if rec.action == ACTION_REMOVE:
             if self.store.remove(key):
                 graph_call(self.graph.remove_keyframe, *key)
@@ -152,24 +158,22 @@ class TeamServer:
         elif rec.action in (ACTION_NEW, ACTION_UPDATE):
             if key in self.store:
                 raise ServerError(
-                    f"keyframe {rec.keyframe_id} of robot {rec.robot_id} was "
+                    f"keyframe {rec.keyframe_id} of {self.map_name(rec.map_id)} was "
                     "already received as new"
                 )
             bow, covisible = self.store.add(rec)
             graph_call(
                 self.graph.add_keyframe,
-                rec.robot_id,
+                rec.map_id,
                 rec.keyframe_id,
                 rec.T_map_cam,
-                self.groups.T_root_map(rec.robot_id),
+                self.groups.T_root_map(rec.map_id),
                 [int(k) for k in rec.covisible_ids],
             )
-            self._kf_count[rec.robot_id] = self._kf_count.get(rec.robot_id, 0) + 1
+            self._kf_count[rec.map_id] = self._kf_count.get(rec.map_id, 0) + 1
             merges = self._stitch(rec, bow, covisible)
-        for robot, factor in self._due_rescale.items():
-            self._rescale([robot], factor, about_maps=True)
+        if self.scale_keeper.apply_due():
             self.stitcher.need_full = True
-        self._due_rescale.clear()
         if rec.action == ACTION_UPDATE:
             self._updates_since += 1
         else:
@@ -186,11 +190,11 @@ class TeamServer:
         self.keyframe_ms.append(1e3 * (time.perf_counter() - t0))
         return merges
 
-    def _to_map_id(self, rec: KeyframeRecord) -> KeyframeRecord:
-        """The keyframe with its robot id replaced by its map segment's map id."""
+    def _stored(self, rec: KeyframeRecord) -> StoredKeyframe:
+        """The keyframe as the keyframe of its robot's map segment's map."""
         mid, new = self.segments.map_id(rec.robot_id, rec.map_segment)
         if new and mid != rec.robot_id:
-            self.groups.add_robot(mid)
+            self.groups.add_map(mid)
             log.warning(
                 "robot %d started map segment %d (tracking lost for good, or a restarted "
                 "client): a new map (map id %d) until it merges with the team map again",
@@ -198,13 +202,13 @@ class TeamServer:
                 rec.map_segment,
                 mid,
             )
-        return rec if mid == rec.robot_id else dataclasses.replace(rec, robot_id=mid)
+        return stored_keyframe(rec, mid)
 
-    def robot_of(self, map_id: int) -> int:
+    def robot_of(self, map_id: MapId) -> RobotId:
         """The robot a map id belongs to (see .segments)."""
         return self.segments.robot_of(map_id)
 
-    def stored_record(self, robot_id: int, segment: int, keyframe_id: int):
+    def stored_record(self, robot_id: RobotId, segment: int, keyframe_id: int):
         """The keyframe as stored, in the robot's own units as it sent it (None when the server
         does not hold it): what a delta update, or a keyframe sharing its descriptors, leaves out
         comes from here. (The server stores a monocular map's keyframes in the units of the group
@@ -216,18 +220,18 @@ class TeamServer:
         rec, s = self.store.record(key), self.scales.scale(mid)
         return rec if s == 1.0 else rescale_record(rec, 1.0 / s)
 
-    def map_name(self, map_id: int) -> str:
+    def map_name(self, map_id: MapId) -> str:
         """A map id as the user knows it: ``robot 2``, ``robot 2 (map segment 1)``."""
         robot = self.robot_of(map_id)
         if map_id == robot:
             return f"robot {robot}"
         return f"robot {robot} (map segment {self.segments.segment_of(map_id)})"
 
-    def current_map(self, robot_id: int) -> int:
+    def current_map(self, robot_id: RobotId) -> MapId:
         """The map id of a robot's newest map segment (the map its client works in now)."""
         return self.segments.current(robot_id)
 
-    def robot_keyframes(self, robot_id: int) -> dict[int, tuple[float, np.ndarray]]:
+    def robot_keyframes(self, robot_id: RobotId) -> dict[int, tuple[float, np.ndarray]]:
         """keyframe id -> (stamp_s, T_group_cam) of a robot's keyframes in the group of its
         newest segment (older segments not merged back into that group are left out)."""
         cur = self.current_map(robot_id)
@@ -265,14 +269,14 @@ class TeamServer:
     def _overlap_link(self, rec: KeyframeRecord) -> None:
         """A merged robot's new keyframe against the keyframe of another robot of its group that
         sees most of its scene (see :mod:`.overlap_links`), when the robot is due a constraint."""
-        others = set(self.groups.members(rec.robot_id)) - {rec.robot_id}
+        others = set(self.groups.members(rec.map_id)) - {rec.map_id}
         if (
             not others
             or not self.config.links.enabled
-            or not self.stitcher.constraint_due(rec.robot_id)
+            or not self.stitcher.constraint_due(rec.map_id)
         ):
             return
-        key_b = (rec.robot_id, rec.keyframe_id)
+        key_b = rec.key
         candidates = [k for k in self.store.keys() if k[0] in others]
         for key_a in self.links.best_partners(key_b, candidates):
             v = self.links.verify(key_a, key_b, rec.stamp_s)
@@ -286,12 +290,12 @@ class TeamServer:
         for v in found.cross:
             v.kind = self.rendezvous.kind_of(v)
         merges = self._merge_verified(found.cross)
-        key_b = (rec.robot_id, rec.keyframe_id)
+        key_b = rec.key
         if (
             merges
             or not found.inner
             or found.budget == 0
-            or not self.stitcher.constraint_due(rec.robot_id)
+            or not self.stitcher.constraint_due(rec.map_id)
         ):
             return merges
         for cand_key in found.inner[: found.budget]:
@@ -304,88 +308,24 @@ class TeamServer:
 
     def _merge_verified(self, verified: list[Verified | None]) -> list[MergeResult]:
         """Verified cross-group matches through the merge plan; the merges made."""
-        pending = {robot_pair(v.key_a[0], v.key_b[0]): v for v in verified if v is not None}
+        pending = {map_pair(v.key_a[0], v.key_b[0]): v for v in verified if v is not None}
         merges = self.stitcher.apply_plan(pending, self.place_recognition.match_counts)
         for m in merges:
-            self.place_recognition.merged(m.robot_b)
+            self.place_recognition.merged(m.map_b)
         return merges
 
-    # --- monocular maps' scales (see .map_scale) --------------------------------------------------
-    def is_metric(self, robot_id: int) -> bool:
+    # --- monocular maps' scales (see .scale_keeper) ---------------------------------------------
+    def is_metric(self, map_id: MapId) -> bool:
         """Whether the robot's map is in metres in the team map: it has depth, or it is merged
         with a robot that has (a monocular robot before that: its own map's units)."""
-        return self.scales.is_metric(robot_id)
+        return self.scale_keeper.is_metric(map_id)
 
-    def map_scale(self, robot_id: int) -> float:
+    def map_scale(self, map_id: MapId) -> float:
         """``s_stored_own``: the robot's own map lengths times this are its team map lengths (and
         those of its keyframes' poses and map points here); 1 unless it is monocular and merged.
         Its ``T_group_map`` acts on its map so rescaled: a client point p of its map is at
         ``T_group_map @ (scale * p)``."""
-        return self.scales.scale(robot_id)
-
-    def _rescale(self, robots, factor: float, about_maps: bool = False) -> None:
-        """Multiply the robots' map lengths by ``factor`` everywhere the server holds them: the
-        stored keyframes, the pose graph (see TeamPoseGraph.rescale_robots for ``about_maps``),
-        the group transforms (rescaled with their whole group only) and the constraints found so
-        far between them."""
-        robots = set(robots)
-        self.scales.rescaled(robots, factor)
-        for key in [k for k in self.store.keys() if k[0] in robots]:
-            self.store.update(rescale_record(self.store.record(key), factor))
-        graph_call(self.graph.rescale_robots, robots, factor, about_maps)
-        if not about_maps:
-            for r in robots:
-                self.groups.set_T_root_map(r, scale_translation(self.groups.T_root_map(r), factor))
-        for c in self.stitcher.constraints:
-            if c.key_a[0] in robots and c.key_b[0] in robots:
-                c.T_camA_camB = scale_translation(c.T_camA_camB, factor)
-        for m in self.stitcher.merges:
-            if m.robot_a in robots and m.robot_b in robots and not about_maps:
-                m.T_camA_camB = scale_translation(m.T_camA_camB, factor)
-                m.T_mapA_mapB = scale_translation(m.T_mapA_mapB, factor)
-        log.info(
-            "map lengths of robot(s) %s rescaled by %.4f (%s)",
-            sorted(robots),
-            factor,
-            "each about its map" if about_maps else "their group frame",
-        )
-
-    def _prepare_merge(self, v: Verified) -> Verified:
-        """A merge by a similarity: the side without metric scale (or the second of two such) is
-        rescaled into the other's units, and the match becomes the rigid part in them (its scale
-        1 there)."""
-        res = v.result
-        if res.scale == 1.0:
-            return v
-        ra, rb = v.key_a[0], v.key_b[0]
-        side, factor = self.scales.merge_side(ra, rb, res.scale)
-        T_a_b, sigma_trans = res.T_a_b, res.sigma_trans_m
-        if side == "b":
-            self._rescale(self.groups.members(rb), factor)
-        elif side == "a":
-            self._rescale(self.groups.members(ra), factor)
-            T_a_b, sigma_trans = scale_translation(T_a_b, factor), sigma_trans * factor
-        log.info(
-            "merge of robots %d and %d by a similarity (scale %.4f): robot(s) %s rescaled by %.4f",
-            ra,
-            rb,
-            res.scale,
-            self.groups.members(rb if side == "b" else ra) if side else [],
-            factor,
-        )
-        if side is not None:
-            res = dataclasses.replace(res, scale=1.0)
-        res = dataclasses.replace(res, T_a_b=T_a_b, sigma_trans_m=sigma_trans)
-        return dataclasses.replace(v, result=res)
-
-    def _observe_constraint(self, v: Verified) -> None:
-        """A similarity link of a merged monocular robot re-measures its scale (see .map_scale)."""
-        if v.result.scale == 1.0:
-            return
-        due = self.scales.observe_link(v.key_a, v.key_b, v.result.scale)
-        if due is not None:
-            robot, factor = due
-            self._due_rescale[robot] = self._due_rescale.get(robot, 1.0) * factor
+        return self.scale_keeper.scale(map_id)
 
     # --- rendezvous cues --------------------------------------------------------------------------
     def request_rendezvous(
@@ -435,55 +375,12 @@ class TeamServer:
         request (see :meth:`request_rendezvous`), at most once per pair and
         ``rendezvous.sighting_period_s``; None when it is not one."""
         if T_camA_bodyB is not None and T_bodyB_camB is not None:
-            self._marker_scale(observer, observed, stamp_s, T_camA_bodyB, T_bodyB_camB)
+            ma, mb = self.current_map(observer), self.current_map(observed)
+            if self.scale_keeper.marker_sighting(ma, mb, stamp_s, T_camA_bodyB, T_bodyB_camB):
+                self.stitcher.need_full = True
         if not self.rendezvous.sighting_due(observer, observed, stamp_s):
             return None
         return self.request_rendezvous(observer, observed, stamp_s, T_camA_bodyB, T_bodyB_camB)
-
-    def _pose_at(self, map_id: int, stamp_s: float) -> np.ndarray | None:
-        """A map's camera pose at a stamp: position on its keyframe track, rotation of the
-        nearest keyframe; None where its keyframes do not pin it down."""
-        recs = [self.store.record(k) for k in self.store.keys() if k[0] == map_id]
-        if not recs:
-            return None
-        stamps, positions = track(recs)
-        position = interpolate_track(stamps, positions, stamp_s)
-        if position is None:
-            return None
-        nearest = min(recs, key=lambda r: abs(r.stamp_s - stamp_s))
-        T = np.array(nearest.T_map_cam, dtype=float, copy=True)
-        T[:3, 3] = position
-        return T
-
-    def _marker_scale(self, observer, observed, stamp_s, T_camA_bodyB, T_bodyB_camB) -> None:
-        """A monocular observer not yet metric learns its scale from sightings of a metric
-        robot's marker (see .marker_scale); its map is then rescaled to metres."""
-        if not self.config.marker_scale.enabled:
-            return
-        ma, mb = self.current_map(observer), self.current_map(observed)
-        if not self.scales.is_mono(ma) or self.is_metric(ma) or not self.is_metric(mb):
-            return
-        T_map_camA, T_map_camB = self._pose_at(ma, stamp_s), self._pose_at(mb, stamp_s)
-        if T_map_camA is None or T_map_camB is None:
-            return
-        b_m = (T_map_camB @ invert(T_bodyB_camB))[:3, 3]
-        got = self.marker_scale.observe(ma, mb, T_map_camA, T_camA_bodyB[:3, 3], b_m)
-        if got is None:
-            return
-        scale, rms = got
-        members = self.groups.members(ma)
-        self._rescale(members, scale)
-        for m in members:
-            self.scales.mark_metric(m)
-        self.marker_scale.forget(ma)
-        self.stitcher.need_full = True
-        log.info(
-            "%s: metric scale %.4f m per map unit from sightings of %s's marker (fit %.3f m)",
-            self.map_name(ma),
-            scale,
-            self.map_name(mb),
-            rms,
-        )
 
     # --- team optimization ------------------------------------------------------------------------
     def optimize(self, full: bool = True) -> None:
@@ -510,25 +407,25 @@ class TeamServer:
         self.optimize(full=True)
         if self.config.global_ba.after_merge:
             if self.defer_global_ba:
-                self.global_ba_due = merges[-1].robot_a
+                self.global_ba_due = merges[-1].map_a
             else:
-                self._global_ba_if_cheap(merges[-1].robot_a)
+                self._global_ba_if_cheap(merges[-1].map_a)
         for m in merges:
-            key_a, key_b = (m.robot_a, m.keyframe_a), (m.robot_b, m.keyframe_b)
+            key_a, key_b = (m.map_a, m.keyframe_a), (m.map_b, m.keyframe_b)
             if key_a in self.store and key_b in self.store:
                 # In a's map lengths, as registered: a monocular map's graph lengths there are
                 # its local scale times them.
                 T = invert(self.T_group_cam(*key_a)) @ self.T_group_cam(*key_b)
                 m.T_camA_camB = scale_translation(T, 1.0 / self.local_scale(*key_a))
-            m.T_mapA_mapB = invert(self.T_group_map(m.robot_a)) @ self.T_group_map(m.robot_b)
+            m.T_mapA_mapB = invert(self.T_group_map(m.map_a)) @ self.T_group_map(m.map_b)
 
-    def global_ba_is_cheap(self, robot_id: int) -> bool:
+    def global_ba_is_cheap(self, map_id: MapId) -> bool:
         """Whether the automatic global BA after a merge runs for this robot's group: metric,
         and at most ``global_ba.auto_max_observations`` observations."""
-        if not self.is_metric(robot_id):
+        if not self.is_metric(map_id):
             return False  # monocular maps only: nothing would hold the group's scale
-        members = set(self.groups.members(robot_id))
-        n = count_observations(r for r in self.store.records() if r.robot_id in members)
+        members = set(self.groups.members(map_id))
+        n = count_observations(r for r in self.store.records() if r.map_id in members)
         if n > self.config.global_ba.auto_max_observations:
             log.info(
                 "global BA after the merge skipped: %d observations > %d (call the service)",
@@ -538,15 +435,15 @@ class TeamServer:
             return False
         return True
 
-    def _global_ba_if_cheap(self, robot_id: int) -> None:
-        if not self.global_ba_is_cheap(robot_id):
+    def _global_ba_if_cheap(self, map_id: MapId) -> None:
+        if not self.global_ba_is_cheap(map_id):
             return
         try:
-            self.global_bundle_adjustment(robot_id)
+            self.global_bundle_adjustment(map_id)
         except GlobalBaError as exc:
             log.warning("global BA after the merge: %s", exc)
 
-    def global_bundle_adjustment(self, robot_id: int | None = None) -> GlobalBaResult:
+    def global_bundle_adjustment(self, robot_id: RobotId | None = None) -> GlobalBaResult:
         """Bundle-adjust every keyframe and map point of robot_id's group (default: the world
         group) with the points matched by merges and loops linked; the refined poses become the
         pose graph's estimate and odometry (see TeamPoseGraph.adopt_estimates)."""
@@ -593,42 +490,42 @@ class TeamServer:
         return result
 
     # --- the team map -----------------------------------------------------------------------------
-    def T_group_map(self, robot_id: int) -> np.ndarray:
+    def T_group_map(self, map_id: MapId) -> np.ndarray:
         """A robot's map in its group's frame."""
-        return self.groups.T_root_map(robot_id)
+        return self.groups.T_root_map(map_id)
 
-    def in_world(self, robot_id: int) -> bool:
+    def in_world(self, map_id: MapId) -> bool:
         """Whether the robot's group is the world group (holds the team's smallest robot id)."""
-        return self.groups.root(robot_id) == self.world_robot
+        return self.groups.root(map_id) == self.world_robot
 
-    def T_group_cam(self, robot_id: int, keyframe_id: int) -> np.ndarray:
+    def T_group_cam(self, map_id: MapId, keyframe_id: int) -> np.ndarray:
         """A keyframe's pose in its group frame: the optimized one when the pose graph has it,
         else the client's pose moved by the robot's map transform."""
         try:
-            return self.graph.T_group_cam(robot_id, keyframe_id)
+            return self.graph.T_group_cam(map_id, keyframe_id)
         except PoseGraphError:
-            rec = self.store.record((robot_id, keyframe_id))
-            return self.groups.T_root_map(robot_id) @ rec.T_map_cam
+            rec = self.store.record((map_id, keyframe_id))
+            return self.groups.T_root_map(map_id) @ rec.T_map_cam
 
-    def local_scale(self, robot_id: int, keyframe_id: int) -> float:
+    def local_scale(self, map_id: MapId, keyframe_id: int) -> float:
         """A keyframe's lengths in the team map against its map's (see
         :meth:`.pose_graph.TeamPoseGraph.local_scale`; 1 outside the pose graph)."""
         try:
-            return self.graph.local_scale(robot_id, keyframe_id)
+            return self.graph.local_scale(map_id, keyframe_id)
         except PoseGraphError:
             return 1.0
 
-    def optimized_keyframes(self, robot_id: int) -> dict[int, np.ndarray]:
+    def optimized_keyframes(self, map_id: MapId) -> dict[int, np.ndarray]:
         """keyframe id -> T_group_cam of every stored keyframe of a robot."""
-        return {k: self.T_group_cam(robot_id, k) for k in self.store.keyframe_ids(robot_id)}
+        return {k: self.T_group_cam(map_id, k) for k in self.store.keyframe_ids(map_id)}
 
-    def corrected_keyframes(self, robot_id: int, last: int = 20) -> dict[int, np.ndarray]:
+    def corrected_keyframes(self, map_id: MapId, last: int = 20) -> dict[int, np.ndarray]:
         """Optimized poses (in the robot's own map frame, its lengths times :meth:`map_scale`)
         of its ``last`` newest keyframes."""
-        if robot_id not in self.graph.robots:
+        if map_id not in self.graph.robots:
             return {}
-        T_map_group = np.linalg.inv(self.groups.T_root_map(robot_id))
-        poses = self.graph.keyframe_poses(robot_id)
+        T_map_group = np.linalg.inv(self.groups.T_root_map(map_id))
+        poses = self.graph.keyframe_poses(map_id)
         return {k: T_map_group @ poses[k] for k in sorted(poses)[-last:]}
 
     def client_frame(self, map_id: int) -> np.ndarray | None:

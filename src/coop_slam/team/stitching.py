@@ -22,7 +22,7 @@ from .keyframe_store import KeyframeStore
 from .merge_order import plan_merge_steps
 from .overlap_links import OverlapLinks
 from .pose_graph import PoseGraphError, TeamPoseGraph
-from .results import TYPE_LOOP, ConstraintResult, MergeResult, Verified, robot_pair
+from .results import TYPE_LOOP, ConstraintResult, MergeResult, Verified, map_pair
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,7 @@ class Stitcher:
         counts = {pair: max(1, match_counts.get(pair, 0)) for pair in pending}
         merges = []
         for step in plan_merge_steps(counts, self.groups.groups()):
-            merges.append(self.merge(pending.pop(robot_pair(step.robot_a, step.robot_b))))
+            merges.append(self.merge(pending.pop(map_pair(step.map_a, step.map_b))))
         for v in pending.values():
             self.add_constraint(v)
         pending.clear()

@@ -13,12 +13,12 @@ from typing import Callable
 import numpy as np
 
 from ..geometry import invert
+from ..ids import KeyframeKey
 from ..wire.record import KeyframeRecord
 from .fusion import fuse_points, gather_map_points, robot_colours, voxel_downsample
 from .groups import MergeGroups
 from .results import ConstraintResult, MergeResult
 
-Key = tuple[int, int]
 PoseOf = Callable[[int, int], np.ndarray]  # (robot, keyframe) -> T_group_cam
 
 
@@ -35,7 +35,7 @@ def view_offsets(groups: MergeGroups, world_root: int, offset_m: float) -> dict[
 
 
 def team_paths_and_edges(
-    keys: list[Key],
+    keys: list[KeyframeKey],
     offsets: dict[int, np.ndarray],
     T_group_cam: PoseOf,
     merges: list[MergeResult],
@@ -52,7 +52,7 @@ def team_paths_and_edges(
     for robot in sorted({r for r, _ in keys}):
         ids = sorted(k for r, k in keys if r == robot)
         paths[robot] = np.array([position((robot, k)) for k in ids])
-    links = [(m.type, (m.robot_a, m.keyframe_a), (m.robot_b, m.keyframe_b)) for m in merges]
+    links = [(m.type, (m.map_a, m.keyframe_a), (m.map_b, m.keyframe_b)) for m in merges]
     links += [(c.type, c.key_a, c.key_b) for c in constraints]
     edges = [
         (kind, position(ka), position(kb))
@@ -78,11 +78,11 @@ def cloud_snapshot(
     every change, never alters one, so the snapshot can be built while the server goes on."""
     out = []
     for rec in records:
-        T = T_group_cam(rec.robot_id, rec.keyframe_id)
-        s = 1.0 if local_scale is None else local_scale(rec.robot_id, rec.keyframe_id)
+        T = T_group_cam(rec.map_id, rec.keyframe_id)
+        s = 1.0 if local_scale is None else local_scale(rec.map_id, rec.keyframe_id)
         if s != 1.0:
             T = T @ np.diag([s, s, s, 1.0])
-        out.append((rec, offsets[rec.robot_id] @ T @ invert(rec.T_map_cam)))
+        out.append((rec, offsets[rec.map_id] @ T @ invert(rec.T_map_cam)))
     return out
 
 
@@ -96,7 +96,10 @@ def build_cloud(
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int64)
     T_of = {id(rec): T for rec, T in snapshot}
     points, robots, ids = gather_map_points(
-        [rec for rec, _ in snapshot], lambda rec: T_of[id(rec)], per_keyframe=True
+        [rec for rec, _ in snapshot],
+        lambda rec: T_of[id(rec)],
+        per_keyframe=True,
+        map_of=lambda rec: rec.map_id,
     )
     points, ids, robots = fuse_points(points, robots, ids, radius_m=fuse_radius_m)
     points, robots = voxel_downsample(points, robots, voxel_m)

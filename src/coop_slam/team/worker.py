@@ -560,8 +560,8 @@ class ServerWorker:
         robot_of = self.server.robot_of
         return TeamEvent(
             type=m.type,
-            robot_a=robot_of(m.robot_a),
-            robot_b=robot_of(m.robot_b),
+            robot_a=robot_of(m.map_a),
+            robot_b=robot_of(m.map_b),
             keyframe_a=m.keyframe_a,
             keyframe_b=m.keyframe_b,
             T_mapA_mapB=m.T_mapA_mapB,

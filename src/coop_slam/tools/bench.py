@@ -239,7 +239,7 @@ def _bench_store(records) -> Iterator[Figure]:
 
 
 def bench_pose_graph() -> Iterator[Figure]:
-    from ..team.pose_graph import bench_full_optimization
+    from ..team.synthetic_team import bench_full_optimization
 
     yield ("pose_graph_full_optimization_1000_keyframes", bench_full_optimization(1000, 4), "ms")
 

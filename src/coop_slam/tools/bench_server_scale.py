@@ -478,7 +478,7 @@ def bench_server_scale(
     with 8 robots, replayed into the server at ``rate`` x their real rate."""
     from ..bow import Vocabulary
     from ..default_vocabulary import ensure_default_vocabulary
-    from ..team.pose_graph import bench_full_optimization
+    from ..team.synthetic_team import bench_full_optimization
     from .replay import _server_config
 
     t = time.perf_counter()

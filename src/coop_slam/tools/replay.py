@@ -97,7 +97,7 @@ def summary(server, rejected: int = 0) -> dict:
         "merges": [
             {
                 "type": m.type,
-                "robots": [m.robot_a, m.robot_b],
+                "robots": [m.map_a, m.map_b],
                 "keyframes": [m.keyframe_a, m.keyframe_b],
                 "inliers": m.inliers,
                 "stamp_s": round(m.stamp_s, 3),
@@ -116,7 +116,7 @@ def summary(server, rejected: int = 0) -> dict:
         "keyframes": len(server.store),
         "positions_mm": {},
     }
-    for robot in server.store.robots():
+    for robot in server.store.maps():
         poses = server.optimized_keyframes(robot)
         out["positions_mm"][str(robot)] = {
             str(k): [round(float(v) * 1e3, 1) for v in T[:3, 3]] for k, T in poses.items()
@@ -131,7 +131,7 @@ def agreement(server) -> list:
     from ..evaluation.agreement import KeyframeCloud, team_agreement
 
     clouds = {}
-    for robot in server.store.robots():
+    for robot in server.store.maps():
         if not server.in_world(robot):
             continue
         kfs = []
@@ -171,14 +171,14 @@ def judge(server, stamps: dict, gts: dict) -> dict:
 
     out = {"merge_errors_cm_deg": [], "link_errors_cm_deg": [], "loop_errors_cm_deg": []}
     for m in server.merges:
-        key_a, key_b = (m.robot_a, m.keyframe_a), (m.robot_b, m.keyframe_b)
+        key_a, key_b = (m.map_a, m.keyframe_a), (m.map_b, m.keyframe_b)
         out["merge_errors_cm_deg"].append(error(key_a, key_b, m.T_camA_camB))
     for c in server.constraints:
         kind = "loop" if c.key_a[0] == c.key_b[0] else "link"
         out[f"{kind}_errors_cm_deg"].append(error(c.key_a, c.key_b, c.T_camA_camB))
     own, est = [], {}
     metric = False  # a world of monocular maps only has no metric scale (aligned with Sim(3))
-    for mid in server.store.robots():  # map ids: a robot's map segments apart
+    for mid in server.store.maps():  # map ids: a robot's map segments apart
         robot = server.robot_of(mid)
         keys = sorted(server.store.keyframe_ids(mid))
         t = np.array([server.store.stamp((mid, k)) for k in keys])

@@ -24,13 +24,7 @@ from .encodings import (
 from .messages import KIND_DELTA, KIND_KEYFRAME
 from .observations import complete_update, shared_descriptors
 from .pack import PackError, Schema, field_array, unpack_fields
-from .record import (
-    ACTION_NEW,
-    ACTION_UPDATE,
-    KeyframeError,
-    KeyframeRecord,
-    PlaceSignature,
-)
+from .record import ACTION_NEW, ACTION_UPDATE, KeyframeError, KeyframeRecord, PlaceSignature
 
 LEGACY_TYPE = "coop_slam/KeyFrame"
 # The arrays a legacy message packed (its ``packed`` field), in stream order.
