@@ -22,7 +22,6 @@ OVER_MODULE = {
     "tools/demo.py": 748,
     "synthetic/scenarios.py": 748,
     "bow/vocabulary.py": 734,
-    "vo/local_mapping.py": 728,
 }
 OVER_NODE_MODULE = {"ros/player_node.py": 521}
 OVER_FUNCTION = {
@@ -37,7 +36,6 @@ OVER_FUNCTION = {
     "vo/pose_opt.py:optimize_pose": 109,
     "registration/sim3.py:ransac_sim3": 109,
     "synthetic/overlap.py:compute_overlap": 108,
-    "vo/local_mapping.py:_triangulation_pairs": 101,
     "registration/sim3.py:refine_sim3": 101,
 }
 
