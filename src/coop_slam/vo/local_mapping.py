@@ -401,7 +401,56 @@ class LocalMapper:
         return cfg.ba_window, cfg.ba_max_fixed
 
     def build_ba_problem(self, vmap: Map, kf_id: int) -> BaProblem | None:
+        """Local BA around keyframe ``kf_id`` (map lock held): its covisible window free, the
+        keyframes outside it that see the window's points fixed; None when nothing is left to
+        optimize."""
         cfg = self.config
+        found = self._ba_keyframes(vmap, kf_id)
+        if found is None:
+            return None
+        all_ids, fixed, local = found
+        found = self._ba_observations(vmap, all_ids, local)
+        if found is None:
+            return None
+        local, obs_kf, obs_pt, obs_kp, uv, ur, octave = found
+        scale_anchor = None
+        if self.sensor.monocular and fixed.sum() < 2:
+            scale_anchor = _scale_anchor(vmap, all_ids, fixed)
+        return BaProblem(
+            segment=vmap.segment,
+            kf_ids=np.array(all_ids),
+            T_map_cam=np.array([vmap.keyframes[k].T_map_cam for k in all_ids]),
+            fixed=fixed,
+            point_ids=local,
+            points_map=vmap.points.xyz[local].copy(),
+            obs_kf=obs_kf,
+            obs_pt=obs_pt,
+            obs_kp=obs_kp,
+            obs_uv=uv,
+            obs_u_right=ur,
+            obs_octave=octave,
+            fx=self.camera.fx,
+            fy=self.camera.fy,
+            cx=self.camera.cx,
+            cy=self.camera.cy,
+            baseline_m=self.sensor.baseline_m,
+            scale_factor=cfg.scale_factor,
+            n_levels=cfg.n_levels,
+            iterations=cfg.ba_iterations,
+            huber_mono=cfg.ba_huber_mono,
+            huber_stereo=cfg.ba_huber_stereo,
+            planar_up_cam=np.asarray(cfg.planar_up_cam, float) if cfg.planar_motion else None,
+            planar_sigmas=(np.radians(cfg.planar_sigma_tilt_deg), cfg.planar_sigma_height_m),
+            chi2_mono=cfg.chi2_mono,
+            chi2_stereo=cfg.chi2_stereo,
+            scale_anchor=scale_anchor,
+        )
+
+    def _ba_keyframes(
+        self, vmap: Map, kf_id: int
+    ) -> tuple[list[int], np.ndarray, np.ndarray] | None:
+        """(keyframe ids: the window, then the fixed ones; which are fixed; the window's points
+        seen twice or more) of a local BA, or None."""
         n_window, max_fixed = self._ba_sizes()
         window = [kf_id] + vmap.best_covisible(kf_id, n_window - 1)
         pts = vmap.points
@@ -430,6 +479,11 @@ class LocalMapper:
             if len(window) < 2:
                 return None
             fixed[int(np.argmin(window))] = True  # gauge: hold the oldest keyframe
+        return all_ids, fixed, local
+
+    def _ba_observations(self, vmap: Map, all_ids: list[int], local: np.ndarray) -> tuple | None:
+        """(points kept, then per observation of them: keyframe index, point index, keypoint
+        index, uv, u_right (NaN without depth), octave) of a local BA, or None."""
         obs_kf, obs_pt, obs_kp = [], [], []
         for k_idx, k in enumerate(all_ids):
             mp = vmap.keyframes[k].map_point_ids.astype(np.int64)
@@ -474,44 +528,7 @@ class LocalMapper:
         local = local[good_pt]
         if len(local) == 0:
             return None
-        scale_anchor = None
-        if self.sensor.monocular and fixed.sum() < 2:
-            # The map's scale is free: hold the distance of the fixed keyframe to the farthest
-            # free one (see BaProblem.scale_anchor).
-            centres = np.array([vmap.keyframes[k].T_map_cam[:3, 3] for k in all_ids])
-            f = int(np.flatnonzero(fixed)[0])
-            dist = np.where(fixed, -1.0, np.linalg.norm(centres - centres[f], axis=1))
-            if dist.max() > 0:
-                scale_anchor = (f, int(np.argmax(dist)))
-        return BaProblem(
-            segment=vmap.segment,
-            kf_ids=np.array(all_ids),
-            T_map_cam=np.array([vmap.keyframes[k].T_map_cam for k in all_ids]),
-            fixed=fixed,
-            point_ids=local,
-            points_map=pts.xyz[local].copy(),
-            obs_kf=obs_kf,
-            obs_pt=obs_pt,
-            obs_kp=obs_kp,
-            obs_uv=uv,
-            obs_u_right=ur,
-            obs_octave=octave,
-            fx=self.camera.fx,
-            fy=self.camera.fy,
-            cx=self.camera.cx,
-            cy=self.camera.cy,
-            baseline_m=self.sensor.baseline_m,
-            scale_factor=cfg.scale_factor,
-            n_levels=cfg.n_levels,
-            iterations=cfg.ba_iterations,
-            huber_mono=cfg.ba_huber_mono,
-            huber_stereo=cfg.ba_huber_stereo,
-            planar_up_cam=np.asarray(cfg.planar_up_cam, float) if cfg.planar_motion else None,
-            planar_sigmas=(np.radians(cfg.planar_sigma_tilt_deg), cfg.planar_sigma_height_m),
-            chi2_mono=cfg.chi2_mono,
-            chi2_stereo=cfg.chi2_stereo,
-            scale_anchor=scale_anchor,
-        )
+        return local, obs_kf, obs_pt, obs_kp, uv, ur, octave
 
     def apply_ba_result(self, vmap: Map, result: BaResult) -> None:
         cfg = self.config
@@ -603,3 +620,14 @@ class LocalMapper:
         self.stats["kf_culled"] += 1
         self._emit(VoEvent(EVENT_KEYFRAME_REMOVE, vmap.segment, c, None))
         return True
+
+
+def _scale_anchor(vmap: Map, all_ids: list[int], fixed: np.ndarray) -> tuple[int, int] | None:
+    """A monocular map's scale is free with fewer than two fixed keyframes: hold the distance of
+    the fixed keyframe to the farthest free one (see BaProblem.scale_anchor)."""
+    centres = np.array([vmap.keyframes[k].T_map_cam[:3, 3] for k in all_ids])
+    f = int(np.flatnonzero(fixed)[0])
+    dist = np.where(fixed, -1.0, np.linalg.norm(centres - centres[f], axis=1))
+    if dist.max() > 0:
+        return (f, int(np.argmax(dist)))
+    return None
