@@ -30,7 +30,6 @@ OVER_FUNCTION = {
     "synthetic/world.py:_kitchen": 195,
     "tools/demo.py:parse_args": 132,
     "registration/sim3.py:estimate_sim3": 131,
-    "optim/bundle.py:run_local_ba": 112,
     "registration/ba.py:two_view_ba": 111,
     "vo/pose_opt.py:optimize_pose": 109,
     "registration/sim3.py:ransac_sim3": 109,
