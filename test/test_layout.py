@@ -21,7 +21,6 @@ OVER_MODULE = {
     "registration/sim3.py": 927,
     "tools/demo.py": 748,
     "synthetic/scenarios.py": 748,
-    "bow/vocabulary.py": 734,
 }
 OVER_NODE_MODULE = {"ros/player_node.py": 521}
 OVER_FUNCTION = {
