@@ -20,8 +20,6 @@ OVER_MODULE = {
     "registration/sim3.py": 927,
     "tools/demo.py": 748,
     "synthetic/scenarios.py": 748,
-    "bow/vocabulary.py": 734,
-    "vo/local_mapping.py": 728,
 }
 OVER_NODE_MODULE = {"ros/player_node.py": 521}
 OVER_FUNCTION = {
@@ -30,13 +28,10 @@ OVER_FUNCTION = {
     "synthetic/world.py:_kitchen": 195,
     "tools/demo.py:parse_args": 132,
     "registration/sim3.py:estimate_sim3": 131,
-    "vo/local_mapping.py:build_ba_problem": 112,
-    "optim/bundle.py:run_local_ba": 112,
     "registration/ba.py:two_view_ba": 111,
     "vo/pose_opt.py:optimize_pose": 109,
     "registration/sim3.py:ransac_sim3": 109,
     "synthetic/overlap.py:compute_overlap": 108,
-    "vo/local_mapping.py:_triangulation_pairs": 101,
     "registration/sim3.py:refine_sim3": 101,
 }
 

@@ -1,10 +1,10 @@
 """Hierarchical bag-of-binary-words vocabulary for ORB descriptors, as in DBoW2.
 
 The vocabulary is a k-ary tree of depth L trained by k-means++ seeding and k-majority clustering
-per level; its leaves are the *words*, weighted by inverse document frequency (TF-IDF). A set of
-descriptors becomes an L1-normalised BoW vector (for place recognition) and a *feature vector*
-(direct index: node ``levels_up`` above the leaves -> feature indices, for BoW-guided matching).
-Two vectors are compared with DBoW2's L1 score ``s = 1 - 0.5 * |v1 - v2|_1``.
+per level (:mod:`.clustering`); its leaves are the *words*, weighted by inverse document frequency
+(TF-IDF). A set of descriptors becomes an L1-normalised BoW vector (for place recognition) and a
+*feature vector* (direct index: node ``levels_up`` above the leaves -> feature indices, for
+BoW-guided matching). Two vectors are compared with DBoW2's L1 score ``s = 1 - 0.5 * |v1 - v2|_1``.
 
 The tree is stored as flat arrays (parent, children table, node descriptors, node weights) so that
 ``transform`` descends all descriptors at once, one numpy step per level. Files: an own versioned
@@ -21,11 +21,11 @@ from dataclasses import dataclass
 from typing import Callable, Iterator, Sequence
 
 import numpy as np
-import scipy.sparse
 
 from ..config import require
-from ..descriptors import DESCRIPTOR_BYTES, as_descriptors, hamming_rows, popcount_u64_sum
+from ..descriptors import DESCRIPTOR_BYTES, as_descriptors, popcount_u64_sum
 from ..errors import CoopSlamError
+from .clustering import k_majority
 
 FORMAT_NAME = "coop_slam.bow.vocabulary"
 FORMAT_VERSION = 1
@@ -508,97 +508,6 @@ def _parse_rows(body: str, source: str) -> np.ndarray:
 
 
 # --- training ------------------------------------------------------------------------------------
-def _kmeans_pp(
-    x64: np.ndarray,
-    x: np.ndarray,
-    group: np.ndarray,
-    starts: np.ndarray,
-    sizes: np.ndarray,
-    k: int,
-    rng: np.random.Generator,
-) -> np.ndarray:
-    """Greedy k-means++ seeds for all groups at once: (G, k, 4) uint64 centres.
-
-    Rows are sorted by group. Candidate seeds are drawn with probability ~ D^2 within their group
-    via one global cumulative sum; as in scikit-learn's greedy k-means++, 2 + log(k) candidates are
-    drawn per step and the one that lowers the group's potential most is kept. Plain k-means++
-    (DBoW2) puts two seeds into one true cluster often enough that k-majority, which cannot undo
-    it, splits ~5 % of clearly separated clusters. Groups with fewer than k distinct rows repeat a
-    seed; the duplicate clusters stay empty and are dropped.
-    """
-    n_groups = len(starts)
-    trials = 2 + int(np.log(k))
-    centres = np.zeros((n_groups, k, x64.shape[1]), dtype=np.uint64)
-    pick = starts + (rng.random(n_groups) * sizes).astype(np.int64)
-    centres[:, 0] = x64[pick]
-    min_d = hamming_rows(x, x[pick][group]).astype(np.float64)
-    ends = starts + sizes - 1
-    groups = np.arange(n_groups)
-    for c in range(1, k):
-        cs = np.cumsum(min_d * min_d)
-        before = np.where(starts > 0, cs[np.maximum(starts - 1, 0)], 0.0)
-        totals = cs[ends] - before
-        u = before[None, :] + rng.random((trials, n_groups)) * totals[None, :]
-        picks = np.clip(np.searchsorted(cs, u, side="right"), starts, ends)  # (trials, G)
-        picks = np.where(totals > 0, picks, starts)
-        dists = np.stack([np.minimum(min_d, hamming_rows(x, x[p][group])) for p in picks])
-        potential = np.stack([np.bincount(group, weights=d * d, minlength=n_groups) for d in dists])
-        best = potential.argmin(axis=0)  # (G,)
-        centres[:, c] = x64[picks[best, groups]]
-        min_d = dists[best[group], np.arange(len(group))]
-    return centres
-
-
-def _assign(x64: np.ndarray, group: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """Index (0..k-1) of the nearest centre of each row's group."""
-    out = np.empty(len(x64), dtype=np.int64)
-    for s in range(0, len(x64), _CHUNK):
-        c = np.take(centres, group[s : s + _CHUNK], axis=0)  # (m, k, 4)
-        c ^= x64[s : s + _CHUNK, None, :]
-        out[s : s + _CHUNK] = popcount_u64_sum(c).argmin(axis=1)
-    return out
-
-
-def _k_majority(
-    x: np.ndarray,
-    group: np.ndarray,
-    starts: np.ndarray,
-    sizes: np.ndarray,
-    k: int,
-    rng: np.random.Generator,
-    max_iterations: int,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Batched k-majority clustering of every group: (label 0..k-1 per row, (G, k, 32) centres).
-
-    Centres are per-bit majorities of their members. The bit sums of all clusters of all groups
-    come from one sparse (clusters x rows) @ (rows x 256) product per iteration.
-    """
-    x64 = x.view(np.uint64)
-    n_groups = len(starts)
-    centres = _kmeans_pp(x64, x, group, starts, sizes, k, rng)
-    label = _assign(x64, group, centres)
-    bits = np.unpackbits(x, axis=1).astype(np.float32)  # exact counts up to 2^24 members
-    rows = np.arange(len(x))
-    for _ in range(max_iterations):
-        cluster = group * k + label
-        counts = np.bincount(cluster, minlength=n_groups * k)
-        indptr = np.concatenate([[0], np.cumsum(counts)])
-        member = scipy.sparse.csr_matrix(
-            (np.ones(len(x), np.float32), rows[np.argsort(cluster, kind="stable")], indptr),
-            shape=(n_groups * k, len(x)),
-        )
-        sums = member @ bits
-        filled = counts > 0  # empty clusters keep their old centre
-        majority = 2.0 * sums[filled] >= counts[filled, None]  # ties -> 1 as DBoW2's FORB
-        flat = centres.reshape(n_groups * k, -1)
-        flat[filled] = np.packbits(majority, axis=1).view(np.uint64)
-        new_label = _assign(x64, group, centres)
-        if np.array_equal(new_label, label):
-            break
-        label = new_label
-    return label, centres.view(np.uint8).reshape(n_groups, k, DESCRIPTOR_BYTES)
-
-
 def train(
     descriptor_sets: Sequence[np.ndarray],
     k: int = DEFAULT_K,
@@ -648,7 +557,7 @@ def train(
             g_sizes = sizes[big]
             g_starts = np.concatenate([[0], np.cumsum(g_sizes)[:-1]])
             g_of_row = np.repeat(np.arange(len(g_sizes)), g_sizes)
-            lab, centres = _k_majority(
+            lab, centres = k_majority(
                 data[act[rows_big]], g_of_row, g_starts, g_sizes, k, rng, max_iterations
             )
             local[rows_big] = lab

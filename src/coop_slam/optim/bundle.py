@@ -175,81 +175,17 @@ def run_local_ba(problem: BaProblem) -> BaResult:
     )
     try:
         import gtsam
-        from gtsam.symbol_shorthand import L, X
 
         chi2_before = reprojection_chi2(p, p.T_map_cam, p.points_map)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
-        K_mono = gtsam.Cal3_S2(p.fx, p.fy, 0.0, p.cx, p.cy)
-        K_stereo = gtsam.Cal3_S2Stereo(p.fx, p.fy, 0.0, p.cx, p.cy, p.baseline_m)
-        sigmas = p.scale_factor ** np.arange(p.n_levels)
-        huber_m = gtsam.noiseModel.mEstimator.Huber.Create(p.huber_mono)
-        huber_s = gtsam.noiseModel.mEstimator.Huber.Create(p.huber_stereo)
-        noise_mono = [
-            gtsam.noiseModel.Robust.Create(huber_m, gtsam.noiseModel.Isotropic.Sigma(2, s))
-            for s in sigmas
-        ]
-        if p.disparity_sigma_px is None:
-            stereo_models = [gtsam.noiseModel.Isotropic.Sigma(3, s) for s in sigmas]
-        else:
-            corr = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # (u, u_right, v)
-            d2 = np.diag([0.0, p.disparity_sigma_px**2, 0.0])
-            stereo_models = [gtsam.noiseModel.Gaussian.Covariance(s**2 * corr + d2) for s in sigmas]
-        noise_stereo = [gtsam.noiseModel.Robust.Create(huber_s, m) for m in stereo_models]
-        # Fixed keyframes: a very stiff prior. A NonlinearEquality linearizes to a constrained noise
-        # model that Cholesky reports as indeterminant; LM then recovers only by raising lambda
-        # again and again (measured 5x slower on a 4000-factor window).
-        fixed_noise = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
-        for k, T in enumerate(p.T_map_cam):
-            pose = gtsam.Pose3(T)
-            values.insert(X(k), pose)
-            if p.fixed[k]:
-                graph.add(gtsam.PriorFactorPose3(X(k), pose, fixed_noise))
-        if p.planar_up_cam is not None:
-            up_cam = np.broadcast_to(np.asarray(p.planar_up_cam, float), (len(p.kf_ids), 3))
-            for k in np.flatnonzero(~np.asarray(p.fixed, bool)):
-                plane = None if p.planar_T_map_plane is None else p.planar_T_map_plane[k]
-                T_prior, info = planar_prior(p.T_map_cam[k], up_cam[k], *p.planar_sigmas, plane)
-                model = gtsam.noiseModel.Gaussian.Information(info)
-                graph.add(gtsam.PriorFactorPose3(X(int(k)), gtsam.Pose3(T_prior), model))
-        if p.scale_anchor is not None:
-            f, k = (int(i) for i in p.scale_anchor)
-            dist = float(np.linalg.norm(p.T_map_cam[k][:3, 3] - p.T_map_cam[f][:3, 3]))
-            noise = gtsam.noiseModel.Isotropic.Sigma(1, 1e-4 * dist)
-            graph.add(gtsam.RangeFactorPose3(X(f), X(k), dist, noise))
-        for j, xyz in enumerate(p.points_map):
-            values.insert(L(j), np.asarray(xyz, dtype=float))
+        _add_keyframes(graph, values, p)
         # Observations in front of their camera only: GTSAM's stereo camera throws on cheirality.
         usable = np.isfinite(chi2_before)
-        stereo = np.isfinite(p.obs_u_right)
-        octave = np.clip(p.obs_octave.astype(int), 0, p.n_levels - 1)
-        for o in np.flatnonzero(usable):
-            k, j = int(p.obs_kf[o]), int(p.obs_pt[o])
-            u, v = float(p.obs_uv[o, 0]), float(p.obs_uv[o, 1])
-            if stereo[o]:
-                meas = gtsam.StereoPoint2(u, float(p.obs_u_right[o]), v)
-                graph.add(
-                    gtsam.GenericStereoFactor3D(meas, noise_stereo[octave[o]], X(k), L(j), K_stereo)
-                )
-            else:
-                graph.add(
-                    gtsam.GenericProjectionFactorCal3_S2(
-                        np.array([u, v]), noise_mono[octave[o]], X(k), L(j), K_mono
-                    )
-                )
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(p.iterations)
-        # Points first: eliminating them leaves the small reduced camera system (Schur complement).
-        ordering = gtsam.Ordering()
-        for j in range(len(p.point_ids)):
-            ordering.push_back(L(j))
-        for k in range(len(p.kf_ids)):
-            ordering.push_back(X(k))
-        params.setOrdering(ordering)
-        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-        T_new = np.array([result.atPose3(X(k)).matrix() for k in range(len(p.kf_ids))])
-        pts_new = np.array([result.atPoint3(L(j)) for j in range(len(p.point_ids))]).reshape(-1, 3)
+        _add_points(graph, values, p, usable)
+        T_new, pts_new = _optimize(graph, values, p)
         chi2_after = reprojection_chi2(p, T_new, pts_new)
+        stereo = np.isfinite(p.obs_u_right)
         gate = np.where(stereo, p.chi2_stereo, p.chi2_mono)
         outlier = ~(chi2_after <= gate)
         return BaResult(
@@ -270,6 +206,104 @@ def run_local_ba(problem: BaProblem) -> BaResult:
         fail.message = f"local BA failed: {type(exc).__name__}: {exc}"
         fail.time_ms = (time.perf_counter() - t0) * 1e3
         return fail
+
+
+def _add_keyframes(graph, values, p: BaProblem) -> None:
+    """Keyframe poses X(k) and their priors: stiff ones on the fixed keyframes, a ground robot's
+    planar priors on the others, a monocular map's scale anchor."""
+    import gtsam
+    from gtsam.symbol_shorthand import X
+
+    # Fixed keyframes: a very stiff prior. A NonlinearEquality linearizes to a constrained noise
+    # model that Cholesky reports as indeterminant; LM then recovers only by raising lambda
+    # again and again (measured 5x slower on a 4000-factor window).
+    fixed_noise = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
+    for k, T in enumerate(p.T_map_cam):
+        pose = gtsam.Pose3(T)
+        values.insert(X(k), pose)
+        if p.fixed[k]:
+            graph.add(gtsam.PriorFactorPose3(X(k), pose, fixed_noise))
+    if p.planar_up_cam is not None:
+        up_cam = np.broadcast_to(np.asarray(p.planar_up_cam, float), (len(p.kf_ids), 3))
+        for k in np.flatnonzero(~np.asarray(p.fixed, bool)):
+            plane = None if p.planar_T_map_plane is None else p.planar_T_map_plane[k]
+            T_prior, info = planar_prior(p.T_map_cam[k], up_cam[k], *p.planar_sigmas, plane)
+            model = gtsam.noiseModel.Gaussian.Information(info)
+            graph.add(gtsam.PriorFactorPose3(X(int(k)), gtsam.Pose3(T_prior), model))
+    if p.scale_anchor is not None:
+        f, k = (int(i) for i in p.scale_anchor)
+        dist = float(np.linalg.norm(p.T_map_cam[k][:3, 3] - p.T_map_cam[f][:3, 3]))
+        noise = gtsam.noiseModel.Isotropic.Sigma(1, 1e-4 * dist)
+        graph.add(gtsam.RangeFactorPose3(X(f), X(k), dist, noise))
+
+
+def _noise_models(p: BaProblem) -> tuple[list, list]:
+    """Huber-robust noise of a (mono, stereo) observation at each pyramid level."""
+    import gtsam
+
+    sigmas = p.scale_factor ** np.arange(p.n_levels)
+    huber_m = gtsam.noiseModel.mEstimator.Huber.Create(p.huber_mono)
+    huber_s = gtsam.noiseModel.mEstimator.Huber.Create(p.huber_stereo)
+    noise_mono = [
+        gtsam.noiseModel.Robust.Create(huber_m, gtsam.noiseModel.Isotropic.Sigma(2, s))
+        for s in sigmas
+    ]
+    if p.disparity_sigma_px is None:
+        stereo_models = [gtsam.noiseModel.Isotropic.Sigma(3, s) for s in sigmas]
+    else:
+        corr = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # (u, u_right, v)
+        d2 = np.diag([0.0, p.disparity_sigma_px**2, 0.0])
+        stereo_models = [gtsam.noiseModel.Gaussian.Covariance(s**2 * corr + d2) for s in sigmas]
+    noise_stereo = [gtsam.noiseModel.Robust.Create(huber_s, m) for m in stereo_models]
+    return noise_mono, noise_stereo
+
+
+def _add_points(graph, values, p: BaProblem, usable: np.ndarray) -> None:
+    """Points L(j) and a stereo or projection factor for each ``usable`` observation."""
+    import gtsam
+    from gtsam.symbol_shorthand import L, X
+
+    K_mono = gtsam.Cal3_S2(p.fx, p.fy, 0.0, p.cx, p.cy)
+    K_stereo = gtsam.Cal3_S2Stereo(p.fx, p.fy, 0.0, p.cx, p.cy, p.baseline_m)
+    noise_mono, noise_stereo = _noise_models(p)
+    for j, xyz in enumerate(p.points_map):
+        values.insert(L(j), np.asarray(xyz, dtype=float))
+    stereo = np.isfinite(p.obs_u_right)
+    octave = np.clip(p.obs_octave.astype(int), 0, p.n_levels - 1)
+    for o in np.flatnonzero(usable):
+        k, j = int(p.obs_kf[o]), int(p.obs_pt[o])
+        u, v = float(p.obs_uv[o, 0]), float(p.obs_uv[o, 1])
+        if stereo[o]:
+            meas = gtsam.StereoPoint2(u, float(p.obs_u_right[o]), v)
+            graph.add(
+                gtsam.GenericStereoFactor3D(meas, noise_stereo[octave[o]], X(k), L(j), K_stereo)
+            )
+        else:
+            graph.add(
+                gtsam.GenericProjectionFactorCal3_S2(
+                    np.array([u, v]), noise_mono[octave[o]], X(k), L(j), K_mono
+                )
+            )
+
+
+def _optimize(graph, values, p: BaProblem) -> tuple[np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt on the graph: (optimized poses (K, 4, 4), points (P, 3))."""
+    import gtsam
+    from gtsam.symbol_shorthand import L, X
+
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(p.iterations)
+    # Points first: eliminating them leaves the small reduced camera system (Schur complement).
+    ordering = gtsam.Ordering()
+    for j in range(len(p.point_ids)):
+        ordering.push_back(L(j))
+    for k in range(len(p.kf_ids)):
+        ordering.push_back(X(k))
+    params.setOrdering(ordering)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    T_new = np.array([result.atPose3(X(k)).matrix() for k in range(len(p.kf_ids))])
+    pts_new = np.array([result.atPoint3(L(j)) for j in range(len(p.point_ids))]).reshape(-1, 3)
+    return T_new, pts_new
 
 
 class BaWorker:

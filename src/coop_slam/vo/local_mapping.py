@@ -26,18 +26,16 @@ import threading
 import time
 from collections.abc import Callable
 
-import cv2
 import numpy as np
 
-from ..descriptors import hamming_rows
-from ..geometry import invert, transform_error, transform_points
+from ..geometry import transform_error
 from ..optim.bundle import BaProblem, BaResult, BaWorker, run_local_ba
 from .config import VoConfig
 from .features import FrameFeatures, level_scales
-from .initialization import fundamental_from_pose
 from .map import Map, MapKeyframe
-from .matching import project_points, rotation_consistent, search_by_projection
+from .matching import project_points, search_by_projection
 from .sensor import Sensor
+from .triangulation import triangulation_pairs, triangulation_view
 from .types import EVENT_KEYFRAME_NEW, EVENT_KEYFRAME_REMOVE, EVENT_KEYFRAME_UPDATE, VoEvent
 
 log = logging.getLogger(__name__)
@@ -323,7 +321,8 @@ class LocalMapper:
     def triangulate_new_points(self, vmap: Map, kf_id: int) -> set[int]:
         """New map points of keyframe ``kf_id`` from its keypoints without a point, triangulated
         with the keypoints without a point of its best covisible keyframes (ORB-SLAM's
-        CreateNewMapPoints; see :meth:`_triangulation_pairs`). Returns the new points' ids.
+        CreateNewMapPoints; see :func:`.triangulation.triangulation_pairs`). Returns the new
+        points' ids.
 
         The matching and triangulation run on copies outside the map lock; the points are added
         under it, each only if both keypoints are still free. Stops early when another keyframe
@@ -340,8 +339,8 @@ class LocalMapper:
             with self._step(vmap):
                 if kf_id not in vmap.keyframes or other not in vmap.keyframes:
                     continue
-                views = [self._triangulation_view(vmap, k) for k in (kf_id, other)]
-            found = self._triangulation_pairs(*views)
+                views = [triangulation_view(vmap, k) for k in (kf_id, other)]
+            found = triangulation_pairs(*views, self.config, self.K, self.scales)
             if found is None:
                 continue
             i1, i2, xyz = found
@@ -370,128 +369,6 @@ class LocalMapper:
             created.update(ids.tolist())
             self.stats["triangulated"] += len(ids)
         return created
-
-    def _triangulation_view(self, vmap: Map, kf_id: int) -> dict:
-        """What triangulation needs of one keyframe (copies; map lock held): its pose, free
-        keypoints and median scene depth."""
-        kf = vmap.keyframes[kf_id]
-        free = np.flatnonzero(kf.map_point_ids == 0)
-        pids = kf.map_point_ids[kf.map_point_ids > 0].astype(np.int64)
-        pids = pids[vmap.points.is_alive(pids)]
-        T_cam_map = invert(kf.T_map_cam)
-        z = transform_points(T_cam_map, vmap.points.xyz[pids])[:, 2] if len(pids) else []
-        return {
-            "T_map_cam": kf.T_map_cam.copy(),
-            "T_cam_map": T_cam_map,
-            "idx": free,
-            "uv": kf.uv_px[free].astype(float),
-            "octave": kf.octaves[free].astype(int),
-            "desc": kf.descriptors[free],
-            "angle": kf.angle_deg[free],
-            "median_depth": float(np.median(z)) if len(z) else float("nan"),
-        }
-
-    def _triangulation_pairs(self, a: dict, b: dict):
-        """(keypoint indices in keyframe a, in keyframe b, map points (M, 3)) of the free keypoints
-        of two keyframes that match and triangulate, or None (ORB-SLAM's SearchForTriangulation and
-        the checks of CreateNewMapPoints).
-
-        Skipped when the baseline is below ``triangulation_min_baseline_ratio`` of b's median
-        scene depth. Candidate pairs lie within the 95 % gate (1 dof) of each other's epipolar
-        line and not next to b's epipole; the best descriptor (Hamming within
-        ``triangulation_max_descriptor_distance``, ratio test against the next candidate) wins,
-        each keypoint of b used once, rotation-histogram consistent. A match becomes a point when
-        its rays meet at ``triangulation_min_parallax_deg`` or more, the DLT point lies in front
-        of both cameras, reprojects within the 2-dof chi-square gate at the keypoints' octave in
-        both, and its distances to the two cameras agree with the keypoints' pyramid levels."""
-        cfg = self.config
-        K = self.K
-        if len(a["idx"]) == 0 or len(b["idx"]) == 0:
-            return None
-        c_a, c_b = a["T_map_cam"][:3, 3], b["T_map_cam"][:3, 3]
-        baseline = float(np.linalg.norm(c_b - c_a))
-        if not baseline > cfg.triangulation_min_baseline_ratio * b["median_depth"]:
-            return None  # also when b has no points (NaN median)
-        T_ba = b["T_cam_map"] @ a["T_map_cam"]
-        F = fundamental_from_pose(T_ba[:3, :3], T_ba[:3, 3], K)  # x_b^T F x_a = 0
-        x_a = np.column_stack([a["uv"], np.ones(len(a["uv"]))])
-        x_b = np.column_stack([b["uv"], np.ones(len(b["uv"]))])
-        lines = x_a @ F.T  # epipolar line in b of each keypoint of a
-        num = lines @ x_b.T  # (Na, Nb)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            d2 = num**2 / (lines[:, :1] ** 2 + lines[:, 1:2] ** 2)
-        sigma2_b = self.scales[b["octave"]] ** 2
-        ok = d2 < 3.841 * sigma2_b[None, :]
-        # Not next to the epipole (b's image of a's centre): every line passes through it.
-        ep = K @ transform_points(b["T_cam_map"], c_a[None])[0]
-        if ep[2] > 0:
-            e2 = ((b["uv"] - ep[:2] / ep[2]) ** 2).sum(1)
-            ok &= (e2 >= 100.0 * self.scales[b["octave"]])[None, :]
-        ia, ib = np.nonzero(ok)
-        if len(ia) == 0:
-            return None
-        dist = hamming_rows(a["desc"][ia], b["desc"][ib])
-        keep = dist <= cfg.triangulation_max_descriptor_distance
-        ia, ib, dist = ia[keep], ib[keep], dist[keep]
-        if len(ia) == 0:
-            return None
-        # Best and second best candidate of each keypoint of a; ratio test between them.
-        order = np.lexsort((dist, ia))
-        ia, ib, dist = ia[order], ib[order], dist[order]
-        first = np.r_[True, ia[1:] != ia[:-1]]
-        best = np.flatnonzero(first)
-        has_second = np.r_[~first[1:], False][best]
-        second = np.where(has_second, dist[np.minimum(best + 1, len(dist) - 1)], 10**6)
-        best = best[~(dist[best] > cfg.triangulation_ratio * second)]
-        if len(best) == 0:
-            return None
-        ia, ib, dist = ia[best], ib[best], dist[best]
-        # Each keypoint of b once: the closest descriptor wins.
-        order = np.lexsort((dist, ib))
-        ia, ib = ia[order], ib[order]
-        first = np.r_[True, ib[1:] != ib[:-1]]
-        ia, ib = ia[first], ib[first]
-        if len(ia) > 10:
-            keep = rotation_consistent(a["angle"][ia], b["angle"][ib])
-            ia, ib = ia[keep], ib[keep]
-        if len(ia) == 0:
-            return None
-        # Parallax of the two keypoint rays (map frame).
-        K_inv = np.linalg.inv(K)
-        ray_a = (x_a[ia] @ K_inv.T) @ a["T_map_cam"][:3, :3].T
-        ray_b = (x_b[ib] @ K_inv.T) @ b["T_map_cam"][:3, :3].T
-        cos_par = (ray_a * ray_b).sum(1) / (
-            np.linalg.norm(ray_a, axis=1) * np.linalg.norm(ray_b, axis=1)
-        )
-        keep = (cos_par > 0) & (cos_par < np.cos(np.radians(cfg.triangulation_min_parallax_deg)))
-        ia, ib = ia[keep], ib[keep]
-        if len(ia) == 0:
-            return None
-        P_a = K @ a["T_cam_map"][:3]
-        P_b = K @ b["T_cam_map"][:3]
-        X = cv2.triangulatePoints(P_a, P_b, a["uv"][ia].T.copy(), b["uv"][ib].T.copy())
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xyz = (X[:3] / X[3]).T
-        good = np.isfinite(xyz).all(1)
-        xyz = np.where(good[:, None], xyz, 0.0)
-        for view, idx in ((a, ia), (b, ib)):
-            pc = transform_points(view["T_cam_map"], xyz)
-            front = pc[:, 2] > 0
-            z = np.where(front, pc[:, 2], 1.0)
-            uv = pc[:, :2] / z[:, None] * [K[0, 0], K[1, 1]] + K[:2, 2]
-            err2 = ((uv - view["uv"][idx]) ** 2).sum(1) / self.scales[view["octave"][idx]] ** 2
-            good &= front & (err2 <= cfg.chi2_mono)
-        # Scale consistency: the distance ratio to the two cameras matches the octave ratio.
-        dist_a = np.linalg.norm(xyz - c_a, axis=1)
-        dist_b = np.linalg.norm(xyz - c_b, axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio_dist = dist_b / dist_a
-        ratio_oct = self.scales[a["octave"][ia]] / self.scales[b["octave"][ib]]
-        factor = 1.5 * cfg.scale_factor
-        good &= (ratio_dist * factor >= ratio_oct) & (ratio_dist <= ratio_oct * factor)
-        if not good.any():
-            return None
-        return a["idx"][ia[good]], b["idx"][ib[good]], xyz[good]
 
     def _cull_points(self, vmap: Map) -> None:
         """Remove recent points that tracking rarely finds or no second keyframe sees."""
@@ -524,7 +401,56 @@ class LocalMapper:
         return cfg.ba_window, cfg.ba_max_fixed
 
     def build_ba_problem(self, vmap: Map, kf_id: int) -> BaProblem | None:
+        """Local BA around keyframe ``kf_id`` (map lock held): its covisible window free, the
+        keyframes outside it that see the window's points fixed; None when nothing is left to
+        optimize."""
         cfg = self.config
+        found = self._ba_keyframes(vmap, kf_id)
+        if found is None:
+            return None
+        all_ids, fixed, local = found
+        found = self._ba_observations(vmap, all_ids, local)
+        if found is None:
+            return None
+        local, obs_kf, obs_pt, obs_kp, uv, ur, octave = found
+        scale_anchor = None
+        if self.sensor.monocular and fixed.sum() < 2:
+            scale_anchor = _scale_anchor(vmap, all_ids, fixed)
+        return BaProblem(
+            segment=vmap.segment,
+            kf_ids=np.array(all_ids),
+            T_map_cam=np.array([vmap.keyframes[k].T_map_cam for k in all_ids]),
+            fixed=fixed,
+            point_ids=local,
+            points_map=vmap.points.xyz[local].copy(),
+            obs_kf=obs_kf,
+            obs_pt=obs_pt,
+            obs_kp=obs_kp,
+            obs_uv=uv,
+            obs_u_right=ur,
+            obs_octave=octave,
+            fx=self.camera.fx,
+            fy=self.camera.fy,
+            cx=self.camera.cx,
+            cy=self.camera.cy,
+            baseline_m=self.sensor.baseline_m,
+            scale_factor=cfg.scale_factor,
+            n_levels=cfg.n_levels,
+            iterations=cfg.ba_iterations,
+            huber_mono=cfg.ba_huber_mono,
+            huber_stereo=cfg.ba_huber_stereo,
+            planar_up_cam=np.asarray(cfg.planar_up_cam, float) if cfg.planar_motion else None,
+            planar_sigmas=(np.radians(cfg.planar_sigma_tilt_deg), cfg.planar_sigma_height_m),
+            chi2_mono=cfg.chi2_mono,
+            chi2_stereo=cfg.chi2_stereo,
+            scale_anchor=scale_anchor,
+        )
+
+    def _ba_keyframes(
+        self, vmap: Map, kf_id: int
+    ) -> tuple[list[int], np.ndarray, np.ndarray] | None:
+        """(keyframe ids: the window, then the fixed ones; which are fixed; the window's points
+        seen twice or more) of a local BA, or None."""
         n_window, max_fixed = self._ba_sizes()
         window = [kf_id] + vmap.best_covisible(kf_id, n_window - 1)
         pts = vmap.points
@@ -553,6 +479,11 @@ class LocalMapper:
             if len(window) < 2:
                 return None
             fixed[int(np.argmin(window))] = True  # gauge: hold the oldest keyframe
+        return all_ids, fixed, local
+
+    def _ba_observations(self, vmap: Map, all_ids: list[int], local: np.ndarray) -> tuple | None:
+        """(points kept, then per observation of them: keyframe index, point index, keypoint
+        index, uv, u_right (NaN without depth), octave) of a local BA, or None."""
         obs_kf, obs_pt, obs_kp = [], [], []
         for k_idx, k in enumerate(all_ids):
             mp = vmap.keyframes[k].map_point_ids.astype(np.int64)
@@ -597,44 +528,7 @@ class LocalMapper:
         local = local[good_pt]
         if len(local) == 0:
             return None
-        scale_anchor = None
-        if self.sensor.monocular and fixed.sum() < 2:
-            # The map's scale is free: hold the distance of the fixed keyframe to the farthest
-            # free one (see BaProblem.scale_anchor).
-            centres = np.array([vmap.keyframes[k].T_map_cam[:3, 3] for k in all_ids])
-            f = int(np.flatnonzero(fixed)[0])
-            dist = np.where(fixed, -1.0, np.linalg.norm(centres - centres[f], axis=1))
-            if dist.max() > 0:
-                scale_anchor = (f, int(np.argmax(dist)))
-        return BaProblem(
-            segment=vmap.segment,
-            kf_ids=np.array(all_ids),
-            T_map_cam=np.array([vmap.keyframes[k].T_map_cam for k in all_ids]),
-            fixed=fixed,
-            point_ids=local,
-            points_map=pts.xyz[local].copy(),
-            obs_kf=obs_kf,
-            obs_pt=obs_pt,
-            obs_kp=obs_kp,
-            obs_uv=uv,
-            obs_u_right=ur,
-            obs_octave=octave,
-            fx=self.camera.fx,
-            fy=self.camera.fy,
-            cx=self.camera.cx,
-            cy=self.camera.cy,
-            baseline_m=self.sensor.baseline_m,
-            scale_factor=cfg.scale_factor,
-            n_levels=cfg.n_levels,
-            iterations=cfg.ba_iterations,
-            huber_mono=cfg.ba_huber_mono,
-            huber_stereo=cfg.ba_huber_stereo,
-            planar_up_cam=np.asarray(cfg.planar_up_cam, float) if cfg.planar_motion else None,
-            planar_sigmas=(np.radians(cfg.planar_sigma_tilt_deg), cfg.planar_sigma_height_m),
-            chi2_mono=cfg.chi2_mono,
-            chi2_stereo=cfg.chi2_stereo,
-            scale_anchor=scale_anchor,
-        )
+        return local, obs_kf, obs_pt, obs_kp, uv, ur, octave
 
     def apply_ba_result(self, vmap: Map, result: BaResult) -> None:
         cfg = self.config
@@ -726,3 +620,14 @@ class LocalMapper:
         self.stats["kf_culled"] += 1
         self._emit(VoEvent(EVENT_KEYFRAME_REMOVE, vmap.segment, c, None))
         return True
+
+
+def _scale_anchor(vmap: Map, all_ids: list[int], fixed: np.ndarray) -> tuple[int, int] | None:
+    """A monocular map's scale is free with fewer than two fixed keyframes: hold the distance of
+    the fixed keyframe to the farthest free one (see BaProblem.scale_anchor)."""
+    centres = np.array([vmap.keyframes[k].T_map_cam[:3, 3] for k in all_ids])
+    f = int(np.flatnonzero(fixed)[0])
+    dist = np.where(fixed, -1.0, np.linalg.norm(centres - centres[f], axis=1))
+    if dist.max() > 0:
+        return (f, int(np.argmax(dist)))
+    return None
