@@ -2,13 +2,13 @@
 (:class:`RunInput`): per-robot and team ATE/RPE (evo), merge errors and latencies, bandwidth per
 topic and robot, timing; trajectory files, plots and the team map PLY in the results folder.
 
-What a run published is recorded by :mod:`coop_slam.ros.run_recorder`.
+What a run published is recorded by :mod:`coop_slam.ros.run_recorder` (into :mod:`.run_data`);
+its radio use is summed up by :mod:`.bandwidth`.
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -19,84 +19,12 @@ from ..registration.umeyama import umeyama
 from ..team.map_scale import scale_translation
 from ..team.results import TYPE_LINK
 from .agreement import KeyframeCloud, team_agreement
+from .bandwidth import bandwidth, downlink_kBps, topic_bandwidth, uplink_kBps
 from .metrics import EvaluationError, ate, merge_error, relative_pose_error, rpe_rmse, team_ate
 from .overlap_view import plot_overlap
 from .plots import plot_path_errors, plot_team, plot_trajectories, write_ply
 from .report import count_wrong_merges, new_report, write_report
-
-# Server -> robot k (the downlink of its radio), relative to /robot_k
-DOWNLINK_TOPICS = ("correction", "keyframe_ack")
-
-
-@dataclass
-class RobotRun:
-    frames: int = 0  # frames tracked
-    frames_dropped: int = 0  # frames the busy client skipped for a newer one
-    # Local mapping's backlog (keyframes not finished) when frames were tracked: its maximum and
-    # the frames tracked while it held more than one (mapping behind the camera)
-    mapping_backlog_max: int = 0
-    frames_mapping_behind: int = 0
-    lost_frames: int = 0
-    track_ms: list = field(default_factory=list)
-    keyframes: dict = field(default_factory=dict)  # id -> (stamp_s, T_map_cam), latest version
-    keyframe_points: dict = field(default_factory=dict)  # id -> points_cam (N, 3) with depth
-    first_keyframe: tuple | None = None  # (stamp_s, T_map_cam) as first published
-    # id -> stamp_s of every keyframe ever published, culled ones included: a merge may rest on
-    # a keyframe the client culls while the merge is on its way
-    keyframe_stamps: dict = field(default_factory=dict)
-    kf_bytes: list = field(default_factory=list)  # (sim stamp_s, bytes) per keyframe message
-    T_world_map: np.ndarray | None = None  # latest correction, when merged
-    map_scale: float = 1.0  # ... and its metres per unit of the robot's map (monocular)
-    # server's optimized keyframe poses in world (latest /team_map/robot_k/path, when merged):
-    # id -> (stamp_s, T_world_cam)
-    team_keyframes: dict = field(default_factory=dict)
-    sensor: str | None = None  # rgbd, stereo or mono, as its keyframes say
-    # New keyframes its client sessions sent (a restarted client counts from 0 again), and the
-    # keyframe messages not acknowledged by the server at the end
-    keyframes_sent_sessions: list = field(default_factory=list)
-    unacked: int = 0
-    keyframe_segments: dict = field(default_factory=dict)  # id -> map segment
-    # the client's latest /robot_k/path: (keyframe id, stamp_s, T_map_base) per keyframe (id 0:
-    # recorded before paths carried them)
-    path: list = field(default_factory=list)
-
-    def in_first_segment(self, keyframe_id: int) -> bool:
-        """Whether a keyframe is of its first map segment (a later one is another map frame)."""
-        if not self.keyframe_segments:
-            return True
-        first = min(self.keyframe_segments.values())
-        return self.keyframe_segments.get(keyframe_id, first) == first
-
-    def first_segment_ids(self) -> list:
-        return sorted(k for k in self.keyframes if self.in_first_segment(k))
-
-
-@dataclass
-class RunData:
-    robots: dict = field(default_factory=dict)  # robot id -> RobotRun
-    merges: list = field(
-        default_factory=list
-    )  # dicts: type, robot_a, robot_b, stamp_s, T_mapA_mapB
-    # constraints inside groups (link: two robots, loop: one): dicts type, robots,
-    # keyframe_stamps, stamp_s, T_camA_camB
-    links: list = field(default_factory=list)
-    server_stats: dict = field(default_factory=dict)
-    duration_s: float = 0.0  # sim time from first to last frame
-    topic_bytes: dict = field(default_factory=dict)  # topic -> [(sim t_s, bytes)] per message
-    team_cloud: tuple | None = None  # latest /team_map/cloud: (points (N, 3), rgb (N, 3) uint8)
-
-
-@dataclass
-class RunInput:
-    """What a run plays and is judged against, whether from a scenario/dataset or a sensor bag."""
-
-    robot_ids: list[int]
-    frames: int  # colour images of all robots
-    start_s: float  # first and last frame on the playback timeline [s]
-    end_s: float
-    gts: dict  # robot id -> (stamps, T_world_cam); empty arrays for robots without ground truth
-    overlap: dict | None = None  # synthetic overlap events (merge latency), when known
-    sensors: list[str] | None = None  # each robot's camera (rgbd, stereo, mono), in robot_ids order
+from .run_data import RobotRun, RunData, RunInput
 
 
 def run_input_of(source, keep_timing: bool = False) -> RunInput:
@@ -320,8 +248,8 @@ def evaluate_run(
         entry["frames"] = r.frames
         entry["frames_dropped"] = r.frames_dropped
         entry["mapping_backlog_max"] = r.mapping_backlog_max
-        entry["uplink_kBps"] = _uplink_kBps(run, r)
-        entry["downlink_kBps"] = _downlink_kBps(run, rid)
+        entry["uplink_kBps"] = uplink_kBps(run, r)
+        entry["downlink_kBps"] = downlink_kBps(run, rid)
         entry["frames_mapping_behind"] = r.frames_mapping_behind
         entry["path_length_m"] = path_length(poses_gt) if len(poses_gt) else None
         entry["keyframes"] = len(r.keyframes)
@@ -474,8 +402,8 @@ def evaluate_run(
     report["loop_closures"] = run.server_stats.get("loops")
     report["links"] = _links(run, gts, report["groups"])
     report["overlap_agreement"] = _overlap_agreement(run, out_dir)
-    report["bandwidth"] = _bandwidth(run)
-    report["topics"] = _topic_bandwidth(run)
+    report["bandwidth"] = bandwidth(run)
+    report["topics"] = topic_bandwidth(run)
     if out_dir:
         mono = {rid for rid in robot_ids if sensors[rid] == "mono"}
         plot_trajectories(
@@ -590,66 +518,6 @@ def _first_evidence(overlap: dict | None, kind: str, a: int, b: int) -> float | 
     together = events.rendezvous_time(a, b)
     first, second = (together, revisit) if kind == "rendezvous" else (revisit, together)
     return first if first is not None else second
-
-
-def _downlink_kBps(run: RunData, robot_id: int) -> float | None:
-    """Server -> robot: its corrections and acknowledgements, kB/s over the run (None when neither
-    was recorded)."""
-    entries = [
-        n for t in DOWNLINK_TOPICS for _, n in run.topic_bytes.get(f"/robot_{robot_id}/{t}", ())
-    ]
-    return sum(entries) / max(run.duration_s, 1e-9) / 1e3 if entries else None
-
-
-def _uplink_kBps(run: RunData, r: RobotRun) -> float | None:
-    """Robot -> server: its keyframe messages, kB/s over the run."""
-    return sum(n for _, n in r.kf_bytes) / max(run.duration_s, 1e-9) / 1e3 if r.kf_bytes else None
-
-
-def _bandwidth(run: RunData) -> dict:
-    per_robot, peaks, total = [], [], 0
-    downlink = [d for d in (_downlink_kBps(run, rid) for rid in run.robots) if d is not None]
-    for r in run.robots.values():
-        if not r.kf_bytes:
-            continue
-        t = np.array([s for s, _ in r.kf_bytes])
-        b = np.array([n for _, n in r.kf_bytes], float)
-        total += b.sum()
-        per_robot.append(_uplink_kBps(run, r))
-        bins = np.floor(t - t.min()).astype(int)
-        peaks.append(np.bincount(bins, weights=b).max() / 1e3)  # busiest second of sim time
-    if not per_robot:
-        return {
-            "per_robot_kBps": None,
-            "peak_kBps": None,
-            "total_MB": None,
-            "keyframe_bytes_mean": None,
-            "downlink_per_robot_kBps": float(np.mean(downlink)) if downlink else None,
-        }
-    sizes = [n for r in run.robots.values() for _, n in r.kf_bytes]
-    return {
-        "per_robot_kBps": float(np.mean(per_robot)),
-        "peak_kBps": float(max(peaks)),
-        "total_MB": float(total / 1e6),
-        "keyframe_bytes_mean": float(np.mean(sizes)),
-        "downlink_per_robot_kBps": float(np.mean(downlink)) if downlink else None,
-    }
-
-
-def _topic_bandwidth(run: RunData) -> dict:
-    """topic -> messages, mean and peak (busiest second of sim time) kB/s, total MB."""
-    out = {}
-    for topic, entries in sorted(run.topic_bytes.items()):
-        t = np.array([s for s, _ in entries])
-        b = np.array([n for _, n in entries], float)
-        peak = np.bincount(np.floor(t - t.min()).astype(int), weights=b).max() / 1e3
-        out[topic] = {
-            "messages": len(b),
-            "mean_kBps": float(b.sum() / max(run.duration_s, 1e-9) / 1e3),
-            "peak_kBps": float(peak),
-            "total_MB": float(b.sum() / 1e6),
-        }
-    return out
 
 
 def evaluate_results(
