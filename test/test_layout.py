@@ -35,7 +35,6 @@ OVER_FUNCTION = {
     "registration/ba.py:two_view_ba": 111,
     "vo/pose_opt.py:optimize_pose": 109,
     "registration/sim3.py:ransac_sim3": 109,
-    "synthetic/overlap.py:compute_overlap": 108,
     "vo/local_mapping.py:_triangulation_pairs": 101,
     "registration/sim3.py:refine_sim3": 101,
 }
