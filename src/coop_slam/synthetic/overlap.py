@@ -28,9 +28,10 @@ from scipy import sparse
 from ..camera import CameraModel
 from ..errors import CoopSlamError
 from ..geometry import invert, transform_points
+from .bodies import body_faces
 from .render import DEFAULT_CAMERA, NoiseConfig, Renderer
 from .scenarios import Scenario
-from .world import World, body_faces
+from .world import World
 
 
 class OverlapError(CoopSlamError):

@@ -28,13 +28,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import CoopSlamError
+from .bodies import DEFAULT_MARKER_SIZE_M
 from .render import NoiseConfig, kinect_noise
-from .world import (
-    BUILDING_SPACING_M,
-    DEFAULT_MARKER_SIZE_M,
-    DEFAULT_T_BASE_CAM,
-    HAND_HELD_T_BASE_CAM,
-)
+from .world import BUILDING_SPACING_M, DEFAULT_T_BASE_CAM, HAND_HELD_T_BASE_CAM
 
 START_STAMP_S = 1.0  # ROS time 0 means "unset", so the first frame is at 1 s
 MAX_SPEED_MPS = 0.45
