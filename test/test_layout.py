@@ -27,7 +27,6 @@ OVER_MODULE = {
 OVER_NODE_MODULE = {"ros/player_node.py": 521}
 OVER_FUNCTION = {
     "tools/demo.py:run": 260,
-    "synthetic/world.py:_kitchen": 195,
     "tools/demo.py:parse_args": 132,
     "registration/sim3.py:estimate_sim3": 131,
     "vo/local_mapping.py:build_ba_problem": 112,
