@@ -20,7 +20,6 @@ OVER_MODULE = {
     "team/pose_graph.py": 1120,
     "registration/sim3.py": 927,
     "tools/demo.py": 748,
-    "synthetic/scenarios.py": 748,
     "bow/vocabulary.py": 734,
     "vo/local_mapping.py": 728,
 }

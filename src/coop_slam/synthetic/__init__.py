@@ -2,9 +2,10 @@
 
 ``world`` builds textured indoor buildings and ``bodies`` robot bodies with ArUco markers,
 ``render`` draws colour and exact depth through a pinhole camera (with optional sensor noise),
-``scenarios`` gives the robots' ground-truth routes, ``overlap`` derives when robots could first
-be merged, and ``generate`` writes everything as TUM RGB-D folders
-(``coop_slam.synthetic.generate.generate``, read back with ``coop_slam.datasets.read_synthetic``).
+``scenarios`` gives the robots' ground-truth routes (``hand_held`` those of cameras carried by
+hand), ``overlap`` derives when robots could first be merged, and ``generate`` writes everything as
+TUM RGB-D folders (``coop_slam.synthetic.generate.generate``, read back with
+``coop_slam.datasets.read_synthetic``).
 """
 
 from .bodies import body_model
