@@ -228,7 +228,8 @@ def test_sensor_bag_gives_robots_and_ground_truth_and_evaluates_without_it(tmp_p
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import Image
 
-    from coop_slam.evaluation.run_report import RobotRun, RunData, evaluate_run
+    from coop_slam.evaluation.run_data import RobotRun, RunData
+    from coop_slam.evaluation.run_report import evaluate_run
     from coop_slam.ros.convert import pose_to_msg
     from coop_slam.ros.run_recorder import read_bag_input
 
@@ -270,7 +271,8 @@ def test_sensor_bag_gives_robots_and_ground_truth_and_evaluates_without_it(tmp_p
 
 def test_report_pools_the_single_robot_ates_as_a_perfect_stitching_would_score():
     pytest.importorskip("rosbag")
-    from coop_slam.evaluation.run_report import RobotRun, RunData, evaluate_run
+    from coop_slam.evaluation.run_data import RobotRun, RunData
+    from coop_slam.evaluation.run_report import evaluate_run
 
     stamps, gt = _circle(40)
     rng = np.random.default_rng(3)
@@ -295,7 +297,8 @@ def test_report_judges_the_clients_published_path_against_the_truth_and_the_team
     """path_ate_rmse_m: the client's last /robot_k/path (base_link poses, placed at the camera
     by the mount); path_team_gap_m: its keyframes in world against the server's, by stamp."""
     pytest.importorskip("rosbag")
-    from coop_slam.evaluation.run_report import RobotRun, RunData, evaluate_run
+    from coop_slam.evaluation.run_data import RobotRun, RunData
+    from coop_slam.evaluation.run_report import evaluate_run
     from coop_slam.team.map_scale import scale_translation
 
     stamps, gt = _circle(30)
@@ -501,17 +504,18 @@ def test_frame_stats_count_dropped_frames_and_a_mapper_behind_the_camera():
 
 def test_bandwidth_gives_uplink_and_downlink_per_robot():
     """Uplink = a robot's keyframe messages; downlink = the server's corrections and acks to it."""
-    from coop_slam.evaluation.run_report import RobotRun, RunData, _bandwidth, _downlink_kBps
+    from coop_slam.evaluation.bandwidth import bandwidth, downlink_kBps
+    from coop_slam.evaluation.run_data import RobotRun, RunData
 
     run = RunData(robots={1: RobotRun(), 2: RobotRun()}, duration_s=10.0)
     run.robots[1].kf_bytes = [(0.5, 40_000), (1.5, 60_000)]
     run.robots[2].kf_bytes = [(2.0, 20_000)]
     run.topic_bytes["/robot_1/correction"] = [(3.0, 5_000), (4.0, 4_000)]
     run.topic_bytes["/robot_1/keyframe_ack"] = [(3.0, 1_000)]
-    bw = _bandwidth(run)
+    bw = bandwidth(run)
     assert bw["per_robot_kBps"] == pytest.approx((10.0 + 2.0) / 2)
-    assert _downlink_kBps(run, 1) == pytest.approx(1.0)
-    assert _downlink_kBps(run, 2) is None  # nothing recorded: unknown, not zero
+    assert downlink_kBps(run, 1) == pytest.approx(1.0)
+    assert downlink_kBps(run, 2) is None  # nothing recorded: unknown, not zero
     assert bw["downlink_per_robot_kBps"] == pytest.approx(1.0)
 
 
@@ -520,7 +524,8 @@ def test_a_similarity_merge_is_judged_against_the_maps_scale_around_its_keyframe
     along its path. A merge whose scale is the true ratio at the matched keyframes is right
     there (local_scale_err), while the whole paths' ratio holds robot 2's drift (scale_err)."""
     pytest.importorskip("rosbag")
-    from coop_slam.evaluation.run_report import RobotRun, RunData, evaluate_run
+    from coop_slam.evaluation.run_data import RobotRun, RunData
+    from coop_slam.evaluation.run_report import evaluate_run
 
     stamps, gt = _circle(40)
     metres_per_unit = {1: np.full(40, 2.0), 2: np.linspace(1.0, 1.5, 40)}

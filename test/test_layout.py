@@ -19,19 +19,15 @@ MAX_MODULE, MAX_NODE_MODULE, MAX_FUNCTION = 700, 400, 100
 OVER_MODULE = {
     "registration/sim3.py": 927,
     "tools/demo.py": 748,
-    "synthetic/scenarios.py": 748,
 }
 OVER_NODE_MODULE = {"ros/player_node.py": 521}
 OVER_FUNCTION = {
     "tools/demo.py:run": 260,
-    "evaluation/run_report.py:evaluate_run": 218,
-    "synthetic/world.py:_kitchen": 195,
     "tools/demo.py:parse_args": 132,
     "registration/sim3.py:estimate_sim3": 131,
     "registration/ba.py:two_view_ba": 111,
     "vo/pose_opt.py:optimize_pose": 109,
     "registration/sim3.py:ransac_sim3": 109,
-    "synthetic/overlap.py:compute_overlap": 108,
     "registration/sim3.py:refine_sim3": 101,
 }
 

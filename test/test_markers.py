@@ -6,8 +6,9 @@ import pytest
 from coop_slam.errors import ConfigError
 from coop_slam.geometry import invert, se3, transform_error
 from coop_slam.markers import MarkerConfig, MarkerDetector, MarkerError, body_hypotheses
+from coop_slam.synthetic.bodies import body_model
 from coop_slam.synthetic.render import Renderer
-from coop_slam.synthetic.world import DEFAULT_T_BASE_CAM, body_model, build_world
+from coop_slam.synthetic.world import DEFAULT_T_BASE_CAM, build_world
 
 
 @pytest.mark.parametrize("yaw_deg", [180.0, 150.0, 90.0])

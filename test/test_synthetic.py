@@ -15,16 +15,11 @@ import coop_slam.synthetic.generate as generate_mod
 from coop_slam.camera import CameraModel
 from coop_slam.datasets import DatasetError, read_synthetic
 from coop_slam.geometry import invert, se3, transform_points
+from coop_slam.synthetic.bodies import body_faces, body_model
 from coop_slam.synthetic.overlap import OverlapConfig, compute_overlap
 from coop_slam.synthetic.render import DynamicObject, NoiseConfig, Renderer, apply_noise
 from coop_slam.synthetic.scenarios import SCENARIOS, ScenarioError, make_scenario
-from coop_slam.synthetic.world import (
-    DEFAULT_T_BASE_CAM,
-    WorldError,
-    body_faces,
-    body_model,
-    build_world,
-)
+from coop_slam.synthetic.world import DEFAULT_T_BASE_CAM, WorldError, build_world
 
 SMALL_CAMERA = CameraModel(width=160, height=120, fx=131.25, fy=131.25, cx=79.5, cy=59.5)
 FAST_OVERLAP = OverlapConfig(rate_hz=2.5, depth_width_px=80)

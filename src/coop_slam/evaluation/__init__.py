@@ -1,5 +1,6 @@
 """Judging a run against ground truth: trajectory metrics (:mod:`.metrics`, with evo), the report
-of a run (:mod:`.run_report`, :mod:`.report`) and its pictures (:mod:`.plots`)."""
+of a run (:mod:`.run_report` over :mod:`.run_data`, with :mod:`.bandwidth`; :mod:`.report`) and its
+pictures (:mod:`.plots`)."""
 
 from .metrics import (
     AteResult,

@@ -2,7 +2,8 @@
 (:class:`RunInput`): per-robot and team ATE/RPE (evo), merge errors and latencies, bandwidth per
 topic and robot, timing; trajectory files, plots and the team map PLY in the results folder.
 
-What a run published is recorded by :mod:`coop_slam.ros.run_recorder`.
+What a run published is recorded by :mod:`coop_slam.ros.run_recorder` (into :mod:`.run_data`);
+its radio use is summed up by :mod:`.bandwidth`.
 """
 
 from __future__ import annotations
@@ -19,84 +20,12 @@ from ..registration.umeyama import umeyama
 from ..team.map_scale import scale_translation
 from ..team.results import TYPE_LINK
 from .agreement import KeyframeCloud, team_agreement
+from .bandwidth import bandwidth, downlink_kBps, topic_bandwidth, uplink_kBps
 from .metrics import EvaluationError, ate, merge_error, relative_pose_error, rpe_rmse, team_ate
 from .overlap_view import plot_overlap
 from .plots import plot_path_errors, plot_team, plot_trajectories, write_ply
 from .report import count_wrong_merges, new_report, write_report
-
-# Server -> robot k (the downlink of its radio), relative to /robot_k
-DOWNLINK_TOPICS = ("correction", "keyframe_ack")
-
-
-@dataclass
-class RobotRun:
-    frames: int = 0  # frames tracked
-    frames_dropped: int = 0  # frames the busy client skipped for a newer one
-    # Local mapping's backlog (keyframes not finished) when frames were tracked: its maximum and
-    # the frames tracked while it held more than one (mapping behind the camera)
-    mapping_backlog_max: int = 0
-    frames_mapping_behind: int = 0
-    lost_frames: int = 0
-    track_ms: list = field(default_factory=list)
-    keyframes: dict = field(default_factory=dict)  # id -> (stamp_s, T_map_cam), latest version
-    keyframe_points: dict = field(default_factory=dict)  # id -> points_cam (N, 3) with depth
-    first_keyframe: tuple | None = None  # (stamp_s, T_map_cam) as first published
-    # id -> stamp_s of every keyframe ever published, culled ones included: a merge may rest on
-    # a keyframe the client culls while the merge is on its way
-    keyframe_stamps: dict = field(default_factory=dict)
-    kf_bytes: list = field(default_factory=list)  # (sim stamp_s, bytes) per keyframe message
-    T_world_map: np.ndarray | None = None  # latest correction, when merged
-    map_scale: float = 1.0  # ... and its metres per unit of the robot's map (monocular)
-    # server's optimized keyframe poses in world (latest /team_map/robot_k/path, when merged):
-    # id -> (stamp_s, T_world_cam)
-    team_keyframes: dict = field(default_factory=dict)
-    sensor: str | None = None  # rgbd, stereo or mono, as its keyframes say
-    # New keyframes its client sessions sent (a restarted client counts from 0 again), and the
-    # keyframe messages not acknowledged by the server at the end
-    keyframes_sent_sessions: list = field(default_factory=list)
-    unacked: int = 0
-    keyframe_segments: dict = field(default_factory=dict)  # id -> map segment
-    # the client's latest /robot_k/path: (keyframe id, stamp_s, T_map_base) per keyframe (id 0:
-    # recorded before paths carried them)
-    path: list = field(default_factory=list)
-
-    def in_first_segment(self, keyframe_id: int) -> bool:
-        """Whether a keyframe is of its first map segment (a later one is another map frame)."""
-        if not self.keyframe_segments:
-            return True
-        first = min(self.keyframe_segments.values())
-        return self.keyframe_segments.get(keyframe_id, first) == first
-
-    def first_segment_ids(self) -> list:
-        return sorted(k for k in self.keyframes if self.in_first_segment(k))
-
-
-@dataclass
-class RunData:
-    robots: dict = field(default_factory=dict)  # robot id -> RobotRun
-    merges: list = field(
-        default_factory=list
-    )  # dicts: type, robot_a, robot_b, stamp_s, T_mapA_mapB
-    # constraints inside groups (link: two robots, loop: one): dicts type, robots,
-    # keyframe_stamps, stamp_s, T_camA_camB
-    links: list = field(default_factory=list)
-    server_stats: dict = field(default_factory=dict)
-    duration_s: float = 0.0  # sim time from first to last frame
-    topic_bytes: dict = field(default_factory=dict)  # topic -> [(sim t_s, bytes)] per message
-    team_cloud: tuple | None = None  # latest /team_map/cloud: (points (N, 3), rgb (N, 3) uint8)
-
-
-@dataclass
-class RunInput:
-    """What a run plays and is judged against, whether from a scenario/dataset or a sensor bag."""
-
-    robot_ids: list[int]
-    frames: int  # colour images of all robots
-    start_s: float  # first and last frame on the playback timeline [s]
-    end_s: float
-    gts: dict  # robot id -> (stamps, T_world_cam); empty arrays for robots without ground truth
-    overlap: dict | None = None  # synthetic overlap events (merge latency), when known
-    sensors: list[str] | None = None  # each robot's camera (rgbd, stereo, mono), in robot_ids order
+from .run_data import RobotRun, RunData, RunInput
 
 
 def run_input_of(source, keep_timing: bool = False) -> RunInput:
@@ -276,6 +205,21 @@ def _local_scale(r: RobotRun, gt: tuple, keyframe_id: int, half_window: int) -> 
         return None
 
 
+@dataclass
+class _RobotResults:
+    """What the per-robot part of a report hands on to the merges, the team ATE and the plots."""
+
+    # Ground-truth pose of each robot's map frame: the SE(3) alignment of its keyframe trajectory
+    # to ground truth (as for its ATE), so a map's drift is averaged rather than frozen at one
+    # frame.
+    T_world_map_gt: dict = field(default_factory=dict)
+    true_scale: dict = field(default_factory=dict)  # monocular robot -> metres per unit of its map
+    own_ate: dict = field(default_factory=dict)  # robot -> (its own ATE, keyframes it was on)
+    published: dict = field(default_factory=dict)  # robot -> its client's path (first segment)
+    est_world: dict = field(default_factory=dict)  # robot -> its keyframes in world: stamps, poses
+    gt_world: dict = field(default_factory=dict)  # ... and their ground truth, where it has some
+
+
 def evaluate_run(
     run: RunData,
     gts: dict,
@@ -292,13 +236,7 @@ def evaluate_run(
     paths (base_link poses) at the camera (``path_ate_rmse_m``; none without it)."""
     robot_ids = sorted(gts)
     report = new_report(robot_ids)
-    for r in run.robots.values():
-        if not r.keyframes and r.team_keyframes:
-            # A robot of a map loaded from an earlier session sends nothing in this run: its
-            # keyframes are the server's optimized ones, taken back into its own map frame.
-            T_map_world = np.eye(4) if r.T_world_map is None else np.linalg.inv(r.T_world_map)
-            r.keyframes = {k: (t, T_map_world @ T) for k, (t, T) in r.team_keyframes.items()}
-            r.keyframe_stamps = {k: t for k, (t, _) in r.team_keyframes.items()}
+    _adopt_loaded_keyframes(run)
     sensors = {
         rid: (sensors or {}).get(rid) or run.robots.get(rid, RobotRun()).sensor or "rgbd"
         for rid in robot_ids
@@ -306,127 +244,20 @@ def evaluate_run(
     world_groups = run.server_stats.get("groups") or [[rid] for rid in robot_ids]
     world = next((set(g) for g in world_groups if min(robot_ids, default=0) in g), set())
     world_metric = any(sensors[r] != "mono" for r in world)
-    true_scale = {}  # monocular robot -> metres per unit of its own map
-    est_world, gt_world = {}, {}
-    # Ground-truth pose of each robot's map frame: the SE(3) alignment of its keyframe trajectory
-    # to ground truth (as for its ATE), so a map's drift is averaged rather than frozen at one
-    # frame.
-    T_world_map_gt = {}
-    own_ate = {}  # robot -> (its own ATE, keyframes it was computed on)
-    published = {}  # robot -> its client's published path (first segment): stamps, poses
+    results = _RobotResults()
     for entry, rid in zip(report["robots"], robot_ids):
-        r = run.robots.get(rid, RobotRun())
-        stamps_gt, poses_gt = gts[rid]
-        entry["frames"] = r.frames
-        entry["frames_dropped"] = r.frames_dropped
-        entry["mapping_backlog_max"] = r.mapping_backlog_max
-        entry["uplink_kBps"] = _uplink_kBps(run, r)
-        entry["downlink_kBps"] = _downlink_kBps(run, rid)
-        entry["frames_mapping_behind"] = r.frames_mapping_behind
-        entry["path_length_m"] = path_length(poses_gt) if len(poses_gt) else None
-        entry["keyframes"] = len(r.keyframes)
-        entry["tracking_lost"] = r.lost_frames
-        entry["sensor"] = sensors[rid]
-        if r.track_ms:
-            entry["track_ms_mean"] = float(np.mean(r.track_ms))
-            entry["track_ms_p95"] = float(np.percentile(r.track_ms, 95))
-        if r.keyframes:
-            stamps, poses = _kf_arrays(r)
-            placed, res = _robot_accuracy(entry, r, rid, gts, world_metric and rid in world)
-            if placed is not None:
-                T_world_map_gt[rid] = placed.T_gt_est
-            if res is not None:
-                own_ate[rid] = (res.rmse_m, res.count)
-                if sensors[rid] == "mono":
-                    true_scale[rid] = res.scale
-            if out_dir:
-                write_tum_trajectory(
-                    os.path.join(out_dir, "trajectories", f"robot_{rid}_keyframes.txt"),
-                    stamps,
-                    poses,
-                )
-            try:
-                if sensors[rid] != "mono":  # in the map's own units otherwise
-                    entry["rpe_rmse_m"] = rpe_rmse(stamps, poses, stamps_gt, poses_gt)
-            except EvaluationError:
-                pass
-            if r.path and T_base_cam is not None:
-                published[rid] = _client_path_accuracy(
-                    entry, r, T_base_cam, gts[rid], sensors[rid] == "mono"
-                )
-            if r.team_keyframes:  # the server's optimized poses, in world
-                ids = sorted(r.team_keyframes)
-                est_world[rid] = (
-                    np.array([r.team_keyframes[k][0] for k in ids]),
-                    np.array([r.team_keyframes[k][1] for k in ids]),
-                )
-                # The same alignment as the robot's own ATE: how much better the team map
-                # places this robot's keyframes than its own odometry (pose-graph sharing brings
-                # the client's own trajectory to it).
-                try:
-                    entry["server_ate_rmse_m"] = ate(
-                        *est_world[rid], stamps_gt, poses_gt, correct_scale=sensors[rid] == "mono"
-                    ).rmse_m
-                except EvaluationError:
-                    pass
-            elif r.T_world_map is not None:  # client poses moved by the latest correction
-                est_world[rid] = (stamps, np.einsum("ij,njk->nik", r.T_world_map, poses))
-            if rid in est_world and len(stamps_gt):
-                gt_world[rid] = (stamps_gt, poses_gt)
-                if out_dir:
-                    write_tum_trajectory(
-                        os.path.join(out_dir, "trajectories", f"robot_{rid}_world.txt"),
-                        *est_world[rid],
-                    )
-        if out_dir and len(stamps_gt):
-            write_tum_trajectory(
-                os.path.join(out_dir, "trajectories", f"robot_{rid}_groundtruth.txt"),
-                stamps_gt,
-                poses_gt,
-            )
-    # Merges: transform error against ground truth and latency from the first moment ground truth
-    # allowed a merge of that kind.
-    units = _merge_units(run, sensors)
-    for m, unit in zip(run.merges, units):
-        a, b = m["robot_a"], m["robot_b"]
-        entry = {
-            "type": m["type"],
-            "robots": [a, b],
-            "stamp": m["stamp_s"],
-            "trans_err_m": None,
-            "rot_err_deg": None,
-            "latency_s": None,
-            "published_s": m.get("published_s"),
-            "scale_err": None,
-            "local_scale_err": None,
-        }
-        # A map transform is judged for robots' first map segments (their maps as placed
-        # against ground truth); a later segment's merge at its keyframes (local) only.
-        first = all(
-            run.robots.get(m[f"robot_{s}"], RobotRun()).in_first_segment(m[f"keyframe_{s}"])
-            for s in "ab"
+        _evaluate_robot(
+            entry,
+            run,
+            rid,
+            gts,
+            sensors[rid],
+            world_metric and rid in world,
+            results,
+            out_dir,
+            T_base_cam,
         )
-        if a in T_world_map_gt and b in T_world_map_gt and first:
-            entry["trans_err_m"], entry["rot_err_deg"] = merge_error(
-                m["T_mapA_mapB"], T_world_map_gt[a], T_world_map_gt[b]
-            )
-        unit, unit_a, unit_b = unit
-        if m.get("scale") is not None and (unit_a != 1.0 or unit_b != 1.0):
-            entry["scale_err"], entry["local_scale_err"] = _merge_scale_errors(
-                m, unit_a, unit_b, run, gts, true_scale
-            )
-        metric = m
-        if unit != 1.0:  # between monocular maps only: in the first side's units
-            unit = true_scale.get(unit[1])
-            metric = (
-                dict(m, T_camA_camB=scale_translation(m["T_camA_camB"], unit)) if unit else None
-            )
-        local = _local_merge_error(metric, run, gts) if metric is not None else None
-        entry["local_trans_err_m"], entry["local_rot_err_deg"] = local if local else (None, None)
-        first = _first_evidence(overlap, m["type"], a, b)
-        if first is not None:
-            entry["latency_s"] = m["stamp_s"] - first
-        report["merges"].append(entry)
+    report["merges"].extend(_merge_entries(run, gts, overlap, sensors, results))
     # A wrong merge is a wrong registration: judged at the matched keyframes, where odometry drift
     # (which only the team optimization can remove) does not enter.
     report["wrong_merges"] = count_wrong_merges(
@@ -436,6 +267,212 @@ def evaluate_run(
         ]
     )
     report["groups"] = run.server_stats.get("groups") or [[rid] for rid in robot_ids]
+    est_world = _team_accuracy(report, results, robot_ids, world_metric, out_dir)
+    _server_figures(report, run, robot_ids)
+    report["links"] = _links(run, gts, report["groups"])
+    report["overlap_agreement"] = _overlap_agreement(run, out_dir)
+    report["bandwidth"] = bandwidth(run)
+    report["topics"] = topic_bandwidth(run)
+    if out_dir:
+        _plot_robot_paths(out_dir, run, gts, robot_ids, sensors, results.published, est_world)
+    return report
+
+
+def _adopt_loaded_keyframes(run: RunData) -> None:
+    """A robot of a map loaded from an earlier session sends nothing in this run: its keyframes
+    are the server's optimized ones, taken back into its own map frame."""
+    for r in run.robots.values():
+        if not r.keyframes and r.team_keyframes:
+            T_map_world = np.eye(4) if r.T_world_map is None else np.linalg.inv(r.T_world_map)
+            r.keyframes = {k: (t, T_map_world @ T) for k, (t, T) in r.team_keyframes.items()}
+            r.keyframe_stamps = {k: t for k, (t, _) in r.team_keyframes.items()}
+
+
+def _evaluate_robot(
+    entry: dict,
+    run: RunData,
+    rid: int,
+    gts: dict,
+    sensor: str,
+    world_metric: bool,
+    results: _RobotResults,
+    out_dir: str | None,
+    T_base_cam: np.ndarray | None,
+) -> None:
+    """A robot's entry of the report: its counts, timing and radio, and with keyframes its
+    accuracy (``world_metric``: it is in the metric world group); its trajectories into
+    ``out_dir``."""
+    r = run.robots.get(rid, RobotRun())
+    stamps_gt, poses_gt = gts[rid]
+    entry["frames"] = r.frames
+    entry["frames_dropped"] = r.frames_dropped
+    entry["mapping_backlog_max"] = r.mapping_backlog_max
+    entry["uplink_kBps"] = uplink_kBps(run, r)
+    entry["downlink_kBps"] = downlink_kBps(run, rid)
+    entry["frames_mapping_behind"] = r.frames_mapping_behind
+    entry["path_length_m"] = path_length(poses_gt) if len(poses_gt) else None
+    entry["keyframes"] = len(r.keyframes)
+    entry["tracking_lost"] = r.lost_frames
+    entry["sensor"] = sensor
+    if r.track_ms:
+        entry["track_ms_mean"] = float(np.mean(r.track_ms))
+        entry["track_ms_p95"] = float(np.percentile(r.track_ms, 95))
+    if r.keyframes:
+        _keyframe_accuracy(entry, r, rid, gts, sensor, world_metric, results, out_dir, T_base_cam)
+    if out_dir and len(stamps_gt):
+        write_tum_trajectory(
+            os.path.join(out_dir, "trajectories", f"robot_{rid}_groundtruth.txt"),
+            stamps_gt,
+            poses_gt,
+        )
+
+
+def _keyframe_accuracy(
+    entry: dict,
+    r: RobotRun,
+    rid: int,
+    gts: dict,
+    sensor: str,
+    world_metric: bool,
+    results: _RobotResults,
+    out_dir: str | None,
+    T_base_cam: np.ndarray | None,
+) -> None:
+    """A robot's own ATE and RPE, its published path's and its keyframes' as the team placed
+    them, into ``entry`` and ``results``."""
+    stamps_gt, poses_gt = gts[rid]
+    stamps, poses = _kf_arrays(r)
+    placed, res = _robot_accuracy(entry, r, rid, gts, world_metric)
+    if placed is not None:
+        results.T_world_map_gt[rid] = placed.T_gt_est
+    if res is not None:
+        results.own_ate[rid] = (res.rmse_m, res.count)
+        if sensor == "mono":
+            results.true_scale[rid] = res.scale
+    if out_dir:
+        write_tum_trajectory(
+            os.path.join(out_dir, "trajectories", f"robot_{rid}_keyframes.txt"),
+            stamps,
+            poses,
+        )
+    try:
+        if sensor != "mono":  # in the map's own units otherwise
+            entry["rpe_rmse_m"] = rpe_rmse(stamps, poses, stamps_gt, poses_gt)
+    except EvaluationError:
+        pass
+    if r.path and T_base_cam is not None:
+        results.published[rid] = _client_path_accuracy(
+            entry, r, T_base_cam, gts[rid], sensor == "mono"
+        )
+    _world_estimate(entry, r, rid, (stamps, poses), gts[rid], sensor, results, out_dir)
+
+
+def _world_estimate(
+    entry: dict,
+    r: RobotRun,
+    rid: int,
+    keyframes: tuple,
+    gt: tuple,
+    sensor: str,
+    results: _RobotResults,
+    out_dir: str | None,
+) -> None:
+    """Where the team placed a robot's keyframes (stamps, poses) in world, into
+    ``results.est_world``: the server's optimized poses (their ATE: ``server_ate_rmse_m``), else
+    the client's moved by its latest correction, none before a merge."""
+    stamps, poses = keyframes
+    stamps_gt, poses_gt = gt
+    est_world = results.est_world
+    if r.team_keyframes:  # the server's optimized poses, in world
+        ids = sorted(r.team_keyframes)
+        est_world[rid] = (
+            np.array([r.team_keyframes[k][0] for k in ids]),
+            np.array([r.team_keyframes[k][1] for k in ids]),
+        )
+        # The same alignment as the robot's own ATE: how much better the team map
+        # places this robot's keyframes than its own odometry (pose-graph sharing brings
+        # the client's own trajectory to it).
+        try:
+            entry["server_ate_rmse_m"] = ate(
+                *est_world[rid], stamps_gt, poses_gt, correct_scale=sensor == "mono"
+            ).rmse_m
+        except EvaluationError:
+            pass
+    elif r.T_world_map is not None:  # client poses moved by the latest correction
+        est_world[rid] = (stamps, np.einsum("ij,njk->nik", r.T_world_map, poses))
+    if rid in est_world and len(stamps_gt):
+        results.gt_world[rid] = (stamps_gt, poses_gt)
+        if out_dir:
+            write_tum_trajectory(
+                os.path.join(out_dir, "trajectories", f"robot_{rid}_world.txt"),
+                *est_world[rid],
+            )
+
+
+def _merge_entries(
+    run: RunData, gts: dict, overlap: dict | None, sensors: dict, results: _RobotResults
+) -> list[dict]:
+    """The report's merges: transform error against ground truth and latency from the first
+    moment ground truth allowed a merge of that kind."""
+    units = _merge_units(run, sensors)
+    return [_merge_entry(m, unit, run, gts, overlap, results) for m, unit in zip(run.merges, units)]
+
+
+def _merge_entry(
+    m: dict, units: tuple, run: RunData, gts: dict, overlap: dict | None, results: _RobotResults
+) -> dict:
+    """One merge's entry (``units``: its item of :func:`_merge_units`)."""
+    a, b = m["robot_a"], m["robot_b"]
+    entry = {
+        "type": m["type"],
+        "robots": [a, b],
+        "stamp": m["stamp_s"],
+        "trans_err_m": None,
+        "rot_err_deg": None,
+        "latency_s": None,
+        "published_s": m.get("published_s"),
+        "scale_err": None,
+        "local_scale_err": None,
+    }
+    # A map transform is judged for robots' first map segments (their maps as placed
+    # against ground truth); a later segment's merge at its keyframes (local) only.
+    first_segments = all(
+        run.robots.get(m[f"robot_{s}"], RobotRun()).in_first_segment(m[f"keyframe_{s}"])
+        for s in "ab"
+    )
+    T_world_map_gt, true_scale = results.T_world_map_gt, results.true_scale
+    if a in T_world_map_gt and b in T_world_map_gt and first_segments:
+        entry["trans_err_m"], entry["rot_err_deg"] = merge_error(
+            m["T_mapA_mapB"], T_world_map_gt[a], T_world_map_gt[b]
+        )
+    unit, unit_a, unit_b = units
+    if m.get("scale") is not None and (unit_a != 1.0 or unit_b != 1.0):
+        entry["scale_err"], entry["local_scale_err"] = _merge_scale_errors(
+            m, unit_a, unit_b, run, gts, true_scale
+        )
+    metric = m
+    if unit != 1.0:  # between monocular maps only: in the first side's units
+        unit = true_scale.get(unit[1])
+        metric = dict(m, T_camA_camB=scale_translation(m["T_camA_camB"], unit)) if unit else None
+    local = _local_merge_error(metric, run, gts) if metric is not None else None
+    entry["local_trans_err_m"], entry["local_rot_err_deg"] = local if local else (None, None)
+    evidence = _first_evidence(overlap, m["type"], a, b)
+    if evidence is not None:
+        entry["latency_s"] = m["stamp_s"] - evidence
+    return entry
+
+
+def _team_accuracy(
+    report: dict,
+    results: _RobotResults,
+    robot_ids: list,
+    world_metric: bool,
+    out_dir: str | None,
+) -> dict:
+    """``team_ate_rmse_m`` (the robots placed in world, aligned at once; a lone robot's own ATE)
+    and ``single_ate_pooled_m``; draws the team's trajectories into ``out_dir``. Returns the
+    robots' keyframes in world as judged: those with ground truth when there was a team ATE."""
+    est_world, gt_world, own_ate = results.est_world, results.gt_world, results.own_ate
     if len(gt_world) >= 2 or (len(robot_ids) == 1 and gt_world):
         est_world = {rid: est_world[rid] for rid in gt_world}  # only what can be judged
         try:
@@ -455,6 +492,12 @@ def evaluate_run(
         n = sum(c for _, c in pooled)
         if n:
             report["single_ate_pooled_m"] = float(np.sqrt(sum(e**2 * c for e, c in pooled) / n))
+    return est_world
+
+
+def _server_figures(report: dict, run: RunData, robot_ids: list) -> None:
+    """What the server reported: its time per keyframe, the keyframes it stored (and pulled) of
+    those each robot sent, the duplicates it received and its loop closures."""
     report["server_ms_per_keyframe"] = run.server_stats.get("ms_per_keyframe_mean")
     stored = run.server_stats.get("keyframes_stored") or {}
     pull = run.server_stats.get("pull")
@@ -472,28 +515,35 @@ def evaluate_run(
             entry["keyframes_pulled"] = int((pull.get("held") or {}).get(str(rid), 0))
     report["duplicates_received"] = run.server_stats.get("duplicates")
     report["loop_closures"] = run.server_stats.get("loops")
-    report["links"] = _links(run, gts, report["groups"])
-    report["overlap_agreement"] = _overlap_agreement(run, out_dir)
-    report["bandwidth"] = _bandwidth(run)
-    report["topics"] = _topic_bandwidth(run)
-    if out_dir:
-        mono = {rid for rid in robot_ids if sensors[rid] == "mono"}
-        plot_trajectories(
-            out_dir,
-            {rid: _kf_arrays(r) for rid, r in run.robots.items() if r.keyframes},
-            gts,
-            mono=mono,
-        )
-        if published:  # the pose-graph sharing's picture: what each client shows
-            series = {}
-            for rid, path in published.items():
-                r = run.robots[rid]
-                series[rid] = [("odometry (as sent)", *_kf_arrays(r))]
-                if r.team_keyframes:
-                    series[rid].append(("team map (server)", *est_world[rid]))
-                series[rid].append(("published path (client)", *path))
-            plot_path_errors(out_dir, series, gts, mono=mono)
-    return report
+
+
+def _plot_robot_paths(
+    out_dir: str,
+    run: RunData,
+    gts: dict,
+    robot_ids: list,
+    sensors: dict,
+    published: dict,
+    est_world: dict,
+) -> None:
+    """Each robot's keyframe trajectory against ground truth, and with published paths the
+    pose-graph sharing's picture: what each client shows (odometry, team map, published path)."""
+    mono = {rid for rid in robot_ids if sensors[rid] == "mono"}
+    plot_trajectories(
+        out_dir,
+        {rid: _kf_arrays(r) for rid, r in run.robots.items() if r.keyframes},
+        gts,
+        mono=mono,
+    )
+    if published:  # the pose-graph sharing's picture: what each client shows
+        series = {}
+        for rid, path in published.items():
+            r = run.robots[rid]
+            series[rid] = [("odometry (as sent)", *_kf_arrays(r))]
+            if r.team_keyframes:
+                series[rid].append(("team map (server)", *est_world[rid]))
+            series[rid].append(("published path (client)", *path))
+        plot_path_errors(out_dir, series, gts, mono=mono)
 
 
 def _local_merge_error(m: dict, run: RunData, gts: dict) -> tuple[float, float] | None:
@@ -590,66 +640,6 @@ def _first_evidence(overlap: dict | None, kind: str, a: int, b: int) -> float | 
     together = events.rendezvous_time(a, b)
     first, second = (together, revisit) if kind == "rendezvous" else (revisit, together)
     return first if first is not None else second
-
-
-def _downlink_kBps(run: RunData, robot_id: int) -> float | None:
-    """Server -> robot: its corrections and acknowledgements, kB/s over the run (None when neither
-    was recorded)."""
-    entries = [
-        n for t in DOWNLINK_TOPICS for _, n in run.topic_bytes.get(f"/robot_{robot_id}/{t}", ())
-    ]
-    return sum(entries) / max(run.duration_s, 1e-9) / 1e3 if entries else None
-
-
-def _uplink_kBps(run: RunData, r: RobotRun) -> float | None:
-    """Robot -> server: its keyframe messages, kB/s over the run."""
-    return sum(n for _, n in r.kf_bytes) / max(run.duration_s, 1e-9) / 1e3 if r.kf_bytes else None
-
-
-def _bandwidth(run: RunData) -> dict:
-    per_robot, peaks, total = [], [], 0
-    downlink = [d for d in (_downlink_kBps(run, rid) for rid in run.robots) if d is not None]
-    for r in run.robots.values():
-        if not r.kf_bytes:
-            continue
-        t = np.array([s for s, _ in r.kf_bytes])
-        b = np.array([n for _, n in r.kf_bytes], float)
-        total += b.sum()
-        per_robot.append(_uplink_kBps(run, r))
-        bins = np.floor(t - t.min()).astype(int)
-        peaks.append(np.bincount(bins, weights=b).max() / 1e3)  # busiest second of sim time
-    if not per_robot:
-        return {
-            "per_robot_kBps": None,
-            "peak_kBps": None,
-            "total_MB": None,
-            "keyframe_bytes_mean": None,
-            "downlink_per_robot_kBps": float(np.mean(downlink)) if downlink else None,
-        }
-    sizes = [n for r in run.robots.values() for _, n in r.kf_bytes]
-    return {
-        "per_robot_kBps": float(np.mean(per_robot)),
-        "peak_kBps": float(max(peaks)),
-        "total_MB": float(total / 1e6),
-        "keyframe_bytes_mean": float(np.mean(sizes)),
-        "downlink_per_robot_kBps": float(np.mean(downlink)) if downlink else None,
-    }
-
-
-def _topic_bandwidth(run: RunData) -> dict:
-    """topic -> messages, mean and peak (busiest second of sim time) kB/s, total MB."""
-    out = {}
-    for topic, entries in sorted(run.topic_bytes.items()):
-        t = np.array([s for s, _ in entries])
-        b = np.array([n for _, n in entries], float)
-        peak = np.bincount(np.floor(t - t.min()).astype(int), weights=b).max() / 1e3
-        out[topic] = {
-            "messages": len(b),
-            "mean_kBps": float(b.sum() / max(run.duration_s, 1e-9) / 1e3),
-            "peak_kBps": float(peak),
-            "total_MB": float(b.sum() / 1e6),
-        }
-    return out
 
 
 def evaluate_results(

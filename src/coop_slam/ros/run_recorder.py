@@ -15,7 +15,7 @@ import threading
 import numpy as np
 
 from ..evaluation import EvaluationError
-from ..evaluation.run_report import RobotRun, RunData, RunInput
+from ..evaluation.run_data import RobotRun, RunData, RunInput
 from ..playback import COLOR_TOPIC, GROUND_TRUTH_TOPIC, camera_topics, image_topic
 from ..team.results import TYPE_LINK, TYPE_LOOP
 from .convert import (

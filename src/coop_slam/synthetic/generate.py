@@ -37,10 +37,11 @@ from ..camera import CameraModel
 from ..datasets import write_camera_yaml, write_tum_trajectory
 from ..errors import CoopSlamError
 from ..geometry import se3
+from .bodies import BODY_SIZE_M, body_model
 from .overlap import OverlapConfig, compute_overlap
 from .render import DEFAULT_CAMERA, DynamicObject, NoiseConfig, Renderer, exposure_gains
 from .scenarios import Scenario, make_scenario
-from .world import BODY_SIZE_M, WALL_HEIGHT_M, body_model, build_world
+from .world import WALL_HEIGHT_M, build_world
 
 GENERATOR_VERSION = 3
 COMPLETE_MARKER = ".complete"

@@ -28,9 +28,10 @@ from scipy import sparse
 from ..camera import CameraModel
 from ..errors import CoopSlamError
 from ..geometry import invert, transform_points
+from .bodies import body_faces
 from .render import DEFAULT_CAMERA, NoiseConfig, Renderer
 from .scenarios import Scenario
-from .world import World, body_faces
+from .world import World
 
 
 class OverlapError(CoopSlamError):
@@ -212,6 +213,28 @@ def compute_overlap(
     frames = np.arange(0, len(stamps), step)
     t_s = stamps[frames]
     vis = _Visibility(world, camera, cfg)
+    seen, counts, sightings = _observations(scenario, vis, frames)
+    wide = _widened(seen, len(vis.points_world) * cfg.azimuth_bins, cfg.azimuth_bins)
+    ids = [t.robot_id for t in trajs]
+    events = OverlapEvents(
+        rendezvous=_rendezvous_events(ids, seen, wide, counts, t_s, cfg),
+        revisit=_revisit_events(ids, seen, wide, counts, t_s, cfg),
+        marker_sightings=[
+            {"observer": obs, "target": tgt, "stamp_s": stamp}
+            for (obs, tgt), stamp in sorted(sightings.items())
+        ],
+    )
+    events.first_overlap = _first_overlaps(ids, events)
+    return events
+
+
+def _observations(scenario: Scenario, vis: _Visibility, frames: np.ndarray):
+    """What each robot sees at ``frames``: robot id -> sparse (frames, features) matrix of the
+    sample points in view (see :meth:`_Visibility.frame`), robot id -> their count per frame, and
+    (observer, target) -> stamp of the observer's first sighting of the target's marker."""
+    cfg = vis.cfg
+    trajs = scenario.trajectories
+    stamps = trajs[0].stamps_s
     n_features = len(vis.points_world) * cfg.azimuth_bins
     # Hand-held cameras have no robot body (and so no marker) for the others to see.
     faces = [
@@ -243,9 +266,12 @@ def compute_overlap(
             (np.ones(len(rows), np.float32), (rows, cols)), shape=(len(frames), n_features)
         )
         counts[a.robot_id] = np.bincount(rows, minlength=len(frames)).astype(float)
+    return seen, counts, sightings
 
-    events = OverlapEvents()
-    nb = cfg.azimuth_bins
+
+def _widened(seen: dict, n_features: int, nb: int) -> dict:
+    """``seen`` (robot id -> (frames, features) matrix, ``nb`` view directions per point) with
+    each view direction widened by a bin each way, as 0/1."""
     # Widen one side by a bin each way: directions up to ~2 bins apart count as the same view.
     f = np.arange(n_features)
     neighbours = (f // nb * nb)[:, None] + ((f % nb)[:, None] + np.array([-1, 0, 1])) % nb
@@ -254,33 +280,45 @@ def compute_overlap(
         shape=(n_features, n_features),
     )
     wide = {rid: (m @ widen).tocsr() for rid, m in seen.items()}
-    wide = {rid: (m > 0).astype(np.float32) for rid, m in wide.items()}
-    ids = [t.robot_id for t in trajs]
+    return {rid: (m > 0).astype(np.float32) for rid, m in wide.items()}
 
-    def overlapping(shared, count_a, count_b):
-        smaller = np.minimum(count_a, count_b)
-        return (shared >= cfg.min_shared_points) & (
-            shared >= cfg.min_shared_fraction * np.maximum(smaller, 1)
-        )
 
+def _overlapping(shared, count_a, count_b, cfg: OverlapConfig):
+    """Whether frames with these counts of shared and of visible points look at one scene."""
+    smaller = np.minimum(count_a, count_b)
+    return (shared >= cfg.min_shared_points) & (
+        shared >= cfg.min_shared_fraction * np.maximum(smaller, 1)
+    )
+
+
+def _rendezvous_events(ids, seen, wide, counts, t_s, cfg: OverlapConfig) -> list[dict]:
+    """Per robot pair, the first frame time both robots look at one scene."""
+    out = []
     for i, a in enumerate(ids):
         for b in ids[i + 1 :]:
             shared = np.asarray(seen[b].multiply(wide[a]).sum(axis=1)).ravel()
-            hit = np.flatnonzero(overlapping(shared, counts[a], counts[b]))
+            hit = np.flatnonzero(_overlapping(shared, counts[a], counts[b], cfg))
             if len(hit):
-                events.rendezvous.append({"robots": [a, b], "stamp_s": float(t_s[hit[0]])})
+                out.append({"robots": [a, b], "stamp_s": float(t_s[hit[0]])})
+    return out
+
+
+def _revisit_events(ids, seen, wide, counts, t_s, cfg: OverlapConfig) -> list[dict]:
+    """Per ordered robot pair a -> b, the first frame time b looks at a scene a saw at least
+    ``cfg.min_revisit_gap_s`` earlier (and when a saw it best)."""
+    out = []
     for a in ids:
         for b in ids:
             if a == b:
                 continue
             shared = (seen[b] @ wide[a].T).toarray()  # (frames of b, frames of a)
-            ok = overlapping(shared, counts[b][:, None], counts[a][None, :])
+            ok = _overlapping(shared, counts[b][:, None], counts[a][None, :], cfg)
             ok &= t_s[None, :] <= t_s[:, None] - cfg.min_revisit_gap_s
             rows = np.flatnonzero(ok.any(axis=1))
             if len(rows):
                 k = rows[0]
                 j = int(np.argmax(np.where(ok[k], shared[k], -1)))
-                events.revisit.append(
+                out.append(
                     {
                         "robot": b,
                         "of_robot": a,
@@ -288,8 +326,12 @@ def compute_overlap(
                         "earlier_stamp_s": float(t_s[j]),
                     }
                 )
-    for (obs, tgt), stamp in sorted(sightings.items()):
-        events.marker_sightings.append({"observer": obs, "target": tgt, "stamp_s": stamp})
+    return out
+
+
+def _first_overlaps(ids, events: OverlapEvents) -> list[dict]:
+    """Per robot pair, the earliest of its rendezvous, revisits and marker sightings."""
+    out = []
     for i, a in enumerate(ids):
         for b in ids[i + 1 :]:
             candidates = [
@@ -300,8 +342,8 @@ def compute_overlap(
             candidates = [(t, kind) for kind, t in candidates if t is not None]
             if candidates:
                 t, kind = min(candidates)
-                events.first_overlap.append({"robots": [a, b], "stamp_s": t, "kind": kind})
-    return events
+                out.append({"robots": [a, b], "stamp_s": t, "kind": kind})
+    return out
 
 
 def _min_or_none(*values):

@@ -1,4 +1,5 @@
-"""Geometry of the synthetic indoor world: textured planar quads, buildings and robot bodies.
+"""Geometry of the synthetic indoor world: textured planar quads and buildings (robot bodies:
+:mod:`.bodies`).
 
 Frames (REP-103): world z up; robot ``base_link`` x forward, y left, z up, on the floor (z = 0);
 camera optical frame z forward, x right, y down. ``T_a_b`` maps points of frame b into frame a.
@@ -30,10 +31,6 @@ BUILDING_SPACING_M = 30.0
 TILE_MAX_M = 2.0
 PX_PER_M = {"wall": 200.0, "box": 200.0, "floor": 100.0, "ceiling": 60.0}
 
-# Robot body: a box on the floor centred on base_link; markers on its four sides.
-BODY_SIZE_M = (0.4, 0.4, 0.6)
-MARKER_CENTRE_HEIGHT_M = 0.38
-DEFAULT_MARKER_SIZE_M = 0.25
 # Camera on the robot: 0.1 m forward, 0.5 m up, looking forward (optical z = base x).
 DEFAULT_T_BASE_CAM = se3(R_BASE_OPTICAL, [0.1, 0.0, 0.5])
 # A hand-held camera: base_link is the camera carrier itself (same origin, REP-103 axes), so the
@@ -370,6 +367,39 @@ def _building(index: int, origin_xy, texture_key: tuple, poster_key: tuple) -> t
     return surfaces, obstacles
 
 
+# Texture detail of the kitchen's large surfaces (Surface.contrast): painted walls and cabinet
+# fronts are plain, worktops and wood a little less so; appliances, books, boxes and posters keep
+# their full detail. Corners then cluster on the clutter, as in a real kitchen.
+PLAIN_CONTRAST, SMOOTH_CONTRAST = 0.35, 0.6
+
+
+class _RoomBuilder:
+    """A room's surfaces and obstacle footprints as they are added. Texture seeds are handed out
+    in turn, so the order of the additions decides every texture."""
+
+    def __init__(self, prefix: str, key: tuple):
+        self.prefix, self.key = prefix, key
+        self.surfaces: list[Surface] = []
+        self.obstacles: list[tuple] = []
+        self._counter = iter(range(10_000))
+
+    def seed(self) -> tuple:
+        return self.key + (next(self._counter),)
+
+    def poster(self, u, v, w, h) -> Poster:
+        return Poster(u, v, w, h, self.key + (500 + next(self._counter),))
+
+    def solid(
+        self, name, x0, y0, x1, y1, z0, z1, top=True, bottom=False, obstacle=False, contrast=1.0
+    ):
+        """A box (see :func:`_box`); ``obstacle``: its footprint is one too."""
+        name = f"{self.prefix}.{name}"
+        box = _box(name, x0, y0, x1, y1, z0, z1, "box", self.seed(), top, bottom, contrast)
+        self.surfaces.extend(box)
+        if obstacle:
+            self.obstacles.append((x0, y0, x1, y1))
+
+
 def _kitchen(seed: int) -> tuple[list, list]:
     """Surfaces and obstacle footprints of a kitchen of KITCHEN_SIZE_M with its corner at (0, 0).
 
@@ -382,24 +412,44 @@ def _kitchen(seed: int) -> tuple[list, list]:
     H = WALL_HEIGHT_M
     W, D = KITCHEN_SIZE_M
     key = (int(seed), 2000)  # apart from the ring buildings' (seed, b) and posters' (seed, 1000+)
-    surfaces: list[Surface] = []
-    obstacles: list[tuple] = []
-    counter = iter(range(10_000))
+    room = _RoomBuilder("kitchen", key)
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 2001]))
+    _kitchen_walls(room)
+    _kitchen_counters(room)
+    _kitchen_worktop_things(room)
+    _kitchen_shelf(room, rng)
+    _kitchen_furniture(room)
+    _kitchen_table(room)
+    room.surfaces.append(
+        Surface(
+            "kitchen.floor",
+            "floor",
+            np.array([0.0, D, 0.0]),
+            np.array([W, 0.0, 0.0]),
+            np.array([0.0, -D, 0.0]),
+            room.seed(),
+            contrast=SMOOTH_CONTRAST,
+        )
+    )
+    room.surfaces.append(
+        Surface(
+            "kitchen.ceiling",
+            "ceiling",
+            np.array([0.0, 0.0, H]),
+            np.array([W, 0.0, 0.0]),
+            np.array([0.0, D, 0.0]),
+            room.seed(),
+        )
+    )
+    return room.surfaces, room.obstacles
 
-    def seed_():
-        return key + (next(counter),)
 
-    def poster(u, v, w, h):
-        return Poster(u, v, w, h, key + (500 + next(counter),))
-
-    # Texture detail of the large surfaces (Surface.contrast): painted walls and cabinet fronts
-    # are plain, worktops and wood a little less so; appliances, books, boxes and posters keep
-    # their full detail. Corners then cluster on the clutter, as in a real kitchen.
-    plain, smooth = 0.35, 0.6
-
-    # Walls face inwards (clockwise); posters: tiles behind the south counter, a window (east), a
-    # calendar above the sideboard (north) and a picture beside the west cabinets.
+def _kitchen_walls(room: _RoomBuilder) -> None:
+    """The walls, facing inwards (clockwise), with posters: tiles behind the south counter, a
+    window (east), a calendar above the sideboard (north) and a picture beside the west cabinets."""
+    H = WALL_HEIGHT_M
+    W, D = KITCHEN_SIZE_M
+    poster, plain = room.poster, PLAIN_CONTRAST
     walls = [
         ("west", (0, 0), (0, D), [poster(2.7, 0.7, 0.6, 0.6)]),
         ("north", (0, D), (W, D), [poster(2.55, 0.6, 0.5, 0.6)]),
@@ -407,17 +457,13 @@ def _kitchen(seed: int) -> tuple[list, list]:
         ("south", (W, 0), (0, 0), [poster(1.0, H - 1.5, 3.0, 0.55)]),
     ]
     for name, a, c, posters in walls:
-        surfaces.append(
-            _wall(f"kitchen.{name}", a, c, 0.0, H, "wall", seed_(), posters, contrast=plain)
-        )
+        wall = _wall(f"kitchen.{name}", a, c, 0.0, H, "wall", room.seed(), posters, plain)
+        room.surfaces.append(wall)
 
-    def solid(name, x0, y0, x1, y1, z0, z1, top=True, bottom=False, obstacle=False, contrast=1.0):
-        surfaces.extend(
-            _box(f"kitchen.{name}", x0, y0, x1, y1, z0, z1, "box", seed_(), top, bottom, contrast)
-        )
-        if obstacle:
-            obstacles.append((x0, y0, x1, y1))
 
+def _kitchen_counters(room: _RoomBuilder) -> None:
+    """Counters along the south and west walls with wall cabinets above, and the fridge."""
+    solid, plain, smooth = room.solid, PLAIN_CONTRAST, SMOOTH_CONTRAST
     # Counters: carcass, worktop with a 2-4 cm overhang, door fronts 2 cm proud of the carcass.
     solid("counter_s", 0.0, 0.0, 3.0, 0.58, 0.0, 0.86, top=False, contrast=plain)
     solid("worktop_s", 0.0, 0.0, 3.02, 0.62, 0.86, 0.9, bottom=True, obstacle=True, contrast=smooth)
@@ -458,7 +504,11 @@ def _kitchen(seed: int) -> tuple[list, list]:
         )
     solid("fridge", 3.2, 0.02, 3.9, 0.68, 0.0, 1.9, obstacle=True, contrast=plain)
     solid("fridge_box", 3.3, 0.1, 3.7, 0.5, 1.9, 2.1)
-    # Things on the south worktop (z 0.9): microwave, cutting board, kettle, toaster, cereal, jars.
+
+
+def _kitchen_worktop_things(room: _RoomBuilder) -> None:
+    """What stands on the worktops (z 0.9)."""
+    # South: microwave, cutting board, kettle, toaster, cereal, jars.
     for name, x0, y0, x1, y1, h in (
         ("microwave", 0.7, 0.06, 1.2, 0.42, 0.3),
         ("board", 1.25, 0.02, 1.4, 0.05, 0.35),
@@ -468,20 +518,25 @@ def _kitchen(seed: int) -> tuple[list, list]:
         ("jar_a", 2.65, 0.1, 2.75, 0.2, 0.12),
         ("jar_b", 2.8, 0.1, 2.9, 0.2, 0.15),
     ):
-        solid(name, x0, y0, x1, y1, 0.9, 0.9 + h)
-    # ... and on the west worktop: dish rack, bottles, bread box.
+        room.solid(name, x0, y0, x1, y1, 0.9, 0.9 + h)
+    # ... and west: dish rack, bottles, bread box.
     for name, x0, y0, x1, y1, h in (
         ("rack", 0.1, 1.0, 0.5, 1.4, 0.15),
         ("bottle_a", 0.15, 1.7, 0.22, 1.77, 0.3),
         ("bottle_b", 0.27, 1.72, 0.34, 1.79, 0.35),
         ("breadbox", 0.05, 2.0, 0.45, 2.35, 0.2),
     ):
-        solid(name, x0, y0, x1, y1, 0.9, 0.9 + h)
-    # Open shelf on the north wall: two sides, five boards, books and jars on the boards.
+        room.solid(name, x0, y0, x1, y1, 0.9, 0.9 + h)
+
+
+def _kitchen_shelf(room: _RoomBuilder, rng: np.random.Generator) -> None:
+    """Open shelf on the north wall: two sides, five boards, books and jars on the boards (their
+    sizes and gaps drawn from ``rng``)."""
+    solid, smooth = room.solid, SMOOTH_CONTRAST
     sy0, sy1 = 3.15, 3.5
     solid("shelf_side_a", 1.0, sy0, 1.03, sy1, 0.0, 1.7, contrast=smooth)
     solid("shelf_side_b", 2.17, sy0, 2.2, sy1, 0.0, 1.7, contrast=smooth)
-    obstacles.append((1.0, sy0, 2.2, sy1))
+    room.obstacles.append((1.0, sy0, 2.2, sy1))
     boards = (0.0, 0.42, 0.85, 1.28, 1.67)
     for k, z in enumerate(boards):
         solid(f"shelf_board{k}", 1.03, sy0, 2.17, sy1, z, z + 0.03, bottom=k > 0, contrast=smooth)
@@ -505,7 +560,13 @@ def _kitchen(seed: int) -> tuple[list, list]:
             )
             x += w + (rng.uniform(0.0, 0.02) if rng.random() < 0.8 else rng.uniform(0.08, 0.2))
             k += 1
-    solid("sideboard", 2.5, 3.05, 3.8, 3.5, 0.0, 0.85, obstacle=True, contrast=smooth)
+
+
+def _kitchen_furniture(room: _RoomBuilder) -> None:
+    """The sideboard (north) and what is on it, boxes and a radiator (east), a chair and a bin
+    (north-west)."""
+    solid = room.solid
+    solid("sideboard", 2.5, 3.05, 3.8, 3.5, 0.0, 0.85, obstacle=True, contrast=SMOOTH_CONTRAST)
     for name, x0, y0, x1, y1, z0, z1 in (
         ("pot", 2.6, 3.2, 2.8, 3.4, 0.85, 1.1),
         ("plant", 2.55, 3.15, 2.85, 3.45, 1.1, 1.45),
@@ -524,7 +585,11 @@ def _kitchen(seed: int) -> tuple[list, list]:
     for k, (x, y) in enumerate(((0.16, 2.76), (0.51, 2.76), (0.16, 3.11), (0.51, 3.11))):
         solid(f"chair_leg{k}", x, y, x + 0.03, y + 0.03, 0.0, 0.43, top=False)
     solid("bin", 0.62, 3.15, 0.92, 3.45, 0.0, 0.5, obstacle=True)
-    # The table in the middle (top on four legs) and what is on it.
+
+
+def _kitchen_table(room: _RoomBuilder) -> None:
+    """The table in the middle (top on four legs) and what is on it."""
+    solid, smooth = room.solid, SMOOTH_CONTRAST
     tx0, ty0, tx1, ty1 = 1.9, 1.64, 2.7, 2.06
     solid("table_top", tx0, ty0, tx1, ty1, 0.72, 0.76, bottom=True, obstacle=True, contrast=smooth)
     for k, (x, y) in enumerate(
@@ -543,28 +608,6 @@ def _kitchen(seed: int) -> tuple[list, list]:
         ("mug", 2.5, 1.95, 2.58, 2.03, 0.76, 0.86),
     ):
         solid(name, x0, y0, x1, y1, z0, z1)
-    surfaces.append(
-        Surface(
-            "kitchen.floor",
-            "floor",
-            np.array([0.0, D, 0.0]),
-            np.array([W, 0.0, 0.0]),
-            np.array([0.0, -D, 0.0]),
-            seed_(),
-            contrast=smooth,
-        )
-    )
-    surfaces.append(
-        Surface(
-            "kitchen.ceiling",
-            "ceiling",
-            np.array([0.0, 0.0, H]),
-            np.array([W, 0.0, 0.0]),
-            np.array([0.0, D, 0.0]),
-            seed_(),
-        )
-    )
-    return surfaces, obstacles
 
 
 LAYOUTS = ("ring", "two_buildings", "two_buildings_aliased", "kitchen")
@@ -595,70 +638,3 @@ def build_world(layout: str = "ring", seed: int = 0) -> World:
         origins.append(origin)
     meta = {"layout": layout, "seed": int(seed), "buildings": [list(o) for o in origins]}
     return World(surfaces, obstacles, origins, meta)
-
-
-# --- robot bodies ------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class BodyFace:
-    """One side of a robot body in base_link: the quad and its marker's corners."""
-
-    origin_base: np.ndarray
-    edge_u_base: np.ndarray
-    edge_v_base: np.ndarray
-    marker_corners_base: np.ndarray | None  # (4, 3) in ArUco order: TL, TR, BR, BL
-
-
-def body_faces(marker_size_m: float = DEFAULT_MARKER_SIZE_M) -> list[BodyFace]:
-    """Four marker sides (front, left, back, right) and the top of the robot body, in base_link."""
-    sx, sy, sz = BODY_SIZE_M
-    if not 0.05 <= marker_size_m <= 0.7 * min(sx, sy):
-        raise WorldError(
-            f"marker size {marker_size_m} m must be in [0.05, {0.7 * min(sx, sy):.2f}] m to fit "
-            f"on the {sx} x {sy} m robot body with its white border"
-        )
-    hx, hy = sx / 2, sy / 2
-    corners = [(hx, -hy), (hx, hy), (-hx, hy), (-hx, -hy)]  # counter-clockwise from front-right
-    # Marker corners from the texel layout the texture uses, so geometry and pixels agree exactly.
-    w_px, h_px, x0, y0, side = textures.marker_face_layout(
-        sx, sz, marker_size_m, sz - MARKER_CENTRE_HEIGHT_M
-    )
-    faces = []
-    for k in range(4):
-        a, c = corners[k], corners[(k + 1) % 4]
-        origin = np.array([a[0], a[1], sz])
-        eu = np.array([c[0] - a[0], c[1] - a[1], 0.0])
-        ev = np.array([0.0, 0.0, -sz])
-        s0, s1 = x0 / w_px, (x0 + side) / w_px
-        t0, t1 = y0 / h_px, (y0 + side) / h_px
-        marker = np.array(
-            [origin + s * eu + t * ev for s, t in ((s0, t0), (s1, t0), (s1, t1), (s0, t1))]
-        )
-        faces.append(BodyFace(origin, eu, ev, marker))
-    faces.append(
-        BodyFace(np.array([-hx, hy, sz]), np.array([sx, 0, 0.0]), np.array([0, -sy, 0.0]), None)
-    )
-    return faces
-
-
-def body_model(robot_id: int, marker_size_m: float = DEFAULT_MARKER_SIZE_M) -> QuadModel:
-    """Quads of robot ``robot_id``'s body in its base_link; the marker id is the robot id."""
-    faces = body_faces(marker_size_m)
-    sx, _sy, sz = BODY_SIZE_M
-    side_tex = textures.marker_face_texture(
-        robot_id, sx, sz, marker_size_m, sz - MARKER_CENTRE_HEIGHT_M
-    )
-    side_levels = textures.mip_pyramid(side_tex)
-    top = np.full((64, 64, 3), (60, 60, 66), np.uint8)
-    top[8:56, 8:56] = (170, 170, 170)  # a light panel so the top edge is visible
-    top_levels = textures.mip_pyramid(top)
-
-    def levels(i):
-        return side_levels if i < 4 else top_levels
-
-    return QuadModel(
-        [f.origin_base for f in faces],
-        [f.edge_u_base for f in faces],
-        [f.edge_v_base for f in faces],
-        levels,
-        [f"robot_{robot_id}.{n}" for n in ("front", "left", "back", "right", "top")],
-    )
