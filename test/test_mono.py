@@ -13,6 +13,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import helpers_vo
+from coop_slam.config import load_config, merge_overrides
 from coop_slam.datasets import Frame, Sequence, read_synthetic
 from coop_slam.evaluation.vo_run import run_sequence
 from coop_slam.geometry import invert, path_length, se3, transform_points
@@ -40,7 +41,7 @@ K = MONO.K
 
 def sync_config(**kw) -> VoConfig:
     """Deterministic configuration: local mapping runs synchronously inside track()."""
-    return VoConfig(**{"threaded": False, **kw})
+    return load_config(VoConfig, merge_overrides({"threaded": False}, kw))
 
 
 def sim3_ate(stamps_s, poses_est, poses_gt) -> tuple[float, float]:
@@ -136,7 +137,7 @@ def test_initialization_waits_then_builds_a_two_view_map(room):
         # first keyframe is about 1 (the map's unit; local BA moved it a little).
         shared = np.intersect1d(kf1.map_point_ids, kf2.map_point_ids)
         shared = shared[shared > 0]
-        assert len(shared) >= VoConfig().min_init_points
+        assert len(shared) >= VoConfig().keyframes.min_init_points
         xyz = np.array([vo.map_points()[int(p)] for p in shared])
         assert 0.9 < np.median(xyz[:, 2]) < 1.1
         assert (transform_points(invert(kf2.T_map_cam), xyz)[:, 2] > 0).all()
@@ -168,13 +169,15 @@ def test_lost_monocular_camera_relocalizes_then_starts_a_new_segment(room):
         res = vo.track(stamps[23], images[23])
         assert res.state == STATE_RELOCALIZED and res.ok, res.message
         t = stamps[24]
-        for _ in range(cfg.max_lost_frames + 1):  # a covered lens does not end the map ...
+        for _ in range(
+            cfg.relocalization.max_lost_frames + 1
+        ):  # a covered lens does not end the map ...
             res = vo.track(t, blank)
             t += 0.1
         assert res.state == STATE_LOST and res.map_segment == 0
         noise = np.random.default_rng(0).integers(0, 256, blank.shape, dtype=np.uint8)
         messages = []
-        for _ in range(cfg.max_lost_frames + 2):  # ... views the map cannot place do
+        for _ in range(cfg.relocalization.max_lost_frames + 2):  # ... views the map cannot place do
             res = vo.track(t, noise)
             messages.append(res.message)
             t += 0.1
@@ -346,7 +349,7 @@ def test_a_free_monocular_camera_gets_the_wider_local_ba_window(sensor, planar, 
         vmap.add_keyframe(kf)
     for k in range(1, 41):
         vmap.update_covisibility(k, propagate=False)
-    cfg = sync_config(planar_motion=planar)
+    cfg = sync_config(planar={"enabled": planar})
     camera = dataclasses.replace(MONO, sensor=sensor)
     mapper = LocalMapper(cfg, make_sensor(cfg, camera), lambda: vmap, lambda e: 0)
     problem = mapper.build_ba_problem(vmap, 40)
@@ -434,6 +437,6 @@ def test_monocular_odometry_on_a_synthetic_world(revisit_run):
     # Local mapping runs inside track() here, so it is always free: keyframes still come at
     # most every keyframe_min_frames_mono frames (every other frame became one without it).
     frames = len(run.stamps_s) - first
-    assert run.keyframes_created <= 2 + frames / VoConfig().keyframe_min_frames_mono
+    assert run.keyframes_created <= 2 + frames / VoConfig().for_sensor("mono").keyframes.min_frames
     assert all(kf.depths_m.max() == 0 for kf in run.keyframes)
     assert sum((kf.map_point_ids > 0).sum() for kf in run.keyframes) > 100 * len(run.keyframes)

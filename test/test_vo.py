@@ -14,7 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import helpers_vo
-from coop_slam.config import load_config
+from coop_slam.config import load_config, merge_overrides
 from coop_slam.errors import ConfigError
 from coop_slam.evaluation.vo_run import ate_rmse, keyframe_ate, run_sequence
 from coop_slam.geometry import invert, se3, transform_error, transform_points
@@ -44,7 +44,7 @@ K = helpers_vo.CAMERA.K
 
 def sync_config(**kw) -> VoConfig:
     """Deterministic configuration: local mapping runs synchronously inside track()."""
-    return VoConfig(**{"threaded": False, **kw})
+    return load_config(VoConfig, merge_overrides({"threaded": False}, kw))
 
 
 @pytest.fixture(scope="module")
@@ -253,7 +253,7 @@ def test_tracks_synthetic_room(room_sequence):
 def test_keyframe_culling_keeps_map_consistent(room_sequence):
     stamps, frames, _ = room_sequence
     # A keyframe at (almost) every frame makes most keyframes redundant, so culling has work to do.
-    cfg = sync_config(keyframe_ref_ratio=1.0, keyframe_min_inliers=5)
+    cfg = sync_config(keyframes={"ref_ratio": 1.0, "min_inliers": 5})
     with VisualOdometry(cfg, helpers_vo.CAMERA) as vo:
         results = _track_all(vo, stamps[:30], frames[:30])
         events = vo.drain_events()
@@ -285,7 +285,7 @@ def test_mapping_backlog_counts_keyframes_a_slow_mapper_has_not_finished(room_se
     """A mapper slower than the camera is visible (mapping_backlog > 1), and flush() -- what a
     lock-step client does after each frame -- waits until it has caught up."""
     stamps, frames, _ = room_sequence
-    cfg = VoConfig(threaded=True, ba_enabled=False)
+    cfg = sync_config(threaded=True, ba={"enabled": False})
     with VisualOdometry(cfg, helpers_vo.CAMERA) as vo:
         slow = vo._mapper.process
 
@@ -311,7 +311,7 @@ def test_mapping_steps_wait_for_the_frame_being_tracked(room_sequence):
     never wait for it longer than ``mapping_yield_max_s``."""
     stamps, frames, _ = room_sequence
     for wait_s, blocked in ((30.0, True), (0.05, False)):
-        cfg = VoConfig(threaded=True, ba_enabled=False, mapping_yield_max_s=wait_s)
+        cfg = sync_config(threaded=True, ba={"enabled": False}, mapping={"yield_max_s": wait_s})
         with VisualOdometry(cfg, helpers_vo.CAMERA) as vo:
             for s, (img, d) in zip(stamps[:3], frames[:3]):
                 vo.track(s, img, d)
@@ -340,7 +340,8 @@ def test_relocalizes_after_blackout_and_starts_segment_when_lost_long(room_seque
     stamps, frames, _ = room_sequence
     black = np.zeros_like(frames[0][0])
     no_depth = np.zeros_like(frames[0][1])
-    with VisualOdometry(sync_config(max_lost_frames=4), helpers_vo.CAMERA) as vo:
+    cfg = sync_config(relocalization={"max_lost_frames": 4})
+    with VisualOdometry(cfg, helpers_vo.CAMERA) as vo:
         for s, (img, d) in zip(stamps[:10], frames[:10]):
             assert vo.track(s, img, d).ok
         last = vo.track(stamps[10], black, no_depth)
@@ -371,7 +372,9 @@ def test_a_lost_camera_carries_on_in_its_map_from_the_teams_local_map(room_seque
     stamps, frames, gt = room_sequence
     gt_map = [invert(gt[0]) @ T for T in gt]
     black = np.zeros_like(frames[0][0])
-    with VisualOdometry(sync_config(max_lost_frames=3), helpers_vo.CAMERA) as vo:
+    with VisualOdometry(
+        sync_config(relocalization={"max_lost_frames": 3}), helpers_vo.CAMERA
+    ) as vo:
         for s, (img, d) in zip(stamps[:20], frames[:20]):
             assert vo.track(s, img, d).ok
         kfs = vo.keyframes()
@@ -513,7 +516,10 @@ def test_local_ba_announces_no_update_before_a_keyframes_new(room_sequence):
     UPDATE as the keyframe and reject its NEW as a duplicate). Small moves wait until they add up.
     """
     stamps, frames, _ = room_sequence
-    cfg = sync_config(keyframe_ref_ratio=1.0, update_min_trans_m=0.002, update_min_rot_deg=0.05)
+    cfg = sync_config(
+        keyframes={"ref_ratio": 1.0},
+        mapping={"update_min_trans_m": 0.002, "update_min_rot_deg": 0.05},
+    )
     with VisualOdometry(cfg, helpers_vo.CAMERA) as vo:
         _track_all(vo, stamps[:12], frames[:12])
         vo.drain_events()
@@ -557,10 +563,10 @@ def test_orb_keypoints_sit_where_the_pyramid_found_them():
     feats = OrbExtractor(cfg, helpers_vo.CAMERA).extract(gray)
     h, w = gray.shape
     level_img = gray
-    fast = cv2.FastFeatureDetector_create(cfg.fast_threshold, True)
+    fast = cv2.FastFeatureDetector_create(cfg.features.fast_threshold, True)
     checked = 0
-    for level in range(cfg.n_levels):
-        s = float(np.float32(cfg.scale_factor) ** level)
+    for level in range(cfg.features.n_levels):
+        s = float(np.float32(cfg.features.scale_factor) ** level)
         if level:  # OpenCV's pyramid: a cascade of resizes to its rounded level sizes
             size = (round(w / s), round(h / s))
             level_img = cv2.resize(level_img, size, interpolation=cv2.INTER_LINEAR_EXACT)

@@ -69,6 +69,14 @@ def load_config(cls: type[C], values: Mapping[str, Any] | None = None, prefix: s
             f"known keys: {', '.join(sorted(fields))}"
         )
     kwargs = {k: _coerce(prefix + k, v, hints[k]) for k, v in values.items()}
+    for k, v in kwargs.items():  # a mapping field merges with its default key by key
+        default = (
+            fields[k].default_factory
+            if fields[k].default_factory is not dataclasses.MISSING
+            else None
+        )
+        if hints[k] is dict and isinstance(v, Mapping) and default is not None:
+            kwargs[k] = merge_overrides(default(), v)
     obj = cls(**kwargs)
     validate = getattr(obj, "validate", None)
     if callable(validate):
@@ -121,6 +129,13 @@ def merge_overrides(values: Mapping[str, Any], overrides: Mapping[str, Any]) -> 
         else:
             out[key] = value
     return out
+
+
+def with_values(obj: C, overrides: Mapping[str, Any], prefix: str = "") -> C:
+    """A copy of config ``obj`` with ``overrides`` (nested like its sections) on top, loaded and
+    validated as a file would be."""
+    values = merge_overrides(dataclasses.asdict(obj), overrides)
+    return load_config(type(obj), values, prefix=prefix)
 
 
 def require(condition: bool, message: str) -> None:

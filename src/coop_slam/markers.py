@@ -29,7 +29,7 @@ class MarkerError(CoopSlamError):
 
 @dataclass
 class MarkerConfig:
-    dictionary: str = "DICT_4X4_50"
+    dictionary: str = "DICT_4X4_50"  # ArUco dictionary; a robot's marker id is its robot id
     marker_size_m: float = 0.25  # side of the black square [m]
     # Front-face marker centre in base_link: [x, y, z, qx, qy, qz, qw]; empty = the synthetic
     # robots' body (0.4 m cube side, marker centre 0.38 m up).

@@ -61,7 +61,7 @@ class BaProblem:
     # fx * baseline * c at every range, much smaller than a pixel for a Kinect, so depth then
     # constrains the points (correlated (u, u_right) noise: u_right = u - disparity).
     disparity_sigma_px: float | None = None
-    # Ground robot (see VoConfig.planar_motion): the floor normal in the camera frame ((3,), or
+    # Ground robot (see VoConfig.planar): the floor normal in the camera frame ((3,), or
     # (K, 3) one per keyframe), and the (tilt [rad], height [m]) std of the soft prior holding each
     # keyframe at its start height and tilt. None: no prior. planar_T_map_plane (K, 4, 4): each
     # keyframe's plane (see planar_prior); None: the level frame at the map origin.

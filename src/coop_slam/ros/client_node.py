@@ -28,43 +28,37 @@ from ..uplink.config import UplinkConfig
 from ..vo.config import VoConfig
 from ..vo.pipeline import VisualOdometry
 from ..vo.types import STATE_INITIALIZING
-from ..wire.delivery import DeliveryConfig
 from .camera_input import CameraInput
 from .log_bridge import forward_core_logs
+from .params import client_params
 from .pose_output import PoseOutput
 from .team_cues import TeamCues
 from .uplink_bridge import UplinkBridge, server_vocabulary
 from .validation import RejectCounter
 
 
-def _param(name: str, default):
-    return type(default)(rospy.get_param(f"~{name}", default))
-
-
 class ClientNode:
     def __init__(self):
         from coop_slam.msg import FrameStats, MapCorrection
 
-        self.robot_id = int(rospy.get_param("~robot_id"))
-        if self.robot_id < 1:
-            raise CoopSlamError(f"~robot_id must be >= 1, got {self.robot_id}")
+        p = client_params(rospy.get_param("~", {}))
+        self.robot_id = p.robot_id
         self.name = name = f"robot_{self.robot_id}"
-        sensor = rospy.get_param("~sensor", "rgbd")
+        sensor = p.sensor
         if sensor not in PLAYABLE_SENSORS:
             raise CoopSlamError(
                 f"~sensor must be one of {', '.join(PLAYABLE_SENSORS)}, got '{sensor}'"
             )
         self.sensor = sensor
-        config_file = rospy.get_param("~config", "")
-        self.T_base_cam = T_base_cam_of(rospy.get_param("~T_base_cam", []))  # [x y z qx qy qz qw]
-        self.vo_cfg = load_yaml_config(VoConfig, config_file, "vo", rospy.get_param("~vo", {}))
-        if self.vo_cfg.planar_motion:  # the floor normal (base z) as the camera sees it
-            self.vo_cfg.planar_up_cam = (self.T_base_cam[:3, :3].T @ [0.0, 0.0, 1.0]).tolist()
+        self.T_base_cam = T_base_cam_of(p.T_base_cam)
+        self.vo_cfg = load_yaml_config(VoConfig, p.config, "vo", p.vo)
+        if self.vo_cfg.planar.enabled:  # the floor normal (base z) as the camera sees it
+            self.vo_cfg.planar.up_cam = (self.T_base_cam[:3, :3].T @ [0.0, 0.0, 1.0]).tolist()
         # Lock-step playback: a frame is finished when local mapping has caught up too, so that
         # results do not depend on how fast the machine maps. Live, the mapper runs beside
         # tracking and a backlog is reported (FrameStats.mapping_backlog and a warning).
-        self.wait_for_mapping = _param("wait_for_mapping", False)
-        self.mapping_backlog_warn = _param("mapping_backlog_warn", 3)
+        self.wait_for_mapping = p.wait_for_mapping
+        self.mapping_backlog_warn = p.mapping_backlog_warn
         self.vo: VisualOdometry | None = None
         self.frames = 0
         self.lock = threading.Lock()  # the odometry and what is made of it: one thread at a time
@@ -74,20 +68,15 @@ class ClientNode:
         self.pose = PoseOutput(
             self.robot_id,
             self.T_base_cam,
-            _param("cloud_period_s", 2.0),
-            _param("path_period_s", 1.0),
+            p.cloud_period_s,
+            p.path_period_s,
             self.rejects,
         )
         self.uplink = UplinkBridge(
             name,
-            load_yaml_config(UplinkConfig, config_file, "uplink", rospy.get_param("~uplink", {})),
-            DeliveryConfig(
-                _param("max_unacked", 1000),
-                _param("resend_after_s", 2.0),
-                _param("resend_window", 100),
-                _param("max_resend_after_s", 30.0),
-            ),
-            _param("server_wait_s", 3.0),
+            load_yaml_config(UplinkConfig, p.config, "uplink", p.uplink),
+            p.delivery,
+            p.server_wait_s,
             self.rejects,
             self._with_odometry,
             self.wait_for_mapping,
@@ -97,12 +86,8 @@ class ClientNode:
         self.cues = TeamCues(
             self.robot_id,
             self.T_base_cam,
-            MarkerDetector(
-                load_yaml_config(
-                    MarkerConfig, config_file, "markers", rospy.get_param("~markers", {})
-                )
-            ),
-            _param("marker_every_frames", 5),  # 0: no marker detection
+            MarkerDetector(load_yaml_config(MarkerConfig, p.config, "markers", p.markers)),
+            p.marker_every_frames,
             self._vocabulary,
             lambda: self.uplink.engine.segment_base,
         )
@@ -110,7 +95,7 @@ class ClientNode:
             name,
             self.robot_id,
             sensor,
-            _param("depth_scale", 1000.0),  # 16UC1 units per metre
+            p.depth_scale,
             self.rejects,
             self.lock,
             self._camera_changed,

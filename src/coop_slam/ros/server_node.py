@@ -44,11 +44,9 @@ from ..wire.codec import WireError, signature_bow
 from ..wire.messages import KeyframeMessage
 from .convert import MessageError, pose_from_msg
 from .log_bridge import forward_core_logs
+from .params import server_params
 from .server_outputs import RosServerOutputs
 from .wire_bridge import from_ros
-
-NODE_PARAMS = ("config", "vocabulary", "T_base_cam", "cloud_period_s", "cloud_max_busy_share")
-NODE_PARAMS += ("map", "resume", "load_map")
 
 
 def _server_mount(base_cam):
@@ -80,13 +78,11 @@ class ServerNode:
         from coop_slam.msg import Vocabulary as VocabularyMsg
         from coop_slam.srv import GlobalBundleAdjustment, LoadMap, Relocalize, Rendezvous, SaveMap
 
-        overrides = {k: v for k, v in rospy.get_param("~", {}).items() if k not in NODE_PARAMS}
-        self.cfg = load_yaml_config(
-            ServerConfig, rospy.get_param("~config", ""), "server", overrides
-        )
-        self.vocabulary, vocab_data = load_vocabulary(rospy.get_param("~vocabulary", ""))
+        p, overrides = server_params(rospy.get_param("~", {}))
+        self.cfg = load_yaml_config(ServerConfig, p.config, "server", overrides)
+        self.vocabulary, vocab_data = load_vocabulary(p.vocabulary)
         self.vocab_sha256 = hashlib.sha256(vocab_data).hexdigest()
-        map_path = str(rospy.get_param("~map", "")).strip()
+        map_path = p.map.strip()
         self.map_path = None if map_path == "off" else (map_path or default_map_path())
         # Topics of every robot the worker names (a loaded map may add robots).
         self.out = RosServerOutputs(self.cfg.pull.enabled, on_robots=self._subscribe)
@@ -108,13 +104,10 @@ class ServerNode:
             self.cfg,
             self._open_map,
             self.out,
-            T_base_cam=_server_mount(rospy.get_param("~T_base_cam", [])),
-            cadence=PublishCadenceConfig(
-                period_s=float(rospy.get_param("~cloud_period_s", 2.0)),
-                max_busy_share=float(rospy.get_param("~cloud_max_busy_share", 0.2)),
-            ),
-            resume=bool(rospy.get_param("~resume", False)),
-            load_path=str(rospy.get_param("~load_map", "")).strip() or None,
+            T_base_cam=_server_mount(p.T_base_cam),
+            cadence=PublishCadenceConfig(p.cloud_period_s, p.cloud_max_busy_share),
+            resume=p.resume,
+            load_path=p.load_map.strip() or None,
         )
         self.worker.start()
         self.subs[0] = rospy.Subscriber(

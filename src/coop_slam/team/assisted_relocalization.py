@@ -26,7 +26,7 @@ from ..ids import KeyframeKey
 class AssistConfig:
     """``config/server.yaml`` section ``assisted_relocalization``."""
 
-    enabled: bool = True
+    enabled: bool = True  # answer a lost robot's view with the team's local map there
     keyframes: int = 5  # the best-matching keyframe and its best covisible neighbours
     min_score: float = 0.02  # BoW L1 score below which no place is recognised [0, 1]
 

@@ -23,7 +23,9 @@ from .pull import PullConfig
 
 @dataclass
 class PlaceRecognitionConfig:
-    enabled: bool = True
+    """A robot seeing a place another robot (or itself) mapped: BoW retrieval, then registration."""
+
+    enabled: bool = True  # look for other robots' places in every new keyframe
     min_consecutive: int = 2  # consecutive consistent queries before a candidate is verified
     max_verifications: int = 2  # candidates geometrically verified per keyframe (bounds the cost)
     # A merge joins two maps on one constraint, so it needs more support than a loop / in-group
@@ -50,6 +52,8 @@ class PlaceRecognitionConfig:
 
 @dataclass
 class RendezvousConfig:
+    """Robots seeing one scene at once: co-observation, marker sightings, operator requests."""
+
     auto: bool = True  # test the time-aligned latest keyframes of unmerged robots continuously
     window_s: float = 2.0  # keyframes closer in time than this count as simultaneous [s]
     request_window_s: float = 2.0  # keyframes around a sighting / operator request [s]
@@ -116,7 +120,7 @@ class LoopClosureConfig:
     """Constraints between keyframes already in one group: a robot's own loop closures and further
     links between robots merged earlier (the place-recognition path, within the team map)."""
 
-    enabled: bool = True
+    enabled: bool = True  # close loops within a robot's map and link merged robots
     min_separation_s: float = 5.0  # a robot's own candidate must be at least this much older [s]
     min_interval_kf: int = 2  # keyframes of a robot between two constraints it adds
     # A constraint with this many verified inliers (as a merge) may move the map up to the gate:

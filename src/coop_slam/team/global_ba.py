@@ -35,6 +35,8 @@ class GlobalBaError(CoopSlamError):
 
 @dataclass
 class GlobalBaConfig:
+    """Bundle adjustment of a merged group's keyframes and points, after a merge or on request."""
+
     iterations: int = 10  # Levenberg-Marquardt iterations
     min_observations: int = 2  # landmarks seen by fewer keyframes are left out
     virtual_baseline_m: float = 0.08  # of the stereo-like depth factor, as the client's [m]

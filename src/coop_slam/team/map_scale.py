@@ -49,6 +49,8 @@ class MapScaleError(CoopSlamError):
 
 @dataclass
 class MapScaleConfig:
+    """Monocular maps' scales: re-measuring a merged monocular map's scale from its links."""
+
     # A merged monocular robot's scale is re-estimated from the similarities of its links to metric
     # robots: the median of the last refine_window of them, once at least refine_min_links ...
     refine_min_links: int = 5

@@ -24,7 +24,9 @@ from ..registration.umeyama import umeyama_batch
 
 @dataclass
 class MarkerScaleConfig:
-    enabled: bool = True
+    """A monocular map's metres from sightings of a metric robot's marker."""
+
+    enabled: bool = True  # learn an unmerged monocular map's metres from marker sightings
     min_sightings: int = 6  # sightings of one pair before a scale is given
     window: int = 40  # the newest sightings of a pair kept
     # The observer's camera must have moved this far [m] (spread of its centres, at the estimated

@@ -46,7 +46,10 @@ SWEEP_SAMPLES_PER_PAIR = 3
 
 @dataclass
 class OverlapLinkConfig:
-    enabled: bool = True
+    """Links between merged robots where the team map says their views overlap, and a merge's
+    welding window."""
+
+    enabled: bool = True  # link merged robots wherever the team map says their views overlap
     # A pair is tried when this share of one keyframe's 3D points would be seen by the other
     # (in front, inside its image, nearer than its own farthest point) ...
     min_shared: float = 0.3

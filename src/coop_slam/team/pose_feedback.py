@@ -24,6 +24,8 @@ from ..config import require
 
 @dataclass
 class PoseFeedbackConfig:
+    """Which optimized keyframe poses a correction carries back to a robot."""
+
     min_trans_m: float = 0.001  # send a keyframe's pose when it moved this far since last sent [m]
     min_rot_deg: float = 0.05  # ... or turned this much [deg]
 

@@ -44,15 +44,17 @@ class PoseGraphError(CoopSlamError):
 
 @dataclass
 class PoseGraphConfig:
+    """The team pose graph: factor sigmas, robust kernel, optimisation and scale drift."""
+
     odom_rot_sigma_rad: float = 0.005  # odometry between neighbouring keyframes ...
-    odom_trans_sigma_m: float = 0.01
+    odom_trans_sigma_m: float = 0.01  # [m]
     odom_rot_sigma_per_m: float = 0.005  # ... plus this much per metre between them
-    odom_trans_sigma_per_m: float = 0.02
+    odom_trans_sigma_per_m: float = 0.02  # [m per m]
     max_covisible_factors: int = 3  # extra client-pose factors per keyframe to covisible ones
-    loop_rot_sigma_rad: float = 0.02
-    loop_trans_sigma_m: float = 0.05
-    merge_rot_sigma_rad: float = 0.02
-    merge_trans_sigma_m: float = 0.05
+    loop_rot_sigma_rad: float = 0.02  # a loop closure's rotation sigma (unless it gives one) [rad]
+    loop_trans_sigma_m: float = 0.05  # ... and translation sigma [m]
+    merge_rot_sigma_rad: float = 0.02  # a merge's or link's rotation sigma (unless given) [rad]
+    merge_trans_sigma_m: float = 0.05  # ... and translation sigma [m]
     robust_kernel: str = "cauchy"  # huber | cauchy | none, for loop and merge factors
     # On the whitened 6-D residual norm: an inlier's norm is about sqrt(6) = 2.4.
     robust_k: float = 3.0

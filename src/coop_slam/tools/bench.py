@@ -107,11 +107,9 @@ def bench_vo() -> Iterator[Figure]:
     """Tracking time with local mapping running alongside, keyframes/s, ATE and keyframe message
     size."""
 
-    import dataclasses
-
     import numpy as np
 
-    from ..config import load_yaml_config
+    from ..config import load_yaml_config, with_values
     from ..evaluation.vo_run import keyframe_ate, run_sequence
     from ..geometry import path_length
     from ..vo.config import VoConfig
@@ -121,7 +119,7 @@ def bench_vo() -> Iterator[Figure]:
         duration = seq.stamps_s[-1] - seq.stamps_s[0]
         rate_hz = (len(seq) - 1) / duration if paced else None
         # As scripts/demo runs them: synthetic robots are ground robots.
-        run = run_sequence(seq, dataclasses.replace(cfg, planar_motion=ground), rate_hz=rate_hz)
+        run = run_sequence(seq, with_values(cfg, {"planar": {"enabled": ground}}), rate_hz=rate_hz)
         if not paced:
             _VO_RUNS[name] = (run, seq)
         yield (f"vo_{name}_track_ms_mean", float(np.mean(run.track_ms)), "ms")

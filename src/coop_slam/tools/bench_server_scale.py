@@ -78,13 +78,13 @@ def message_kind(msg) -> str:
 def client_vo_config(T_base_cam: np.ndarray, ground_robot: bool):
     """The clients' odometry configuration (config/client.yaml, as client.launch sets it), with
     local mapping in the calling thread so that the synthesised streams are deterministic."""
-    from ..config import load_yaml_config
+    from ..config import load_yaml_config, with_values
     from ..vo.config import VoConfig
 
     cfg = load_yaml_config(VoConfig, os.path.join(CONFIG_DIR, "client.yaml"), section="vo")
-    cfg = dataclasses.replace(cfg, threaded=False, planar_motion=ground_robot)
-    if cfg.planar_motion:  # the floor normal (base z) as the camera sees it, as the client node
-        cfg.planar_up_cam = (T_base_cam[:3, :3].T @ [0.0, 0.0, 1.0]).tolist()
+    cfg = with_values(cfg, {"threaded": False, "planar": {"enabled": ground_robot}})
+    if cfg.planar.enabled:  # the floor normal (base z) as the camera sees it, as the client node
+        cfg.planar.up_cam = (T_base_cam[:3, :3].T @ [0.0, 0.0, 1.0]).tolist()
     return cfg
 
 

@@ -81,7 +81,7 @@ class FrameFeatures:
 
 def level_scales(config: VoConfig) -> np.ndarray:
     """Scale of each pyramid level relative to level 0 (1, 1.2, 1.44, ...)."""
-    return config.scale_factor ** np.arange(config.n_levels, dtype=float)
+    return config.features.scale_factor ** np.arange(config.features.n_levels, dtype=float)
 
 
 def orb_level0_uv(pt_px: np.ndarray, octaves: np.ndarray, scale_factor: float) -> np.ndarray:
@@ -122,13 +122,15 @@ class OrbExtractor:
         self.config = config
         self.camera = camera
         common = {
-            "scaleFactor": config.scale_factor,
-            "nlevels": config.n_levels,
-            "edgeThreshold": config.edge_threshold_px,
+            "scaleFactor": config.features.scale_factor,
+            "nlevels": config.features.n_levels,
+            "edgeThreshold": config.features.edge_threshold_px,
             "patchSize": 31,
         }
         self._orb = cv2.ORB_create(
-            nfeatures=config.n_detect, fastThreshold=config.fast_threshold, **common
+            nfeatures=config.features.n_detect,
+            fastThreshold=config.features.fast_threshold,
+            **common,
         )
         self._scales = level_scales(config)
 
@@ -141,12 +143,12 @@ class OrbExtractor:
         if desc is None or not kps:
             return self._empty()
         attrs = _keypoint_table(kps, "size", "angle", "octave")
-        attrs[:, :2] = orb_level0_uv(attrs[:, :2], attrs[:, 4], self.config.scale_factor)
+        attrs[:, :2] = orb_level0_uv(attrs[:, :2], attrs[:, 4], self.config.features.scale_factor)
         return OrbKeypoints(
             uv_px=attrs[:, :2],
             size_px=attrs[:, 2].astype(np.float32),
             angle_deg=attrs[:, 3].astype(np.float32),
-            octaves=np.clip(attrs[:, 4], 0, self.config.n_levels - 1).astype(np.uint8),
+            octaves=np.clip(attrs[:, 4], 0, self.config.features.n_levels - 1).astype(np.uint8),
             descriptors=np.ascontiguousarray(desc, dtype=np.uint8),
         )
 
@@ -155,11 +157,11 @@ class OrbExtractor:
         second best, ..."""
         cfg = self.config
         n = len(attrs)
-        if n <= cfg.n_features:
+        if n <= cfg.features.n_features:
             return np.arange(n)
-        octave = np.clip(attrs[:, 3].astype(int), 0, cfg.n_levels - 1)
+        octave = np.clip(attrs[:, 3].astype(int), 0, cfg.features.n_levels - 1)
         response = attrs[:, 2]
-        cell_px = cfg.grid_cell_px * self._scales[octave]
+        cell_px = cfg.features.grid_cell_px * self._scales[octave]
         cols = np.floor(attrs[:, 0] / cell_px).astype(np.int64)
         rows = np.floor(attrs[:, 1] / cell_px).astype(np.int64)
         key = (octave.astype(np.int64) * 4096 + rows) * 4096 + cols
@@ -169,7 +171,7 @@ class OrbExtractor:
         group_start = np.repeat(start, np.diff(np.r_[start, n]))
         rank = np.empty(n, np.int64)
         rank[order] = np.arange(n) - group_start
-        return np.sort(np.lexsort((-response, rank))[: cfg.n_features])
+        return np.sort(np.lexsort((-response, rank))[: cfg.features.n_features])
 
     @staticmethod
     def _empty() -> OrbKeypoints:

@@ -21,14 +21,14 @@ class KeyframePolicy:
 
     ``monocular`` (no depth): ORB-SLAM2's monocular rules. There are no close points; the
     reference keyframe's points count when 3 keyframes see them (2 while the map has 2
-    keyframes); a frame tracking fewer than ``keyframe_ref_ratio_mono`` of them becomes a
-    keyframe when ``keyframe_max_frames`` passed or local mapping is free and
-    ``keyframe_min_frames_mono`` passed. The floor
-    ``keyframe_min_tracked`` does not apply: every weakly tracked frame would become a keyframe,
+    keyframes); a frame tracking fewer than ``keyframes.ref_ratio`` (monocular) of them becomes a
+    keyframe when ``keyframes.max_frames`` passed or local mapping is free and
+    ``keyframes.min_frames`` (monocular) passed. The floor
+    ``keyframes.min_tracked`` does not apply: every weakly tracked frame would become a keyframe,
     with baselines too short to triangulate from."""
 
     def __init__(self, config: VoConfig, close_depth_m: float, monocular: bool = False):
-        self.config = config
+        self.config = config.for_sensor("mono") if monocular else config
         self.close_depth_m = close_depth_m
         self.monocular = monocular
         self._n_ref_cache: tuple = (None, 0)
@@ -49,7 +49,7 @@ class KeyframePolicy:
         """Whether the tracked frame becomes a keyframe. ``mapping_free``: local mapping is idle
         or has few keyframes queued (RGB-D and stereo insert even while mapping is busy)."""
         cfg = self.config
-        if frames_since_kf + 1 < cfg.keyframe_min_frames:
+        if frames_since_kf + 1 < cfg.keyframes.min_frames:
             return False
         with vmap.lock:
             # ORB-SLAM2 counts an observation with depth twice and asks for 3 (2 with <= 2
@@ -69,11 +69,11 @@ class KeyframePolicy:
                     n_ref = sum(1 for p in pids if len(obs.get(p, ())) >= min_obs)
                     self._n_ref_cache = (key, n_ref)
         if self.monocular:
-            c1a = frames_since_kf + 1 >= cfg.keyframe_max_frames
-            c2 = tracked.n < cfg.keyframe_ref_ratio_mono * n_ref and (
-                tracked.n > cfg.keyframe_min_inliers
+            c1a = frames_since_kf + 1 >= cfg.keyframes.max_frames
+            c2 = tracked.n < cfg.keyframes.ref_ratio * n_ref and (
+                tracked.n > cfg.keyframes.min_inliers
             )
-            c1b = mapping_free and frames_since_kf + 1 >= cfg.keyframe_min_frames_mono
+            c1b = mapping_free and frames_since_kf + 1 >= cfg.keyframes.min_frames
             return (c1a or c1b) and c2
         d = feats.depths_m
         close = (d > 0) & (d <= self.close_depth_m)
@@ -82,18 +82,18 @@ class KeyframePolicy:
         n_tracked_close = int((close & tracked_mask).sum())
         n_untracked_close = int((close & ~tracked_mask).sum())
         need_close = (
-            n_tracked_close < cfg.keyframe_close_tracked
-            and n_untracked_close > cfg.keyframe_close_untracked
+            n_tracked_close < cfg.keyframes.close_tracked
+            and n_untracked_close > cfg.keyframes.close_untracked
         )
-        c1a = frames_since_kf + 1 >= cfg.keyframe_max_frames
+        c1a = frames_since_kf + 1 >= cfg.keyframes.max_frames
         c1b = mapping_free
         c1c = tracked.n < 0.25 * n_ref or need_close
         # Besides ORB-SLAM2's ratio, a floor on the tracked points: with few keyframes, few points
         # have two observations, the ratio then lets tracking thin out to ~150 points (those
         # frames carry most of the per-frame error on RedKitchen).
-        weak = tracked.n < cfg.keyframe_min_tracked
-        c2 = (tracked.n < cfg.keyframe_ref_ratio * n_ref or need_close or weak) and (
-            tracked.n > cfg.keyframe_min_inliers
+        weak = tracked.n < cfg.keyframes.min_tracked
+        c2 = (tracked.n < cfg.keyframes.ref_ratio * n_ref or need_close or weak) and (
+            tracked.n > cfg.keyframes.min_inliers
         )
         return (c1a or c1b or c1c) and c2
 
@@ -126,7 +126,7 @@ def add_keyframe(
         # close_depth_m still help as monocular observations.
         d = feats.depths_m
         cand = np.flatnonzero((d > 0) & (mp_ids == 0))
-        cand = cand[np.argsort(d[cand], kind="stable")][: config.new_points_max]
+        cand = cand[np.argsort(d[cand], kind="stable")][: config.mapping.new_points_max]
         if len(cand):
             xyz = transform_points(T_map_cam, feats.points_cam[cand])
             ray = xyz - T_map_cam[:3, 3]

@@ -68,7 +68,7 @@ class LocalMapper:
         get_map: Callable[[], Map],
         emit: Callable[[VoEvent], None],
     ):
-        self.config = config
+        self.config = config.for_sensor(sensor.camera.sensor)
         self.sensor = sensor
         self.camera = camera = sensor.camera
         self.K = camera.K
@@ -98,7 +98,7 @@ class LocalMapper:
         self._thread: threading.Thread | None = None
         self._worker: BaWorker | None = None
         if config.threaded:
-            if config.ba_enabled:
+            if config.ba.enabled:
                 try:
                     self._worker = BaWorker()
                 except OSError as exc:
@@ -159,7 +159,7 @@ class LocalMapper:
         one interpreter, so a step running beside tracking takes the interpreter lock from it
         in 5 ms slices, and a frame's time doubled whenever a keyframe was being mapped."""
         if self._thread is not None and threading.current_thread() is self._thread:
-            self._frame_done.wait(self.config.mapping_yield_max_s)
+            self._frame_done.wait(self.config.mapping.yield_max_s)
         with vmap.lock:
             yield
 
@@ -206,7 +206,7 @@ class LocalMapper:
             if kf_id not in vmap.keyframes:
                 return
             self._announce(EVENT_KEYFRAME_NEW, vmap, kf_id)
-        if run_ba and self.config.ba_enabled:
+        if run_ba and self.config.ba.enabled:
             with self._step(vmap):
                 problem = self.build_ba_problem(vmap, kf_id)
                 epoch = vmap.epoch
@@ -215,7 +215,7 @@ class LocalMapper:
                 with self._step(vmap):
                     if vmap is self._get_map() and vmap.epoch == epoch:
                         self.apply_ba_result(vmap, result)
-        if self.config.kf_culling and vmap is self._get_map():
+        if self.config.keyframes.culling and vmap is self._get_map():
             self.cull_keyframes(vmap, kf_id)
 
     def _run_ba(self, problem: BaProblem) -> BaResult:
@@ -233,7 +233,7 @@ class LocalMapper:
         with self._step(vmap):
             kf = vmap.keyframes[kf_id]
             vmap.update_covisibility(kf_id, propagate=False)
-            neighbours = vmap.best_covisible(kf_id, self.config.fuse_neighbors)
+            neighbours = vmap.best_covisible(kf_id, self.config.mapping.fuse_neighbors)
             touched = {int(p) for p in kf.map_point_ids[kf.map_point_ids > 0]}
         if self.sensor.monocular:
             touched |= self.triangulate_new_points(vmap, kf_id)
@@ -292,9 +292,9 @@ class LocalMapper:
             proj,
             pts.desc[pids],
             feats,
-            self.config.fuse_radius_px,
+            self.config.mapping.fuse_radius_px,
             self.scales,
-            self.config.max_descriptor_distance,
+            self.config.tracking.max_descriptor_distance,
             1.0,
             chi2_gate=5.991,
         )
@@ -332,7 +332,7 @@ class LocalMapper:
         with self._step(vmap):
             if kf_id not in vmap.keyframes:
                 return created
-            neighbours = vmap.best_covisible(kf_id, cfg.triangulation_neighbors)
+            neighbours = vmap.best_covisible(kf_id, cfg.triangulation.neighbors)
         for i, other in enumerate(neighbours):
             if i > 0 and self._thread is not None and not self._queue.empty():
                 break
@@ -382,23 +382,17 @@ class LocalMapper:
         ratio = pts.found[recent] / np.maximum(pts.visible[recent], 1)
         n_obs = np.array([len(pts.obs[int(p)]) for p in recent])
         age = vmap.kf_seq - pts.created_kf_seq[recent]
-        min_obs = (
-            cfg.cull_min_observations_mono if self.sensor.monocular else cfg.cull_min_observations
-        )
-        bad = (ratio < cfg.cull_found_ratio) | ((age >= 2) & (n_obs < min_obs))
+        min_obs = cfg.mapping.cull_min_observations
+        bad = (ratio < cfg.mapping.cull_found_ratio) | ((age >= 2) & (n_obs < min_obs))
         for pid in recent[bad]:
             vmap.remove_point(int(pid))
         self.stats["points_culled"] += int(bad.sum())
 
     # --- local BA ---------------------------------------------------------------------------------
     def _ba_sizes(self) -> tuple[int, int]:
-        """(keyframes optimized, at most fixed) of a local BA for this camera. A monocular map's
-        scale is held by its shared points only, so its window is wider -- unless the planar
-        priors of a ground robot hold it (its camera's height; see VoConfig.ba_window_mono)."""
-        cfg = self.config
-        if self.sensor.monocular and not cfg.planar_motion:
-            return cfg.ba_window_mono, cfg.ba_max_fixed_mono
-        return cfg.ba_window, cfg.ba_max_fixed
+        """(keyframes optimized, at most fixed) of a local BA for this camera (a monocular map's
+        window is wider: see VoConfig.sensors)."""
+        return self.config.ba.window, self.config.ba.max_fixed
 
     def build_ba_problem(self, vmap: Map, kf_id: int) -> BaProblem | None:
         """Local BA around keyframe ``kf_id`` (map lock held): its covisible window free, the
@@ -434,15 +428,15 @@ class LocalMapper:
             cx=self.camera.cx,
             cy=self.camera.cy,
             baseline_m=self.sensor.baseline_m,
-            scale_factor=cfg.scale_factor,
-            n_levels=cfg.n_levels,
-            iterations=cfg.ba_iterations,
-            huber_mono=cfg.ba_huber_mono,
-            huber_stereo=cfg.ba_huber_stereo,
-            planar_up_cam=np.asarray(cfg.planar_up_cam, float) if cfg.planar_motion else None,
-            planar_sigmas=(np.radians(cfg.planar_sigma_tilt_deg), cfg.planar_sigma_height_m),
-            chi2_mono=cfg.chi2_mono,
-            chi2_stereo=cfg.chi2_stereo,
+            scale_factor=cfg.features.scale_factor,
+            n_levels=cfg.features.n_levels,
+            iterations=cfg.ba.iterations,
+            huber_mono=cfg.ba.huber_mono,
+            huber_stereo=cfg.ba.huber_stereo,
+            planar_up_cam=np.asarray(cfg.planar.up_cam, float) if cfg.planar.enabled else None,
+            planar_sigmas=(np.radians(cfg.planar.sigma_tilt_deg), cfg.planar.sigma_height_m),
+            chi2_mono=cfg.tracking.chi2_mono,
+            chi2_stereo=cfg.tracking.chi2_stereo,
             scale_anchor=scale_anchor,
         )
 
@@ -560,7 +554,10 @@ class LocalMapper:
             sent = self._sent_pose.get(k)
             if sent is not None:
                 trans_m, rot_deg = transform_error(vmap.keyframes[k].T_map_cam, sent)
-                if trans_m >= cfg.update_min_trans_m or rot_deg >= cfg.update_min_rot_deg:
+                if (
+                    trans_m >= cfg.mapping.update_min_trans_m
+                    or rot_deg >= cfg.mapping.update_min_rot_deg
+                ):
                     self._announce(EVENT_KEYFRAME_UPDATE, vmap, k)
 
     def _announce(self, kind: str, vmap: Map, kf_id: int) -> None:
@@ -612,8 +609,8 @@ class LocalMapper:
             vmap.gather(other, oidx, "octaves").astype(int) <= kf.octaves[idx][row].astype(int) + 1
         )
         n_fine = np.bincount(row[fine], minlength=len(idx))
-        redundant = int((n_fine >= cfg.kf_cull_observers).sum())
-        if redundant <= cfg.kf_cull_redundancy * len(idx):
+        redundant = int((n_fine >= cfg.keyframes.cull_observers).sum())
+        if redundant <= cfg.keyframes.cull_redundancy * len(idx):
             return False
         vmap.remove_keyframe(c)
         self._sent_pose.pop(c, None)

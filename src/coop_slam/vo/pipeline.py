@@ -81,10 +81,12 @@ class VisualOdometry:
     def __init__(self, config: VoConfig | None = None, camera: CameraModel | None = None):
         if camera is None:
             raise VoError("VisualOdometry needs the camera model (intrinsics and image size)")
-        self.config = config or VoConfig()
-        self.config.validate()
+        config = config or VoConfig()
+        config.validate()
+        # This camera kind's values (a monocular camera's keyframe rule, its wider local BA, ...)
+        self.config = config.for_sensor(camera.sensor)
         # The colour camera the keypoints come from (keyframe messages carry this one).
-        self.camera = camera = self.config.color_camera(camera)
+        self.camera = camera = self.config.calibration.color_camera(camera)
         self.K = camera.K
         self.scales = level_scales(self.config)
         self._extractor = OrbExtractor(self.config, camera)
@@ -95,7 +97,7 @@ class VisualOdometry:
             self.config, self._sensor.close_depth_m, monocular=self._sensor.monocular
         )
         self._mono_init = MonoInitConfig(
-            min_median_parallax_deg=self.config.mono_init_min_parallax_deg
+            min_median_parallax_deg=self.config.mono_init.min_parallax_deg
         )
         self._init_ref: tuple[float, FrameFeatures] | None = None  # monocular: (stamp, features)
         self._events: collections.deque = collections.deque()
@@ -365,13 +367,13 @@ class VisualOdometry:
         if self._sensor.monocular:
             return self._initialize_mono(stamp_s, feats, state)
         n_depth = int(feats.has_depth.sum())
-        if n_depth < self.config.min_init_points:
+        if n_depth < self.config.keyframes.min_init_points:
             return self._result(
                 stamp_s,
                 False,
                 STATE_INITIALIZING,
                 message=f"waiting for a frame with depth: {n_depth} keypoints with depth, "
-                f"{self.config.min_init_points} needed",
+                f"{self.config.keyframes.min_init_points} needed",
             )
         self._T_map_cam = np.eye(4)  # the first keyframe defines the map frame
         kf_id = self._insert_keyframe(
@@ -392,11 +394,11 @@ class VisualOdometry:
         ref = self._init_ref
         if ref is None:
             return self._new_init_reference(stamp_s, feats, "reference frame set: keep moving")
-        if stamp_s - ref[0] > cfg.mono_init_max_age_s:
+        if stamp_s - ref[0] > cfg.mono_init.max_age_s:
             return self._new_init_reference(
                 stamp_s,
                 feats,
-                f"no initialization within {cfg.mono_init_max_age_s:g} s of the reference frame:"
+                f"no initialization within {cfg.mono_init.max_age_s:g} s of the reference frame:"
                 " new reference frame",
             )
         pairs = match_for_initialization(ref[1], feats, icfg)
@@ -412,18 +414,18 @@ class VisualOdometry:
         )
         if not two_view.success:
             return self._waiting(stamp_s, two_view.reason)
-        need_h = cfg.mono_init_min_parallax_homography_deg
+        need_h = cfg.mono_init.min_parallax_homography_deg
         if two_view.model == MODEL_HOMOGRAPHY and two_view.median_parallax_deg < need_h:
             return self._waiting(
                 stamp_s,
                 f"not enough parallax for the homography: keep moving (median parallax "
                 f"{two_view.median_parallax_deg:.2f} deg < {need_h:g} deg)",
             )
-        if two_view.n_points < cfg.min_init_points:
+        if two_view.n_points < cfg.keyframes.min_init_points:
             return self._waiting(
                 stamp_s,
-                f"{two_view.n_points} points triangulated, {cfg.min_init_points} needed: keep "
-                "moving",
+                f"{two_view.n_points} points triangulated, {cfg.keyframes.min_init_points} needed: "
+                "keep moving",
             )
         two_view = scale_to_median_depth(two_view)
         kf_id = self._create_two_view_map(stamp_s, feats, pairs, two_view)
@@ -530,7 +532,7 @@ class VisualOdometry:
 
     def _relocalize_or_restart(self, stamp_s: float, feats: FrameFeatures) -> TrackResult:
         cfg = self.config
-        if len(feats) < cfg.pnp_min_inliers:
+        if len(feats) < cfg.relocalization.pnp_min_inliers:
             # A covered or black camera: it can neither relocalize nor start a map, so its
             # frames do not count towards a new segment.
             return self._result(
@@ -557,7 +559,9 @@ class VisualOdometry:
                 message=f"relocalized against keyframe {kf_id}",
             )
         self._lost_count += 1
-        limit = cfg.max_lost_frames + (cfg.assist_wait_frames if self._awaiting_map else 0)
+        limit = cfg.relocalization.max_lost_frames + (
+            cfg.relocalization.assist_wait_frames if self._awaiting_map else 0
+        )
         if self._lost_count > limit:
             # reset() announces the new segment (EVENT_NEW_SEGMENT); the node logs it.
             self.reset()
@@ -608,8 +612,8 @@ class VisualOdometry:
         step = invert(self._T_map_cam) @ T_map_cam
         dt = self._frame_dt_s
         return (
-            np.linalg.norm(step[:3, 3]) <= self.config.max_speed_m_s * dt
-            and rotation_angle_deg(step[:3, :3]) <= self.config.max_turn_rate_deg_s * dt
+            np.linalg.norm(step[:3, 3]) <= self.config.tracking.max_speed_m_s * dt
+            and rotation_angle_deg(step[:3, :3]) <= self.config.tracking.max_turn_rate_deg_s * dt
         )
 
     # --- keyframes --------------------------------------------------------------------------------

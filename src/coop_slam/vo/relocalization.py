@@ -45,12 +45,18 @@ def pnp_against_points(
     and their descriptors, or (None, None): brute-force matching, EPnP RANSAC, pose
     optimization."""
     cfg = config
-    if len(xyz) < cfg.pnp_min_inliers or len(feats) < cfg.pnp_min_inliers:
+    if (
+        len(xyz) < cfg.relocalization.pnp_min_inliers
+        or len(feats) < cfg.relocalization.pnp_min_inliers
+    ):
         return None, None
     m = match_ratio(
-        feats.descriptors, desc, ratio=cfg.pnp_ratio, max_distance=cfg.max_descriptor_distance
+        feats.descriptors,
+        desc,
+        ratio=cfg.relocalization.pnp_ratio,
+        max_distance=cfg.tracking.max_descriptor_distance,
     )
-    if len(m) < cfg.pnp_min_inliers:
+    if len(m) < cfg.relocalization.pnp_min_inliers:
         return None, None
     obj = np.asarray(xyz, np.float64)[m[:, 1]]
     img = feats.uv_px[m[:, 0]].astype(np.float64)
@@ -60,11 +66,11 @@ def pnp_against_points(
             obj,
             img,
             K,
-            reprojection_px=cfg.pnp_reprojection_px,
-            max_iterations=cfg.pnp_iterations,
+            reprojection_px=cfg.relocalization.pnp_reprojection_px,
+            max_iterations=cfg.relocalization.pnp_iterations,
             confidence=0.99,
             method="epnp",
-            min_inliers=cfg.pnp_min_inliers,
+            min_inliers=cfg.relocalization.pnp_min_inliers,
             refine=False,
         )
     except RegistrationError:  # degenerate points: no pose, as RANSAC finding none
@@ -82,7 +88,7 @@ def pnp_against_points(
         K,
         sensor.bf,
     )
-    if good.sum() < cfg.pnp_min_inliers:
+    if good.sum() < cfg.relocalization.pnp_min_inliers:
         return None, None
     return invert(T_cam_map), m[inl[good], 1]
 
@@ -106,15 +112,15 @@ class Relocalizer:
         """(tracked, keyframe it relocalized against), or None after this frame's attempts."""
         cfg = self.config
         with vmap.lock:
-            candidates = sorted(vmap.keyframes, reverse=True)[: cfg.reloc_keyframes]
-        n_try = min(cfg.reloc_keyframes_per_frame, len(candidates))
+            candidates = sorted(vmap.keyframes, reverse=True)[: cfg.relocalization.keyframes]
+        n_try = min(cfg.relocalization.keyframes_per_frame, len(candidates))
         for i in range(n_try):
             kf_id = candidates[(self._cursor + i) % len(candidates)]
             T0, pids = pnp_against_keyframe(vmap, feats, kf_id, cfg, self.sensor)
             if T0 is None:
                 continue
             tracked = self.tracker.track(vmap, feats, T0, pids, ref_kf_id)
-            if tracked is not None and tracked.n >= cfg.reloc_min_inliers:
+            if tracked is not None and tracked.n >= cfg.relocalization.min_inliers:
                 return tracked, kf_id
         self._cursor += n_try
         return None

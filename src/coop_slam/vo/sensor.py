@@ -110,7 +110,9 @@ class RgbdSensor(Sensor):
     kind = "rgbd"
 
     def __init__(self, config: VoConfig, camera: CameraModel):
-        super().__init__(config, camera, config.virtual_baseline_m, config.close_depth_m)
+        super().__init__(
+            config, camera, config.depth.virtual_baseline_m, config.depth.close_depth_m
+        )
 
     # --- input ------------------------------------------------------------------------------------
     def check_input(self, image, depth_m) -> tuple[np.ndarray, np.ndarray]:
@@ -140,7 +142,11 @@ class RgbdSensor(Sensor):
         depth = np.zeros(n, np.float32)
         if depth_m is not None and n:
             depth = self._lookup_depth(uv, depth_m)
-            depth[~np.isfinite(depth) | (depth < cfg.min_depth_m) | (depth > cfg.max_depth_m)] = 0.0
+            depth[
+                ~np.isfinite(depth)
+                | (depth < cfg.depth.min_depth_m)
+                | (depth > cfg.depth.max_depth_m)
+            ] = 0.0
         u_right = self.u_right(uv[:, 0], depth.astype(np.float64))
         return _frame_features(kps, depth, u_right, self.camera)
 
@@ -162,18 +168,18 @@ class RgbdSensor(Sensor):
             z = depth_m[vi, ui].astype(np.float64)
             return np.where(inside & np.isfinite(z), z, 0.0)
 
-        if cfg.depth_registered:
+        if cfg.calibration.depth_registered:
             z = read(uv[:, 0], uv[:, 1])
-            r = cfg.depth_edge_px
+            r = cfg.depth.edge_px
             if r > 0:
                 # Corners often sit on depth edges, where a slightly misregistered or noisy depth
                 # image gives the other surface's depth: no depth unless the neighbourhood agrees.
                 offsets = ((-r, 0), (r, 0), (0, -r), (0, r), (-r, -r), (r, r), (-r, r), (r, -r))
                 ring = np.stack([read(uv[:, 0] + du, uv[:, 1] + dv) for du, dv in offsets], 1)
                 spread = np.abs(ring - z[:, None]).max(1)
-                z = np.where((ring > 0).all(1) & (spread <= cfg.depth_edge_ratio * z), z, 0.0)
+                z = np.where((ring > 0).all(1) & (spread <= cfg.depth.edge_ratio * z), z, 0.0)
             return z.astype(np.float32)
-        tx, ty, tz = (float(v) for v in cfg.depth_in_color_m)
+        tx, ty, tz = (float(v) for v in cfg.calibration.depth_in_color_m)
         xn = (uv[:, 0] - cam.cx) / cam.fx
         yn = (uv[:, 1] - cam.cy) / cam.fy
         valid = depth_m[depth_m > 0]
@@ -181,8 +187,8 @@ class RgbdSensor(Sensor):
         z_prev = z
         for _ in range(3):
             zd = np.maximum(z - tz, 1e-3)
-            u_d = cfg.depth_fx * (z * xn - tx) / zd + cfg.depth_cx
-            v_d = cfg.depth_fy * (z * yn - ty) / zd + cfg.depth_cy
+            u_d = cfg.calibration.depth_fx * (z * xn - tx) / zd + cfg.calibration.depth_cx
+            v_d = cfg.calibration.depth_fy * (z * yn - ty) / zd + cfg.calibration.depth_cy
             z_read = read(u_d, v_d)
             z_prev, z = z, np.where(z_read > 0, z_read + tz, 0.0)
             if not (z > 0).any():
@@ -205,7 +211,7 @@ class StereoSensor(Sensor):
     def __init__(self, config: VoConfig, camera: CameraModel):
         if camera.baseline_m <= 0:
             raise VoError(f"a stereo camera needs a baseline > 0, got {camera.baseline_m} m")
-        close_m = config.stereo_close_baselines * camera.baseline_m
+        close_m = config.stereo.close_baselines * camera.baseline_m
         super().__init__(config, camera, camera.baseline_m, close_m)
         self._scales = level_scales(config)
         self._right_extractor = OrbExtractor(config, camera)

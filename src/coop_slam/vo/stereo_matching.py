@@ -77,7 +77,7 @@ def _candidate_matches(
     uR, vR, oR = right.uv_px[:, 0], right.uv_px[:, 1], right.octaves.astype(int)
     order = np.argsort(vR, kind="stable")
     v_sorted = vR[order]
-    band = config.stereo_row_tolerance_px * scales[-1]  # the widest any right keypoint allows
+    band = config.stereo.row_tolerance_px * scales[-1]  # the widest any right keypoint allows
     lo = np.searchsorted(v_sorted, left.uv_px[:, 1] - band, side="left")
     hi = np.searchsorted(v_sorted, left.uv_px[:, 1] + band, side="right")
     counts = hi - lo
@@ -88,7 +88,7 @@ def _candidate_matches(
     ri = order[np.arange(counts.sum()) + starts]
     disparity = left.uv_px[li, 0] - uR[ri]
     ok = (
-        (np.abs(left.uv_px[li, 1] - vR[ri]) <= config.stereo_row_tolerance_px * scales[oR[ri]])
+        (np.abs(left.uv_px[li, 1] - vR[ri]) <= config.stereo.row_tolerance_px * scales[oR[ri]])
         & (np.abs(left.octaves[li].astype(int) - oR[ri]) <= 1)
         & (disparity >= 0)
         & (disparity < fx)
@@ -101,13 +101,13 @@ def _candidate_matches(
     best = np.lexsort((dist, li))
     first = np.r_[True, li[best][1:] != li[best][:-1]]
     best = best[first]
-    keep = dist[best] < config.stereo_max_descriptor_distance
+    keep = dist[best] < config.stereo.max_descriptor_distance
     return np.column_stack([li[best][keep], ri[best][keep]]).astype(np.int64)
 
 
 def _refine(pairs, left, right, left_levels, right_levels, scales, config):
     """(refined right u [px] at level 0, best patch cost) per pair; NaN where refinement fails."""
-    r, search = config.stereo_patch_radius_px, config.stereo_search_px
+    r, search = config.stereo.patch_radius_px, config.stereo.search_px
     refined = np.full(len(pairs), np.nan)
     cost = np.full(len(pairs), np.inf)
     octave = left.octaves[pairs[:, 0]].astype(int)

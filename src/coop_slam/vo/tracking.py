@@ -78,16 +78,16 @@ class LocalMapTracker:
                 counts[fallback] = 1
             ranked = [k for k, _ in counts.most_common()]
             ref = ranked[0]
-            local = ranked[: cfg.local_keyframes]
+            local = ranked[: cfg.tracking.local_keyframes]
             chosen = set(local)
             for k in list(local):
-                if len(local) >= cfg.local_keyframes:
+                if len(local) >= cfg.tracking.local_keyframes:
                     break
                 for c in vmap.best_covisible(k, 10):
                     if c not in chosen:
                         chosen.add(c)
                         local.append(c)
-                        if len(local) >= cfg.local_keyframes:
+                        if len(local) >= cfg.tracking.local_keyframes:
                             break
             ids = np.unique(
                 np.concatenate([vmap.keyframes[k].map_point_ids for k in local]).astype(np.int64)
@@ -122,7 +122,9 @@ class LocalMapTracker:
         size = (self.camera.width, self.camera.height)
         T_cam_map = invert(T_map_cam_pred)
         best = None
-        for stage, radius in enumerate((cfg.search_radius_px, cfg.search_radius_refine_px)):
+        for stage, radius in enumerate(
+            (cfg.tracking.search_radius_px, cfg.tracking.search_radius_refine_px)
+        ):
             proj = project_points(
                 T_cam_map, xyz, self.K, self.bf, size, self.scales, local.max_dist, local.normal
             )
@@ -134,12 +136,12 @@ class LocalMapTracker:
                     feats,
                     r,
                     self.scales,
-                    cfg.max_descriptor_distance,
-                    cfg.ratio_test,
+                    cfg.tracking.max_descriptor_distance,
+                    cfg.tracking.ratio_test,
                     point_angle_deg=local.angle,
-                    check_orientation=cfg.check_orientation and stage == 0,
+                    check_orientation=cfg.tracking.check_orientation and stage == 0,
                 )
-                if len(pi) < cfg.min_tracked:
+                if len(pi) < cfg.tracking.min_tracked:
                     continue
                 rows = proj.index[pi]
                 T_opt, inl = optimize_pose(
@@ -150,12 +152,12 @@ class LocalMapTracker:
                     info[kj],
                     self.K,
                     self.bf,
-                    cfg.pose_rounds,
-                    cfg.pose_iterations,
-                    cfg.chi2_mono,
-                    cfg.chi2_stereo,
+                    cfg.tracking.pose_rounds,
+                    cfg.tracking.pose_iterations,
+                    cfg.tracking.chi2_mono,
+                    cfg.tracking.chi2_stereo,
                 )
-                if inl.sum() >= cfg.min_tracked:
+                if inl.sum() >= cfg.tracking.min_tracked:
                     cand = (T_opt, kj[inl], rows[inl], proj)
                     if best is None or len(cand[1]) >= 0.9 * len(best[1]):
                         best = cand

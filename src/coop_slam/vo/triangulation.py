@@ -58,7 +58,7 @@ def triangulation_pairs(a: dict, b: dict, config: VoConfig, K: np.ndarray, scale
         return None
     c_a, c_b = a["T_map_cam"][:3, 3], b["T_map_cam"][:3, 3]
     baseline = float(np.linalg.norm(c_b - c_a))
-    if not baseline > config.triangulation_min_baseline_ratio * b["median_depth"]:
+    if not baseline > config.triangulation.min_baseline_ratio * b["median_depth"]:
         return None  # also when b has no points (NaN median)
     x_a = np.column_stack([a["uv"], np.ones(len(a["uv"]))])
     x_b = np.column_stack([b["uv"], np.ones(len(b["uv"]))])
@@ -105,7 +105,7 @@ def _best_matches(
     """The candidate pairs that win on descriptor distance: close enough, clearly better than a's
     next candidate, the closest to their keypoint of b, rotation consistent (empty if none)."""
     dist = hamming_rows(a["desc"][ia], b["desc"][ib])
-    keep = dist <= config.triangulation_max_descriptor_distance
+    keep = dist <= config.triangulation.max_descriptor_distance
     ia, ib, dist = ia[keep], ib[keep], dist[keep]
     if len(ia) == 0:
         return ia, ib
@@ -116,7 +116,7 @@ def _best_matches(
     best = np.flatnonzero(first)
     has_second = np.r_[~first[1:], False][best]
     second = np.where(has_second, dist[np.minimum(best + 1, len(dist) - 1)], 10**6)
-    best = best[~(dist[best] > config.triangulation_ratio * second)]
+    best = best[~(dist[best] > config.triangulation.ratio * second)]
     if len(best) == 0:
         return ia[best], ib[best]
     ia, ib, dist = ia[best], ib[best], dist[best]
@@ -149,7 +149,7 @@ def _with_parallax(
     cos_par = (ray_a * ray_b).sum(1) / (
         np.linalg.norm(ray_a, axis=1) * np.linalg.norm(ray_b, axis=1)
     )
-    keep = (cos_par > 0) & (cos_par < np.cos(np.radians(config.triangulation_min_parallax_deg)))
+    keep = (cos_par > 0) & (cos_par < np.cos(np.radians(config.triangulation.min_parallax_deg)))
     return ia[keep], ib[keep]
 
 
@@ -178,13 +178,13 @@ def _triangulate(
         z = np.where(front, pc[:, 2], 1.0)
         uv = pc[:, :2] / z[:, None] * [K[0, 0], K[1, 1]] + K[:2, 2]
         err2 = ((uv - view["uv"][idx]) ** 2).sum(1) / scales[view["octave"][idx]] ** 2
-        good &= front & (err2 <= config.chi2_mono)
+        good &= front & (err2 <= config.tracking.chi2_mono)
     # Scale consistency: the distance ratio to the two cameras matches the octave ratio.
     dist_a = np.linalg.norm(xyz - c_a, axis=1)
     dist_b = np.linalg.norm(xyz - c_b, axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio_dist = dist_b / dist_a
     ratio_oct = scales[a["octave"][ia]] / scales[b["octave"][ib]]
-    factor = 1.5 * config.scale_factor
+    factor = 1.5 * config.features.scale_factor
     good &= (ratio_dist * factor >= ratio_oct) & (ratio_dist <= ratio_oct * factor)
     return xyz, good

@@ -33,7 +33,7 @@ ARRAY_FIELDS = STATIC_ARRAYS + (
 # Physical bounds of a keyframe. Values beyond them are finite yet absurd (a corrupted or hostile
 # message): accepted, they poison the team map for the rest of the run (a focal length of 1e-300
 # px makes every later global BA refuse, a pose 1e300 m away breaks the pose graph).
-# Keypoints per keyframe: clients send 1000 (config/client.yaml vo.n_features), ORB-SLAM's largest
+# Keypoints per keyframe: clients send 1000 (vo.features.n_features), ORB-SLAM's largest
 # presets 2000 (stereo KITTI); 5 x that leaves room for dense stereo / RGB-D extractors. Matching
 # two keyframes costs time in the product of their sizes: 1 s at this limit, 5 s at 20,000.
 MAX_KEYPOINTS = 10000  # (below 65536: a delta's moved keypoints are uint16)
