@@ -10,7 +10,7 @@ __version__ = "0.1.0"
 
 # Our dense algebra is small (6x6 normal equations, a few thousand Jacobian rows): one BLAS thread
 # is faster, and a client's tracking and local-mapping threads must not fight over the cores
-# (measured on RedKitchen, 2 cores: 29.5 ms vs 36.4 ms tracking per frame). Takes effect when
+# (docs/tuning.md). Takes effect when
 # coop_slam is imported before numpy, as in every coop_slam script; the user's setting wins.
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     _os.environ.setdefault(_var, "1")

@@ -68,9 +68,8 @@ from scipy.spatial import cKDTree
 from ..errors import CoopSlamError, GeometryError
 from ..geometry import check_se3
 
-# Neighbours looked at per query point (the nearest within radius_m). A 5 cm ball on a surface
-# thinned to <= 2 points per 2 cm voxel holds ~40-70 points; fitting the nearest 32 instead of 64
-# takes ~2/3 of the time and moves the figures by ~1 % (the tests' room, 5 mm and 1 cm noise).
+# Neighbours looked at per query point (the nearest within radius_m): fewer than a thinned
+# surface ball holds, for speed at a small cost in the figures (docs/tuning.md).
 _MAX_NEIGHBOURS = 32
 _QUERY_SEED = 0  # fixed: the query sample (and so every figure) is the same on every call
 
@@ -243,7 +242,7 @@ def _robot_cloud(keyframes: list[KeyframeCloud], config: AgreementConfig) -> _Ro
     if len(query) > config.max_queries:
         rng = np.random.default_rng(_QUERY_SEED)
         query = np.sort(rng.choice(len(query), config.max_queries, replace=False))
-    # Unbalanced, 32-point leaves: 2x faster to build than the default, and faster k=32 queries.
+    # Unbalanced, 32-point leaves: faster to build than the default, and faster k=32 queries.
     tree = cKDTree(points_group, leafsize=32, balanced_tree=False, compact_nodes=False)
     return _RobotCloud(
         points_group, stamps_s, query, tree, points_group.min(axis=0), points_group.max(axis=0)

@@ -70,8 +70,8 @@ class BaProblem:
     planar_T_map_plane: np.ndarray | None = None
     # Monocular map (no metric scale): (index of a fixed keyframe, index of a free one) whose
     # distance is held at its current value. With fewer than two fixed keyframes the problem's
-    # scale is a gauge freedom, and LM's small damping lets it wander (measured: the window grew
-    # 5-20 % per BA on a small mono map, then halved in one). None: no such factor.
+    # scale is a gauge freedom, and LM's small damping lets it wander (docs/tuning.md). None: no
+    # such factor.
     scale_anchor: tuple[int, int] | None = None
 
 
@@ -216,7 +216,7 @@ def _add_keyframes(graph, values, p: BaProblem) -> None:
 
     # Fixed keyframes: a very stiff prior. A NonlinearEquality linearizes to a constrained noise
     # model that Cholesky reports as indeterminant; LM then recovers only by raising lambda
-    # again and again (measured 5x slower on a 4000-factor window).
+    # again and again, several times slower (docs/tuning.md).
     fixed_noise = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
     for k, T in enumerate(p.T_map_cam):
         pose = gtsam.Pose3(T)

@@ -584,7 +584,7 @@ def apply_noise(
     grazing-angle dropouts.
     """
     rng = np.random.default_rng(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, 7]))
-    # OpenCV's RNG makes the Gaussian fields 3x faster than numpy's; seed it per frame so frames
+    # OpenCV's RNG makes the Gaussian fields faster than numpy's; seed it per frame so frames
     # do not depend on each other or on the order they are rendered in.
     cv2.setRNGSeed(int(rng.integers(1, 2**31 - 1)))
     out = bgr

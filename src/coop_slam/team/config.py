@@ -123,10 +123,9 @@ class LoopClosureConfig:
     enabled: bool = True  # close loops within a robot's map and link merged robots
     min_separation_s: float = 5.0  # a robot's own candidate must be at least this much older [s]
     min_interval_kf: int = 2  # keyframes of a robot between two constraints it adds
-    # A constraint with this many verified inliers (as a merge) may move the map up to the gate:
-    # registration accepts from 30, and on RedKitchen keyframe pairs one accepted estimate with
-    # 35 inliers was 30 cm / 4.4 deg off -- within the gate, whose slack also widens the
-    # constraint's robust kernel.
+    # A constraint with this many verified inliers (as a merge) may move the map up to the gate;
+    # registration accepts fewer, and such estimates can be far off yet within the gate, whose
+    # slack also widens the constraint's robust kernel (docs/tuning.md).
     min_inliers: int = 60
     # A verified constraint further than this from the current estimate is refused (the robust
     # kernel is the second line of defence): indoor drift between revisits is well below it.
@@ -146,10 +145,8 @@ class LoopClosureConfig:
     # A constraint further than this from the current estimate makes the next optimization a full
     # one (batch Levenberg-Marquardt over the team graph); a closer one, the common case for links
     # between merged robots, is absorbed by the next incremental (iSAM2) update. A full run after
-    # every constraint grew with the team graph and bounded how many robots the server keeps up
-    # with (scripts/bench --only server_scale). At 2 cm / 1 deg, 112 of the 8-robot stream's 402
-    # constraints still asked for one (100-150 ms each); at 10 cm / 3 deg 38 do, with the same
-    # team map on replayed runs (8 robots, RedKitchen, mixed team, revisit, rendezvous).
+    # every constraint grows with the team graph and bounds how many robots the server keeps up
+    # with; the thresholds trade that against the team map's quality (docs/tuning.md).
     full_above_trans_m: float = 0.1
     full_above_rot_deg: float = 3.0
     # ... or a similarity's scale this far (relative) from the graph's local scales there.

@@ -42,9 +42,9 @@ class GlobalBaConfig:
     virtual_baseline_m: float = 0.08  # of the stereo-like depth factor, as the client's [m]
     # Noise of the measured disparity fx * baseline / depth [px]. 0: estimated from the data --
     # a first pass with a weak depth factor (1 px, as ORB-SLAM), then disparity_sigma_scale x the
-    # robust spread (MAD) of its disparity residuals, within the range below. Real depth that is
-    # not exactly registered to colour comes out weak, good depth strong (measured: RedKitchen
-    # 1 px, the synthetic worlds 0.25 px). > 0: that value, one pass.
+    # robust spread (MAD) of its disparity residuals, within the range below: real depth that is
+    # not exactly registered to colour comes out weak, good depth strong. > 0: that value, one
+    # pass.
     disparity_sigma_px: float = 0.0
     disparity_sigma_scale: float = 2.0
     min_disparity_sigma_px: float = 0.03
@@ -53,11 +53,10 @@ class GlobalBaConfig:
     max_depth_m: float = 6.0
     scale_factor: float = 1.2  # ORB pyramid of the clients
     n_levels: int = 8
-    # Ground robots (the clients' vo.planar_motion): every keyframe is held softly at its robot's
+    # Ground robots (the clients' vo.planar.enabled): every keyframe is held softly at its robot's
     # camera height and tilt, as the clients' local BA holds it; without this the global BA frees
-    # exactly what views with little 3D structure cannot fix (measured on the synthetic team world,
-    # 4 robots: team ATE 0.65 -> 1.30 cm, robots' heights apart by up to 1.7 cm). The floor is
-    # the group frame's xy plane (a map frame is its robot's base at the start, z up, REP-103).
+    # exactly what views with little 3D structure cannot fix (docs/tuning.md). The floor is the
+    # group frame's xy plane (a map frame is its robot's base at the start, z up, REP-103).
     planar_motion: bool = False
     planar_sigma_height_m: float = 0.01  # [m]
     planar_sigma_tilt_deg: float = 0.2  # [deg]

@@ -39,9 +39,9 @@ class UplinkConfig:
     # once. false: every keyframe carries all its descriptors.
     share_descriptors: bool = True
     # ... when the descriptor there differs from the keypoint's own in at most this many bits
-    # (of 256): a map point's descriptor changes with the view (median 33 bits between keyframes
-    # of our worlds), and matching across robots, which the server does with them, needs them
-    # close to what the camera saw. 256: always.
+    # (of 256): a map point's descriptor changes with the view, and matching across robots,
+    # which the server does with them, needs them close to what the camera saw (docs/tuning.md).
+    # 256: always.
     share_max_bits: int = 32
     # How many of the keyframes the server holds are searched for a new keyframe's map points:
     # its covisible ones first, then the newest.

@@ -394,7 +394,7 @@ def _fit_homography(
     """(H_cur_ref, S_H, inliers) of the homography model; (None, 0, none) when none fits."""
     n = len(uv_ref)
     # USAC_ACCURATE (RANSAC with local optimization, fixed seed: deterministic) because plain
-    # RANSAC needed 50-70 ms to give up on a non-planar scene of 1000 matches (2000 iterations).
+    # RANSAC is slow to give up on a non-planar scene (docs/tuning.md).
     H, _ = cv2.findHomography(
         uv_ref, uv_cur, cv2.USAC_ACCURATE, cfg.ransac_h_px, None, cfg.ransac_max_iters,
         cfg.ransac_confidence,
@@ -402,7 +402,7 @@ def _fit_homography(
     if H is None or H.shape != (3, 3) or not np.isfinite(H).all() or abs(H[2, 2]) < 1e-12:
         return None, 0.0, np.zeros(n, bool)
     # No refinement of our own: OpenCV polishes H on its inliers, and a symmetric-transfer
-    # refinement (tried) did not improve the decomposed motion while costing 50-500 ms.
+    # refinement (tried) did not improve the decomposed motion (docs/tuning.md).
     score, inliers = score_homography(H, uv_ref, uv_cur, cfg.sigma_px, cfg.chi2_h)
     return H, score, inliers
 
@@ -412,8 +412,8 @@ def _fit_essential(
 ) -> tuple[np.ndarray | None, float, np.ndarray]:
     """(E, S_F, inliers) of the essential-matrix model; (None, 0, none) when none fits."""
     n = len(uv_ref)
-    # USAC_ACCURATE: plain RANSAC returns the model of its best minimal sample, on 300 matches
-    # with 0.5 px noise off by up to 1.4 deg in rotation and 11 deg in translation direction.
+    # USAC_ACCURATE: plain RANSAC returns the model of its best minimal sample, which under
+    # pixel noise is off by degrees in the translation direction (docs/tuning.md).
     E, _ = cv2.findEssentialMat(
         uv_ref, uv_cur, K, cv2.USAC_ACCURATE, cfg.ransac_confidence, cfg.ransac_e_px,
         maxIters=cfg.ransac_max_iters,

@@ -89,8 +89,8 @@ class KeyframePolicy:
         c1b = mapping_free
         c1c = tracked.n < 0.25 * n_ref or need_close
         # Besides ORB-SLAM2's ratio, a floor on the tracked points: with few keyframes, few points
-        # have two observations, the ratio then lets tracking thin out to ~150 points (those
-        # frames carry most of the per-frame error on RedKitchen).
+        # have two observations, and the ratio alone lets tracking thin out to the frames that
+        # carry most of the per-frame error (docs/tuning.md).
         weak = tracked.n < cfg.keyframes.min_tracked
         c2 = (tracked.n < cfg.keyframes.ref_ratio * n_ref or need_close or weak) and (
             tracked.n > cfg.keyframes.min_inliers

@@ -193,10 +193,10 @@ class LocalMapper:
 
     def process(self, kf_id: int, run_ba: bool) -> None:
         # The map lock is taken step by step (one fuse target, one culling candidate at a time),
-        # never for a whole keyframe: tracking waits for it, and a 30-60 ms hold per keyframe made
-        # the tracking thread's p95 2-3x its CPU time at ORB-SLAM's keyframe rate (measured on
-        # RedKitchen, 30 Hz). Tracking only adds keyframes, points and observations, never
-        # removes any, so each step re-checks what it uses is still alive and stays consistent.
+        # never for a whole keyframe: tracking waits for it, and a hold per keyframe shows in the
+        # tracking thread's worst frame times (docs/tuning.md). Tracking only adds keyframes,
+        # points and observations, never removes any, so each step re-checks what it uses is still
+        # alive and stays consistent.
         vmap = self._get_map()
         if kf_id not in vmap.keyframes:
             return
@@ -502,8 +502,8 @@ class LocalMapper:
             octave[sel] = kf.octaves[idx]
         # Keep points the problem constrains: >= 2 observations in it, at least one with depth. A
         # point seen once without depth (its creator outside the problem) leaves the linear system
-        # singular, and mono-only points over a short baseline are barely determined: measured, LM
-        # then spends most of its time raising lambda (380 ms instead of ~60 ms for 4000 factors).
+        # singular, and mono-only points over a short baseline are barely determined: LM then
+        # spends most of its time raising lambda (docs/tuning.md).
         # A monocular camera has only such points (triangulated with enough parallax).
         n_in = np.bincount(obs_pt, minlength=len(local))
         good_pt = n_in >= 2

@@ -201,8 +201,8 @@ class Map:
         """Flat (row, keyframe_id, keypoint_idx) arrays of all observations of ``pids`` (row = index
         into pids), for vectorized statistics."""
         obs = self.points.obs
-        # fromiter over the dicts' keys and values: ~3x faster than building tuples (this runs on
-        # every keyframe with the map lock held).
+        # fromiter over the dicts' keys and values rather than tuples: this runs on every keyframe
+        # with the map lock held (docs/tuning.md).
         dicts = [obs[p] for p in np.asarray(pids, dtype=np.int64).tolist()]
         counts = np.fromiter(map(len, dicts), np.int64, len(dicts))
         n = int(counts.sum())
