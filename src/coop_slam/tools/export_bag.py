@@ -31,7 +31,7 @@ def export_bag(
     import rospy
 
     from ..datasets import DatasetError
-    from ..ros.player_node import frame_messages
+    from ..ros.camera_messages import frame_messages
 
     schedule = build_schedule(source.streams, keep_timing=keep_timing)
     if not schedule:
