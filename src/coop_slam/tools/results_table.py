@@ -29,6 +29,17 @@ COLUMNS = (
     "kB/s per robot",
 )
 
+# What the columns mean, under the table's heading.
+LEGEND = (
+    "Lock-step playback unless the run says otherwise. Errors are against ground truth; `–` = not "
+    "measured. Robot ATE: each robot's keyframes aligned on their own (a monocular robot's with "
+    "Sim(3)); pooled: those pooled (what a perfect placement of the robots' maps would score); "
+    "team ATE: all robots in `world` with one alignment. Links: constraints between two robots "
+    "accepted after they merged. Overlap agreement (no ground truth): how far one robot's points "
+    "lie from the other's surfaces where both mapped, against a robot's own revisits. A commit "
+    "ending in `+` ran with changes on top of it that were not committed yet."
+)
+
 
 def _cm(v) -> str:
     return "–" if v is None else f"{100 * v:.2f}"
@@ -162,15 +173,8 @@ def main(argv=None) -> int:
         print(f"[results_table] ERROR: no report.json in {', '.join(missing)}", file=sys.stderr)
         return 2
     print(
-        f"# {args.title}\n\nGenerated {datetime.date.today()} by `scripts/results_table` from the "
-        "runs' `report.json` (lock-step playback unless the run says otherwise). Errors are "
-        "against ground truth; `–` = not measured. Robot ATE: each robot's keyframes aligned on "
-        "their own; pooled: those pooled (what a perfect placement of the robots' maps would "
-        "score); team ATE: all robots in `world` with one alignment. Links: constraints between "
-        "two robots accepted after they merged. Overlap agreement (no ground truth): how far "
-        "one robot's points lie from the other's surfaces where both mapped, against a robot's "
-        "own revisits. A commit ending in `+` "
-        "ran with changes on top of it that were not committed yet.\n"
+        f"# {args.title}\n\nGenerated {datetime.date.today()} by `scripts/results_table`. "
+        f"{LEGEND}\n"
     )
     print(table(args.results))
     return 0
