@@ -130,6 +130,7 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
     merge's registration error is its cameras' relative pose against the truth, unchanged when
     local BA moves a matched keyframe after the merge, and known when the client culled a matched
     keyframe before the merge event arrived."""
+    pytest.importorskip("coop_slam.msg", reason="the catkin workspace is not sourced")
     import rosbag
     import rospy
     from geometry_msgs.msg import PoseStamped
@@ -482,6 +483,7 @@ def test_frame_stats_count_dropped_frames_and_a_mapper_behind_the_camera():
     mapping held more than one keyframe (the mapper falling behind), with its largest backlog.
     Stats without a frame (stamp 0: keyframes the uplink sent after the last frame) count the
     keyframes sent, not a frame."""
+    pytest.importorskip("coop_slam.msg", reason="the catkin workspace is not sourced")
     import rospy
 
     from coop_slam.msg import FrameStats
