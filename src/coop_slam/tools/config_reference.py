@@ -39,7 +39,7 @@ def field_notes(cls: type) -> dict[str, str]:
     after it on its line."""
     notes: dict[str, str] = {}
     above: list[str] = []
-    group = ""  # a comment above a run of fields (no blank line) tells all of them
+    group = ""  # the first of a run of fields (no blank line) under one comment, which tells all
     for indent, code, comment in _lines(inspect.getsource(cls)):
         if indent != 4:
             above, group = ([] if code else above), ("" if not code and not comment else group)
@@ -52,9 +52,9 @@ def field_notes(cls: type) -> dict[str, str]:
         name = code.split(":", 1)[0].strip()
         if ":" in code and name.isidentifier():
             if above:
-                group = " ".join(above)
+                group = name
             note = " ".join(above + ([comment] if comment else [])).strip()
-            notes[name] = note or (f"(with the key above: {group})" if group else "")
+            notes[name] = note or (f"(as `{group}` above)" if group else "")
         above = []
     return notes
 
