@@ -19,7 +19,6 @@ MAX_MODULE, MAX_NODE_MODULE, MAX_FUNCTION = 700, 400, 100
 OVER_MODULE = {
     "team/pose_graph.py": 1120,
     "registration/sim3.py": 927,
-    "tools/demo.py": 748,
     "synthetic/scenarios.py": 748,
     "bow/vocabulary.py": 734,
     "vo/local_mapping.py": 728,
@@ -29,7 +28,6 @@ OVER_FUNCTION = {
     "tools/demo.py:run": 260,
     "evaluation/run_report.py:evaluate_run": 218,
     "synthetic/world.py:_kitchen": 195,
-    "tools/demo.py:parse_args": 132,
     "registration/sim3.py:estimate_sim3": 131,
     "vo/local_mapping.py:build_ba_problem": 112,
     "optim/bundle.py:run_local_ba": 112,
