@@ -25,7 +25,6 @@ OVER_MODULE = {
 }
 OVER_NODE_MODULE = {"ros/player_node.py": 521}
 OVER_FUNCTION = {
-    "tools/demo.py:run": 260,
     "evaluation/run_report.py:evaluate_run": 218,
     "synthetic/world.py:_kitchen": 195,
     "registration/sim3.py:estimate_sim3": 131,
