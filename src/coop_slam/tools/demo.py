@@ -83,6 +83,7 @@ def main(argv=None) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    """One demo run, step by step; 0 when done (raises CoopSlamError when it cannot run)."""
     out = _results_folder(args)
     t_start = time.monotonic()
     plan = _prepare_data(args)
@@ -96,7 +97,10 @@ def run(args: argparse.Namespace) -> int:
     say(f"[2/3] running the system (ROS master {master.uri}; log {log_path})")
     system = start_system(master, launch_args, log_path)
     try:
-        monitor = _run_system(args, plan, system, out, rviz_config)
+        monitor = _start_watching(args, plan, system, out, rviz_config)
+        _follow_progress(args, plan, system, monitor)
+        _settle(monitor, args.settle, say)
+        _wrap_up(args, plan, system, monitor)
     finally:
         stop_system(system)
     json_path, md_path, ply = _evaluate(plan, monitor, out)
@@ -361,11 +365,11 @@ def _framed_rviz_config(out: str, source, inputs, base_cam: list) -> str | None:
     return str(path)
 
 
-def _run_system(
+def _start_watching(
     args: argparse.Namespace, plan: _RunPlan, system: System, out: str, rviz_config: str | None
 ) -> Monitor:
-    """[2/3], once roslaunch started: follow the run to its last frame, let the server settle,
-    save the map and end the recording. The caller stops the system, also when this raises."""
+    """Once roslaunch started: wait for its master, then follow what the system publishes (this
+    process's monitor node) and record RViz when asked."""
     wait_for_master(system.master.uri, 30.0)
     monitor = Monitor(
         plan.record_ids,
@@ -374,16 +378,6 @@ def _run_system(
     )
     if args.record:
         start_recording(system, out, rviz_config)
-    _follow_progress(args, plan, system, monitor)
-    _settle(monitor, args.settle, say)
-    if args.save_map:
-        say(f"      saving the team map: {save_map(args.save_map)}")
-    if system.recorder is not None:
-        say("      stopping the recording (final picture of the map)")
-        stop_recording(system)
-    monitor.run.duration_s = plan.t1 - plan.t0
-    if sys.stdout.isatty():
-        print(flush=True)  # ends the progress line
     return monitor
 
 
@@ -444,6 +438,19 @@ def _settle(monitor, settle_s: float, say) -> None:
             said = True
         time.sleep(0.5)
     say(f"      the server was still busy after {max(settle_s, SETTLE_MAX_S):.0f} s: evaluating")
+
+
+def _wrap_up(args: argparse.Namespace, plan: _RunPlan, system: System, monitor: Monitor) -> None:
+    """After the server settled, while the system still runs: save the team map and end the
+    recording (it takes the final picture of the map on its way out)."""
+    if args.save_map:
+        say(f"      saving the team map: {save_map(args.save_map)}")
+    if system.recorder is not None:
+        say("      stopping the recording (final picture of the map)")
+        stop_recording(system)
+    monitor.run.duration_s = plan.t1 - plan.t0
+    if sys.stdout.isatty():
+        print(flush=True)  # ends the progress line, rewritten in place until now
 
 
 def _evaluate(plan: _RunPlan, monitor: Monitor, out: str) -> tuple[str, str, str | None]:
