@@ -17,7 +17,7 @@ def _write_suite(tmp_path, text):
 
 
 def test_the_repositorys_suite_is_runnable_by_the_demo():
-    from coop_slam.tools.demo import parse_args
+    from coop_slam.tools.demo_args import parse_args
 
     entries = load_suite(benchmark.DEFAULT_SUITE)
     assert len(entries) >= 10

@@ -214,7 +214,7 @@ def test_a_stereo_and_an_rgbd_robot_build_one_map_from_a_sensor_bag(tmp_path):
 
 
 def test_demo_operator_requests_parse_and_bad_ones_are_named():
-    from coop_slam.tools.demo import parse_args
+    from coop_slam.tools.demo_args import parse_args
 
     args = parse_args(
         ["--scenario", "rendezvous", "--rendezvous", "1,2@20", "--rendezvous", "2,1@3.5"]
@@ -226,7 +226,7 @@ def test_demo_operator_requests_parse_and_bad_ones_are_named():
 
 
 def test_demo_duration_is_a_scenario_length():
-    from coop_slam.tools.demo import parse_args
+    from coop_slam.tools.demo_args import parse_args
 
     assert parse_args(["--scenario", "rendezvous", "--duration", "22.5"]).duration == 22.5
     for bad in (

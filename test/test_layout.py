@@ -18,12 +18,9 @@ MAX_MODULE, MAX_NODE_MODULE, MAX_FUNCTION = 700, 400, 100
 # Still above the limits (lines today): to be split.
 OVER_MODULE = {
     "registration/sim3.py": 927,
-    "tools/demo.py": 748,
 }
 OVER_NODE_MODULE: dict[str, int] = {}
 OVER_FUNCTION = {
-    "tools/demo.py:run": 260,
-    "tools/demo.py:parse_args": 132,
     "registration/sim3.py:estimate_sim3": 131,
     "registration/ba.py:two_view_ba": 111,
     "vo/pose_opt.py:optimize_pose": 109,

@@ -1,8 +1,8 @@
-"""The main job behind ``scripts/demo``: prepare data, launch the system headless, follow it with a
-progress line, and write the report.
+"""The main job behind ``scripts/demo``, as the steps it prints: prepare the data ([1/3]); start the
+system, follow its progress to the last frame, let the server settle and stop it ([2/3]); evaluate
+and report ([3/3]).
 
-The demo runs its own ROS master on a free port, so it never disturbs (or is disturbed by) a master
-the user already has running.
+Its options are :mod:`.demo_args`; the ROS processes it starts and watches, :mod:`.demo_launch`.
 """
 
 from __future__ import annotations
@@ -11,182 +11,251 @@ import argparse
 import datetime
 import json
 import os
-import signal
-import socket
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import CoopSlamError
-from ..evaluation.run_report import evaluate_results, run_input_of
+from ..evaluation.run_report import RunInput, evaluate_results, run_input_of
 from ..geometry import T_base_cam_of, quat_from_se3
-from ..playback import load_run_source
+from ..playback import Source, load_run_source
+from .demo_args import parse_args
+from .demo_launch import (
+    REPO,
+    Monitor,
+    Operator,
+    System,
+    launch_arguments,
+    private_master,
+    save_map,
+    start_recording,
+    start_system,
+    stop_recording,
+    stop_system,
+    wait_for_master,
+    watch_nodes,
+)
+from .faults import Faults, kill_node, parse_faults
 from .progress import throttled
-from .sequence_args import add_duration_argument, check_duration
 
-DEFAULT_SCENARIO = "team"
 # After the last frame the server may still be working off its queue: wait until its stats say it
 # is idle (and stayed so for SETTLE_IDLE_S), or, when they do not say, while they change (quiet
 # for SETTLE_QUIET_S); at most SETTLE_MAX_S [s].
 SETTLE_IDLE_S = 1.0
 SETTLE_QUIET_S = 5.0
 SETTLE_MAX_S = 180.0
+# In the results folder: what the system published (evaluated), and the team map's file.
+RUN_BAG = "run.bag"
+TEAM_MAP = "team_map.db"
 
 
-def _operator_request(text: str) -> tuple[int, int, float]:
-    """``A,B@T`` -> (robot A, robot B, seconds into the run)."""
+@dataclass
+class _RunPlan:
+    """What a run plays and judges, once its data is ready."""
+
+    source: Source | None  # None for a bag: it is played as it is
+    inputs: RunInput
+    all_ids: list[int]  # the source's robots
+    robot_ids: list[int]  # those that run (--only-robots)
+    sensors: list[str]  # the cameras of all_ids
+    frames: int  # frames played
+    t0: float  # the first frame's time [s]
+    t1: float  # the last played frame's time [s]
+    faults: Faults
+    ground: bool  # the robots drive on a level floor (client vo.planar.enabled)
+    base_cam: list  # the cameras' mounting [x y z qx qy qz qw]; [] = the launch file's default
+    record_ids: list[int]  # the robots the bag records and the report covers
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
     try:
-        robots, at = text.split("@")
-        a, b = (int(r) for r in robots.split(","))
-        t_s = float(at)
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: expected A,B@T (two robot ids, seconds into the run), e.g. 1,2@20"
-        ) from None
-    if a == b or min(a, b) < 1 or not np.isfinite(t_s) or t_s < 0:
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: needs two different robot ids >= 1 and a time >= 0 s"
+        return run(args)
+    except CoopSlamError as exc:
+        say(f"ERROR: {exc}")
+        return 2
+    except KeyboardInterrupt:
+        say("interrupted")
+        return 130
+
+
+def run(args: argparse.Namespace) -> int:
+    """One demo run, step by step; 0 when done (raises CoopSlamError when it cannot run)."""
+    out = _results_folder(args)
+    t_start = time.monotonic()
+    plan = _prepare_data(args)
+    master = private_master(out)
+    launch_args = _launch_arguments(args, plan, out)
+    _write_run_info(out, args, plan.robot_ids, plan.ground, plan.base_cam)
+    rviz_config = (
+        _framed_rviz_config(out, plan.source, plan.inputs, plan.base_cam) if args.record else None
+    )
+    log_path = os.path.join(out, "roslaunch.log")
+    say(f"[2/3] running the system (ROS master {master.uri}; log {log_path})")
+    system = start_system(master, launch_args, log_path)
+    try:
+        monitor = _start_watching(args, plan, system, out, rviz_config)
+        _follow_progress(args, plan, system, monitor)
+        _settle(monitor, args.settle, say)
+        _wrap_up(args, plan, system, monitor)
+    finally:
+        stop_system(system)
+    json_path, md_path, ply = _evaluate(plan, monitor, out)
+    _say_results(args, out, json_path, md_path, ply, t_start)
+    return 0
+
+
+def say(msg: str) -> None:
+    print(f"[demo] {msg}", flush=True)
+
+
+def _results_folder(args: argparse.Namespace) -> str:
+    """``--out``, or results/<date>-<source>; created."""
+    name = args.scenario or os.path.basename(os.path.normpath(args.dataset or args.bag or "run"))
+    out = os.path.abspath(
+        args.out or os.path.join("results", f"{datetime.datetime.now():%Y%m%d-%H%M%S}-{name}")
+    )
+    os.makedirs(out, exist_ok=True)
+    return out
+
+
+def _prepare_data(args: argparse.Namespace) -> _RunPlan:
+    """[1/3]: read the bag or load (render) the source, and check what needs its robots."""
+    source, inputs = _read_bag(args.bag) if args.bag else _load_source(args)
+    all_ids = inputs.robot_ids
+    sensors = inputs.sensors or ["rgbd"] * len(all_ids)
+    robot_ids, frames, t1 = _played_robots(args, source, inputs)
+    if len(set(sensors)) > 1 or sensors[0] != "rgbd":
+        say(f"      cameras: {', '.join(f'robot_{r} {s}' for r, s in zip(robot_ids, sensors))}")
+    for a, b, _ in args.rendezvous:
+        if a not in robot_ids or b not in robot_ids:
+            raise CoopSlamError(f"--rendezvous {a},{b}: this run has robots {robot_ids}")
+    if args.rendezvous and args.no_clients:
+        raise CoopSlamError("--rendezvous needs the server: drop --no-clients")
+    return _RunPlan(
+        source=source,
+        inputs=inputs,
+        all_ids=all_ids,
+        robot_ids=robot_ids,
+        sensors=sensors,
+        frames=frames,
+        t0=inputs.start_s,
+        t1=t1,
+        faults=parse_faults(args.faults or "", robot_ids),
+        ground=_ground_robots(args),
+        base_cam=_base_cam(source),
+        # A loaded map's robots do not run, but the server shows them: record them for the report.
+        record_ids=all_ids if args.load_map else robot_ids,
+    )
+
+
+def _read_bag(bag: str) -> tuple[None, RunInput]:
+    """A sensor bag's robots and ground truth (no run source: the bag is played as it is)."""
+    from ..ros.run_recorder import read_bag_input
+
+    say(f"[1/3] reading the bag {bag}")
+    inputs = read_bag_input(bag)
+    if inputs.robot_ids != list(range(1, len(inputs.robot_ids) + 1)):
+        # demo.launch starts clients robot_1..robot_N
+        raise CoopSlamError(
+            f"--bag: the demo runs robots numbered 1..N, the bag has robots "
+            f"{inputs.robot_ids}; remap its topics (rosbag filter or roslaunch coop_slam "
+            "client.launch per robot)"
         )
-    return a, b, t_s
+    say(
+        f"      {len(inputs.robot_ids)} robots, {inputs.frames} frames, "
+        f"{inputs.end_s - inputs.start_s:.1f} s, ground truth for "
+        f"{sum(len(s) > 0 for s, _ in inputs.gts.values())} robots"
+    )
+    return None, inputs
 
 
-def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="scripts/demo", description=__doc__.split("\n\n")[0])
-    src = p.add_mutually_exclusive_group()
-    src.add_argument("--scenario", help=f"synthetic scenario (default: {DEFAULT_SCENARIO})")
-    src.add_argument("--dataset", help="TUM RGB-D or KITTI odometry folder")
-    src.add_argument("--bag", help="rosbag file to replay")
-    p.add_argument("--robots", type=int, default=None, help="number of robots")
-    p.add_argument(
-        "--sensors",
-        help="each robot's camera, comma-separated, or one for all: rgbd, stereo, mono (e.g. "
-        "rgbd,stereo,stereo); default: RGB-D for synthetic worlds, what a dataset or bag has",
+def _load_source(args: argparse.Namespace) -> tuple[Source, RunInput]:
+    """The scenario (rendered when not cached) or dataset, and its run input."""
+    what = f"scenario {args.scenario}" if args.scenario else args.dataset
+    say(f"[1/3] preparing data ({what})")
+    progress = throttled(
+        lambda done, total: say(
+            f"      rendering {done}/{total} frames ({100.0 * done / max(total, 1):.0f} %)"
+        )
     )
-    p.add_argument("--split", help="inclusive frame ranges, one robot each: 0-299,300-599")
-    p.add_argument(
-        "--only-robots",
-        metavar="IDS",
-        help="run only these robots of the scenario or split, with their ids (comma-separated), "
-        "e.g. a later session: --only-robots 2 --load-map FILE",
-    )
-    p.add_argument(
-        "--keep-timing",
-        action="store_true",
-        help="play split segments at their original times (default: all start together)",
-    )
-    p.add_argument("--seed", type=int, default=0, help="synthetic world seed")
-    add_duration_argument(p)
-    p.add_argument("--camera", help="camera.yaml for a dataset folder without one")
-    p.add_argument(
-        "--rate", type=float, default=None, help="play at RATE x real time instead of lock-step"
-    )
-    rec = p.add_mutually_exclusive_group()
-    rec.add_argument(
-        "--record",
-        dest="record",
-        action="store_true",
-        default=True,
-        help="record RViz headless to MP4 + PNG (the default)",
-    )
-    rec.add_argument("--no-record", dest="record", action="store_false", help="do not record RViz")
-    p.add_argument("--server-config", help="server YAML (default: config/server.yaml)")
-    p.add_argument("--client-config", help="client YAML (default: config/client.yaml)")
-    p.add_argument(
-        "--no-markers",
-        action="store_true",
-        help="clients do not look for other robots' markers (rendezvous without cue)",
-    )
-    p.add_argument(
-        "--ground-robots",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="the cameras sit on bases driving on a level floor, so local BA keeps them level "
-        "(client vo.planar_motion); default: on for synthetic scenarios of wheeled robots, off "
-        "for hand-held ones (kitchen), datasets and bags",
-    )
-    p.add_argument(
-        "--rendezvous",
-        action="append",
-        default=[],
-        type=_operator_request,
-        metavar="A,B@T",
-        help="operator trigger: at T seconds into the run, tell the server (its ~rendezvous "
-        "service) that robots A and B are together; repeatable",
-    )
-    p.add_argument(
-        "--save-map",
-        metavar="FILE",
-        help="at the end, save the team map to FILE (the server's ~save_map) for a later session",
-    )
-    p.add_argument(
-        "--load-map",
-        metavar="FILE",
-        help="start the server from a team map saved before (--save-map): a later session",
-    )
-    p.add_argument(
-        "--faults",
-        metavar="SPEC",
-        help="fault injection: server-kill@T, client-kill:K@T (kill -9 at T s sim time, restarted "
-        "by roslaunch), drop:P (a radio relay drops a share P of the keyframe messages); "
-        "comma-separated, e.g. server-kill@25,drop:0.1",
-    )
-    p.add_argument(
-        "--low-bandwidth",
-        action="store_true",
-        help="low-bandwidth mode: each new keyframe goes as its place signature (pose and BoW "
-        "vector), whole only when the server asks for it (a place recognition or rendezvous "
-        "candidate, a loop); server pull.* and client uplink.mode",
-    )
-    p.add_argument("--out", help="results folder (default: results/<date>-<source>)")
-    p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
-    p.add_argument(
-        "--no-clients", action="store_true", help="only play the data (no clients, no server)"
-    )
-    p.add_argument(
-        "--settle",
-        type=float,
-        default=2.0,
-        help="seconds to wait at least after the last frame for the last keyframes and merges "
-        "(then until the server is idle)",
-    )
-    args = p.parse_args(argv)
-    if args.scenario is None and args.dataset is None and args.bag is None:
-        args.scenario = DEFAULT_SCENARIO
-    if args.robots is not None and not 1 <= args.robots <= 8:
-        p.error("--robots must be between 1 and 8")
-    if args.rate is not None and args.rate <= 0:
-        p.error("--rate must be > 0")
-    check_duration(p, args)
-    if args.split and not args.dataset:
-        p.error("--split needs --dataset")
-    if args.bag and (args.robots is not None or args.keep_timing or args.camera or args.sensors):
-        p.error("--bag: robots, timing, camera and sensors come from the bag")
-    if args.faults:
-        from .faults import FaultError, parse_faults
-
-        try:
-            parse_faults(args.faults)
-        except FaultError as exc:
-            p.error(str(exc))
-    if args.only_robots and args.bag:
-        p.error("--only-robots: a bag plays the robots it has")
-    if args.load_map and not os.path.isfile(args.load_map):
-        p.error(f"--load-map: file not found: {args.load_map}")
-    if (args.faults or args.save_map or args.load_map) and args.no_clients:
-        p.error("--faults, --save-map and --load-map need the server: drop --no-clients")
-    if args.sensors:
-        from ..playback import PlaybackError, parse_sensors
-
-        try:
-            parse_sensors(args.sensors, args.robots)
-        except PlaybackError as exc:
-            p.error(f"--sensors: {exc}")
-    return args
+    # Every robot of the source (ground truth for judging merges with loaded robots); the
+    # player plays --only-robots.
+    source = load_run_source(dict(vars(args), only_robots=None), progress)
+    inputs = run_input_of(source, args.keep_timing)
+    say(f"      {len(inputs.robot_ids)} robots, {inputs.frames} frames, data in {source.folder}")
+    return source, inputs
 
 
-REPO = os.path.normpath(os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", ".."))
+def _played_robots(
+    args: argparse.Namespace, source: Source | None, inputs: RunInput
+) -> tuple[list[int], int, float]:
+    """The robots that run, their frames and the time of their last one: all of the source's, or
+    those of ``--only-robots``."""
+    if not args.only_robots:
+        return inputs.robot_ids, inputs.frames, inputs.end_s
+    from ..playback import PlaybackError, build_schedule, parse_robot_ids
+
+    try:
+        played = parse_robot_ids(args.only_robots)
+    except PlaybackError as exc:
+        raise CoopSlamError(f"--only-robots: {exc}") from None
+    if set(played) - set(inputs.robot_ids):
+        raise CoopSlamError(f"--only-robots {args.only_robots}: the source has {inputs.robot_ids}")
+    schedule = build_schedule(
+        [st for st in source.streams if st.robot_id in played], args.keep_timing
+    )
+    say(f"      playing robots {played} only")
+    return played, len(schedule), schedule[-1].play_s
+
+
+def _ground_robots(args: argparse.Namespace) -> bool:
+    """``--ground-robots``, by default: synthetic robots drive on the floor unless people carry
+    the cameras (hand-held scenarios)."""
+    if args.ground_robots is not None:
+        return args.ground_robots
+    return bool(args.scenario) and not _hand_held(args.scenario)
+
+
+def _hand_held(scenario: str) -> bool:
+    """Whether people carry the scenario's cameras (6-DoF motion: no ground-robot prior)."""
+    from ..synthetic.scenarios import SCENARIOS
+
+    spec = SCENARIOS.get(scenario)
+    return bool(spec is not None and spec.hand_held)
+
+
+def _base_cam(source: Source | None) -> list:
+    """The source's camera mounting as [x y z qx qy qz qw] (rounded as the launch file gets it),
+    or [] when it has none."""
+    if source is None or "T_base_cam" not in (source.meta or {}):
+        return []
+    t, q = quat_from_se3(np.asarray(source.meta["T_base_cam"], float))
+    return [round(float(v), 6) for v in (*t, *q)]
+
+
+def _launch_arguments(args: argparse.Namespace, plan: _RunPlan, out: str) -> list[str]:
+    """demo.launch's arguments; the team map's file in ``out`` is emptied for this run."""
+    from ..team.map_store import remove_map_file
+
+    map_path = os.path.join(out, TEAM_MAP)
+    launch_args = launch_arguments(
+        args,
+        all_ids=plan.all_ids,
+        played_ids=plan.robot_ids,
+        sensors=plan.sensors,
+        base_cam=plan.base_cam,
+        ground=plan.ground,
+        faults=plan.faults,
+        map_path=map_path,
+        bag_path=os.path.join(out, RUN_BAG),
+        record_ids=plan.record_ids,
+    )
+    remove_map_file(map_path)  # a results folder used again: this run's map starts empty
+    return launch_args
 
 
 def _write_run_info(
@@ -194,8 +263,6 @@ def _write_run_info(
 ) -> None:
     """What ``scripts/evaluate`` needs to find the ground truth of this run again, and
     ``scripts/replay`` the server's launch settings."""
-    import json
-
     info = {
         "scenario": args.scenario,
         "dataset": os.path.abspath(args.dataset) if args.dataset else None,
@@ -298,415 +365,56 @@ def _framed_rviz_config(out: str, source, inputs, base_cam: list) -> str | None:
     return str(path)
 
 
-def _hand_held(scenario: str) -> bool:
-    """Whether people carry the scenario's cameras (6-DoF motion: no ground-robot prior)."""
-    from ..synthetic.scenarios import SCENARIOS
-
-    spec = SCENARIOS.get(scenario)
-    return bool(spec is not None and spec.hand_held)
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def say(msg: str) -> None:
-    print(f"[demo] {msg}", flush=True)
-
-
-class _Monitor:
-    """Follows the run from inside this process (progress line) and records what the system
-    publishes into a :class:`RunRecorder`.
-
-    With ``ack`` it also acknowledges frames itself (no clients running), so lock-step playback
-    still advances.
-    """
-
-    def __init__(self, robot_ids: list[int], ack: bool, sensors: list[str]):
-        import rospy
-        from rosgraph_msgs.msg import Clock
-        from sensor_msgs.msg import Image
-
-        from coop_slam.msg import FrameStats
-
-        from ..playback import image_topic
-        from ..ros.run_recorder import RunRecorder, message_class
-
-        rospy.init_node("demo_monitor", anonymous=True, disable_signals=True)
-        self.recorder = RunRecorder(robot_ids)
-        self.run = self.recorder.run
-        self.sim_s = 0.0
-        self.ack = ack
-        self._subs = [rospy.Subscriber("/clock", Clock, self._on_clock, queue_size=1)]
-        for topic, type_name in self.recorder.topics().items():
-            if ack and topic.endswith("/frame_stats"):
-                continue  # this monitor publishes them itself
-            self._subs.append(
-                rospy.Subscriber(
-                    topic,
-                    rospy.AnyMsg,
-                    self._on_any,
-                    (topic, message_class(type_name)),
-                    queue_size=500,
-                    buff_size=2**25,
-                )
-            )
-        self._acks = {}
-        for r in robot_ids if ack else ():
-            self._subs.append(
-                rospy.Subscriber(
-                    image_topic(r, sensors[robot_ids.index(r)]),
-                    Image,
-                    self._on_image,
-                    r,
-                    queue_size=5,
-                    buff_size=2**24,
-                )
-            )
-            self._acks[r] = rospy.Publisher(f"/robot_{r}/frame_stats", FrameStats, queue_size=10)
-        self._FrameStats = FrameStats
-
-    @property
-    def done(self) -> bool:
-        return self.recorder.done
-
-    def _on_clock(self, msg) -> None:
-        self.sim_s = msg.clock.to_sec()
-
-    def _on_any(self, raw, args) -> None:
-        topic, cls = args
-        msg = cls()
-        msg.deserialize(raw._buff)
-        self.recorder.feed(topic, msg, self.sim_s, len(raw._buff))
-
-    def _on_image(self, msg, robot_id: int) -> None:
-        ack = self._FrameStats(robot_id=robot_id, tracking_ok=True)
-        ack.header.stamp = msg.header.stamp
-        self.recorder.feed(f"/robot_{robot_id}/frame_stats", ack, self.sim_s, 0)
-        self._acks[robot_id].publish(ack)
-
-
-class _Operator:
-    """Plays the person who tells the server that two robots are together (``--rendezvous``):
-    calls the server's ~rendezvous service once the run reaches each request's time. Calls run in
-    threads: lock-step playback must not wait for the server's answer."""
-
-    SERVICE = "/server/rendezvous"
-
-    def __init__(self, requests: list[tuple[int, int, float]], t0: float):
-        self.pending = sorted(requests, key=lambda r: r[2])
-        self.t0 = t0
-
-    def poll(self, sim_s: float) -> None:
-        import threading
-
-        while self.pending and sim_s - self.t0 >= self.pending[0][2]:
-            a, b, t_s = self.pending.pop(0)
-            threading.Thread(target=self._call, args=(a, b, t_s), daemon=True).start()
-
-    def _call(self, a: int, b: int, t_s: float) -> None:
-        import rospy
-
-        from coop_slam.srv import Rendezvous
-
-        try:
-            rospy.wait_for_service(self.SERVICE, timeout=30.0)
-            res = rospy.ServiceProxy(self.SERVICE, Rendezvous)(
-                robot_a=a, robot_b=b, stamp=rospy.Time.from_sec(self.t0 + t_s)
-            )
-            say(f"      operator rendezvous {a},{b}@{t_s:g}: {res.message}")  # says if merged
-        except (rospy.ROSException, rospy.ServiceException) as exc:
-            say(f"      operator rendezvous {a},{b}@{t_s:g} failed: {exc}")
-
-
-def _save_map(path: str) -> str:
-    import rospy
-
-    from coop_slam.srv import SaveMap
-
-    try:
-        rospy.wait_for_service("/server/save_map", timeout=60.0)
-        res = rospy.ServiceProxy("/server/save_map", SaveMap)(path=os.path.abspath(path))
-    except (rospy.ROSException, rospy.ServiceException) as exc:
-        raise CoopSlamError(f"--save-map {path}: the server did not answer ({exc})") from exc
-    if not res.success:
-        raise CoopSlamError(f"--save-map {path}: {res.message}")
-    return res.message
-
-
-def _wait_for_master(uri: str, timeout_s: float) -> None:
-    import rosgraph
-
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if rosgraph.Master("/demo", master_uri=uri).is_online():
-            return
-        time.sleep(0.2)
-    raise CoopSlamError(f"ROS master at {uri} did not come up within {timeout_s:.0f} s")
-
-
-def run(args: argparse.Namespace) -> int:
-    from ..ros.run_recorder import RunRecorder, read_bag_input, run_data_from_bag
-
-    name = args.scenario or os.path.basename(os.path.normpath(args.dataset or args.bag or "run"))
-    out = os.path.abspath(
-        args.out or os.path.join("results", f"{datetime.datetime.now():%Y%m%d-%H%M%S}-{name}")
+def _start_watching(
+    args: argparse.Namespace, plan: _RunPlan, system: System, out: str, rviz_config: str | None
+) -> Monitor:
+    """Once roslaunch started: wait for its master, then follow what the system publishes (this
+    process's monitor node) and record RViz when asked."""
+    wait_for_master(system.master.uri, 30.0)
+    monitor = Monitor(
+        plan.record_ids,
+        ack=args.no_clients,
+        sensors=[plan.sensors[plan.all_ids.index(r)] for r in plan.record_ids],
     )
-    os.makedirs(out, exist_ok=True)
-    t_start = time.monotonic()
-
-    if args.bag:
-        say(f"[1/3] reading the bag {args.bag}")
-        source, inputs = None, read_bag_input(args.bag)
-        if inputs.robot_ids != list(range(1, len(inputs.robot_ids) + 1)):
-            # demo.launch starts clients robot_1..robot_N
-            raise CoopSlamError(
-                f"--bag: the demo runs robots numbered 1..N, the bag has robots "
-                f"{inputs.robot_ids}; remap its topics (rosbag filter or roslaunch coop_slam "
-                "client.launch per robot)"
-            )
-        say(
-            f"      {len(inputs.robot_ids)} robots, {inputs.frames} frames, "
-            f"{inputs.end_s - inputs.start_s:.1f} s, ground truth for "
-            f"{sum(len(s) > 0 for s, _ in inputs.gts.values())} robots"
-        )
-    else:
-        what = f"scenario {args.scenario}" if args.scenario else args.dataset
-        say(f"[1/3] preparing data ({what})")
-        progress = throttled(
-            lambda done, total: say(
-                f"      rendering {done}/{total} frames ({100.0 * done / max(total, 1):.0f} %)"
-            )
-        )
-        # Every robot of the source (ground truth for judging merges with loaded robots); the
-        # player plays --only-robots.
-        source = load_run_source(dict(vars(args), only_robots=None), progress)
-        inputs = run_input_of(source, args.keep_timing)
-        say(
-            f"      {len(inputs.robot_ids)} robots, {inputs.frames} frames, data in {source.folder}"
-        )
-    robot_ids, total, t0, t1 = inputs.robot_ids, inputs.frames, inputs.start_s, inputs.end_s
-    sensors = inputs.sensors or ["rgbd"] * len(robot_ids)
-    all_ids = robot_ids
-    if args.only_robots:
-        from ..playback import PlaybackError, build_schedule, parse_robot_ids
-
-        try:
-            played = parse_robot_ids(args.only_robots)
-        except PlaybackError as exc:
-            raise CoopSlamError(f"--only-robots: {exc}") from None
-        if set(played) - set(robot_ids):
-            raise CoopSlamError(f"--only-robots {args.only_robots}: the source has {robot_ids}")
-        schedule = build_schedule(
-            [st for st in source.streams if st.robot_id in played], args.keep_timing
-        )
-        robot_ids, total, t1 = played, len(schedule), schedule[-1].play_s
-        say(f"      playing robots {played} only")
-    if len(set(sensors)) > 1 or sensors[0] != "rgbd":
-        say(f"      cameras: {', '.join(f'robot_{r} {s}' for r, s in zip(robot_ids, sensors))}")
-    for a, b, _ in args.rendezvous:
-        if a not in robot_ids or b not in robot_ids:
-            raise CoopSlamError(f"--rendezvous {a},{b}: this run has robots {robot_ids}")
-    if args.rendezvous and args.no_clients:
-        raise CoopSlamError("--rendezvous needs the server: drop --no-clients")
-    from .faults import kill_node, parse_faults
-
-    faults = parse_faults(args.faults or "", robot_ids)
-
-    port = _free_port()
-    uri = f"http://127.0.0.1:{port}"
-    env = dict(
-        os.environ,
-        ROS_MASTER_URI=uri,
-        ROS_HOSTNAME="127.0.0.1",
-        ROS_LOG_DIR=os.path.join(out, "ros_log"),
-    )
-    os.environ.update(ROS_MASTER_URI=uri, ROS_HOSTNAME="127.0.0.1")
-    launch_args = [
-        f"robots:={len(all_ids)}",
-        f"sensors:={','.join(sensors)}",
-        f"seed:={args.seed}",
-        f"keep_timing:={str(args.keep_timing).lower()}",
-    ]
-    if args.only_robots:
-        launch_args.append(f"only_robots:={','.join(map(str, robot_ids))}")
-    if args.scenario:
-        launch_args.append(f"scenario:={args.scenario}")
-        if args.duration:
-            launch_args.append(f"duration:={args.duration}")
-    elif args.bag:
-        launch_args.append(f"bag:={os.path.abspath(args.bag)}")
-    else:
-        launch_args.append(f"dataset:={os.path.abspath(args.dataset)}")
-        if args.split:
-            launch_args.append(f"split:={args.split}")
-        if args.camera:
-            launch_args.append(f"camera_file:={os.path.abspath(args.camera)}")
-    if args.rate is not None:
-        launch_args += ["lockstep:=false", f"rate:={args.rate}"]
-    base_cam = []
-    if source is not None and "T_base_cam" in (source.meta or {}):
-        t, q = quat_from_se3(np.asarray(source.meta["T_base_cam"], float))
-        base_cam = [round(float(v), 6) for v in (*t, *q)]
-        launch_args.append(f"T_base_cam:=[{', '.join(f'{v:.6f}' for v in base_cam)}]")
-    if args.no_clients:
-        launch_args += ["clients:=false", "server:=false"]
-    for flag, arg in (("server_config", args.server_config), ("client_config", args.client_config)):
-        if arg:
-            if not os.path.isfile(arg):
-                raise CoopSlamError(f"--{flag.replace('_', '-')}: file not found: {arg}")
-            launch_args.append(f"{flag}:={os.path.abspath(arg)}")
-    if args.no_markers:
-        launch_args.append("marker_every_frames:=0")
-    # Synthetic robots drive on the floor unless people carry the cameras (hand-held scenarios).
-    ground = (
-        args.ground_robots
-        if args.ground_robots is not None
-        else bool(args.scenario) and not _hand_held(args.scenario)
-    )
-    launch_args.append(f"ground_robots:={str(ground).lower()}")
-    from ..team.map_store import remove_map_file
-
-    map_path = os.path.join(out, "team_map.db")
-    remove_map_file(map_path)  # a results folder used again: this run's map starts empty
-    launch_args.append(f"map:={map_path}")
-    if args.load_map:
-        launch_args.append(f"load_map:={os.path.abspath(args.load_map)}")
-    if faults.kills:  # killed nodes come back; the server carries on from its map file
-        launch_args += ["respawn:=true", "resume:=true"]
-    if faults.drop:
-        launch_args.append(f"radio_drop:={faults.drop}")
-    if args.low_bandwidth:
-        launch_args.append("low_bandwidth:=true")
-    bag_path = os.path.join(out, "run.bag")
-    launch_args.append(f"record_bag:={bag_path}")
-    # A loaded map's robots do not run, but the server shows them: record them for the report.
-    record_ids = all_ids if args.load_map else robot_ids
-    launch_args.append(f"record_topics:={' '.join(RunRecorder(record_ids).topics())}")
-    _write_run_info(out, args, robot_ids, ground, base_cam)
-    rviz_config = _framed_rviz_config(out, source, inputs, base_cam) if args.record else None
-    log_path = os.path.join(out, "roslaunch.log")
-    say(f"[2/3] running the system (ROS master {uri}; log {log_path})")
-    recorder = None
-    with open(log_path, "w") as log:
-        launch = subprocess.Popen(
-            ["roslaunch", "-p", str(port), "coop_slam", "demo.launch", *launch_args],
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            env=env,
-            start_new_session=True,
-        )
-    try:
-        _wait_for_master(uri, 30.0)
-        monitor = _Monitor(
-            record_ids,
-            ack=args.no_clients,
-            sensors=[sensors[all_ids.index(r)] for r in record_ids],
-        )
-        if args.record:
-            recorder = subprocess.Popen(
-                [
-                    os.path.join(REPO, "scripts", "record_rviz"),
-                    "--headless",
-                    "--out",
-                    os.path.join(out, "video"),
-                    *(["--config", rviz_config] if rviz_config else []),
-                ],
-                stdout=open(os.path.join(out, "record.log"), "w"),
-                stderr=subprocess.STDOUT,
-                env=env,
-                start_new_session=True,
-            )
-        operator = _Operator(args.rendezvous, t0)
-        deadline = time.monotonic() + args.timeout
-        tty = sys.stdout.isatty()
-        last_line = 0.0
-        while not monitor.done:
-            if launch.poll() is not None:
-                raise CoopSlamError(
-                    f"roslaunch exited early (code {launch.returncode}); see {log_path}"
-                )
-            if time.monotonic() > deadline:
-                raise CoopSlamError(
-                    f"run did not finish within {args.timeout:.0f} s; see {log_path}"
-                )
-            operator.poll(monitor.sim_s)
-            for kill in faults.kills:
-                if not kill.tried and monitor.sim_s - t0 >= kill.at_s:
-                    kill.tried = True
-                    say(f"      fault: {kill_node(launch.pid, kill)}")
-            got = sum(r.frames for r in monitor.run.robots.values())
-            elapsed = min(max(monitor.sim_s - t0, 0.0), t1 - t0)
-            line = (
-                f"[demo]       sim time {elapsed:6.1f}/{t1 - t0:.1f} s "
-                f"({100 * elapsed / max(t1 - t0, 1e-9):3.0f} %), frames received {got}/{total}"
-            )
-            if tty:
-                print("\r" + line, end="", flush=True)
-            elif time.monotonic() - last_line > 10.0:
-                last_line = time.monotonic()
-                print(line, flush=True)
-            time.sleep(0.5)
-        _settle(monitor, args.settle, say)
-        if args.save_map:
-            say(f"      saving the team map: {_save_map(args.save_map)}")
-        if recorder is not None:
-            say("      stopping the recording (final picture of the map)")
-            os.killpg(recorder.pid, signal.SIGINT)
-            try:
-                recorder.wait(120)
-            except subprocess.TimeoutExpired:
-                os.killpg(recorder.pid, signal.SIGKILL)
-        monitor.run.duration_s = t1 - t0
-        if tty:
-            print(flush=True)
-    finally:
-        if recorder is not None and recorder.poll() is None:
-            os.killpg(recorder.pid, signal.SIGINT)
-        if launch.poll() is None:
-            os.killpg(launch.pid, signal.SIGINT)
-            try:
-                launch.wait(20)
-            except subprocess.TimeoutExpired:
-                os.killpg(launch.pid, signal.SIGKILL)
-
-    say("[3/3] evaluating")
-    run_data = monitor.run
-    if os.path.isfile(bag_path):  # what the system published, as recorded
-        say(f"      from the recorded bag {bag_path}")
-        run_data = run_data_from_bag(bag_path, record_ids)
-    else:
-        say("      WARNING: no bag was recorded; evaluating what this process received")
-    run_data.duration_s = monitor.run.duration_s
-    report, json_path, md_path, ply = evaluate_results(
-        out,
-        run_data,
-        {r: inputs.gts[r] for r in record_ids},
-        inputs.overlap,
-        extra={"faults": faults.summary()} if faults.any else None,
-        T_base_cam=T_base_cam_of(base_cam),
-    )
-    for entry in report["robots"]:
-        if entry.get("keyframes_lost"):
-            say(
-                f"      WARNING: robot_{entry['id']}: {entry['keyframes_lost']} of "
-                f"{entry['keyframes_sent']} keyframes sent never reached the map"
-            )
-    traj_dir = os.path.join(out, "trajectories")
-    say(f"done in {time.monotonic() - t_start:.0f} s")
-    say(f"report:       {json_path}")
-    say(f"              {md_path}")
-    say(f"trajectories: {traj_dir}  (plot: {os.path.join(out, 'trajectories.png')})")
-    if ply:
-        say(f"team map:     {ply}")
     if args.record:
-        say(
-            f"video:        {os.path.join(out, 'video', 'rviz.mp4')}  (final view: "
-            f"{os.path.join(out, 'video', 'map.png')})"
+        start_recording(system, out, rviz_config)
+    return monitor
+
+
+def _follow_progress(
+    args: argparse.Namespace, plan: _RunPlan, system: System, monitor: Monitor
+) -> None:
+    """Until the player's last frame went through: the progress line (rewritten in place on a
+    terminal, every 10 s into a log), and the operator's requests and the faults at their times.
+    Raises when the system stops early or the run outlasts ``--timeout``."""
+    operator = Operator(args.rendezvous, plan.t0, say)
+    deadline = time.monotonic() + args.timeout
+    tty = sys.stdout.isatty()
+    last_line = 0.0
+    while not monitor.done:
+        watch_nodes(system)
+        if time.monotonic() > deadline:
+            raise CoopSlamError(
+                f"run did not finish within {args.timeout:.0f} s; see {system.log_path}"
+            )
+        operator.poll(monitor.sim_s)
+        for kill in plan.faults.kills:
+            if not kill.tried and monitor.sim_s - plan.t0 >= kill.at_s:
+                kill.tried = True
+                say(f"      fault: {kill_node(system.launch.pid, kill)}")
+        got = sum(r.frames for r in monitor.run.robots.values())
+        span = plan.t1 - plan.t0
+        elapsed = min(max(monitor.sim_s - plan.t0, 0.0), span)
+        line = (
+            f"[demo]       sim time {elapsed:6.1f}/{span:.1f} s "
+            f"({100 * elapsed / max(span, 1e-9):3.0f} %), frames received {got}/{plan.frames}"
         )
-    return 0
+        if tty:
+            print("\r" + line, end="", flush=True)
+        elif time.monotonic() - last_line > 10.0:
+            last_line = time.monotonic()
+            print(line, flush=True)
+        time.sleep(0.5)
 
 
 def _settle(monitor, settle_s: float, say) -> None:
@@ -732,16 +440,73 @@ def _settle(monitor, settle_s: float, say) -> None:
     say(f"      the server was still busy after {max(settle_s, SETTLE_MAX_S):.0f} s: evaluating")
 
 
-def main(argv=None) -> int:
-    args = parse_args(argv)
-    try:
-        return run(args)
-    except CoopSlamError as exc:
-        say(f"ERROR: {exc}")
-        return 2
-    except KeyboardInterrupt:
-        say("interrupted")
-        return 130
+def _wrap_up(args: argparse.Namespace, plan: _RunPlan, system: System, monitor: Monitor) -> None:
+    """After the server settled, while the system still runs: save the team map and end the
+    recording (it takes the final picture of the map on its way out)."""
+    if args.save_map:
+        say(f"      saving the team map: {save_map(args.save_map)}")
+    if system.recorder is not None:
+        say("      stopping the recording (final picture of the map)")
+        stop_recording(system)
+    monitor.run.duration_s = plan.t1 - plan.t0
+    if sys.stdout.isatty():
+        print(flush=True)  # ends the progress line, rewritten in place until now
+
+
+def _evaluate(plan: _RunPlan, monitor: Monitor, out: str) -> tuple[str, str, str | None]:
+    """[3/3]: the report from the recorded bag (what this process received when there is none);
+    its JSON and Markdown files and the team map's PLY (or None)."""
+    from ..ros.run_recorder import run_data_from_bag
+
+    say("[3/3] evaluating")
+    run_data = monitor.run
+    bag_path = os.path.join(out, RUN_BAG)
+    if os.path.isfile(bag_path):  # what the system published, as recorded
+        say(f"      from the recorded bag {bag_path}")
+        run_data = run_data_from_bag(bag_path, plan.record_ids)
+    else:
+        say("      WARNING: no bag was recorded; evaluating what this process received")
+    run_data.duration_s = monitor.run.duration_s
+    report, json_path, md_path, ply = evaluate_results(
+        out,
+        run_data,
+        {r: plan.inputs.gts[r] for r in plan.record_ids},
+        plan.inputs.overlap,
+        extra={"faults": plan.faults.summary()} if plan.faults.any else None,
+        T_base_cam=T_base_cam_of(plan.base_cam),
+    )
+    for entry in report["robots"]:
+        if entry.get("keyframes_lost"):
+            say(
+                f"      WARNING: robot_{entry['id']}: {entry['keyframes_lost']} of "
+                f"{entry['keyframes_sent']} keyframes sent never reached the map"
+            )
+    return json_path, md_path, ply
+
+
+def _say_results(
+    args: argparse.Namespace,
+    out: str,
+    json_path: str,
+    md_path: str,
+    ply: str | None,
+    t_start: float,
+) -> None:
+    """Where the run's results are."""
+    say(f"done in {time.monotonic() - t_start:.0f} s")
+    say(f"report:       {json_path}")
+    say(f"              {md_path}")
+    say(
+        f"trajectories: {os.path.join(out, 'trajectories')}  "
+        f"(plot: {os.path.join(out, 'trajectories.png')})"
+    )
+    if ply:
+        say(f"team map:     {ply}")
+    if args.record:
+        say(
+            f"video:        {os.path.join(out, 'video', 'rviz.mp4')}  (final view: "
+            f"{os.path.join(out, 'video', 'map.png')})"
+        )
 
 
 if __name__ == "__main__":
