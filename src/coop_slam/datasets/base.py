@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+import yaml
 
 from ..camera import CameraError, CameraModel
 from ..errors import CoopSlamError
@@ -121,8 +122,6 @@ def _imread(path: str, flags: int) -> np.ndarray:
 
 
 def _camera_yaml_data(path: str) -> dict:
-    import yaml
-
     if not os.path.isfile(path):
         raise DatasetError(f"camera file not found: {path}")
     with open(path, encoding="utf-8") as fh:
@@ -329,7 +328,5 @@ class StereoRectification:
 
 
 def write_camera_yaml(path: str, camera: CameraModel) -> None:
-    import yaml
-
     with open(path, "w", encoding="utf-8") as fh:
         yaml.safe_dump(camera.to_dict(), fh, sort_keys=False)

@@ -16,6 +16,7 @@ import numpy as np
 from ..datasets import write_tum_trajectory
 from ..geometry import path_length
 from ..playback import build_schedule
+from ..registration.camera import RegistrationError
 from ..registration.umeyama import umeyama
 from ..team.map_scale import scale_translation
 from ..team.results import TYPE_LINK
@@ -60,8 +61,6 @@ def _kf_arrays(run: RobotRun):
 
 def _sim3_scale(points_src: np.ndarray, points_dst: np.ndarray) -> float | None:
     """Scale of the least-squares similarity of two matched point sets (None when degenerate)."""
-    from ..registration.camera import RegistrationError
-
     if len(points_src) < 3:
         return None
     try:

@@ -15,6 +15,7 @@ its keyframes say so by their camera's sensor type, and only the server can give
 from __future__ import annotations
 
 import threading
+import time
 
 import rospy
 from sensor_msgs.msg import Image
@@ -193,8 +194,6 @@ class ClientNode:
     def _publish_events(self, now_s: float | None) -> None:
         """The odometry's events at data time ``now_s`` to the uplink (None: the odometry is
         closing, everything it holds goes), and what they say to the console and the path."""
-        import time
-
         step = self.uplink.engine.events(self.vo.drain_events(), now_s)
         for note in step.notes:
             if note.kind == "warning":

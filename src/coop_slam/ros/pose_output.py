@@ -18,6 +18,7 @@ from nav_msgs.msg import Path
 
 from ..geometry import invert, transform_points
 from ..vo.shared_poses import NEWEST, SharedPoses
+from ..wire.record import ACTION_NEW, ACTION_REMOVE
 from .convert import (
     MessageError,
     cloud_to_msg,
@@ -70,8 +71,6 @@ class PoseOutput:
     # --- the odometry's keyframes -----------------------------------------------------------------
     def note(self, notes) -> None:
         """What the uplink made of the odometry's events (see coop_slam.uplink.engine.Note)."""
-        from ..wire.record import ACTION_NEW, ACTION_REMOVE
-
         for n in notes:
             if n.kind == "segment":
                 self.segment_starts = True  # with the next new keyframe

@@ -53,6 +53,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..errors import CoopSlamError
 from ..wire.record import ACTION_REMOVE, ACTION_UPDATE, ARRAY_FIELDS, STATIC_ARRAYS, KeyframeRecord
+from .global_ba import GlobalBaError
 
 log = logging.getLogger(__name__)
 
@@ -452,8 +453,6 @@ def remove_map_file(path: str) -> None:
 
 def apply_input(server, item: StoredInput) -> None:
     """Feed one logged input to the server core, as the server node did when it was taken."""
-    from .global_ba import GlobalBaError
-
     if item.kind == KIND_KEYFRAME:
         server.add_keyframe(item.record)
         return

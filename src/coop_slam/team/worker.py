@@ -29,9 +29,12 @@ from ..wire.codec import Decoded, WireError, decode
 from ..wire.delivery import new_session
 from ..wire.legacy import decode_legacy, is_legacy
 from ..wire.messages import Header, KeyframeAck, KeyframeMessage, KeyframeRequest, Stamp
+from .assisted_relocalization import local_map_for
 from .config import ServerConfig
 from .durable import DurableServer
+from .global_ba import GlobalBaError
 from .map_builder import TeamMapBuilder
+from .map_store import MapStoreError, remove_map_file
 from .publish_cadence import PublishCadence, PublishCadenceConfig
 from .results import TYPE_LINK, TYPE_LOOP
 
@@ -448,8 +451,6 @@ class ServerWorker:
         return [merge] if merge is not None else []
 
     def _global_ba(self, job: GlobalBaJob) -> None:
-        from .global_ba import GlobalBaError
-
         try:
             r = self.durable.global_bundle_adjustment(job.robot_id)
             result = r, (
@@ -464,8 +465,6 @@ class ServerWorker:
     def _relocalize(self, job: RelocalizeJob) -> None:
         """A lost robot's view -> the team's local map there (see
         :mod:`coop_slam.team.assisted_relocalization`)."""
-        from .assisted_relocalization import local_map_for
-
         cfg, server = self.cfg.assisted_relocalization, self.server
         local, message, pending = None, "assisted relocalization is off", None
         try:
@@ -501,8 +500,6 @@ class ServerWorker:
 
     def _map_file(self, job: MapFileJob) -> None:
         """Save the team map, or load a saved one as the starting map."""
-        from .map_store import MapStoreError, remove_map_file
-
         try:
             if not job.load:
                 path = self.durable.save(job.path)
