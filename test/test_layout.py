@@ -28,7 +28,6 @@ OVER_FUNCTION = {
     "synthetic/world.py:_kitchen": 195,
     "tools/demo.py:parse_args": 132,
     "registration/sim3.py:estimate_sim3": 131,
-    "registration/ba.py:two_view_ba": 111,
     "registration/sim3.py:ransac_sim3": 109,
     "synthetic/overlap.py:compute_overlap": 108,
     "registration/sim3.py:refine_sim3": 101,
