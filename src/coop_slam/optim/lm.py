@@ -119,8 +119,8 @@ def damp(H: np.ndarray, lam: float, *, in_place: bool = False) -> np.ndarray:
     (e.g. the diagonal blocks of a Schur complement: damping the whole system's diagonal is
     damping each block's)."""
     A = H if in_place else H.copy()
-    i = np.arange(H.shape[-1])
-    A[..., i, i] += DAMPING_FLOOR + lam * H[..., i, i]
+    diagonal = np.einsum("...ii->...i", A)  # a writable view: no index arrays on the hot path
+    diagonal += DAMPING_FLOOR + lam * diagonal
     return A
 
 
