@@ -71,7 +71,7 @@ class LmRules:
     gauss_newton: bool = False
     min_step: float = 0.0
 
-    def validate(self) -> None:
+    def __post_init__(self) -> None:
         if self.max_iterations < 0 or not self.lambda_factor > 1.0:
             raise LeastSquaresError("need max_iterations >= 0 and lambda_factor > 1")
         if not 0.0 <= self.lambda_min <= self.lambda_initial <= self.lambda_max:
