@@ -16,7 +16,10 @@ The rules (:class:`LmRules`), one set for BA and Sim(3):
   depend on the parameters' units, where Levenberg's ``lam I`` does: a monocular map's Sim(3)
   has a translation in that map's arbitrary unit next to radians and a log-scale, and the BA's
   points are metres at 1-20 m depth next to the pose's radians, so one ``lam`` would damp some
-  directions hardly at all and others to a standstill.
+  directions hardly at all and others to a standstill. Nor does ``lam I`` know the size of ``H``:
+  the BA's pose block, in whitened pixels, is ~1e7, and on a synthetic two-view problem (250
+  points, 20 % outliers) ``lam I`` up to its cap of 1e5 never damped enough for a step to be
+  accepted -- 0 iterations, 1 inlier -- where ``lam diag(H)`` converged (194 inliers, 0.8 px).
 * acceptance: the gain ratio -- the actual decrease over the one the linearised model predicts
   -- above 1e-3 (Madsen, Nielsen & Tingleff 2004; GTSAM's minModelFidelity). A step that
   decreases the cost by a sliver of what was predicted says the model is not to be trusted that
