@@ -15,18 +15,10 @@ import pytest
 REPO = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 SRC = os.path.join(REPO, "src")
 MAX_MODULE, MAX_NODE_MODULE, MAX_FUNCTION = 700, 400, 100
-# Still above the limits (lines today): to be split.
-OVER_MODULE = {
-    "registration/sim3.py": 927,
-}
+# Modules and functions allowed above the limits (with their lines today): none left.
+OVER_MODULE: dict[str, int] = {}
 OVER_NODE_MODULE: dict[str, int] = {}
-OVER_FUNCTION = {
-    "registration/sim3.py:estimate_sim3": 131,
-    "registration/ba.py:two_view_ba": 111,
-    "vo/pose_opt.py:optimize_pose": 109,
-    "registration/sim3.py:ransac_sim3": 109,
-    "registration/sim3.py:refine_sim3": 101,
-}
+OVER_FUNCTION: dict[str, int] = {}
 
 
 def _modules():

@@ -1,4 +1,5 @@
-"""Tests of coop_slam.registration.sim3 (similarity registration for monocular maps).
+"""Tests of coop_slam.registration.sim3 and its sim3_* modules (similarity registration for
+monocular maps).
 
 Synthetic scene: points 2-8 m in front of keyframe A, seen by keyframe B whose map is scaled:
 ``p_a = scale * R p_b + t`` with a 30 deg rotation and |t| = 1 (A's units). Each keyframe observes
@@ -21,14 +22,14 @@ from coop_slam.registration import RegistrationError, backproject, umeyama
 from coop_slam.registration.camera import project
 from coop_slam.registration.sim3 import (
     Sim3Config,
-    Sim3Error,
     estimate_sim3,
-    ransac_sim3,
-    refine_sim3,
     sim3_inverse,
     sim3_matrix,
     sim3_transform_points,
 )
+from coop_slam.registration.sim3_data import Sim3Error
+from coop_slam.registration.sim3_ransac import ransac_sim3
+from coop_slam.registration.sim3_refine import refine_sim3
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 WIDTH, HEIGHT = 640, 480

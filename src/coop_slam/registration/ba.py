@@ -9,11 +9,12 @@ sighting). Correspondences whose error exceeds the inlier threshold in either im
 are dropped and the problem re-solved.
 
 The solver is numpy, not GTSAM: with two cameras every point is independent given camera B, so
-each step eliminates the points (3x3 blocks) and solves one 6x6 system. It reproduces GTSAM's
-factor graph of the same cost (projection, range and prior factors, the same LM schedule) --
-the same inliers and covariances on recorded server problems -- without building thousands of
-factors in Python for each verification. The covariance of camera B is GTSAM's tangent of Pose3
-(rotation first, in B's frame).
+each step eliminates the points (3x3 blocks) and solves one 6x6 system. The cost is that of
+GTSAM's factor graph (projection, range and prior factors, which this solver replaced: the same
+inliers and covariances on recorded server problems) without building thousands of factors in
+Python for each verification; the iteration is :func:`coop_slam.optim.lm.least_squares`'s (its
+rules, Marquardt's damping and the gain ratio, are the Sim(3) refinement's too). The covariance
+of camera B is GTSAM's tangent of Pose3 (rotation first, in B's frame).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import numpy as np
 
 from ..errors import GeometryError
 from ..geometry import check_se3, exp_so3, invert, skew, transform_points
+from ..optim.lm import LmRules, damp, least_squares
 from .camera import (
     RegistrationError,
     check_intrinsics,
@@ -128,10 +130,6 @@ class _Settings:
     relative_tol: float
 
 
-# Levenberg-Marquardt schedule (GTSAM's defaults, which this solver replaced)
-_LAMBDA_INITIAL, _LAMBDA_FACTOR, _LAMBDA_MAX, _MIN_MODEL_FIDELITY = 1e-5, 10.0, 1e5, 1e-3
-
-
 def huber(e: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
     """(cost, IRLS weight) of whitened error norms under Huber's m-estimator."""
     cost = np.where(e <= k, 0.5 * e**2, k * e - 0.5 * k**2)
@@ -233,16 +231,20 @@ class _Normal:
     g_c: np.ndarray  # (6,)
     g_p: np.ndarray  # (n, 3)
 
-    def _schur(self, lam: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _schur(self, lam: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(H_pp^-1, H_cp H_pp^-1, Schur complement of the pose) of the system damped by
-        lam * I: the points eliminated, their blocks being independent given the pose."""
-        H_pp_inv = np.linalg.inv(self.H_pp + lam * np.eye(3))
+        ``lam`` (None: undamped): the points eliminated, their blocks being independent given
+        the pose. Damping the whole system's diagonal is damping each diagonal block's."""
+        H_pp, H_cc = self.H_pp, self.H_cc
+        if lam is not None:
+            H_pp, H_cc = damp(H_pp, lam), damp(H_cc, lam)
+        H_pp_inv = np.linalg.inv(H_pp)
         HcpHinv = self.H_cp @ H_pp_inv  # (n, 6, 3)
-        S = self.H_cc + lam * np.eye(6) - np.einsum("nij,nkj->ik", HcpHinv, self.H_cp)
+        S = H_cc - np.einsum("nij,nkj->ik", HcpHinv, self.H_cp)
         return H_pp_inv, HcpHinv, S
 
     def step(self, lam: float) -> tuple[np.ndarray, np.ndarray]:
-        """(pose step, point steps) of the system damped by lam * I (GTSAM's LM damping)."""
+        """(pose step, point steps) of the system damped by ``lam`` (Marquardt's damping)."""
         H_pp_inv, HcpHinv, S = self._schur(lam)
         b = self.g_c - np.einsum("nij,nj->i", HcpHinv, self.g_p)
         d_pose = np.linalg.solve(S, -b)
@@ -252,7 +254,7 @@ class _Normal:
     def pose_covariance(self) -> np.ndarray:
         """Marginal covariance of B's pose (the inverse Schur complement), inf if singular."""
         try:
-            S = self._schur(0.0)[2]
+            S = self._schur(None)[2]
             if not np.all(np.isfinite(S)) or np.linalg.cond(S) > 1e14:
                 return np.full((6, 6), np.inf)
             return np.linalg.inv(S)
@@ -284,6 +286,45 @@ def _normal(blocks: list[_Block], prior_r, cfg: _Settings, n: int) -> _Normal:
     return _Normal(H_cc, Jc_w @ J_point, Jp_w @ J_point, g_c, (J_point * wr).sum(axis=1))
 
 
+class _BaSolve:
+    """One solve of ``problem`` as a problem for :func:`~coop_slam.optim.lm.least_squares`: the
+    state is (R, t, points) -- camera B's pose in A and the points in A -- and a step is
+    (pose step, point steps) in one vector; camera B moves as T exp(xi), xi = (w, v)."""
+
+    def __init__(self, problem: _Problem, cfg: _Settings):
+        self.problem, self.cfg = problem, cfg
+
+    def residuals(self, state, jacobians: bool):
+        R, t, points = state
+        blocks = _blocks(self.problem, R, t, points, self.cfg, jacobians)
+        return blocks, None if self.cfg.T_prior is None else _prior_residual(R, t, self.cfg)
+
+    def cost(self, state) -> float:
+        return _cost(*self.residuals(state, False), self.cfg.huber_k)
+
+    def linearize(self, state) -> _Normal:
+        return _normal(*self.residuals(state, True), self.cfg, len(state[2]))
+
+    @staticmethod
+    def solve(normal: _Normal, lam: float) -> np.ndarray:
+        d_pose, d_points = normal.step(lam)
+        return np.concatenate([d_pose, d_points.ravel()])
+
+    @staticmethod
+    def predicted_decrease(normal: _Normal, step: np.ndarray) -> float:
+        d_pose, d_points = step[:6], step[6:].reshape(-1, 3)
+        return -(
+            normal.g_c @ d_pose
+            + np.einsum("ni,ni->", normal.g_p, d_points)
+            + 0.5 * _quadratic(normal, d_pose, d_points)
+        )
+
+    @staticmethod
+    def retract(state, step: np.ndarray):
+        R, t, points = state
+        return R @ exp_so3(step[:3]), t + R @ step[3:6], points + step[6:].reshape(-1, 3)
+
+
 def _solve(problem: _Problem, points0: np.ndarray, T0: np.ndarray, cfg: _Settings):
     """One LM solve -> (T_camA_camB, points_camA, iterations, covariance of camera B).
 
@@ -291,51 +332,15 @@ def _solve(problem: _Problem, points0: np.ndarray, T0: np.ndarray, cfg: _Setting
     variables. The points are eliminated from each step's normal equations (Schur complement), so
     a step costs a few numpy products over the points and one 6x6 solve.
     """
-    R, t, points = T0[:3, :3].copy(), T0[:3, 3].copy(), points0.copy()
-
-    def evaluate(R, t, points, jacobians):
-        blocks = _blocks(problem, R, t, points, cfg, jacobians)
-        prior_r = None if cfg.T_prior is None else _prior_residual(R, t, cfg)
-        return blocks, prior_r, _cost(blocks, prior_r, cfg.huber_k)
-
-    blocks, prior_r, cost = evaluate(R, t, points, True)
-    lam, iterations = _LAMBDA_INITIAL, 0
-    while iterations < cfg.max_iterations:
-        normal = _normal(blocks, prior_r, cfg, len(points))
-        accepted = False
-        while lam <= _LAMBDA_MAX:
-            try:
-                d_pose, d_points = normal.step(lam)
-            except np.linalg.LinAlgError:
-                lam *= _LAMBDA_FACTOR
-                continue
-            R_new = R @ exp_so3(d_pose[:3])
-            t_new = t + R @ d_pose[3:]
-            points_new = points + d_points
-            cost_new = evaluate(R_new, t_new, points_new, False)[2]
-            # the decrease the linearised (Gauss-Newton) model predicts for this step
-            predicted = -(
-                normal.g_c @ d_pose
-                + np.einsum("ni,ni->", normal.g_p, d_points)
-                + 0.5 * _quadratic(normal, d_pose, d_points)
-            )
-            if predicted > 0 and (cost - cost_new) / predicted > _MIN_MODEL_FIDELITY:
-                accepted = True
-                break
-            lam *= _LAMBDA_FACTOR
-        if not accepted:
-            break
-        iterations += 1
-        decrease = cost - cost_new
-        R, t, points = R_new, t_new, points_new
-        lam = lam / _LAMBDA_FACTOR
-        blocks, prior_r, cost = evaluate(R, t, points, True)
-        if decrease <= cfg.relative_tol * (cost + decrease) or decrease <= 1e-9:
-            break
-    covariance = _normal(blocks, prior_r, cfg, len(points)).pose_covariance()
+    solve = _BaSolve(problem, cfg)
+    rules = LmRules(max_iterations=cfg.max_iterations, relative_tol=cfg.relative_tol)
+    state = (T0[:3, :3].copy(), T0[:3, 3].copy(), points0.copy())
+    outcome = least_squares(solve, state, rules)
+    R, t, points = outcome.state
+    covariance = solve.linearize(outcome.state).pose_covariance()
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
-    return T, points, iterations, covariance
+    return T, points, outcome.iterations, covariance
 
 
 def _quadratic(normal: _Normal, d_pose: np.ndarray, d_points: np.ndarray) -> float:
@@ -345,6 +350,72 @@ def _quadratic(normal: _Normal, d_pose: np.ndarray, d_points: np.ndarray) -> flo
         + 2.0 * np.einsum("i,nij,nj->", d_pose, normal.H_cp, d_points)
         + np.einsum("ni,nij,nj->", d_points, normal.H_pp, d_points)
     )
+
+
+def _checked_problem(
+    uv_px_a,
+    uv_px_b,
+    K_a,
+    K_b,
+    points_camA_init,
+    T_camA_camB_init,
+    depths,
+    sigma_px,
+    huber_k,
+    T_prior_camA_camB,
+    prior_sigma,
+    max_iterations,
+    relative_tol,
+) -> tuple[_Problem, _Settings, np.ndarray, np.ndarray]:
+    """two_view_ba's input, checked: (measurements, settings, initial pose, initial points).
+    ``depths`` is (depths in A, their sigmas, depths in B, their sigmas)."""
+    uv_a = np.asarray(uv_px_a, dtype=float)
+    uv_b = np.asarray(uv_px_b, dtype=float)
+    n = len(uv_a)
+    if uv_a.shape != (n, 2) or uv_b.shape != (n, 2):
+        raise RegistrationError(
+            f"uv_px_a/uv_px_b must both be (K, 2), got {uv_a.shape}, {uv_b.shape}"
+        )
+    if not (np.all(np.isfinite(uv_a)) and np.all(np.isfinite(uv_b))):
+        raise RegistrationError("uv_px_a/uv_px_b contain NaN or inf")
+    K_a, K_b = check_intrinsics(K_a, "K_a"), check_intrinsics(K_b, "K_b")
+    points0 = check_points(points_camA_init, "points_camA_init", n)
+    try:
+        T0 = check_se3(T_camA_camB_init, "T_camA_camB_init")
+        T_prior = None
+        if T_prior_camA_camB is not None:
+            T_prior = check_se3(T_prior_camA_camB, "T_prior_camA_camB")
+    except GeometryError as exc:
+        raise RegistrationError(str(exc)) from None
+    if (T_prior is None) != (prior_sigma is None):
+        raise RegistrationError("a pose prior needs both T_prior_camA_camB and prior_sigma")
+    prior_sigmas = _pose_sigmas(prior_sigma) if T_prior is not None else None
+    if sigma_px <= 0 or huber_k <= 0:
+        raise RegistrationError("sigma_px and huber_k must be > 0")
+
+    def ranges(depths, sigmas, uv, K, name):
+        """(range along the ray, its sigma) per correspondence, range 0 where no depth."""
+        if depths is None:
+            return np.zeros(n), np.ones(n)
+        depths = np.asarray(depths, dtype=float).reshape(-1)
+        sigmas = np.broadcast_to(np.asarray(sigmas, dtype=float), (n,))
+        if len(depths) != n or not np.all(np.isfinite(depths)) or (depths < 0).any():
+            raise RegistrationError(f"{name} must be {n} finite depths >= 0")
+        if not np.all(sigmas[depths > 0] > 0):
+            raise RegistrationError(f"depth sigmas for {name} must be > 0 where depth exists")
+        norm = ray_norms(uv, K)  # range along the ray = depth * |K^-1 (u, v, 1)|
+        return depths * norm, np.where(depths > 0, sigmas * norm, 1.0)
+
+    problem = _Problem(
+        uv_a,
+        uv_b,
+        *ranges(depths[0], depths[1], uv_a, K_a, "depths_a_m"),
+        *ranges(depths[2], depths[3], uv_b, K_b, "depths_b_m"),
+    )
+    settings = _Settings(
+        K_a, K_b, sigma_px, huber_k, T_prior, prior_sigmas, max_iterations, relative_tol
+    )
+    return problem, settings, T0, points0
 
 
 def two_view_ba(
@@ -374,59 +445,24 @@ def two_view_ba(
     not replace feature evidence). LM stops at ``relative_tol`` relative cost decrease: the Huber
     cost creeps down for many more iterations without moving the pose noticeably.
     """
-    uv_a = np.asarray(uv_px_a, dtype=float)
-    uv_b = np.asarray(uv_px_b, dtype=float)
-    n = len(uv_a)
-    if uv_a.shape != (n, 2) or uv_b.shape != (n, 2):
-        raise RegistrationError(
-            f"uv_px_a/uv_px_b must both be (K, 2), got {uv_a.shape}, {uv_b.shape}"
-        )
-    if not (np.all(np.isfinite(uv_a)) and np.all(np.isfinite(uv_b))):
-        raise RegistrationError("uv_px_a/uv_px_b contain NaN or inf")
-    K_a, K_b = check_intrinsics(K_a, "K_a"), check_intrinsics(K_b, "K_b")
-    points0 = check_points(points_camA_init, "points_camA_init", n)
-    try:
-        T0 = check_se3(T_camA_camB_init, "T_camA_camB_init")
-        T_prior = None
-        if T_prior_camA_camB is not None:
-            T_prior = check_se3(T_prior_camA_camB, "T_prior_camA_camB")
-    except GeometryError as exc:
-        raise RegistrationError(str(exc)) from None
-    if (T_prior is None) != (prior_sigma is None):
-        raise RegistrationError("a pose prior needs both T_prior_camA_camB and prior_sigma")
-    prior_sigmas = _pose_sigmas(prior_sigma) if T_prior is not None else None
-    if sigma_px <= 0 or huber_k <= 0 or inlier_px <= 0 or rounds < 1:
-        raise RegistrationError("sigma_px, huber_k, inlier_px must be > 0 and rounds >= 1")
-
-    def ranges(depths, sigmas, uv, K, name):
-        if depths is None:
-            return np.zeros(n), np.ones(n)
-        depths = np.asarray(depths, dtype=float).reshape(-1)
-        sigmas = np.broadcast_to(np.asarray(sigmas, dtype=float), (n,))
-        if len(depths) != n or not np.all(np.isfinite(depths)) or (depths < 0).any():
-            raise RegistrationError(f"{name} must be {n} finite depths >= 0")
-        if not np.all(sigmas[depths > 0] > 0):
-            raise RegistrationError(f"depth sigmas for {name} must be > 0 where depth exists")
-        norm = ray_norms(uv, K)  # range along the ray = depth * |K^-1 (u, v, 1)|
-        return depths * norm, np.where(depths > 0, sigmas * norm, 1.0)
-
-    problem = _Problem(
-        uv_a,
-        uv_b,
-        *ranges(depths_a_m, depth_sigma_a_m, uv_a, K_a, "depths_a_m"),
-        *ranges(depths_b_m, depth_sigma_b_m, uv_b, K_b, "depths_b_m"),
-    )
-    settings = _Settings(
+    if inlier_px <= 0 or rounds < 1:
+        raise RegistrationError("inlier_px must be > 0 and rounds >= 1")
+    problem, settings, T0, points0 = _checked_problem(
+        uv_px_a,
+        uv_px_b,
         K_a,
         K_b,
+        points_camA_init,
+        T_camA_camB_init,
+        (depths_a_m, depth_sigma_a_m, depths_b_m, depth_sigma_b_m),
         sigma_px,
         huber_k,
-        T_prior,
-        prior_sigmas,
+        T_prior_camA_camB,
+        prior_sigma,
         max_iterations,
         relative_tol,
     )
-
+    uv_a, uv_b, K_a, K_b, n = problem.uv_a, problem.uv_b, settings.K_a, settings.K_b, len(points0)
     err_a0, err_b0 = reprojection_errors_both(T0, points0, uv_a, uv_b, K_a, K_b)
     T, points = T0, points0.copy()
     active = np.ones(n, dtype=bool)
