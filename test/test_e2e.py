@@ -392,3 +392,22 @@ def test_demo_settles_when_the_server_says_idle(monkeypatch, stats_at, ends_at):
     monkeypatch.setattr(demo, "time", SimpleNamespace(monotonic=clock.monotonic, sleep=clock.sleep))
     demo._settle(clock, 2.0, lambda *_: None)
     assert abs(clock.now - ends_at) <= 0.5
+
+
+def test_the_demo_stops_loudly_when_the_server_refuses_its_map_file(tmp_path):
+    """--load-map of a file that is not a team map: the server refuses it (FATAL) and the demo
+    stops at once with that reason and a non-zero exit status, instead of running on without a
+    server."""
+    bad = tmp_path / "corrupt.map"
+    bad.write_bytes(os.urandom(5000))
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [os.path.join(REPO, "scripts", "demo"), *REVISIT, "--load-map", str(bad), "--no-record"]
+        + ["--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode != 0
+    assert f"{bad} is not a coop_slam map file" in proc.stdout
+    assert not (out / "report.json").exists()

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -43,6 +44,7 @@ class System:
     launch: subprocess.Popen
     log_path: str  # roslaunch's output
     recorder: subprocess.Popen | None = None
+    log_read: int = 0  # how far watch_nodes has read log_path [bytes]
 
 
 def private_master(out: str) -> Master:
@@ -164,11 +166,37 @@ def wait_for_master(uri: str, timeout_s: float) -> None:
     raise CoopSlamError(f"ROS master at {uri} did not come up within {timeout_s:.0f} s")
 
 
+# A node that gives up says so at FATAL level (the nodes' output is roslaunch's, output="screen");
+# roslaunch names a required node that died.
+_GAVE_UP = re.compile(r"\[FATAL\]|REQUIRED process \[.*\] has died|process has died")
+
+
+def _node_reasons(text: str) -> list[str]:
+    return [line.strip() for line in text.splitlines() if _GAVE_UP.search(line)]
+
+
 def watch_nodes(system: System) -> None:
-    """Raise when the system stopped before the run's end (roslaunch exited)."""
-    if system.launch.poll() is not None:
+    """Raise, naming the node and its reason, when a node gave up (a FATAL line: a corrupt map
+    file, a camera it cannot use, ...) or the system stopped before the run's end (roslaunch
+    exited: a required node died)."""
+    with open(system.log_path, "rb") as fh:
+        fh.seek(system.log_read)
+        data = fh.read()
+    data = data[: data.rfind(b"\n") + 1]  # whole lines only: the rest is read next time
+    system.log_read += len(data)
+    new = data.decode("utf-8", "replace")
+    fatal = [line for line in _node_reasons(new) if "[FATAL]" in line]
+    if fatal:
         raise CoopSlamError(
-            f"roslaunch exited early (code {system.launch.returncode}); see {system.log_path}"
+            "a node gave up: " + " | ".join(fatal[:3]) + f" (see {system.log_path})"
+        )
+    if system.launch.poll() is not None:
+        with open(system.log_path, encoding="utf-8", errors="replace") as fh:
+            reasons = _node_reasons(fh.read())
+        raise CoopSlamError(
+            f"roslaunch exited early (code {system.launch.returncode})"
+            + (": " + " | ".join(reasons[-3:]) if reasons else "")
+            + f"; see {system.log_path}"
         )
 
 
