@@ -19,12 +19,11 @@ from coop_slam.team.server import TeamServer
 from coop_slam.uplink.config import UplinkConfig
 from coop_slam.uplink.engine import ClientUplink
 from coop_slam.uplink.spool import Spool, SpooledMessage, SpoolError
-from coop_slam.vo.map import MapKeyframe
 from coop_slam.vo.types import EVENT_KEYFRAME_NEW, EVENT_KEYFRAME_UPDATE, VoEvent
 from coop_slam.wire.codec import decode
 from coop_slam.wire.delivery import DeliveryConfig
 from coop_slam.wire.messages import KIND_KEYFRAME, KeyframeAck
-from helpers import team_keyframes, team_server_config, team_world
+from helpers import map_keyframe, team_keyframes, team_server_config, team_world
 
 ROBOT = 2
 MAP_ID = "map-a"
@@ -51,37 +50,15 @@ def world():
     return first, second, vocab
 
 
-def _map_keyframe(rec, dx=0.0) -> MapKeyframe:
-    """The odometry's keyframe a record is made of, its pose and points moved by ``dx`` m."""
-    T = rec.T_map_cam.copy()
-    T[0, 3] += dx
-    return MapKeyframe(
-        keyframe_id=rec.keyframe_id,
-        stamp_s=rec.stamp_s,
-        map_segment=rec.map_segment,
-        T_map_cam=T,
-        uv_px=rec.keypoints[:, :2],
-        size_px=rec.keypoints[:, 2],
-        angle_deg=rec.keypoints[:, 3],
-        octaves=rec.octaves,
-        descriptors=rec.descriptors,
-        depths_m=rec.depths_m,
-        map_point_ids=rec.map_point_ids,
-        covisible_ids=rec.covisible_ids,
-        covisible_weights=rec.covisible_weights,
-        map_points_xyz=rec.map_points + np.float32(dx),
-    )
-
-
 def _events(records) -> list[VoEvent]:
     """Each keyframe new, then the one before it moved by local BA (a delta with moves)."""
     out = []
     for i, rec in enumerate(records):
-        out.append(VoEvent(EVENT_KEYFRAME_NEW, 0, rec.keyframe_id, _map_keyframe(rec)))
+        out.append(VoEvent(EVENT_KEYFRAME_NEW, 0, rec.keyframe_id, map_keyframe(rec)))
         if i:
             prev = records[i - 1]
             out.append(
-                VoEvent(EVENT_KEYFRAME_UPDATE, 0, prev.keyframe_id, _map_keyframe(prev, 0.01))
+                VoEvent(EVENT_KEYFRAME_UPDATE, 0, prev.keyframe_id, map_keyframe(prev, 0.01))
             )
     return out
 
@@ -272,7 +249,7 @@ def test_a_full_spool_refuses_the_newest_says_so_once_and_leaves_no_gap(world, t
     durable = _durable(vocab, str(tmp_path / "map.db"))
     up = _uplink(str(tmp_path / "spool.db"), camera, max_unacked=3)
     up.server_found(_ack(durable), MAP_ID)
-    new = [VoEvent(EVENT_KEYFRAME_NEW, 0, r.keyframe_id, _map_keyframe(r)) for r in first[:5]]
+    new = [VoEvent(EVENT_KEYFRAME_NEW, 0, r.keyframe_id, map_keyframe(r)) for r in first[:5]]
     with caplog.at_level(logging.WARNING, logger="coop_slam.uplink.engine"):
         sent = up.events(new, 1.0).messages
         up.events(new[4:], 1.0)  # the same keyframe again: still full
@@ -283,7 +260,7 @@ def test_a_full_spool_refuses_the_newest_says_so_once_and_leaves_no_gap(world, t
     _deliver(durable, sent, rejected)
     up.acknowledged(_ack(durable))
     assert up.spool.count == 0 and not rejected
-    moved = VoEvent(EVENT_KEYFRAME_UPDATE, 0, 4, _map_keyframe(first[3], 0.01))
+    moved = VoEvent(EVENT_KEYFRAME_UPDATE, 0, 4, map_keyframe(first[3], 0.01))
     (again,) = up.events([moved], 2.0).messages
     assert again.sequence == 4 and again.kind == KIND_KEYFRAME and again.keyframe[0].replaces
     _deliver(durable, [again], rejected)

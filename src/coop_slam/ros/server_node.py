@@ -12,8 +12,8 @@ team map; this node only translates between ROS and it. The team map is durable
 (:mod:`coop_slam.team.durable`): every input is committed to the map file (``~map``; default a
 new file per run under ``$ROS_HOME/coop_slam``, ``off`` for none) before ``/robot_k/keyframe_ack``
 acknowledges it; ``~resume`` rebuilds the team map from that file after a crash or restart,
-``~load_map`` starts from a map saved in an earlier session. The parameter ``/server/map_id`` names
-the team map (kept on resume): a client's spool made for another map is set aside, not sent.
+``~load_map`` starts from a map saved in an earlier session. The parameter ``/team_map/map_id``
+names the team map (kept on resume): a client's spool made for another map is set aside, unsent.
 
 A keyframe link that rospy dropped (a message it could not read) is subscribed again
 (:class:`.link_watch.LinkWatch`): rospy itself never reconnects while the publisher stays
@@ -157,7 +157,7 @@ class ServerNode:
             progress=progress,
             defer_global_ba=True,  # after a merge: when no keyframe message waits
         )
-        rospy.set_param("/server/map_id", durable.map_id)
+        rospy.set_param("/team_map/map_id", durable.map_id)
         for name, rep in (("resumed", durable.rebuilt), ("loaded", durable.loaded)):
             if rep is not None:
                 rospy.loginfo(

@@ -173,9 +173,9 @@ class UplinkBridge:
 
     @staticmethod
     def _server_map_id() -> str:
-        """The team map the server holds (``/server/map_id``; "" when it does not say)."""
+        """The team map the server holds (``/team_map/map_id``; "" when it does not say)."""
         try:
-            return str(rospy.get_param("/server/map_id", ""))
+            return str(rospy.get_param("/team_map/map_id", ""))
         except (OSError, rospy.ROSException):
             return ""
 
