@@ -61,6 +61,31 @@ def make_keyframe(n=50, robot_id=1, keyframe_id=1, seed=0, with_map_points=True)
     )
 
 
+def map_keyframe(rec: KeyframeRecord, dx: float = 0.0):
+    """The odometry's keyframe a record is made of (see ``uplink.records.keyframe_record``), its
+    pose and map points moved by ``dx`` m along x (local BA's update)."""
+    from coop_slam.vo.map import MapKeyframe
+
+    T = rec.T_map_cam.copy()
+    T[0, 3] += dx
+    return MapKeyframe(
+        keyframe_id=rec.keyframe_id,
+        stamp_s=rec.stamp_s,
+        map_segment=rec.map_segment,
+        T_map_cam=T,
+        uv_px=rec.keypoints[:, :2],
+        size_px=rec.keypoints[:, 2],
+        angle_deg=rec.keypoints[:, 3],
+        octaves=rec.octaves,
+        descriptors=rec.descriptors,
+        depths_m=rec.depths_m,
+        map_point_ids=rec.map_point_ids,
+        covisible_ids=rec.covisible_ids,
+        covisible_weights=rec.covisible_weights,
+        map_points_xyz=rec.map_points + np.float32(dx),
+    )
+
+
 def write_kitti(folder: str, n=5, width=64, height=32) -> str:
     """A minimal KITTI odometry layout: sequences/00 with stereo images, calib, times;
     poses/00.txt."""

@@ -3,11 +3,13 @@ scenario (lock-step, so results do not depend on machine speed) and its report i
 
 import json
 import os
+import sqlite3
 import subprocess
 from types import SimpleNamespace
 
 import pytest
 
+from coop_slam.tools.demo import TEAM_MAP
 from helpers import REDKITCHEN, REPO
 
 pytestmark = pytest.mark.slow  # (scripts/test --quick leaves these out)
@@ -259,21 +261,30 @@ def test_a_kidnapped_robot_relocalizes_in_the_team_map(tmp_path):
 
 def test_kill_restart_and_a_lossy_radio_lose_no_keyframe(tmp_path):
     """The server killed (-9) and resumed from its map file, robot 2's client killed and started
-    again (a new map segment), 10 % of the keyframe messages dropped on the way: robot 1 loses no
-    keyframe (sent again until stored) and robot 2's new segment merges back into one team map.
-    (A killed client loses what it had sent and not got acknowledged: it kept that in memory.)"""
+    again (a new map segment), 10 % of the keyframe messages dropped on the way: no robot loses a
+    keyframe it sent (kept until stored; robot 2's on its disk, sent first after the restart), none
+    is stored twice, and robot 2's new segment merges back into one team map."""
     faults = "server-kill@15,client-kill:2@32,drop:0.1"
     report, log, out = _demo(tmp_path, "--scenario", "revisit", "--faults", faults)
     assert report["faults"]["spec"] == faults
     assert all(k["done"] for k in report["faults"]["kills"])
     robot_1, robot_2 = report["robots"]
     assert robot_1["keyframes_sent"] >= 10 and robot_1["keyframes_lost"] == 0, robot_1
-    assert robot_2["keyframes_stored"] >= 10, robot_2
+    assert robot_2["keyframes_stored"] >= 10 and robot_2["keyframes_lost"] == 0, robot_2
+    text = (out / "roslaunch.log").read_text(errors="replace")
+    assert "already received as new" not in text
+    db = sqlite3.connect(str(out / TEAM_MAP))
+    twice = db.execute(
+        "SELECT robot_id, keyframe_id FROM inputs WHERE kind='keyframe' AND action=0 "
+        "GROUP BY robot_id, keyframe_id HAVING COUNT(*) > 1"
+    ).fetchall()
+    db.close()
+    assert twice == []
     assert report["groups"] == [[1, 2]], log
     assert report["wrong_merges"] == 0
     # Robot 2 merged, then its new segment merged back.
     assert len([m for m in report["merges"] if 2 in m["robots"]]) >= 2, report["merges"]
-    assert "resumed" in (out / "roslaunch.log").read_text(errors="replace")
+    assert "resumed" in text
 
 
 def test_a_later_session_extends_a_saved_map(tmp_path):

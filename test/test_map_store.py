@@ -10,7 +10,7 @@ import pytest
 from coop_slam.team.durable import DurableServer, poses_equal
 from coop_slam.team.map_store import MapStore, MapStoreError, decode_record, encode_record
 from coop_slam.team.server import TeamServer
-from coop_slam.wire.delivery import DeliveryError, InOrder, Outbox
+from coop_slam.wire.delivery import DeliveryError, InOrder, Outbox, OutboxFull
 from coop_slam.wire.record import KeyframeError
 from helpers import make_keyframe, team_keyframes, team_server_config, team_world
 
@@ -224,10 +224,23 @@ def test_outbox_sends_again_what_is_not_acknowledged():
     assert seqs == [1, 2, 3] and box.due(now=0.5) == []
     assert box.ack(box.session, 1) == 1 and box.ack(box.session + 1, 3) == 0
     assert box.due(now=1.0) == ["b", "c"] and box.resent == 2
-    *_, overflow = box.add("d", now=1.0)
-    assert not overflow
-    *_, overflow = box.add("e", now=1.0)
-    assert overflow and box.dropped == 1 and box.unacked == 3
+    box.add("d", now=1.0)
+    assert box.full and box.unacked == 3
+    with pytest.raises(OutboxFull, match="max_unacked"):  # the newest is refused, never the oldest
+        box.add("e", now=1.0)
+    assert box.unacked == 3 and box.sequence == 4  # no sequence used: no gap at the server
+    assert box.due(now=100.0) == ["b", "c", "d"]
+
+
+def test_outbox_continues_a_session_or_numbers_anew():
+    """A restarted client's messages from its disk: the old session continued (new ones follow
+    the last kept), or numbered 1, 2, ... in a new one."""
+    box = Outbox(resend_after_s=1.0)
+    box.restore(55, 9, [(8, "h"), (9, "i")], now=0.0)
+    assert box.add("j", now=0.0) == (55, 10) and box.unacked == 3
+    assert box.ack(55, 8) == 1 and box.pending(now=0.0) == ["i", "j"]
+    assert box.renumber(66) == [(1, "i"), (2, "j")] and box.add("k") == (66, 3)
+    assert box.ack(66, 2) == 2 and box.pending() == ["k"]
 
 
 def test_outbox_does_not_send_again_what_the_server_received():

@@ -13,7 +13,7 @@ from coop_slam.uplink.config import UplinkConfig
 from coop_slam.uplink.holdback import Holdback
 from coop_slam.uplink.planner import Planner
 from coop_slam.wire.record import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE
-from helpers import make_keyframe
+from helpers import make_keyframe, map_keyframe
 
 
 def _moved(rec, action, dx):
@@ -128,28 +128,6 @@ def test_keyframe_points_travel_with_the_held_new_keyframe():
 
 
 # --- the engine ----------------------------------------------------------------------------------
-def _map_keyframe(rec):
-    """The odometry's keyframe a record is made of (see ``uplink.records.keyframe_record``)."""
-    from coop_slam.vo.map import MapKeyframe
-
-    return MapKeyframe(
-        keyframe_id=rec.keyframe_id,
-        stamp_s=rec.stamp_s,
-        map_segment=rec.map_segment,
-        T_map_cam=rec.T_map_cam.copy(),
-        uv_px=rec.keypoints[:, :2],
-        size_px=rec.keypoints[:, 2],
-        angle_deg=rec.keypoints[:, 3],
-        octaves=rec.octaves,
-        descriptors=rec.descriptors,
-        depths_m=rec.depths_m,
-        map_point_ids=rec.map_point_ids,
-        covisible_ids=rec.covisible_ids,
-        covisible_weights=rec.covisible_weights,
-        map_points_xyz=rec.map_points,
-    )
-
-
 def test_the_client_uplink_sends_each_kind_numbered_and_what_it_held_on_flush():
     """New keyframes go whole, an update as a delta when what the keyframe saw is unchanged (else
     whole), a removal by id; numbered 1, 2, ... in one session; events that are no keyframe send
@@ -167,7 +145,7 @@ def test_the_client_uplink_sends_each_kind_numbered_and_what_it_held_on_flush():
     from coop_slam.wire.messages import KIND_DELTA, KIND_KEYFRAME, KIND_REMOVAL
 
     rec = make_keyframe(n=40, keyframe_id=7)
-    kf = _map_keyframe(rec)
+    kf = map_keyframe(rec)
     moved = dataclasses.replace(kf, T_map_cam=kf.T_map_cam.copy())
     moved.T_map_cam[:3, 3] += 0.05
     seen_again = dataclasses.replace(moved, depths_m=kf.depths_m * 1.01)
@@ -218,7 +196,7 @@ def test_a_restarted_client_continues_above_the_servers_keyframes_and_answers_re
     from coop_slam.wire.messages import KIND_KEYFRAME, KeyframeRequest
 
     rec = make_keyframe(n=20, keyframe_id=2)
-    kf = _map_keyframe(rec)
+    kf = map_keyframe(rec)
     uplink = ClientUplink(4, UplinkConfig(hold_new_s=0.0), T_base_cam=np.eye(4))
     uplink.camera = rec.camera
     uplink.continue_after(last_keyframe_id=30, last_map_segment=1)
@@ -228,3 +206,54 @@ def test_a_restarted_client_continues_above_the_servers_keyframes_and_answers_re
     answered = uplink.answer(request, {2: kf}.get)  # keyframe 33 (odometry's 3) is gone
     assert [(m.kind, m.keyframe_id) for m in answered] == [(KIND_KEYFRAME, 32)]
     assert uplink.answer(request, {2: kf}.get) == []  # latched: answered already
+
+
+def test_a_message_that_cannot_be_serialized_takes_no_sequence_and_its_next_update_goes_whole(
+    caplog,
+):
+    """What cannot travel is never numbered (the server would wait at the gap for good, and a
+    publisher that fails part-way corrupts its stream): said, left out, and the keyframe's next
+    update goes whole; the records that fail the server's own checks likewise."""
+    from coop_slam.errors import CoopSlamError
+    from coop_slam.uplink.engine import ClientUplink
+    from coop_slam.vo.types import EVENT_KEYFRAME_NEW, EVENT_KEYFRAME_UPDATE, VoEvent
+    from coop_slam.wire.messages import KIND_DELTA, KIND_KEYFRAME
+
+    class RefusesKeyframe8:
+        format_id = "test"
+
+        def dumps(self, msg):
+            if msg.keyframe_id == 8:
+                raise CoopSlamError("keypoint_step_px 1e300 does not fit a float32")
+            return b"ok"
+
+        def loads(self, data):
+            raise AssertionError("not read back")
+
+    recs = [make_keyframe(n=30, keyframe_id=k, seed=k) for k in (7, 8, 9)]
+    kfs = [map_keyframe(r) for r in recs]
+    uplink = ClientUplink(
+        3,
+        UplinkConfig(hold_new_s=0.0, coalesce_updates_s=0.0),
+        T_base_cam=np.eye(4),
+        serializer=RefusesKeyframe8(),
+    )
+    uplink.camera = recs[0].camera
+    events = [VoEvent(EVENT_KEYFRAME_NEW, 0, kf.keyframe_id, kf) for kf in kfs]
+    with caplog.at_level("ERROR", logger="coop_slam.uplink.engine"):
+        sent = uplink.events(events, 1.0).messages
+    assert [(m.keyframe_id, m.sequence) for m in sent] == [(7, 1), (9, 2)]
+    assert "keyframe 8 not sent: keypoint_step_px" in caplog.text
+    uplink.serializer = None  # keyframe 8 can travel now
+    moved = [dataclasses.replace(kf, T_map_cam=kf.T_map_cam + 0.0) for kf in kfs[:2]]
+    for kf in moved:
+        kf.T_map_cam[0, 3] += 0.01
+    updates = [VoEvent(EVENT_KEYFRAME_UPDATE, 0, kf.keyframe_id, kf) for kf in moved]
+    again = uplink.events(updates, 2.0).messages
+    assert [(m.keyframe_id, m.kind, m.sequence) for m in again] == [
+        (7, KIND_DELTA, 3),
+        (8, KIND_KEYFRAME, 4),  # whole: the server never got it
+    ]
+    bad = dataclasses.replace(kfs[2], stamp_s=5e9)  # beyond a uint32 stamp: cannot travel
+    assert uplink.events([VoEvent(EVENT_KEYFRAME_UPDATE, 0, 9, bad)], 3.0).messages == []
+    assert uplink.outbox.sequence == 4 and uplink.unacked == 4

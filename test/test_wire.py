@@ -23,7 +23,13 @@ from coop_slam.wire.codec import (
 from coop_slam.wire.encodings import MOVE_STEP_M, encode_map_point_ids
 from coop_slam.wire.messages import KIND_DELTA, KIND_KEYFRAME, KIND_REMOVAL, KIND_SIGNATURE
 from coop_slam.wire.pack import pack_fields, unpack_fields
-from coop_slam.wire.record import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE, KeyframeRecord
+from coop_slam.wire.record import (
+    ACTION_NEW,
+    ACTION_REMOVE,
+    ACTION_UPDATE,
+    KeyframeError,
+    KeyframeRecord,
+)
 from helpers import make_keyframe
 
 SCHEMAS = {KIND_KEYFRAME: WHOLE_ARRAYS, KIND_DELTA: DELTA_ARRAYS, KIND_SIGNATURE: SIGNATURE_ARRAYS}
@@ -602,6 +608,33 @@ def test_the_ros_messages_have_the_wire_messages_fields_and_carry_them_unchanged
         a, b = _decoded(msg, stored=stored), _decoded(back, stored=stored)
         for f in ("T_map_cam", "keypoints", "descriptors", "depths_m", "map_points"):
             np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+
+
+def test_the_ros_serializer_refuses_what_rospy_could_not_publish_and_reads_back_what_it_wrote():
+    """The client's serializer (the bytes rospy publishes, kept in the spool): a float32 beyond
+    its range or a stamp beyond uint32 is a WireError naming the message, not a half-written
+    stream; what it wrote reads back unchanged. Such a stamp is refused by validate already."""
+    pytest.importorskip("coop_slam.msg", reason="generated messages need the catkin workspace")
+    from coop_slam.ros.wire_bridge import RosSerializer
+    from coop_slam.wire.messages import Stamp
+
+    ser = RosSerializer()
+    msg = encode(make_keyframe(n=30, robot_id=2, keyframe_id=5), frame_id="robot_2/map")
+    assert ser.loads(ser.dumps(msg)) == msg
+    msg.keyframe[0].keypoint_step_px = 1e300
+    with pytest.raises(WireError, match="keyframe message of keyframe 5 cannot be serialized"):
+        ser.dumps(msg)
+    msg.keyframe[0].keypoint_step_px = 1.0
+    msg.header.stamp = Stamp(2**32 + 5, 0)
+    with pytest.raises(WireError, match="cannot be serialized") as err:
+        ser.dumps(msg)
+    assert len(str(err.value)) < 600  # not the whole message, as genpy says it
+    late = make_keyframe(n=30, robot_id=2, keyframe_id=5)
+    late.stamp_s = 5e9
+    with pytest.raises(KeyframeError, match="stamp"):
+        late.validate()
+    with pytest.raises(WireError, match="does not deserialize"):
+        ser.loads(b"\x01\x02")
 
 
 # --- recorded runs of the format before the kinds ------------------------------------------------

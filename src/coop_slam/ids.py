@@ -13,4 +13,5 @@ RobotId = NewType("RobotId", int)
 MapId = NewType("MapId", int)
 # gtsam.Symbol keys a map by one character: a byte from 'a' (see team.pose_graph)
 MAX_MAP_ID = 255 - ord("a")
+MAX_ROBOT_ID = MAX_MAP_ID  # a robot's first map has its id (robot ids travel as uint16)
 KeyframeKey = tuple[MapId, int]  # (map, keyframe id): a keyframe on the server

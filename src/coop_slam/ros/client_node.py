@@ -82,6 +82,7 @@ class ClientNode:
             self._with_odometry,
             self.wait_for_mapping,
             dict(robot_id=self.robot_id, T_base_cam=self.T_base_cam),
+            p.spool_config,
         )
         self.uplink.flush_now = self._flush_uplink
         self.cues = TeamCues(
@@ -240,6 +241,7 @@ class ClientNode:
             if self.vo is not None:
                 self.uplink.send(self.uplink.engine.flush())  # best effort: going down
                 self.vo.close()
+            self.uplink.close()
         rospy.loginfo(
             "client %s: %d frames, %d dropped (busy), %d keyframes, %d corrections applied, %d "
             "rejected messages",

@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 from ..config import load_config, require
+from ..ids import MAX_ROBOT_ID
+from ..uplink.spool import SpoolConfig
 from ..wire.delivery import DeliveryConfig
 
 CLIENT_SECTIONS = ("vo", "uplink", "markers")  # the client's module configurations
@@ -32,7 +34,11 @@ class ClientNodeParams:
     wait_for_mapping: bool = False
     mapping_backlog_warn: int = 3  # warn when local mapping is this many keyframes behind
     server_wait_s: float = 3.0  # wait this long for the server's acknowledgement at start [s]
-    max_unacked: int = 1000  # keyframe messages kept for the server; beyond, the oldest go
+    max_unacked: int = 1000  # keyframe messages kept for the server; beyond, new ones are refused
+    # Keyframe messages not acknowledged are kept on disk, and sent first after a restart: the
+    # file ("" = $ROS_HOME/coop_slam/robot_<k>/spool.db; off = in memory only, lost with the node)
+    spool: str = ""
+    spool_max_mb: float = 200.0  # beyond this, new keyframe messages are refused [MB]
     resend_after_s: float = 2.0  # first wait before a message goes again [s]
     resend_window: int = 100  # at most this many go again at once
     max_resend_after_s: float = 30.0  # the longest wait between sends of one message [s]
@@ -41,13 +47,22 @@ class ClientNodeParams:
     markers: dict = field(default_factory=dict)  # overrides of section markers
 
     def validate(self) -> None:
-        require(self.robot_id >= 1, f"~robot_id must be >= 1, got {self.robot_id}")
+        require(
+            1 <= self.robot_id <= MAX_ROBOT_ID,
+            f"~robot_id must be in [1, {MAX_ROBOT_ID}] (the server keys maps by one byte), got "
+            f"{self.robot_id}",
+        )
+        self.spool_config.validate()
         require(
             len(self.T_base_cam) in (0, 7),
             "~T_base_cam must be [x, y, z, qx, qy, qz, qw] (or [] for a level camera)",
         )
         require(self.depth_scale > 0, "~depth_scale must be > 0 [units per metre]")
         require(self.marker_every_frames >= 0, "~marker_every_frames must be >= 0")
+
+    @property
+    def spool_config(self) -> SpoolConfig:
+        return SpoolConfig(self.spool, self.spool_max_mb)
 
     @property
     def delivery(self) -> DeliveryConfig:

@@ -12,11 +12,17 @@ team map; this node only translates between ROS and it. The team map is durable
 (:mod:`coop_slam.team.durable`): every input is committed to the map file (``~map``; default a
 new file per run under ``$ROS_HOME/coop_slam``, ``off`` for none) before ``/robot_k/keyframe_ack``
 acknowledges it; ``~resume`` rebuilds the team map from that file after a crash or restart,
-``~load_map`` starts from a map saved in an earlier session.
+``~load_map`` starts from a map saved in an earlier session. The parameter ``/team_map/map_id``
+names the team map (kept on resume): a client's spool made for another map is set aside, unsent.
+
+A keyframe link that rospy dropped (a message it could not read) is subscribed again
+(:class:`.link_watch.LinkWatch`): rospy itself never reconnects while the publisher stays
+registered.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import threading
@@ -43,6 +49,7 @@ from ..team.worker import (
 from ..wire.codec import WireError, signature_bow
 from ..wire.messages import KeyframeMessage
 from .convert import MessageError, pose_from_msg
+from .link_watch import LinkWatch
 from .log_bridge import forward_core_logs
 from .params import server_params
 from .server_outputs import RosServerOutputs
@@ -99,7 +106,8 @@ class ServerNode:
             )
         )
         self._KeyframeMessage = KeyframeMessageRos
-        self.subs: dict[int, rospy.Subscriber] = {}
+        self.watch = LinkWatch("server")
+        self.subs: set[int] = set()  # robots whose keyframes are subscribed
         self.worker = ServerWorker(
             self.cfg,
             self._open_map,
@@ -110,8 +118,12 @@ class ServerNode:
             load_path=p.load_map.strip() or None,
         )
         self.worker.start()
-        self.subs[0] = rospy.Subscriber(
-            "/robot_sightings", RobotSighting, self._on_sighting, queue_size=20
+        self.watch.watch(
+            "/robot_sightings",
+            lambda: rospy.Subscriber(
+                "/robot_sightings", RobotSighting, self._on_sighting, queue_size=20
+            ),
+            "the robots' sightings",
         )
         self.srv = [
             rospy.Service("~rendezvous", Rendezvous, self._on_rendezvous),
@@ -145,6 +157,7 @@ class ServerNode:
             progress=progress,
             defer_global_ba=True,  # after a merge: when no keyframe message waits
         )
+        rospy.set_param("/team_map/map_id", durable.map_id)
         for name, rep in (("resumed", durable.rebuilt), ("loaded", durable.loaded)):
             if rep is not None:
                 rospy.loginfo(
@@ -160,13 +173,19 @@ class ServerNode:
     def _subscribe(self, robot_ids) -> None:
         for r in robot_ids:
             if r not in self.subs:
-                self.subs[r] = rospy.Subscriber(
+                self.subs.add(r)
+                self.watch.watch(
                     f"/robot_{r}/keyframes",
-                    self._KeyframeMessage,
-                    self._on_keyframe,
-                    callback_args=r,
-                    queue_size=500,
-                    buff_size=2**24,
+                    functools.partial(
+                        rospy.Subscriber,
+                        f"/robot_{r}/keyframes",
+                        self._KeyframeMessage,
+                        self._on_keyframe,
+                        callback_args=r,
+                        queue_size=500,
+                        buff_size=2**24,
+                    ),
+                    f"robot {r}'s keyframe",
                 )
 
     # --- callbacks: ROS in, jobs to the worker ----------------------------------------------------

@@ -1,14 +1,18 @@
 """The wire's plain messages (:mod:`coop_slam.wire.messages`) to and from the generated ROS
-classes, field by field: the one place where what crosses the radio meets ROS."""
+classes, field by field: the one place where what crosses the radio meets ROS. Also the
+keyframe messages' serializer for the client's uplink (:class:`RosSerializer`): the bytes rospy
+publishes, made before a message is numbered and kept in the robot's spool."""
 
 from __future__ import annotations
 
 import dataclasses
 import functools
 import importlib
+import io
 import typing
 
 from ..wire import messages as wm
+from ..wire.codec import WireError
 
 
 @functools.lru_cache(maxsize=None)
@@ -64,3 +68,30 @@ def from_ros(msg, wire_cls: type):
             value = list(value)
         values[name] = value
     return wire_cls(**values)
+
+
+class RosSerializer:
+    """A keyframe message as genpy serializes it (what rospy publishes), and back: the
+    :class:`coop_slam.uplink.engine.Serializer` of the client node."""
+
+    def __init__(self):
+        self.ros_cls = ros_class(wm.ROS_TYPES[wm.KeyframeMessage])
+        self.format_id = f"{self.ros_cls._type}:{self.ros_cls._md5sum}"
+
+    def dumps(self, msg: wm.KeyframeMessage) -> bytes:
+        buf = io.BytesIO()
+        try:
+            to_ros(msg).serialize(buf)
+        except Exception as exc:  # genpy's struct.error, OverflowError, TypeError, ...
+            why = str(exc).split(" when writing")[0][:300]  # genpy appends the whole message
+            raise WireError(
+                f"the {msg.kind_name} message of keyframe {msg.keyframe_id} cannot be serialized "
+                f"as {self.ros_cls._type} ({type(exc).__name__}: {why}): a field beyond its type"
+            ) from None
+        return buf.getvalue()
+
+    def loads(self, data: bytes) -> wm.KeyframeMessage:
+        try:
+            return from_ros(self.ros_cls().deserialize(data), wm.KeyframeMessage)
+        except Exception as exc:  # a payload cut short or of another version
+            raise WireError(f"a kept keyframe message does not deserialize: {exc}") from None

@@ -12,6 +12,7 @@ import functools
 import logging
 import os
 import time
+import uuid
 from collections import deque
 from dataclasses import dataclass
 from typing import Callable
@@ -150,6 +151,8 @@ class DurableServer:
                 )
             self.loaded = rebuild(source_load, self.server, self.store, remap, progress)
             source_load.close()
+        # The team map's id: a client's spool made for another is not sent into it.
+        self.map_id = self.store.map_id if self.store is not None else uuid.uuid4().hex
         # robot -> (keyframe ids taken, highest map segment): what a restarted client continues
         # above, kept here rather than asked of the file for every message.
         self._logged: dict[int, tuple[set[int], int]] = {}

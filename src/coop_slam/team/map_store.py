@@ -14,7 +14,8 @@ ones. The log needs no vocabulary: BoW vectors are recomputed from the stored de
 Schema (``SCHEMA_VERSION`` 1), one file:
 
 - ``meta(key TEXT PRIMARY KEY, value TEXT)``: ``schema_version``, ``created_utc``, ``robots``
-  (JSON list), ``vocabulary_sha256``.
+  (JSON list), ``vocabulary_sha256``, ``map_id`` (a random id of this team map, kept on resume: a
+  client's spool made for another map is not sent into this one).
 - ``inputs(seq INTEGER PRIMARY KEY, kind TEXT, robot_id INTEGER, keyframe_id INTEGER,
   action INTEGER, stamp_s REAL, payload BLOB)``: the log, in the order the server took it.
   ``kind`` is ``keyframe`` (payload: :func:`encode_record`), ``sighting``, ``rendezvous`` or
@@ -45,6 +46,7 @@ import logging
 import os
 import sqlite3
 import time
+import uuid
 from dataclasses import dataclass
 from typing import Callable, Iterator
 
@@ -247,6 +249,15 @@ class MapStore:
     @property
     def robots(self) -> list[int]:
         return json.loads(self.meta().get("robots", "[]"))
+
+    @property
+    def map_id(self) -> str:
+        """This team map's id (made when first asked: files made before it have none)."""
+        map_id = self.meta().get("map_id")
+        if not map_id:
+            map_id = uuid.uuid4().hex
+            self._set_meta(map_id=map_id)
+        return map_id
 
     def close(self) -> None:
         self.db.close()

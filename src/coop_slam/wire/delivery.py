@@ -27,6 +27,10 @@ class DeliveryError(CoopSlamError):
     """Bad delivery settings."""
 
 
+class OutboxFull(DeliveryError):
+    """The outbox holds ``max_unacked`` messages the server has not acknowledged."""
+
+
 def new_session() -> int:
     """A client session id: wall-clock tenths of a second (uint32), so a restarted client's
     session is newer than the one before it."""
@@ -92,7 +96,7 @@ class DeliveryConfig:
     """How a client sends again what the server has not acknowledged (``client.launch``
     parameters of the same names)."""
 
-    max_unacked: int = 1000  # messages kept for the server; beyond it the oldest are given up
+    max_unacked: int = 1000  # messages kept for the server; beyond it new ones are refused
     resend_after_s: float = 2.0  # the first wait before a message goes again [s]
     resend_window: int = 100  # at most this many go again at once
     max_resend_after_s: float = 30.0  # the longest wait between sends of one message [s]
@@ -113,7 +117,16 @@ class Outbox:
     The server also says which messages it has received (:meth:`received`) before it stores
     them: a server busy for seconds (a merge, a global BA) got every message that came meanwhile
     twice. (A wait that follows the acknowledgements' delay, as TCP's does, grew without bound
-    behind a lossy radio: a lost message holds back the acknowledgement of all after it.)"""
+    behind a lossy radio: a lost message holds back the acknowledgement of all after it.)
+
+    Full (``max_unacked``), it refuses new messages (:meth:`add` raises :class:`OutboxFull`;
+    check :attr:`full` first) and keeps the oldest: the server takes a robot's messages in order,
+    so giving up the oldest would leave a gap it waits at for good, and every later message would
+    be held and dropped there.
+
+    A restarted client continues the session of the messages it kept on disk (:meth:`restore`)
+    or numbers them anew in a session of its own (:meth:`renumber`), see
+    :mod:`coop_slam.uplink.spool`."""
 
     def __init__(
         self,
@@ -141,21 +154,53 @@ class Outbox:
         # sequence -> [message, when it was last sent, the wait before it goes again,
         #              when the server said it received it (or None)]
         self._unacked: OrderedDict[int, list] = OrderedDict()
-        self.dropped = 0  # unacknowledged messages given up because the bound was reached
         self.resent = 0
         self._server_session = 0  # the server run acknowledging
 
-    def add(self, message: Any, now: float | None = None) -> tuple[int, int, bool]:
-        """Number a new message (sent now): (session, sequence, whether an old message was given
-        up)."""
+    @property
+    def full(self) -> bool:
+        """No room for another message until the server acknowledges."""
+        return len(self._unacked) >= self.max_unacked
+
+    def add(self, message: Any, now: float | None = None) -> tuple[int, int]:
+        """Number a new message (sent now): (session, sequence). OutboxFull when :attr:`full`."""
+        if self.full:
+            raise OutboxFull(
+                f"{len(self._unacked)} messages not acknowledged (max_unacked): the newest is "
+                "refused"
+            )
         now = time.monotonic() if now is None else now
         self.sequence += 1
         self._unacked[self.sequence] = [message, now, self.resend_after_s, None]
-        overflow = len(self._unacked) > self.max_unacked
-        if overflow:
-            self._unacked.popitem(last=False)
-            self.dropped += 1
-        return self.session, self.sequence, overflow
+        return self.session, self.sequence
+
+    def restore(
+        self, session: int, sequence: int, messages: list[tuple[int, Any]], now: float | None = None
+    ) -> None:
+        """Continue ``session`` after ``sequence`` with ``messages`` ((sequence, message), in
+        order) not acknowledged yet, as if sent ``now`` (a restarted client's, from its disk)."""
+        now = time.monotonic() if now is None else now
+        self.session, self.sequence = session, sequence
+        self._unacked = OrderedDict(
+            (int(q), [m, now, self.resend_after_s, None]) for q, m in messages
+        )
+
+    def renumber(self, session: int) -> list[tuple[int, Any]]:
+        """Number every message kept anew, 1, 2, ... in ``session`` (in their order); returns
+        (new sequence, message)."""
+        entries = list(self._unacked.values())
+        self.session, self.sequence = session, len(entries)
+        for entry in entries:
+            entry[3] = None
+        self._unacked = OrderedDict((i + 1, e) for i, e in enumerate(entries))
+        return [(q, e[0]) for q, e in self._unacked.items()]
+
+    def pending(self, now: float | None = None) -> list[Any]:
+        """Every message kept, oldest first, as sent ``now``."""
+        now = time.monotonic() if now is None else now
+        for entry in self._unacked.values():
+            entry[1] = now
+        return [entry[0] for entry in self._unacked.values()]
 
     def ack(self, session: int, sequence: int) -> int:
         """The server stored everything up to ``sequence``: forget those; returns how many."""

@@ -45,7 +45,9 @@ MIN_FOCAL_PX = 1.0  # a focal length below one pixel images the world onto a pix
 MAX_FOCAL_PER_SIDE = 100.0  # focal length / image size: 100 is a 0.6 deg field of view
 MAX_POSITION_M = 1e5  # poses and map points: within 100 km of the robot's map origin
 MAX_DEPTH_M = 1000.0  # depth cameras reach ~10 m, stereo ~100 m
-MAX_STAMP_S = 1e10  # seconds since 1970 (the year 2286) or since the sim clock started
+# Seconds since 1970 (the year 2106) or since the sim clock started: a ROS stamp's seconds are a
+# uint32, and a stamp beyond it cannot be serialized at all.
+MAX_STAMP_S = float(2**32 - 1)
 MAX_OCTAVE = 31  # pyramid level; clients use at most 16 (vo.n_levels)
 KEYPOINT_ANGLE_DEG = (-1.0, 360.0)  # OpenCV: [0, 360), -1 = no orientation
 _MAX_UINT32 = (1 << 32) - 1
