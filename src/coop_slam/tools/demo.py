@@ -11,6 +11,7 @@ import argparse
 import datetime
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -255,6 +256,7 @@ def _launch_arguments(args: argparse.Namespace, plan: _RunPlan, out: str) -> lis
         record_ids=plan.record_ids,
     )
     remove_map_file(map_path)  # a results folder used again: this run's map starts empty
+    shutil.rmtree(os.path.join(out, "spool"), ignore_errors=True)  # and its clients' spools
     return launch_args
 
 

@@ -101,6 +101,8 @@ def launch_arguments(
         launch_args.append("marker_every_frames:=0")
     launch_args.append(f"ground_robots:={str(ground).lower()}")
     launch_args.append(f"map:={map_path}")
+    # The run's own spools: a client killed by --faults sends what it kept after its restart.
+    launch_args.append(f"spool_dir:={os.path.join(os.path.dirname(map_path), 'spool')}")
     if args.load_map:
         launch_args.append(f"load_map:={os.path.abspath(args.load_map)}")
     if faults.kills:  # killed nodes come back; the server carries on from its map file
