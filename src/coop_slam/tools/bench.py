@@ -12,15 +12,13 @@ import sys
 import time
 from typing import Callable, Iterator
 
+from .paths import CONFIG_DIR, SHARED_DATA
+
 Figure = tuple[str, float, str]
-_REPO = os.path.normpath(
-    os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", "..")
-)
-SHARED = os.path.normpath(os.path.join(_REPO, "..", "shared", "data"))
+SHARED = SHARED_DATA
 REDKITCHEN = os.path.join(SHARED, "redkitchen_0000_0599")
 KITTI = os.path.join(SHARED, "kitti_clip_straight", "sequences", "00")
 EUROC = os.path.join(SHARED, "euroc_v101_static95")
-CONFIG_DIR = os.path.join(_REPO, "config")
 
 
 def bench_render() -> Iterator[Figure]:

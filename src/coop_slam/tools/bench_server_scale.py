@@ -38,16 +38,13 @@ from ..team.worker import ServerOutputs, ServerWorker
 from ..wire.legacy import is_legacy
 from ..wire.messages import KIND_DELTA, KIND_KEYFRAME, KIND_REMOVAL, KeyframeMessage
 from ..wire.record import ACTION_NEW, ACTION_REMOVE
+from .paths import CONFIG_DIR
 
 Figure = tuple[str, float, str]
 # Bump when what the synthesised streams hold changes (client behaviour, message layout): the cache
 # key has it, so an old cache is not replayed as if it were current.
 STREAM_VERSION = "4"
 DEFAULT_SCENARIO, DEFAULT_ROBOTS = "multi", 8
-_REPO = os.path.normpath(
-    os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", "..")
-)
-CONFIG_DIR = os.path.join(_REPO, "config")
 
 
 def _log(text: str) -> None:

@@ -17,11 +17,9 @@ from dataclasses import dataclass
 import yaml
 
 from ..errors import CoopSlamError
+from .paths import REPO as _REPO
 from .results_table import LEGEND, table
 
-_REPO = os.path.normpath(
-    os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", "..")
-)
 DEFAULT_SUITE = os.path.join(_REPO, "config", "benchmark.yaml")
 DEFAULT_DATA = os.path.normpath(os.path.join(_REPO, "..", "shared", "data"))
 DEFAULT_PAGE = os.path.join(_REPO, "docs", "results.md")

@@ -18,10 +18,8 @@ from ..ros.params import ClientNodeParams, ServerNodeParams
 from ..team.config import ServerConfig
 from ..uplink.config import UplinkConfig
 from ..vo.config import VoConfig
+from .paths import REPO as _REPO
 
-_REPO = os.path.normpath(
-    os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", "..")
-)
 PAGE = os.path.join(_REPO, "docs", "configuration.md")
 # Where each configuration is given: (heading, how it is given, section key, class)
 SOURCES = (

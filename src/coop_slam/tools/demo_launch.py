@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 from ..errors import CoopSlamError
 from .faults import Faults
+from .paths import REPO
 
-REPO = os.path.normpath(os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", ".."))
 HOST = "127.0.0.1"
 
 

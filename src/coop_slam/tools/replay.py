@@ -17,6 +17,7 @@ import sys
 import numpy as np
 
 from ..errors import CoopSlamError
+from .paths import CONFIG_DIR
 
 
 def _server_config(path: str, info: dict, overrides: dict):
@@ -244,10 +245,7 @@ def main(argv=None) -> int:
     )
     args = p.parse_args(argv)
     truth = None
-    repo = os.path.normpath(
-        os.path.join(os.path.dirname(os.path.realpath(__file__)), "..", "..", "..")
-    )
-    config = args.server_config or os.path.join(repo, "config", "server.yaml")
+    config = args.server_config or os.path.join(CONFIG_DIR, "server.yaml")
     try:
         with open(os.path.join(args.results, "run.json"), encoding="utf-8") as fh:
             info = json.load(fh)
