@@ -18,10 +18,11 @@ import yaml
 
 from ..errors import CoopSlamError
 from .paths import REPO as _REPO
+from .paths import SHARED_DATA, git_commit
 from .results_table import LEGEND, table
 
 DEFAULT_SUITE = os.path.join(_REPO, "config", "benchmark.yaml")
-DEFAULT_DATA = os.path.normpath(os.path.join(_REPO, "..", "shared", "data"))
+DEFAULT_DATA = SHARED_DATA
 DEFAULT_PAGE = os.path.join(_REPO, "docs", "results.md")
 _NAME = re.compile(r"^[a-z0-9_]+$")
 # Options the benchmark sets itself for every run.
@@ -108,24 +109,12 @@ def run_entry(entry: SuiteEntry, data_dir: str, out_dir: str, timeout_s: float) 
             return 124
 
 
-def _commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "-C", _REPO, "describe", "--always", "--dirty=+", "--abbrev=7"],
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-        return out.stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def page(folders: list[str], notes: list[str], suite: str) -> str:
     """docs/results.md: the suite's table with how it was made."""
     text = (
         "# Results\n\n"
-        f"Generated {datetime.date.today()} at commit {_commit()} by `scripts/benchmark` (the "
+        f"Generated {datetime.date.today()} at commit {git_commit() or 'unknown'} by "
+        "`scripts/benchmark` (the "
         f"suite in `{os.path.relpath(suite, _REPO)}`; each row is a `scripts/demo` run with the "
         f"options in its first column; earlier figures are in this file's git history). "
         f"{LEGEND}\n\n"

@@ -12,7 +12,6 @@ import datetime
 import json
 import os
 import shutil
-import subprocess
 import sys
 import time
 from dataclasses import dataclass
@@ -25,7 +24,6 @@ from ..geometry import T_base_cam_of, quat_from_se3
 from ..playback import Source, load_run_source
 from .demo_args import parse_args
 from .demo_launch import (
-    REPO,
     Monitor,
     Operator,
     System,
@@ -40,6 +38,7 @@ from .demo_launch import (
     watch_nodes,
 )
 from .faults import Faults, kill_node, parse_faults
+from .paths import git_commit
 from .progress import throttled
 
 # After the last frame the server may still be working off its queue: wait until its stats say it
@@ -283,33 +282,11 @@ def _write_run_info(
         "low_bandwidth": args.low_bandwidth,
         "sensors": args.sensors,
         "ground_robots": ground,
-        "commit": _commit(),
+        "commit": git_commit(),
         "T_base_cam": base_cam,  # [x y z qx qy qz qw], [] = the launch file's default
     }
     with open(os.path.join(out, "run.json"), "w", encoding="utf-8") as fh:
         json.dump(info, fh, indent=2)
-
-
-def _commit() -> str | None:
-    """The code's git commit (with ``+`` when the working tree has changes), when known."""
-    try:
-        head = subprocess.run(
-            ["git", "-C", REPO, "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
-        dirty = subprocess.run(
-            ["git", "-C", REPO, "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return None
-    if head.returncode != 0:
-        return None
-    return head.stdout.strip() + ("+" if dirty.stdout.strip() else "")
 
 
 def _framed_rviz_config(out: str, source, inputs, base_cam: list) -> str | None:
