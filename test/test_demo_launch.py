@@ -4,7 +4,7 @@ with that node's reason (tests without ROS: a log file and a stand-in for roslau
 import pytest
 
 from coop_slam.errors import CoopSlamError
-from coop_slam.tools.demo_launch import System, watch_nodes
+from coop_slam.tools.demo_launch import Launch, System, watch_nodes
 
 
 class _Launch:
@@ -18,7 +18,7 @@ class _Launch:
 def _system(tmp_path, text, code=None):
     log = tmp_path / "roslaunch.log"
     log.write_text(text)
-    return System(master=None, launch=_Launch(code), log_path=str(log))
+    return System(master=None, launches=[Launch(_Launch(code), str(log))])
 
 
 def test_a_running_system_whose_nodes_are_fine_is_left_alone(tmp_path):

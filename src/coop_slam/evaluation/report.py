@@ -36,6 +36,10 @@ ROBOT_KEYS = (
     # Radio: robot -> server (keyframe messages) and server -> robot (corrections, acks) [kB/s]
     "uplink_kBps",
     "downlink_kBps",
+    # ... and on the wire with --hosts: the robot's radio interface, sent / received (every topic,
+    # TCP/IP and ROS overhead included) over the data's duration [kB/s]
+    "radio_up_kBps",
+    "radio_down_kBps",
     # Monocular robots (a map without metric scale; ate_rmse_m, an SE(3) alignment, is null):
     # the Sim(3)-aligned ATE of its own keyframes, and once the server placed it in a metric world
     # group, the server's scale of its map against the true one (relative, signed).

@@ -65,6 +65,8 @@ class RunData:
     duration_s: float = 0.0  # sim time from first to last frame
     topic_bytes: dict = field(default_factory=dict)  # topic -> [(sim t_s, bytes)] per message
     team_cloud: tuple | None = None  # latest /team_map/cloud: (points (N, 3), rgb (N, 3) uint8)
+    # robot id -> (sent, received) bytes on its radio interface during the run (--hosts only)
+    radio_bytes: dict = field(default_factory=dict)
 
 
 @dataclass

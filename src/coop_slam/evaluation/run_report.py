@@ -308,6 +308,10 @@ def _evaluate_robot(
     entry["mapping_backlog_max"] = r.mapping_backlog_max
     entry["uplink_kBps"] = uplink_kBps(run, r)
     entry["downlink_kBps"] = downlink_kBps(run, rid)
+    if rid in run.radio_bytes and run.duration_s > 0:  # on the wire: every topic, TCP and ROS
+        sent, received = run.radio_bytes[rid]
+        entry["radio_up_kBps"] = sent / run.duration_s / 1000.0
+        entry["radio_down_kBps"] = received / run.duration_s / 1000.0
     entry["frames_mapping_behind"] = r.frames_mapping_behind
     entry["path_length_m"] = path_length(poses_gt) if len(poses_gt) else None
     entry["keyframes"] = len(r.keyframes)

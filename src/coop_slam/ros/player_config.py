@@ -38,6 +38,9 @@ class PlayerConfig:
     # (RedKitchen: ~2.1 MiB a frame with 32FC1 depth); 0 = decode each frame when it is due.
     preload_mb: float = 2048.0
     progress_period_s: float = 5.0  # wall time between progress log lines [s]
+    # all: play every robot and drive /clock; conductor: drive /clock and step the cameras (the
+    # station of scripts/demo --hosts); camera: play ~only_robots when the conductor steps.
+    role: str = "all"
     exit_when_done: bool = False  # exit after the last frame instead of spinning (latched topics)
 
     def validate(self) -> None:
@@ -50,6 +53,14 @@ class PlayerConfig:
         require(
             math.isfinite(self.preload_mb) and self.preload_mb >= 0,
             f"player: ~preload_mb must be a finite number >= 0 [MiB], got {self.preload_mb}",
+        )
+        require(
+            self.role in ("all", "conductor", "camera"),
+            f"player: ~role must be all, conductor or camera, got '{self.role}'",
+        )
+        require(
+            self.role == "all" or not self.bag,
+            "player: a bag plays on one host (~role all): split it per robot to play it on hosts",
         )
         require(self.robots >= 0, "player: ~robots must be >= 0")
         require(self.duration_s >= 0, "player: ~duration_s must be >= 0")

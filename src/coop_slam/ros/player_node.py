@@ -39,6 +39,7 @@ from ..playback import (
 from ..prefetch import Prefetcher, PrefetchError
 from .bag_player import BagPlayer
 from .camera_messages import frame_messages, messages_bytes
+from .conductor import conduct, play_camera
 from .lockstep import FrameAcks, wait_for_consumers
 from .player_config import PlayerConfig
 
@@ -112,16 +113,26 @@ class PlayerNode:
             ),
         )
         self.schedule = build_schedule(self.source.streams, keep_timing=cfg.keep_timing)
-        self.topics = {s.robot_id: _RobotTopics(s, cfg.depth_encoding) for s in self.source.streams}
-        self.clock = rospy.Publisher("/clock", Clock, queue_size=10)
-        self.done = rospy.Publisher("~done", Bool, queue_size=1, latch=True)
-        self.done.publish(Bool(False))
+        # A conductor only steps through the frames: the cameras stand on the robots' hosts.
+        self.topics = {
+            s.robot_id: _RobotTopics(s, cfg.depth_encoding)
+            for s in self.source.streams
+            if cfg.role != "conductor"
+        }
+        if cfg.role != "camera":  # a camera follows the conductor's clock
+            self.clock = rospy.Publisher("/clock", Clock, queue_size=10)
+            self.done = rospy.Publisher("~done", Bool, queue_size=1, latch=True)
+            self.done.publish(Bool(False))
 
     def run(self) -> None:
         cfg = self.cfg
         if not self.schedule:
             rospy.logwarn("player: nothing to play")
             return
+        if cfg.role == "conductor":
+            return conduct(self)
+        if cfg.role == "camera":
+            return play_camera(self)
         self.clock.publish(
             Clock(clock=rospy.Time.from_sec(max(0.0, self.schedule[0].play_s - 0.1)))
         )
@@ -183,6 +194,18 @@ class PlayerNode:
                 out[g.robot_id] = exc
         return out
 
+    def publish_frame(self, topics: _RobotTopics, item, messages=None) -> None:
+        """Publish a scheduled frame (``messages``: decoded ahead, or the error decoding met); a
+        frame that cannot be read is skipped, saying so."""
+        try:
+            if isinstance(messages, DatasetError):
+                raise messages
+            topics.publish(item.play_s, item.frame, messages)
+        except DatasetError as exc:
+            rospy.logerr(
+                "player: skipping robot_%d frame %d: %s", item.robot_id, item.frame.index, exc
+            )
+
     def _play(self, groups, prefetch: Prefetcher | None) -> None:
         cfg = self.cfg
         total = len(self.schedule)
@@ -217,15 +240,7 @@ class PlayerNode:
                         )
             self.clock.publish(Clock(clock=rospy.Time.from_sec(play_s)))
             for g in group:
-                try:
-                    messages = ready.get(g.robot_id)
-                    if isinstance(messages, DatasetError):
-                        raise messages
-                    self.topics[g.robot_id].publish(play_s, g.frame, messages)
-                except DatasetError as exc:
-                    rospy.logerr(
-                        "player: skipping robot_%d frame %d: %s", g.robot_id, g.frame.index, exc
-                    )
+                self.publish_frame(self.topics[g.robot_id], g, ready.get(g.robot_id))
             frames = {g.robot_id: g.frame for g in group}
             for rid in lockstep_ids:
                 if not self.topics[rid].wait_ack(play_s, cfg.ack_timeout_s, frames[rid]):

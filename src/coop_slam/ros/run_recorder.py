@@ -36,6 +36,9 @@ ROBOT_TOPICS = {  # relative to /robot_k; the message type of each
     "local_map": "sensor_msgs/PointCloud2",
     "keyframe_ack": "coop_slam/KeyframeAck",
 }
+# What the server publishes per robot: recorded on the station with --hosts (the rest of a robot's
+# topics on its own host, so that recording never pulls them across the radio).
+STATION_ROBOT_TOPICS = ("correction", "keyframe_ack")
 TEAM_TOPICS = {
     "/merge_events": "coop_slam/MergeEvent",
     "/server/stats": "std_msgs/String",
@@ -64,11 +67,18 @@ class RunRecorder:
         self.done = False  # the player said it has played everything
         self.newest_frame_s = 0.0  # data time: the newest frame any client has finished
 
-    def topics(self) -> dict[str, str]:
-        """Topic -> message type of everything recorded (the demo's rosbag takes the same list)."""
-        out = {f"/robot_{r}/{t}": ty for r in self.run.robots for t, ty in ROBOT_TOPICS.items()}
-        out.update({f"/team_map/robot_{r}/path": "nav_msgs/Path" for r in self.run.robots})
-        out.update(TEAM_TOPICS)
+    def topics(self, where: str = "all") -> dict[str, str]:
+        """Topic -> message type of everything recorded (the demo's rosbag takes the same list):
+        ``all``, or what is published on the ``station`` or on the ``robot`` hosts."""
+        out = {
+            f"/robot_{r}/{t}": ty
+            for r in self.run.robots
+            for t, ty in ROBOT_TOPICS.items()
+            if where == "all" or (t in STATION_ROBOT_TOPICS) == (where == "station")
+        }
+        if where != "robot":
+            out.update({f"/team_map/robot_{r}/path": "nav_msgs/Path" for r in self.run.robots})
+            out.update(TEAM_TOPICS)
         return out
 
     def feed(self, topic: str, msg, t_s: float, nbytes: int) -> None:
@@ -201,24 +211,44 @@ class RunRecorder:
         )
 
 
-def run_data_from_bag(bag_path: str, robot_ids: list[int]) -> RunData:
-    """Replay a recorded run through :class:`RunRecorder` (bag time is the sim time)."""
+def run_data_from_bag(bag_paths: str | list[str], robot_ids: list[int]) -> RunData:
+    """Replay a recorded run through :class:`RunRecorder` (bag time is the sim time); several
+    bags (one per host) are read as one, in time order."""
+    import heapq
+
     import rosbag
 
-    if not os.path.isfile(bag_path):
-        raise EvaluationError(f"bag not found: {bag_path}")
+    paths = [bag_paths] if isinstance(bag_paths, str) else list(bag_paths)
     rec = RunRecorder(robot_ids)
-    topics = rec.topics()
+    topics = list(rec.topics())
+    bags = []
     try:
-        bag = rosbag.Bag(bag_path)
-    except (rosbag.ROSBagException, OSError) as exc:
-        raise EvaluationError(f"cannot read bag {bag_path}: {exc}") from exc
-    with bag:
-        for topic, raw, t in bag.read_messages(topics=list(topics), raw=True):
+        for path in paths:
+            if not os.path.isfile(path):
+                raise EvaluationError(f"bag not found: {path}")
+            try:
+                bags.append(rosbag.Bag(path))
+            except (rosbag.ROSBagException, OSError) as exc:
+                raise EvaluationError(f"cannot read bag {path}: {exc}") from exc
+        streams = [bag.read_messages(topics=topics, raw=True) for bag in bags]
+        for topic, raw, t in heapq.merge(*streams, key=lambda m: m[2]):
             msg = raw[4]()  # the bag's own definition: runs recorded by older code read too
             msg.deserialize(raw[1])
             rec.feed(topic, msg, t.to_sec(), len(raw[1]))
+    finally:
+        for bag in bags:
+            bag.close()
     return rec.run
+
+
+def run_bags(results: str) -> list[str]:
+    """The bags of a demo results folder: ``run.bag``, and with ``--hosts`` each robot host's
+    ``run_robot_<k>.bag``."""
+    import glob
+
+    return [os.path.join(results, "run.bag")] + sorted(
+        glob.glob(os.path.join(results, "run_robot_*.bag"))
+    )
 
 
 def read_bag_input(bag_path: str) -> RunInput:

@@ -23,6 +23,7 @@ from ..evaluation.run_report import RunInput, evaluate_results, run_input_of
 from ..geometry import T_base_cam_of, quat_from_se3
 from ..playback import Source, load_run_source
 from .demo_args import parse_args
+from .demo_hosts import HostsTeam
 from .demo_launch import (
     Monitor,
     Operator,
@@ -87,7 +88,23 @@ def run(args: argparse.Namespace) -> int:
     out = _results_folder(args)
     t_start = time.monotonic()
     plan = _prepare_data(args)
-    master = private_master(out)
+    team = HostsTeam.make(args, plan.robot_ids, say) if args.hosts else None
+    try:
+        monitor = _run_system(args, plan, out, team)
+    finally:
+        if team is not None:
+            team.close()
+    json_path, md_path, ply = _evaluate(plan, monitor, out)
+    _say_results(args, out, json_path, md_path, ply, t_start)
+    return 0
+
+
+def _run_system(
+    args: argparse.Namespace, plan: _RunPlan, out: str, team: HostsTeam | None
+) -> Monitor:
+    """[2/3]: start the system (on the hosts of ``team``), follow it to the last frame, let the
+    server settle and stop it; what the monitor saw."""
+    master = team.master(out) if team else private_master(out)
     launch_args = _launch_arguments(args, plan, out)
     _write_run_info(out, args, plan.robot_ids, plan.ground, plan.base_cam)
     rviz_config = (
@@ -95,17 +112,34 @@ def run(args: argparse.Namespace) -> int:
     )
     log_path = os.path.join(out, "roslaunch.log")
     say(f"[2/3] running the system (ROS master {master.uri}; log {log_path})")
-    system = start_system(master, launch_args, log_path)
+    if team is None:
+        system = start_system(master, launch_args, log_path)
+    else:
+        system = team.start(master, launch_args, out, _host_topics(plan))
+        team.enter_station()  # the monitor (and RViz) run on the station
     try:
-        monitor = _start_watching(args, plan, system, out, rviz_config)
-        _follow_progress(args, plan, system, monitor)
+        monitor = _start_watching(args, plan, system, out, rviz_config, station=team is not None)
+        if team is not None:
+            team.count_from_now()
+        _follow_progress(args, plan, system, monitor, team)
         _settle(monitor, args.settle, say)
+        if team is not None:
+            monitor.run.radio_bytes = team.radio_used()
+            _add_run_info(out, radio_bytes=monitor.run.radio_bytes)
         _wrap_up(args, plan, system, monitor)
     finally:
         stop_system(system)
-    json_path, md_path, ply = _evaluate(plan, monitor, out)
-    _say_results(args, out, json_path, md_path, ply, t_start)
-    return 0
+    return monitor
+
+
+def _host_topics(plan: _RunPlan):
+    """What each host of ``--hosts`` records: ``(where, robot) -> topics``."""
+    from ..ros.run_recorder import RunRecorder
+
+    def topics(where: str, robot: int | None) -> list[str]:
+        return list(RunRecorder([robot] if robot else plan.record_ids).topics(where))
+
+    return topics
 
 
 def say(msg: str) -> None:
@@ -289,6 +323,16 @@ def _write_run_info(
         json.dump(info, fh, indent=2)
 
 
+def _add_run_info(out: str, **fields) -> None:
+    """Add what the run measured (e.g. radio bytes) to ``run.json`` for ``scripts/evaluate``."""
+    path = os.path.join(out, "run.json")
+    with open(path, encoding="utf-8") as fh:
+        info = json.load(fh)
+    info.update(fields)
+    with open(path, "w", encoding="utf-8") as fh:
+        json.dump(info, fh, indent=2)
+
+
 def _framed_rviz_config(out: str, source, inputs, base_cam: list) -> str | None:
     """A copy of rviz/coop_slam.rviz in ``out`` whose view frames the map this run builds (see
     :mod:`.framing`: ground-truth cameras and what they see, in ``world``); None (the package's
@@ -345,15 +389,22 @@ def _framed_rviz_config(out: str, source, inputs, base_cam: list) -> str | None:
 
 
 def _start_watching(
-    args: argparse.Namespace, plan: _RunPlan, system: System, out: str, rviz_config: str | None
+    args: argparse.Namespace,
+    plan: _RunPlan,
+    system: System,
+    out: str,
+    rviz_config: str | None,
+    station: bool = False,
 ) -> Monitor:
     """Once roslaunch started: wait for its master, then follow what the system publishes (this
-    process's monitor node) and record RViz when asked."""
+    process's monitor node; on the ``station`` of --hosts, what the station publishes) and record
+    RViz when asked."""
     wait_for_master(system.master.uri, 30.0)
     monitor = Monitor(
         plan.record_ids,
         ack=args.no_clients,
         sensors=[plan.sensors[plan.all_ids.index(r)] for r in plan.record_ids],
+        station=station,
     )
     if args.record:
         start_recording(system, out, rviz_config)
@@ -361,11 +412,16 @@ def _start_watching(
 
 
 def _follow_progress(
-    args: argparse.Namespace, plan: _RunPlan, system: System, monitor: Monitor
+    args: argparse.Namespace,
+    plan: _RunPlan,
+    system: System,
+    monitor: Monitor,
+    team: HostsTeam | None = None,
 ) -> None:
     """Until the player's last frame went through: the progress line (rewritten in place on a
-    terminal, every 10 s into a log), and the operator's requests and the faults at their times.
-    Raises when the system stops early or the run outlasts ``--timeout``."""
+    terminal, every 10 s into a log), and the operator's requests, the faults and the radio
+    outages at their times. Raises when the system stops early or the run outlasts
+    ``--timeout``."""
     operator = Operator(args.rendezvous, plan.t0, say)
     deadline = time.monotonic() + args.timeout
     tty = sys.stdout.isatty()
@@ -377,11 +433,13 @@ def _follow_progress(
                 f"run did not finish within {args.timeout:.0f} s; see {system.log_path}"
             )
         operator.poll(monitor.sim_s)
+        if team is not None:
+            team.poll(monitor.sim_s - plan.t0)
         for kill in plan.faults.kills:
             if not kill.tried and monitor.sim_s - plan.t0 >= kill.at_s:
                 kill.tried = True
-                say(f"      fault: {kill_node(system.launch.pid, kill)}")
-        got = sum(r.frames for r in monitor.run.robots.values())
+                say(f"      fault: {kill_node(system.launch_of(kill.robot_id).proc.pid, kill)}")
+        got = monitor.frames
         span = plan.t1 - plan.t0
         elapsed = min(max(monitor.sim_s - plan.t0, 0.0), span)
         line = (
@@ -394,6 +452,8 @@ def _follow_progress(
             last_line = time.monotonic()
             print(line, flush=True)
         time.sleep(0.5)
+    if team is not None:
+        team.end_outages()
 
 
 def _settle(monitor, settle_s: float, say) -> None:
@@ -435,17 +495,19 @@ def _wrap_up(args: argparse.Namespace, plan: _RunPlan, system: System, monitor: 
 def _evaluate(plan: _RunPlan, monitor: Monitor, out: str) -> tuple[str, str, str | None]:
     """[3/3]: the report from the recorded bag (what this process received when there is none);
     its JSON and Markdown files and the team map's PLY (or None)."""
-    from ..ros.run_recorder import run_data_from_bag
+    from ..ros.run_recorder import run_bags, run_data_from_bag
 
     say("[3/3] evaluating")
     run_data = monitor.run
     bag_path = os.path.join(out, RUN_BAG)
     if os.path.isfile(bag_path):  # what the system published, as recorded
-        say(f"      from the recorded bag {bag_path}")
-        run_data = run_data_from_bag(bag_path, plan.record_ids)
+        bags = run_bags(out)
+        say(f"      from the recorded bag{'s' * (len(bags) > 1)} {', '.join(bags)}")
+        run_data = run_data_from_bag(bags, plan.record_ids)
     else:
         say("      WARNING: no bag was recorded; evaluating what this process received")
     run_data.duration_s = monitor.run.duration_s
+    run_data.radio_bytes = monitor.run.radio_bytes
     report, json_path, md_path, ply = evaluate_results(
         out,
         run_data,

@@ -24,6 +24,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     # The order options are added in is the order --help lists them.
     _add_source_options(parser)
     _add_system_options(parser)
+    _add_hosts_options(parser)
     _add_run_options(parser)
     args = parser.parse_args(argv)
     if args.scenario is None and args.dataset is None and args.bag is None:
@@ -142,6 +143,49 @@ def _add_system_options(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_hosts_options(p: argparse.ArgumentParser) -> None:
+    """A team across hosts and radio links (network namespaces on this machine; needs root)."""
+    hosts = p.add_argument_group("hosts and radio links (root: network namespaces and tc)")
+    hosts.add_argument(
+        "--hosts",
+        action="store_true",
+        help="run the master and server on a station host and every robot on a host of its own "
+        "(one network namespace each, joined by a bridge: the radio); a robot's camera is "
+        "played on its own host",
+    )
+    hosts.add_argument(
+        "--link-rate",
+        type=float,
+        default=0.0,
+        metavar="KBIT",
+        help="with --hosts: every robot's radio link limited to KBIT kbit/s each way (tc tbf)",
+    )
+    hosts.add_argument(
+        "--outage",
+        action="append",
+        default=[],
+        type=outage_spec,
+        metavar="ROBOT@START-END",
+        help="with --hosts: robot ROBOT's radio link is down from START to END s of data time; "
+        "repeatable",
+    )
+
+
+def outage_spec(text: str) -> tuple[int, float, float]:
+    """``ROBOT@START-END`` -> (robot, start s, end s)."""
+    try:
+        robot, span = text.split("@")
+        start, end = (float(v) for v in span.split("-"))
+        robot_id = int(robot)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--outage {text}: expected ROBOT@START-END in seconds, e.g. 2@20-50"
+        ) from None
+    if not 0 <= start < end:
+        raise argparse.ArgumentTypeError(f"--outage {text}: needs 0 <= START < END")
+    return robot_id, start, end
+
+
 def _add_run_options(p: argparse.ArgumentParser) -> None:
     """Where the results go and how long the run may take."""
     p.add_argument("--out", help="results folder (default: results/<date>-<source>)")
@@ -183,6 +227,12 @@ def _check(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         p.error(f"--load-map: file not found: {args.load_map}")
     if (args.faults or args.save_map or args.load_map) and args.no_clients:
         p.error("--faults, --save-map and --load-map need the server: drop --no-clients")
+    if (args.link_rate or args.outage) and not args.hosts:
+        p.error("--link-rate and --outage shape the hosts' radio links: add --hosts")
+    if args.hosts and (args.bag or args.no_clients):
+        p.error("--hosts plays a scenario or dataset with clients (a bag plays on one host)")
+    if args.link_rate < 0:
+        p.error("--link-rate must be >= 0 [kbit/s]")
     if args.sensors:
         from ..playback import PlaybackError, parse_sensors
 

@@ -35,16 +35,35 @@ class Master:
 
 
 @dataclass
+class Launch:
+    """One roslaunch process (the run's, or one host's with ``--hosts``) and its output file."""
+
+    proc: subprocess.Popen
+    log_path: str
+    log_read: int = 0  # how far watch_nodes has read log_path [bytes]
+    robot_id: int | None = None  # the robot whose host it runs on (None: the station / all)
+
+
+@dataclass
 class System:
-    """The processes of a run: roslaunch (master, player, server, clients, bag recorder) and the
-    RViz recording (when asked for). Each runs in its own process group, so that stopping it
-    stops all it started."""
+    """The processes of a run: roslaunch (master, player, server, clients, bag recorder) -- one per
+    host with ``--hosts`` -- and the RViz recording (when asked for). Each runs in its own process
+    group, so that stopping it stops all it started."""
 
     master: Master
-    launch: subprocess.Popen
-    log_path: str  # roslaunch's output
+    launches: list[Launch]
     recorder: subprocess.Popen | None = None
-    log_read: int = 0  # how far watch_nodes has read log_path [bytes]
+
+    @property
+    def log_path(self) -> str:
+        return self.launches[0].log_path
+
+    def launch_of(self, robot_id: int | None) -> Launch:
+        """The roslaunch that runs robot ``robot_id``'s nodes (None: the server's)."""
+        for launch in self.launches:
+            if launch.robot_id == robot_id:
+                return launch
+        return self.launches[0]
 
 
 def private_master(out: str) -> Master:
@@ -146,15 +165,29 @@ def _config_arguments(args: argparse.Namespace) -> list[str]:
 def start_system(master: Master, launch_args: list[str], log_path: str) -> System:
     """Start roslaunch (its master on ``master.port``), its output into ``log_path``; the caller
     waits for the master (:func:`wait_for_master`) and stops the system (:func:`stop_system`)."""
+    launch = start_launch(["-p", str(master.port)], launch_args, log_path, master.env)
+    return System(master, [launch])
+
+
+def start_launch(
+    prefix: list[str],
+    launch_args: list[str],
+    log_path: str,
+    env: dict[str, str],
+    robot_id: int | None = None,
+    wrapper: list[str] | None = None,
+) -> Launch:
+    """``roslaunch PREFIX coop_slam demo.launch ARGS`` (under ``wrapper``: e.g. on a host),
+    its output into ``log_path``."""
     with open(log_path, "w") as log:
-        launch = subprocess.Popen(
-            ["roslaunch", "-p", str(master.port), "coop_slam", "demo.launch", *launch_args],
+        proc = subprocess.Popen(
+            [*(wrapper or []), "roslaunch", *prefix, "coop_slam", "demo.launch", *launch_args],
             stdout=log,
             stderr=subprocess.STDOUT,
-            env=master.env,
+            env=env,
             start_new_session=True,
         )
-    return System(master, launch, log_path)
+    return Launch(proc, log_path, robot_id=robot_id)
 
 
 def wait_for_master(uri: str, timeout_s: float) -> None:
@@ -179,26 +212,31 @@ def _node_reasons(text: str) -> list[str]:
 
 def watch_nodes(system: System) -> None:
     """Raise, naming the node and its reason, when a node gave up (a FATAL line: a corrupt map
-    file, a camera it cannot use, ...) or the system stopped before the run's end (roslaunch
+    file, a camera it cannot use, ...) or the system stopped before the run's end (a roslaunch
     exited: a required node died)."""
-    with open(system.log_path, "rb") as fh:
-        fh.seek(system.log_read)
+    for launch in system.launches:
+        _watch_launch(launch)
+
+
+def _watch_launch(launch: Launch) -> None:
+    with open(launch.log_path, "rb") as fh:
+        fh.seek(launch.log_read)
         data = fh.read()
     data = data[: data.rfind(b"\n") + 1]  # whole lines only: the rest is read next time
-    system.log_read += len(data)
+    launch.log_read += len(data)
     new = data.decode("utf-8", "replace")
     fatal = [line for line in _node_reasons(new) if "[FATAL]" in line]
     if fatal:
         raise CoopSlamError(
-            "a node gave up: " + " | ".join(fatal[:3]) + f" (see {system.log_path})"
+            "a node gave up: " + " | ".join(fatal[:3]) + f" (see {launch.log_path})"
         )
-    if system.launch.poll() is not None:
-        with open(system.log_path, encoding="utf-8", errors="replace") as fh:
+    if launch.proc.poll() is not None:
+        with open(launch.log_path, encoding="utf-8", errors="replace") as fh:
             reasons = _node_reasons(fh.read())
         raise CoopSlamError(
-            f"roslaunch exited early (code {system.launch.returncode})"
+            f"roslaunch exited early (code {launch.proc.returncode})"
             + (": " + " | ".join(reasons[-3:]) if reasons else "")
-            + f"; see {system.log_path}"
+            + f"; see {launch.log_path}"
         )
 
 
@@ -230,15 +268,18 @@ def stop_recording(system: System) -> None:
 
 
 def stop_system(system: System) -> None:
-    """Stop whatever still runs (after the run, or when it failed)."""
+    """Stop whatever still runs (after the run, or when it failed): robots' hosts first, the
+    station (master) last."""
     if system.recorder is not None and system.recorder.poll() is None:
         os.killpg(system.recorder.pid, signal.SIGINT)
-    if system.launch.poll() is None:
-        os.killpg(system.launch.pid, signal.SIGINT)
+    for launch in reversed(system.launches):
+        if launch.proc.poll() is None:
+            os.killpg(launch.proc.pid, signal.SIGINT)
+    for launch in reversed(system.launches):
         try:
-            system.launch.wait(20)
+            launch.proc.wait(20)
         except subprocess.TimeoutExpired:
-            os.killpg(system.launch.pid, signal.SIGKILL)
+            os.killpg(launch.proc.pid, signal.SIGKILL)
 
 
 def _free_port() -> int:
@@ -252,10 +293,11 @@ class Monitor:
     publishes into a :class:`~coop_slam.ros.run_recorder.RunRecorder`.
 
     With ``ack`` it also acknowledges frames itself (no clients running), so lock-step playback
-    still advances.
+    still advances. On the station of ``--hosts`` (``station``) it follows only what the station
+    publishes, so that it costs the radio nothing, and counts frames by the conductor's steps.
     """
 
-    def __init__(self, robot_ids: list[int], ack: bool, sensors: list[str]):
+    def __init__(self, robot_ids: list[int], ack: bool, sensors: list[str], station=False):
         import rospy
         from rosgraph_msgs.msg import Clock
         from sensor_msgs.msg import Image
@@ -270,10 +312,19 @@ class Monitor:
         self.run = self.recorder.run
         self.sim_s = 0.0
         self.ack = ack
+        self.frames_stepped = 0  # --hosts: frames the conductor has stepped through
         self._subs = [rospy.Subscriber("/clock", Clock, self._on_clock, queue_size=1)]
-        for topic, type_name in self.recorder.topics().items():
+        if station:
+            from std_msgs.msg import Header
+
+            from ..ros.conductor import STEP_TOPIC
+
+            self._subs.append(rospy.Subscriber(STEP_TOPIC, Header, self._on_step, queue_size=10))
+        for topic, type_name in self.recorder.topics("station" if station else "all").items():
             if ack and topic.endswith("/frame_stats"):
                 continue  # this monitor publishes them itself
+            if station and topic == "/robot_sightings":
+                continue  # the robots publish them: across the radio
             self._subs.append(
                 rospy.Subscriber(
                     topic,
@@ -303,8 +354,16 @@ class Monitor:
     def done(self) -> bool:
         return self.recorder.done
 
+    @property
+    def frames(self) -> int:
+        """Frames played so far (as the clients report them, or as the conductor stepped)."""
+        return self.frames_stepped or sum(r.frames for r in self.run.robots.values())
+
     def _on_clock(self, msg) -> None:
         self.sim_s = msg.clock.to_sec()
+
+    def _on_step(self, msg) -> None:
+        self.frames_stepped = int(msg.frame_id or 0)
 
     def _on_any(self, raw, args) -> None:
         topic, cls = args

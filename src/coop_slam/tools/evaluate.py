@@ -17,11 +17,13 @@ def main(argv=None) -> int:
     from ..evaluation.run_report import evaluate_results, run_input_of
     from ..geometry import T_base_cam_of
     from ..playback import load_run_source
-    from ..ros.run_recorder import read_bag_input, run_data_from_bag
+    from ..ros.run_recorder import read_bag_input, run_bags, run_data_from_bag
 
     p = argparse.ArgumentParser(prog="scripts/evaluate", description=main.__doc__.split(":")[1])
     p.add_argument("results", help="results folder of a demo run (holds run.json and run.bag)")
-    p.add_argument("--bag", help="bag to evaluate (default: RESULTS/run.bag)")
+    p.add_argument(
+        "--bag", help="bag to evaluate (default: RESULTS/run.bag and each host's run_robot_<k>.bag)"
+    )
     args = p.parse_args(argv)
     try:
         info_path = os.path.join(args.results, "run.json")
@@ -31,7 +33,7 @@ def main(argv=None) -> int:
             )
         with open(info_path, encoding="utf-8") as fh:
             info = json.load(fh)
-        bag = args.bag or os.path.join(args.results, "run.bag")
+        bags = [args.bag] if args.bag else run_bags(args.results)
         what = info.get("bag") or info.get("scenario") or info.get("dataset")
         print(f"[evaluate] loading the ground truth ({what})", flush=True)
         if info.get("bag"):  # the run played a sensor bag: ground truth (if any) is in it
@@ -40,9 +42,10 @@ def main(argv=None) -> int:
             # A later session (load_map) is judged with the loaded robots too.
             options = dict(info, only_robots=None) if info.get("load_map") else info
             inputs = run_input_of(load_run_source(options), bool(info.get("keep_timing")))
-        print(f"[evaluate] reading {bag}", flush=True)
-        run = run_data_from_bag(bag, inputs.robot_ids)
+        print(f"[evaluate] reading {', '.join(bags)}", flush=True)
+        run = run_data_from_bag(bags, inputs.robot_ids)
         run.duration_s = inputs.end_s - inputs.start_s
+        run.radio_bytes = {int(r): tuple(b) for r, b in (info.get("radio_bytes") or {}).items()}
         faults = {"faults": {"spec": info["faults"]}} if info.get("faults") else None
         _, json_path, md_path, ply = evaluate_results(
             args.results,

@@ -199,6 +199,8 @@ class Hosts:
             except (OSError, subprocess.SubprocessError):
                 pids = []
             for pid in pids:
+                if pid == str(os.getpid()):
+                    continue  # the caller itself, still on a host
                 try:
                     os.kill(int(pid), 9)
                 except (ProcessLookupError, ValueError):
