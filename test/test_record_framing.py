@@ -211,6 +211,21 @@ def test_framed_config(tmp_path):
                     d[key] = round(d[key] * 0.5, 4)
     cfg["Visualization Manager"]["Views"] = template["Visualization Manager"]["Views"] = None
     assert cfg == template
+    # a viewer on the station of --hosts: the robots' own topics are off, the team map's on
+    station = yaml.safe_load(
+        F.framed_config(TEMPLATE, tmp_path / "s.rviz", view, station_only=True).read_text()
+    )
+    shown = {}
+
+    def walk(displays):
+        for d in displays or ():
+            if "Topic" in d:
+                shown[d["Topic"]] = d["Enabled"]
+            walk(d.get("Displays"))
+
+    walk(station["Visualization Manager"]["Displays"])
+    assert shown["/team_map/cloud"] and not shown["/robot_1/local_map"]
+    assert not any(on for topic, on in shown.items() if topic.startswith("/robot_"))
     # not an orbit view: refused
     bad = tmp_path / "bad.rviz"
     bad.write_text(

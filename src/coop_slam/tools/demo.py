@@ -12,6 +12,7 @@ import datetime
 import json
 import os
 import shutil
+import signal
 import sys
 import time
 from dataclasses import dataclass
@@ -73,6 +74,8 @@ class _RunPlan:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    # A kill (SIGTERM) stops the run as Ctrl-C does: what it made (hosts, processes) is removed.
+    signal.signal(signal.SIGTERM, _interrupted)
     try:
         return run(args)
     except CoopSlamError as exc:
@@ -81,6 +84,10 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         say("interrupted")
         return 130
+
+
+def _interrupted(signum, frame) -> None:
+    raise KeyboardInterrupt
 
 
 def run(args: argparse.Namespace) -> int:
@@ -108,7 +115,9 @@ def _run_system(
     launch_args = _launch_arguments(args, plan, out)
     _write_run_info(out, args, plan.robot_ids, plan.ground, plan.base_cam)
     rviz_config = (
-        _framed_rviz_config(out, plan.source, plan.inputs, plan.base_cam) if args.record else None
+        _framed_rviz_config(out, plan.source, plan.inputs, plan.base_cam, team is not None)
+        if args.record
+        else None
     )
     log_path = os.path.join(out, "roslaunch.log")
     say(f"[2/3] running the system (ROS master {master.uri}; log {log_path})")
@@ -333,10 +342,13 @@ def _add_run_info(out: str, **fields) -> None:
         json.dump(info, fh, indent=2)
 
 
-def _framed_rviz_config(out: str, source, inputs, base_cam: list) -> str | None:
+def _framed_rviz_config(
+    out: str, source, inputs, base_cam: list, station_only: bool = False
+) -> str | None:
     """A copy of rviz/coop_slam.rviz in ``out`` whose view frames the map this run builds (see
     :mod:`.framing`: ground-truth cameras and what they see, in ``world``); None (the package's
-    default view) without ground truth of the first robot, whose map ``world`` is."""
+    default view) without ground truth of the first robot, whose map ``world`` is.
+    ``station_only`` (--hosts): without the robots' own topics, which would cross the radio."""
     from . import framing
     from .record import DEFAULT_SIZE, find_config
 
@@ -375,6 +387,7 @@ def _framed_rviz_config(out: str, source, inputs, base_cam: list) -> str | None:
             f"Framed on the ground-truth cameras and {what}.",
             # the robots' axes as large on screen as in the package's view
             axes_scale=min(1.0, view.distance / default.distance),
+            station_only=station_only,
         )
     except Exception as exc:  # noqa: BLE001 - a recording detail: never worth failing the run
         say(f"      RViz keeps the package's default view (rviz/coop_slam.rviz): {exc}")

@@ -305,22 +305,34 @@ def _scale_displays(displays, scale: float) -> None:
         _scale_displays(display.get("Displays"), scale)  # groups
 
 
+def _disable_topics(displays, prefix: str) -> None:
+    for display in displays or ():
+        if isinstance(display, dict):
+            if str(display.get("Topic", "")).startswith(prefix):
+                display["Enabled"] = False  # a disabled display does not subscribe
+            _disable_topics(display.get("Displays"), prefix)
+
+
 def framed_config(
     template: str | Path,
     out: str | Path,
     view: OrbitView,
     note: str = "",
     axes_scale: float = 1.0,
+    station_only: bool = False,
 ) -> Path:
     """Write a copy of the RViz config ``template`` whose current view (an ``rviz/Orbit`` one)
     takes ``view``'s focal point, distance, pitch, yaw and field of view, and whose TF and pose
     axes are ``axes_scale`` times as large (so a closer view does not blow them up); everything
-    else kept."""
+    else kept. ``station_only``: the robots' own topics (``/robot_k/...``: local maps, poses,
+    paths) are not shown, so a viewer on the station does not pull them across the radio."""
     import yaml
 
     with open(template, encoding="utf-8") as fh:
         cfg = yaml.safe_load(fh)
     _current_view(cfg, template).update(view.config())
+    if station_only:
+        _disable_topics(cfg["Visualization Manager"].get("Displays"), "/robot_")
     if axes_scale != 1.0:
         _scale_displays(cfg["Visualization Manager"].get("Displays"), axes_scale)
     out = Path(out)
