@@ -53,6 +53,7 @@ from .link_watch import LinkWatch
 from .log_bridge import forward_core_logs
 from .params import server_params
 from .server_outputs import RosServerOutputs
+from .uplink_bridge import VOCABULARY_SHA256_TOPIC
 from .wire_bridge import from_ros
 
 
@@ -80,6 +81,8 @@ def load_vocabulary(path: str) -> tuple[Vocabulary, bytes]:
 
 class ServerNode:
     def __init__(self):
+        from std_msgs.msg import String
+
         from coop_slam.msg import KeyframeMessage as KeyframeMessageRos
         from coop_slam.msg import RobotSighting
         from coop_slam.msg import Vocabulary as VocabularyMsg
@@ -93,6 +96,12 @@ class ServerNode:
         self.map_path = None if map_path == "off" else (map_path or default_map_path())
         # Topics of every robot the worker names (a loaded map may add robots).
         self.out = RosServerOutputs(self.cfg.pull.enabled, on_robots=self._subscribe)
+        # Its digest alone (a few bytes) first: a robot that has the same file never downloads
+        # the vocabulary (3 MB) across the radio.
+        self.pub_vocab_sha = rospy.Publisher(
+            VOCABULARY_SHA256_TOPIC, String, queue_size=1, latch=True
+        )
+        self.pub_vocab_sha.publish(String(self.vocab_sha256))
         self.pub_vocab = rospy.Publisher(
             "/server/vocabulary", VocabularyMsg, queue_size=1, latch=True
         )

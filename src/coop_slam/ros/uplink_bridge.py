@@ -21,13 +21,14 @@ watched and subscribed again when it drops (:class:`.link_watch.LinkWatch`).
 
 from __future__ import annotations
 
+import os
 import tempfile
 import threading
 import time
 from typing import Callable
 
 import rospy
-from std_msgs.msg import Bool
+from std_msgs.msg import Bool, String
 
 from ..bow import Vocabulary
 from ..uplink.config import UplinkConfig
@@ -39,14 +40,34 @@ from .link_watch import LinkWatch, publish_guarded
 from .validation import RejectCounter
 from .wire_bridge import RosSerializer, from_ros, to_ros
 
+# The server's vocabulary digest (std_msgs/String, latched): a robot whose own vocabulary file has
+# it loads that file instead of downloading /server/vocabulary (3 MB) across the radio.
+VOCABULARY_SHA256_TOPIC = "/server/vocabulary_sha256"
+
+
+def _file_sha256(path: str) -> str:
+    import hashlib
+
+    with open(path, "rb") as fh:
+        return hashlib.sha256(fh.read()).hexdigest()
+
 
 def server_vocabulary(name: str, wait_s: float) -> Vocabulary:
-    """The vocabulary the server publishes (its words are what place signatures name), else
-    the default one this machine has."""
+    """The vocabulary the server uses (its words are what place signatures name): this
+    machine's default one when it is the same file, else the one the server publishes, else the
+    default one (saying so)."""
     from coop_slam.msg import Vocabulary as VocabularyMsg
 
     from ..default_vocabulary import default_vocabulary_path
 
+    path = default_vocabulary_path()
+    try:
+        sha256 = rospy.wait_for_message(VOCABULARY_SHA256_TOPIC, String, timeout=wait_s).data
+    except rospy.ROSException:
+        sha256 = ""  # a server without the digest: the vocabulary itself tells
+    if sha256 and os.path.isfile(path) and _file_sha256(path) == sha256:
+        rospy.loginfo("client %s: place signatures in the server's vocabulary (%s)", name, path)
+        return Vocabulary.load(path)
     try:
         msg = rospy.wait_for_message("/server/vocabulary", VocabularyMsg, timeout=wait_s)
         suffix = ".npz" if msg.format == "coop_slam-npz" else ".txt"
@@ -54,10 +75,9 @@ def server_vocabulary(name: str, wait_s: float) -> Vocabulary:
             fh.write(msg.data)
             fh.flush()
             vocabulary = Vocabulary.load(fh.name)
-        rospy.loginfo("client %s: place signatures in the server's vocabulary", name)
+        rospy.loginfo("client %s: place signatures in the server's vocabulary (downloaded)", name)
         return vocabulary
     except rospy.ROSException:
-        path = default_vocabulary_path()
         rospy.logwarn(
             "client %s: no /server/vocabulary within %.0f s: place signatures in %s (the server "
             "must use the same vocabulary)",

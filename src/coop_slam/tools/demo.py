@@ -327,6 +327,9 @@ def _write_run_info(
         "ground_robots": ground,
         "commit": git_commit(),
         "T_base_cam": base_cam,  # [x y z qx qy qz qw], [] = the launch file's default
+        "hosts": args.hosts,
+        "link_rate": args.link_rate,  # [kbit/s], 0 = unlimited
+        "outage": [f"{r}@{a:g}-{b:g}" for r, a, b in args.outage],
     }
     with open(os.path.join(out, "run.json"), "w", encoding="utf-8") as fh:
         json.dump(info, fh, indent=2)

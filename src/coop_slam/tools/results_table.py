@@ -26,7 +26,7 @@ COLUMNS = (
     "loops",
     "track ms (mean / p95)",
     "server ms / kf",
-    "kB/s per robot",
+    "kB/s per robot (radio up / down per robot)",
 )
 
 # What the columns mean, under the table's heading.
@@ -35,7 +35,9 @@ LEGEND = (
     "measured. Robot ATE: each robot's keyframes aligned on their own (a monocular robot's with "
     "Sim(3)); pooled: those pooled (what a perfect placement of the robots' maps would score); "
     "team ATE: all robots in `world` with one alignment. Links: constraints between two robots "
-    "accepted after they merged. Overlap agreement (no ground truth): how far one robot's points "
+    "accepted after they merged. kB/s: keyframe messages; with `--hosts` also what each robot's "
+    "radio interface carried, up / down (every topic, TCP/IP and ROS overhead). Overlap "
+    "agreement (no ground truth): how far one robot's points "
     "lie from the other's surfaces where both mapped, against a robot's own revisits. A commit "
     "ending in `+` ran with changes on top of it that were not committed yet."
 )
@@ -84,10 +86,26 @@ def describe(info: dict) -> str:
             what += f" --{key.replace('_', '-')} {info[key]}"
     if info.get("load_map"):
         what += " --load-map ..."
-    for key in ("pose_sharing", "low_bandwidth"):
+    for key in ("pose_sharing", "low_bandwidth", "hosts"):
         if info.get(key):
             what += f" --{key.replace('_', '-')}"
+    if info.get("link_rate"):
+        what += f" --link-rate {info['link_rate']:g}"
+    for outage in info.get("outage") or ():
+        what += f" --outage {outage}"
     return f"`{what}`"
+
+
+def _kbps(report: dict) -> str:
+    """Keyframe messages per robot [kB/s]; with --hosts also what each robot's radio carried, up
+    / down (every topic, TCP/IP and ROS)."""
+    out = _num((report.get("bandwidth") or {}).get("per_robot_kBps"), 0)
+    radio = [
+        f"{r['radio_up_kBps']:.0f} / {r['radio_down_kBps']:.0f}"
+        for r in report.get("robots") or []
+        if r.get("radio_up_kBps") is not None
+    ]
+    return out + (f" (radio {', '.join(radio)})" if radio else "")
 
 
 def _robot_ate(robot: dict) -> str:
@@ -122,7 +140,6 @@ def row(report: dict, info: dict) -> list[str]:
     means = [r.get("track_ms_mean") for r in robots if r.get("track_ms_mean") is not None]
     p95s = [r.get("track_ms_p95") for r in robots if r.get("track_ms_p95") is not None]
     track = f"{max(means):.0f} / {max(p95s):.0f}" if means and p95s else "–"
-    bandwidth = (report.get("bandwidth") or {}).get("per_robot_kBps")
     return [
         describe(info),
         info.get("commit") or "–",
@@ -146,7 +163,7 @@ def row(report: dict, info: dict) -> list[str]:
         _num(report.get("loop_closures"), 0),
         track,
         _num(report.get("server_ms_per_keyframe")),
-        _num(bandwidth, 0),
+        _kbps(report),
     ]
 
 
