@@ -266,6 +266,31 @@ def test_outbox_does_not_send_again_what_the_server_received():
     assert box.ack(box.session, 3) == 3 and box.unacked == 0
 
 
+def test_outbox_waits_for_what_is_still_crossing_a_slow_link():
+    """Receipts show the link delivers 8 kB/s: a message goes again only once its bytes and those
+    ahead of it could have crossed (a 32 kB keyframe: 4 s), not every second while its first
+    copy is still on its way; copies say nothing of the rate; without sizes, waits as before."""
+    box = Outbox(resend_after_s=1.0, max_resend_after_s=30.0)
+    box.add("a", now=0.0, nbytes=8000)
+    box.received(box.session, 1, now=1.0)  # 8 kB arrived 1 s after it left
+    assert box.link_Bps == pytest.approx(8000.0)
+    assert box.ack(box.session, 1) == 1
+    box.add("b", now=2.0, nbytes=32000)
+    box.add("c", now=2.0, nbytes=8000)
+    assert box.due(now=3.0) == [] and box.due(now=6.9) == []
+    assert box.due(now=7.0) == ["b"]  # 1 s + 32 kB / 8 kB/s
+    assert box.due(now=8.0) == ["c"]  # 1 s + (32 + 8) kB / 8 kB/s
+    box.received(box.session, 2, now=9.0)  # a copy of b: no new rate
+    assert box.link_Bps == pytest.approx(8000.0)
+    box.received(box.session, 3, now=9.5)  # c, sent twice: neither
+    assert box.link_Bps == pytest.approx(8000.0)
+    plain = Outbox(resend_after_s=1.0)
+    plain.add("x", now=0.0)
+    plain.received(plain.session, 1, now=0.5)
+    plain.add("y", now=1.0)
+    assert plain.link_Bps == 0.0 and plain.due(now=2.0) == ["y"]
+
+
 def test_outbox_backs_off_per_message_while_the_server_lags():
     """The oldest unacknowledged message (the one the server waits for) goes again every 1 s; any
     other 1 s after it was sent, then 2 s, 4 s later (at most the cap); at most resend_window

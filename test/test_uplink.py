@@ -206,6 +206,7 @@ def test_a_restarted_client_continues_above_the_servers_keyframes_and_answers_re
     answered = uplink.answer(request, {2: kf}.get)  # keyframe 33 (odometry's 3) is gone
     assert [(m.kind, m.keyframe_id) for m in answered] == [(KIND_KEYFRAME, 32)]
     assert uplink.answer(request, {2: kf}.get) == []  # latched: answered already
+    assert uplink.keyframes_sent == 1  # keyframe 32, whatever went for it
 
 
 def test_a_message_that_cannot_be_serialized_takes_no_sequence_and_its_next_update_goes_whole(

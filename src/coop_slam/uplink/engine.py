@@ -327,7 +327,7 @@ class ClientUplink:
                 )
                 rec.action = ACTION_NEW
                 going.append((rec, self.planner.answer(rec)))
-            return self._send(going)
+            return self._send(going, answers=True)
 
     def _as_sent(self, rec: KeyframeRecord) -> KeyframeRecord:
         """A record with this client run's keyframe ids and map segments."""
@@ -336,11 +336,14 @@ class ClientUplink:
         rec.map_segment += self.segment_base
         return rec
 
-    def _send(self, going: list[tuple[KeyframeRecord, Outgoing]]) -> list[KeyframeMessage]:
+    def _send(
+        self, going: list[tuple[KeyframeRecord, Outgoing]], answers: bool = False
+    ) -> list[KeyframeMessage]:
         """The messages of records as the planner prepared them, numbered (none while waiting
-        for the server: they go with what the spool kept). A record whose message cannot
-        travel, or that finds no room, is left out and forgotten by the planner (its next
-        update goes whole); no sequence number is used, so the server sees no gap."""
+        for the server: they go with what the spool kept); ``answers``: keyframes the server
+        asked for, sent before (as signatures), so not counted as new again. A record whose
+        message cannot travel, or that finds no room, is left out and forgotten by the planner
+        (its next update goes whole); no sequence number is used, so the server sees no gap."""
         out = []
         for rec, how in going:
             if how.skip:
@@ -362,8 +365,8 @@ class ClientUplink:
                 log.error("keyframe %d not sent: %s", rec.keyframe_id, exc)
                 self.planner.forget([rec.keyframe_id])
                 continue
-            self.outbox.add(msg)
-            self.keyframes_sent += rec.action == ACTION_NEW
+            self.outbox.add(msg, nbytes=len(payload))
+            self.keyframes_sent += rec.action == ACTION_NEW and not answers
             if not self.waiting_for_server:
                 out.append(msg)
         return out

@@ -124,6 +124,13 @@ class Outbox:
     so giving up the oldest would leave a gap it waits at for good, and every later message would
     be held and dropped there.
 
+    Behind a slow radio a message takes seconds to cross (a 30 kB keyframe at 64 kbit/s: 4 s),
+    and one sent again while its first copy is still on its way only queues behind it: the link
+    filled with copies and the newest keyframes never got through. So the wait before a message
+    goes again also counts the time the bytes ahead of it in the link take, at the rate the
+    server's receipts show the link delivers (:meth:`received`; without receipts or sizes, no
+    extra wait).
+
     A restarted client continues the session of the messages it kept on disk (:meth:`restore`)
     or numbers them anew in a session of its own (:meth:`renumber`), see
     :mod:`coop_slam.uplink.spool`."""
@@ -152,18 +159,22 @@ class Outbox:
         self.session = new_session()
         self.sequence = 0  # of the last message
         # sequence -> [message, when it was last sent, the wait before it goes again,
-        #              when the server said it received it (or None)]
+        #              when the server said it received it (or None), its size [bytes],
+        #              how often it was sent, whether its arrival was counted in the rate]
         self._unacked: OrderedDict[int, list] = OrderedDict()
         self.resent = 0
         self._server_session = 0  # the server run acknowledging
+        self.link_Bps = 0.0  # the rate the link delivers, from receipts (0: not known yet)
+        self._last_arrival = float("-inf")
 
     @property
     def full(self) -> bool:
         """No room for another message until the server acknowledges."""
         return len(self._unacked) >= self.max_unacked
 
-    def add(self, message: Any, now: float | None = None) -> tuple[int, int]:
-        """Number a new message (sent now): (session, sequence). OutboxFull when :attr:`full`."""
+    def add(self, message: Any, now: float | None = None, nbytes: int = 0) -> tuple[int, int]:
+        """Number a new message (sent now; ``nbytes`` its size on the wire, 0 = not known):
+        (session, sequence). OutboxFull when :attr:`full`."""
         if self.full:
             raise OutboxFull(
                 f"{len(self._unacked)} messages not acknowledged (max_unacked): the newest is "
@@ -171,7 +182,7 @@ class Outbox:
             )
         now = time.monotonic() if now is None else now
         self.sequence += 1
-        self._unacked[self.sequence] = [message, now, self.resend_after_s, None]
+        self._unacked[self.sequence] = [message, now, self.resend_after_s, None, nbytes, 1, False]
         return self.session, self.sequence
 
     def restore(
@@ -182,7 +193,7 @@ class Outbox:
         now = time.monotonic() if now is None else now
         self.session, self.sequence = session, sequence
         self._unacked = OrderedDict(
-            (int(q), [m, now, self.resend_after_s, None]) for q, m in messages
+            (int(q), [m, now, self.resend_after_s, None, 0, 1, True]) for q, m in messages
         )
 
     def renumber(self, session: int) -> list[tuple[int, Any]]:
@@ -200,6 +211,7 @@ class Outbox:
         now = time.monotonic() if now is None else now
         for entry in self._unacked.values():
             entry[1] = now
+            entry[5] += 1
         return [entry[0] for entry in self._unacked.values()]
 
     def ack(self, session: int, sequence: int) -> int:
@@ -226,24 +238,46 @@ class Outbox:
         holds out of order) or until another server run acknowledges."""
         if session != self.session:
             return
+        now = time.monotonic() if now is None else now
         entry = self._unacked.get(sequence)
         if entry is not None:
-            entry[3] = time.monotonic() if now is None else now
+            entry[3] = now
+            self._measure(entry, now)
+
+    def _measure(self, entry: list, now: float) -> None:
+        """The link's rate from a message that arrived: sent once (a copy's arrival says nothing
+        of when it left), its bytes over the time since it left or since the one before it
+        arrived (messages queue back to back in the link), averaged."""
+        if entry[6]:
+            return
+        entry[6] = True
+        start = max(entry[1], self._last_arrival)
+        self._last_arrival = now
+        if entry[5] != 1 or entry[4] <= 0:
+            return
+        sample = entry[4] / max(now - start, 1e-3)
+        self.link_Bps = sample if self.link_Bps <= 0 else 0.7 * self.link_Bps + 0.3 * sample
 
     def due(self, now: float | None = None) -> list[Any]:
         """The messages to send again now (oldest first), or none."""
         now = time.monotonic() if now is None else now
         out = []
+        ahead = 0  # bytes in the link up to this message (this one included)
         for i, entry in enumerate(self._unacked.values()):
             if len(out) >= self.resend_window:
                 break
             oldest = i == 0  # what the server waits for: never backed off
             if entry[3] is not None and now - entry[3] < self.max_resend_after_s:
                 continue  # the server has it
-            if now - entry[1] >= (self.resend_after_s if oldest else entry[2]):
+            ahead += entry[4]
+            crossing_s = (
+                min(ahead / self.link_Bps, self.max_resend_after_s) if self.link_Bps > 0 else 0.0
+            )
+            if now - entry[1] >= (self.resend_after_s if oldest else entry[2]) + crossing_s:
                 if not oldest:
                     entry[2] = min(2.0 * entry[2], self.max_resend_after_s)
                 entry[1] = now
+                entry[5] += 1
                 out.append(entry[0])
         self.resent += len(out)
         return out
