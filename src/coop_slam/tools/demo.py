@@ -134,6 +134,7 @@ def _run_system(
         _settle(monitor, args.settle, say)
         if team is not None:
             monitor.run.radio_bytes = team.radio_used()
+            team.say_radio(monitor.run.radio_bytes, plan.t1 - plan.t0)
             _add_run_info(out, radio_bytes=monitor.run.radio_bytes)
         _wrap_up(args, plan, system, monitor)
     finally:

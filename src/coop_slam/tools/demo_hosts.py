@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+import time
 from dataclasses import dataclass, field
 
 from .demo_launch import Master, System, start_launch
@@ -43,6 +44,7 @@ class HostsTeam:
     outages: list[tuple[int, float, float]]  # (robot, start s, end s) of data time
     say: object
     radio_start: dict[int, tuple[int, int]] = field(default_factory=dict)
+    wall_start: float = 0.0
     down: set[int] = field(default_factory=set)
     events_done: set[tuple[int, float, bool]] = field(default_factory=set)
     _root_ns: int | None = None
@@ -132,6 +134,19 @@ class HostsTeam:
 
     def count_from_now(self) -> None:
         self.radio_start = {r: self.hosts.radio_bytes(r) for r in self.hosts.robots}
+        self.wall_start = time.monotonic()
+
+    def say_radio(self, used: dict[int, tuple[int, int]], data_s: float) -> None:
+        """What each radio carried, per second of data and of wall time: lock-step playback runs
+        slower (or faster) than the data, and a link's rate limits wall time."""
+        wall_s = time.monotonic() - self.wall_start
+        for r, (sent, received) in used.items():
+            self.say(
+                f"      radio robot_{r}: {sent / 1e3:.0f} kB up, {received / 1e3:.0f} kB down: "
+                f"{sent / 1e3 / max(data_s, 1e-9):.1f} / {received / 1e3 / max(data_s, 1e-9):.1f} "
+                f"kB/s of data time, {sent / 1e3 / wall_s:.1f} / {received / 1e3 / wall_s:.1f} "
+                f"kB/s of wall time ({data_s:.0f} s of data played in {wall_s:.0f} s)"
+            )
 
     def poll(self, elapsed_s: float) -> None:
         """Take links down and up at their outages' data times."""
