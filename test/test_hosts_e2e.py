@@ -87,6 +87,20 @@ def test_a_team_on_hosts_loses_nothing_in_an_outage_and_merges(tmp_path):
         assert robot["radio_down_kBps"] > 0
     assert (out / "run_robot_1.bag").exists() and (out / "run_robot_2.bag").exists()
     assert _namespaces() <= before  # the hosts are gone
+    # scripts/evaluate reads the hosts' bags as one and keeps the radio figures.
+    (out / "report.json").unlink()
+    proc = subprocess.run(
+        [os.path.join(REPO, "scripts", "evaluate"), str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    again = json.loads((out / "report.json").read_text())
+    assert again["groups"] == report["groups"]
+    for a, b in zip(again["robots"], report["robots"]):
+        assert a["radio_up_kBps"] == pytest.approx(b["radio_up_kBps"])
+        assert a["keyframes"] == b["keyframes"] and a["keyframes_lost"] == 0
 
 
 @pytest.mark.slow
