@@ -152,8 +152,11 @@ def main(argv=None) -> int:
         return 0
     out_dir = args.out or os.path.join(_REPO, "results", f"benchmark-{datetime.date.today()}")
     os.makedirs(out_dir, exist_ok=True)
+    no_hosts = _hosts_missing()
     have_data = {
-        e.name: e.needs is None or os.path.isdir(os.path.join(args.data, e.needs)) for e in suite
+        e.name: (e.needs is None or os.path.isdir(os.path.join(args.data, e.needs)))
+        and not (no_hosts and "--hosts" in e.demo.split())
+        for e in suite
     }
     failed = []
     todo = [] if args.table_only else [e for e in chosen if have_data[e.name]]
@@ -177,7 +180,8 @@ def main(argv=None) -> int:
     for e in suite:
         folder = os.path.join(out_dir, e.name)
         if not have_data[e.name]:
-            notes.append(f"`{e.name}`: skipped, no `{e.needs}` in the data folder")
+            why = no_hosts if "--hosts" in e.demo.split() else f"no `{e.needs}` in the data folder"
+            notes.append(f"`{e.name}`: skipped, {why}")
         elif e.name in failed:
             notes.append(f"`{e.name}`: the demo failed")
         elif os.path.isfile(os.path.join(folder, "report.json")):
@@ -188,6 +192,17 @@ def main(argv=None) -> int:
         fh.write(page(rows, notes, args.suite))
     print(f"[benchmark] wrote {args.page}: {len(rows)} of {len(suite)} runs; " + "; ".join(notes))
     return 1 if failed else 0
+
+
+def _hosts_missing() -> str:
+    """Why ``--hosts`` entries cannot run here ("" when they can)."""
+    from .hosts import HostsError, check_available
+
+    try:
+        check_available()
+    except HostsError as exc:
+        return str(exc)
+    return ""
 
 
 if __name__ == "__main__":
