@@ -267,23 +267,23 @@ def test_outbox_does_not_send_again_what_the_server_received():
 
 
 def test_outbox_waits_for_what_is_still_crossing_a_slow_link():
-    """Receipts show the link delivers 8 kB/s: a message goes again only once its bytes and those
-    ahead of it could have crossed (a 32 kB keyframe: 4 s), not every second while its first
-    copy is still on its way; copies say nothing of the rate; without sizes, waits as before."""
+    """Receipts show the link delivers 8 kB/s (what arrived over the last 10 s): a message goes
+    again only once its bytes and those ahead of it could have crossed (a 32 kB keyframe: 4 s),
+    not every second while its first copy is still on its way; without sizes, waits as before."""
     box = Outbox(resend_after_s=1.0, max_resend_after_s=30.0)
-    box.add("a", now=0.0, nbytes=8000)
-    box.received(box.session, 1, now=1.0)  # 8 kB arrived 1 s after it left
-    assert box.link_Bps == pytest.approx(8000.0)
-    assert box.ack(box.session, 1) == 1
-    box.add("b", now=2.0, nbytes=32000)
-    box.add("c", now=2.0, nbytes=8000)
-    assert box.due(now=3.0) == [] and box.due(now=6.9) == []
-    assert box.due(now=7.0) == ["b"]  # 1 s + 32 kB / 8 kB/s
-    assert box.due(now=8.0) == ["c"]  # 1 s + (32 + 8) kB / 8 kB/s
-    box.received(box.session, 2, now=9.0)  # a copy of b: no new rate
-    assert box.link_Bps == pytest.approx(8000.0)
-    box.received(box.session, 3, now=9.5)  # c, sent twice: neither
-    assert box.link_Bps == pytest.approx(8000.0)
+    for k in range(10):  # 8 kB a second for 10 s
+        box.add(f"s{k}", now=float(k), nbytes=8000)
+        box.received(box.session, k + 1, now=float(k) + 0.9)
+        box.ack(box.session, k + 1)
+    box.received(box.session, 10, now=10.0)  # a second receipt of one message counts once
+    assert box.link_Bps == pytest.approx(8000.0, rel=0.15)
+    rate = box.link_Bps
+    box.add("b", now=10.0, nbytes=32000)
+    box.add("c", now=10.0, nbytes=8000)
+    b_due, c_due = 10.0 + 1.0 + 32000 / rate, 10.0 + 1.0 + 40000 / rate
+    assert box.due(now=11.0) == [] and box.due(now=b_due - 0.05) == []
+    assert box.due(now=b_due + 0.01) == ["b"]
+    assert box.due(now=c_due + 0.01) == ["c"]
     plain = Outbox(resend_after_s=1.0)
     plain.add("x", now=0.0)
     plain.received(plain.session, 1, now=0.5)

@@ -14,11 +14,13 @@ taken as it comes.
 from __future__ import annotations
 
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from typing import Any
 
 from ..errors import CoopSlamError
+
+RATE_WINDOW_S = 10.0  # the link's rate: what arrived over this long [s]
 
 UNSEQUENCED = 0
 
@@ -160,12 +162,13 @@ class Outbox:
         self.sequence = 0  # of the last message
         # sequence -> [message, when it was last sent, the wait before it goes again,
         #              when the server said it received it (or None), its size [bytes],
-        #              how often it was sent, whether its arrival was counted in the rate]
+        #              whether its arrival was counted in the link's rate]
         self._unacked: OrderedDict[int, list] = OrderedDict()
         self.resent = 0
         self._server_session = 0  # the server run acknowledging
         self.link_Bps = 0.0  # the rate the link delivers, from receipts (0: not known yet)
-        self._last_arrival = float("-inf")
+        self._arrivals: deque = deque()  # (when, bytes) of messages that arrived, newest last
+        self._first_arrival: float | None = None
 
     @property
     def full(self) -> bool:
@@ -182,7 +185,7 @@ class Outbox:
             )
         now = time.monotonic() if now is None else now
         self.sequence += 1
-        self._unacked[self.sequence] = [message, now, self.resend_after_s, None, nbytes, 1, False]
+        self._unacked[self.sequence] = [message, now, self.resend_after_s, None, nbytes, False]
         return self.session, self.sequence
 
     def restore(
@@ -193,7 +196,7 @@ class Outbox:
         now = time.monotonic() if now is None else now
         self.session, self.sequence = session, sequence
         self._unacked = OrderedDict(
-            (int(q), [m, now, self.resend_after_s, None, 0, 1, True]) for q, m in messages
+            (int(q), [m, now, self.resend_after_s, None, 0, True]) for q, m in messages
         )
 
     def renumber(self, session: int) -> list[tuple[int, Any]]:
@@ -211,7 +214,6 @@ class Outbox:
         now = time.monotonic() if now is None else now
         for entry in self._unacked.values():
             entry[1] = now
-            entry[5] += 1
         return [entry[0] for entry in self._unacked.values()]
 
     def ack(self, session: int, sequence: int) -> int:
@@ -245,18 +247,21 @@ class Outbox:
             self._measure(entry, now)
 
     def _measure(self, entry: list, now: float) -> None:
-        """The link's rate from a message that arrived: sent once (a copy's arrival says nothing
-        of when it left), its bytes over the time since it left or since the one before it
-        arrived (messages queue back to back in the link), averaged."""
-        if entry[6]:
+        """The link's rate: the bytes of the messages that arrived over the last
+        ``RATE_WINDOW_S``. Under load that is what the link delivers; idle, less (waits a little
+        longer: safe). (Each message's own crossing time misled: a radio's token bucket lets a
+        burst of small messages through at once.)"""
+        if entry[5]:
             return
-        entry[6] = True
-        start = max(entry[1], self._last_arrival)
-        self._last_arrival = now
-        if entry[5] != 1 or entry[4] <= 0:
-            return
-        sample = entry[4] / max(now - start, 1e-3)
-        self.link_Bps = sample if self.link_Bps <= 0 else 0.7 * self.link_Bps + 0.3 * sample
+        entry[5] = True
+        if self._first_arrival is None:
+            self._first_arrival = now
+        self._arrivals.append((now, entry[4]))
+        while self._arrivals and self._arrivals[0][0] < now - RATE_WINDOW_S:
+            self._arrivals.popleft()
+        span = min(RATE_WINDOW_S, now - self._first_arrival)
+        total = sum(n for _, n in self._arrivals)
+        self.link_Bps = total / max(span, 1.0) if total > 0 else 0.0
 
     def due(self, now: float | None = None) -> list[Any]:
         """The messages to send again now (oldest first), or none."""
@@ -277,7 +282,6 @@ class Outbox:
                 if not oldest:
                     entry[2] = min(2.0 * entry[2], self.max_resend_after_s)
                 entry[1] = now
-                entry[5] += 1
                 out.append(entry[0])
         self.resent += len(out)
         return out
