@@ -294,6 +294,33 @@ def test_report_pools_the_single_robot_ates_as_a_perfect_stitching_would_score()
     assert report["single_ate_pooled_m"] is None and report["team_ate_rmse_m"] is None
 
 
+def test_low_bandwidth_team_ate_is_over_the_same_keyframes_as_the_robots_own():
+    """The server holds whole (and optimizes) only the keyframes it asked for: the team ATE places
+    the others by the robot's map correction, so it is over every keyframe, as the pooled ATE is
+    (over the two the server holds it read as if the team map were far better than its parts)."""
+    pytest.importorskip("rosbag")
+    from coop_slam.evaluation.run_data import RobotRun, RunData
+    from coop_slam.evaluation.run_report import evaluate_run
+
+    stamps, gt = _circle(40)
+    rng = np.random.default_rng(5)
+    run, gts = RunData(server_stats={"pull": {"held": {"1": 2, "2": 2}}}), {}
+    for rid in (1, 2):
+        est = gt.copy()
+        est[:, :3, 3] += rng.normal(0, 0.01, (40, 3))
+        kfs = {k: (stamps[k], est[k]) for k in range(40)}
+        held = {k: (stamps[k], gt[k]) for k in (5, 30)}  # exact, as if optimized perfectly
+        run.robots[rid] = RobotRun(frames=40, keyframes=kfs, team_keyframes=held)
+        run.robots[rid].T_world_map = np.eye(4)
+        gts[rid] = (stamps, gt)
+    report = evaluate_run(run, gts)
+    assert [r["team_keyframes_optimized"] for r in report["robots"]] == [2, 2]
+    # over all 80 keyframes: about the robots' own error, not the two exact ones' zero
+    assert report["team_ate_rmse_m"] > 0.5 * report["single_ate_pooled_m"]
+    run.server_stats = {}  # the default mode: the server's poses alone
+    assert evaluate_run(run, gts)["team_ate_rmse_m"] < 1e-6
+
+
 def test_report_judges_the_clients_published_path_against_the_truth_and_the_team_map(tmp_path):
     """path_ate_rmse_m: the client's last /robot_k/path (base_link poses, placed at the camera
     by the mount); path_team_gap_m: its keyframes in world against the server's, by stamp."""

@@ -217,6 +217,8 @@ class _RobotResults:
     published: dict = field(default_factory=dict)  # robot -> its client's path (first segment)
     est_world: dict = field(default_factory=dict)  # robot -> its keyframes in world: stamps, poses
     gt_world: dict = field(default_factory=dict)  # ... and their ground truth, where it has some
+    # Low-bandwidth mode: the server holds whole (and optimizes) only the keyframes it asked for.
+    signatures_only: bool = False
 
 
 def evaluate_run(
@@ -243,7 +245,7 @@ def evaluate_run(
     world_groups = run.server_stats.get("groups") or [[rid] for rid in robot_ids]
     world = next((set(g) for g in world_groups if min(robot_ids, default=0) in g), set())
     world_metric = any(sensors[r] != "mono" for r in world)
-    results = _RobotResults()
+    results = _RobotResults(signatures_only=bool(run.server_stats.get("pull")))
     for entry, rid in zip(report["robots"], robot_ids):
         _evaluate_robot(
             entry,
@@ -401,6 +403,11 @@ def _world_estimate(
             ).rmse_m
         except EvaluationError:
             pass
+        entry["team_keyframes_optimized"] = len(ids)
+        if results.signatures_only and r.T_world_map is not None:
+            # The team ATE is compared with the robots' own, over all their keyframes: those the
+            # server holds only as signatures are placed by the robot's map correction.
+            est_world[rid] = _with_corrected(est_world[rid], r, set(ids))
     elif r.T_world_map is not None:  # client poses moved by the latest correction
         est_world[rid] = (stamps, np.einsum("ij,njk->nik", r.T_world_map, poses))
     if rid in est_world and len(stamps_gt):
@@ -410,6 +417,18 @@ def _world_estimate(
                 os.path.join(out_dir, "trajectories", f"robot_{rid}_world.txt"),
                 *est_world[rid],
             )
+
+
+def _with_corrected(server: tuple, r: RobotRun, optimized: set) -> tuple:
+    """``server`` (stamps, poses in world) and the robot's other keyframes moved into world by its
+    latest map correction, in time order."""
+    rest = sorted((stamp, T) for k, (stamp, T) in r.keyframes.items() if k not in optimized)
+    stamps = np.concatenate([server[0], [t for t, _ in rest]])
+    poses = np.concatenate(
+        [server[1], np.array([r.T_world_map @ T for _, T in rest]).reshape(-1, 4, 4)]
+    )
+    order = np.argsort(stamps, kind="stable")
+    return stamps[order], poses[order]
 
 
 def _merge_entries(
