@@ -131,7 +131,7 @@ def _run_system(
         if team is not None:
             team.count_from_now()
         _follow_progress(args, plan, system, monitor, team)
-        _settle(monitor, args.settle, say)
+        _settle(monitor, args.settle, say, team.sending if team is not None else None)
         if team is not None:
             monitor.run.radio_bytes = team.radio_used()
             team.say_radio(monitor.run.radio_bytes, plan.t1 - plan.t0)
@@ -473,10 +473,11 @@ def _follow_progress(
         team.end_outages()
 
 
-def _settle(monitor, settle_s: float, say) -> None:
+def _settle(monitor, settle_s: float, say, sending=None) -> None:
     """After the last frame: wait ``settle_s`` for the last keyframes and merges, and longer (at
     most ``SETTLE_MAX_S``) while the server is still working off keyframes it received (until its
-    stats say idle, or stop changing): a team of eight on two cores leaves it a backlog."""
+    stats say idle, or stop changing): a team of eight on two cores leaves it a backlog; and while
+    ``sending()`` (a slow radio still carries what the robots sent)."""
     t_end = time.monotonic() + settle_s
     t_cap = time.monotonic() + max(settle_s, SETTLE_MAX_S)
     last, changed = None, time.monotonic()
@@ -487,7 +488,8 @@ def _settle(monitor, settle_s: float, say) -> None:
         if stats != last:
             last, changed = stats, now
         idle = bool((monitor.run.server_stats or {}).get("idle"))
-        if now >= t_end and now - changed >= (SETTLE_IDLE_S if idle else SETTLE_QUIET_S):
+        quiet = now - changed >= (SETTLE_IDLE_S if idle else SETTLE_QUIET_S)
+        if now >= t_end and quiet and not (sending is not None and sending()):
             return
         if now >= t_end and not said:
             say("      the server is still working off its queue: waiting for it")

@@ -21,6 +21,9 @@ from .hosts import Hosts, HostsError, LinkConfig
 
 MASTER_PORT = 11311  # the station's own namespace: nothing else listens there
 CLONE_NEWNET = 0x40000000
+# A robot's radio still carries its uplink when it sends more than this between two looks (half a
+# second apart); idle, a robot sends well under 1 kB/s (log lines, TCP).
+SENDING_BYTES = 1000
 
 
 def with_arguments(launch_args: list[str], **overrides) -> list[str]:
@@ -45,6 +48,7 @@ class HostsTeam:
     say: object
     radio_start: dict[int, tuple[int, int]] = field(default_factory=dict)
     wall_start: float = 0.0
+    _last_sent: dict[int, int] = field(default_factory=dict)
     down: set[int] = field(default_factory=set)
     events_done: set[tuple[int, float, bool]] = field(default_factory=set)
     _root_ns: int | None = None
@@ -136,6 +140,13 @@ class HostsTeam:
     def count_from_now(self) -> None:
         self.radio_start = {r: self.hosts.radio_bytes(r) for r in self.hosts.robots}
         self.wall_start = time.monotonic()
+
+    def sending(self) -> bool:
+        """Whether a robot's radio still carries its uplink: it sent more than ``SENDING_BYTES``
+        since the last call (the demo asks every half second)."""
+        now = {r: self.hosts.radio_bytes(r)[0] for r in self.hosts.robots}
+        last, self._last_sent = self._last_sent, now
+        return any(now[r] - last.get(r, 0) > SENDING_BYTES for r in now)
 
     def say_radio(self, used: dict[int, tuple[int, int]], data_s: float) -> None:
         """What each radio carried, per second of data and of wall time: lock-step playback runs
