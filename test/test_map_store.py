@@ -284,6 +284,13 @@ def test_outbox_waits_for_what_is_still_crossing_a_slow_link():
     assert box.due(now=11.0) == [] and box.due(now=b_due - 0.05) == []
     assert box.due(now=b_due + 0.01) == ["b"]
     assert box.due(now=c_due + 0.01) == ["c"]
+    # A queue longer than max_resend_after_s at this rate: the last waits for all of it.
+    for k in range(50):
+        box.add(f"q{k}", now=20.0, nbytes=8000)
+    last_due = 20.0 + 1.0 + (40000 + 50 * 8000) / rate
+    assert last_due > 20.0 + 30.0
+    late = [t for t in np.arange(20.0, last_due + 1.0, 0.5) if "q49" in box.due(now=float(t))]
+    assert late and late[0] >= last_due - 0.5
     plain = Outbox(resend_after_s=1.0)
     plain.add("x", now=0.0)
     plain.received(plain.session, 1, now=0.5)

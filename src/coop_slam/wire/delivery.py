@@ -21,6 +21,10 @@ from typing import Any
 from ..errors import CoopSlamError
 
 RATE_WINDOW_S = 10.0  # the link's rate: what arrived over this long [s]
+# A link slower than what a robot makes queues megabytes: a message behind them cannot arrive for
+# minutes, and sending it again sooner only lengthens the queue. The bound only guards against a
+# rate measured while the link was nearly idle [s].
+MAX_CROSSING_S = 300.0
 
 UNSEQUENCED = 0
 
@@ -275,9 +279,7 @@ class Outbox:
             if entry[3] is not None and now - entry[3] < self.max_resend_after_s:
                 continue  # the server has it
             ahead += entry[4]
-            crossing_s = (
-                min(ahead / self.link_Bps, self.max_resend_after_s) if self.link_Bps > 0 else 0.0
-            )
+            crossing_s = min(ahead / self.link_Bps, MAX_CROSSING_S) if self.link_Bps > 0 else 0.0
             if now - entry[1] >= (self.resend_after_s if oldest else entry[2]) + crossing_s:
                 if not oldest:
                     entry[2] = min(2.0 * entry[2], self.max_resend_after_s)
