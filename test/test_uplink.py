@@ -258,3 +258,62 @@ def test_a_message_that_cannot_be_serialized_takes_no_sequence_and_its_next_upda
     bad = dataclasses.replace(kfs[2], stamp_s=5e9)  # beyond a uint32 stamp: cannot travel
     assert uplink.events([VoEvent(EVENT_KEYFRAME_UPDATE, 0, 9, bad)], 3.0).messages == []
     assert uplink.outbox.sequence == 4 and uplink.unacked == 4
+
+
+def test_a_radio_budget_spreads_what_goes_and_keeps_the_rest_on_the_robot():
+    """A token bucket over data time: 10 new keyframes a second of ~10 kB each against 25 kB/s
+    -- about one in four goes (their updates as the budget allows); the others, with their
+    updates and removals, never reach the server, and are counted."""
+    from coop_slam.uplink.budget import RadioBudget
+    from coop_slam.uplink.engine import ClientUplink
+    from coop_slam.vo.types import EVENT_KEYFRAME_NEW, EVENT_KEYFRAME_UPDATE, VoEvent
+
+    class Sized:  # stands in for the ROS serializer: every message 10 kB
+        def dumps(self, msg):
+            return b"x" * 10_000
+
+        def loads(self, payload):
+            raise AssertionError("not used")
+
+    uplink = ClientUplink(
+        2, UplinkConfig(hold_new_s=0.0, budget_kBps=25.0), T_base_cam=np.eye(4), serializer=Sized()
+    )
+    rec = make_keyframe(n=20, keyframe_id=1)
+    uplink.camera = rec.camera
+    sent_bytes, sent_ids = [], []
+    for k in range(1, 101):  # 10 s of data
+        kf = map_keyframe(dataclasses.replace(rec, keyframe_id=k))
+        events = [VoEvent(EVENT_KEYFRAME_NEW, 0, k, kf)]
+        if k > 1:
+            events.append(VoEvent(EVENT_KEYFRAME_UPDATE, 0, k - 1, kf))
+        t = 0.1 * k
+        step = uplink.events(events, t)
+        for m in step.messages:
+            sent_bytes.append((t, 10_000))
+            if not m.delta:
+                sent_ids.append(m.keyframe_id)
+    total = sum(n for _, n in sent_bytes)
+    assert total <= 25_000 * 10 + 12_500  # the budget, and half a second's burst
+    assert 15 <= len(sent_ids) <= 30
+    assert uplink.planner.held_back == 100 - len(sent_ids)
+    assert uplink.keyframes_sent == len(sent_ids)
+    # spread evenly: no second carries more than the budget and a burst
+    per_s = np.bincount([int(t) for t, _ in sent_bytes], weights=[n for _, n in sent_bytes])
+    assert per_s.max() <= 50_000
+    # no budget: everything goes
+    free = RadioBudget(0.0)
+    assert free.affords("whole", 0.0) and not free.limited
+
+
+def test_a_radio_budget_lets_through_what_the_server_asks_for_and_waits_out_the_debt():
+    from coop_slam.uplink.budget import RadioBudget
+
+    budget = RadioBudget(5.0)  # 5 kB/s, a 2.5 kB bucket, full
+    assert budget.affords("signature", 0.0)  # (the first of a kind needs a full bucket)
+    budget.spend("signature", 2000)
+    budget.spend("whole", 40_000)  # asked for: goes anyway, 39.5 kB in debt
+    assert not budget.affords("signature", 1.0)
+    assert not budget.affords("signature", 8.0)  # 500 bytes after 8 s x 5 kB/s
+    assert budget.affords("signature", 8.4)
+    with pytest.raises(ConfigError, match="budget_kBps"):
+        UplinkConfig(budget_kBps=-1.0).validate()

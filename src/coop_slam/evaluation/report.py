@@ -53,6 +53,8 @@ ROBOT_KEYS = (
     # Delivery: new keyframes this run's clients sent (all their sessions), distinct keyframes in
     # the server's map, and the difference (sent and never stored).
     "keyframes_sent",
+    # ... and the new keyframes its radio budget kept on the robot (uplink.budget_kBps)
+    "keyframes_held_back",
     "keyframes_stored",
     "keyframes_lost",
     # Low-bandwidth mode: keyframes the server asked for whole (the others: signatures only).

@@ -528,6 +528,7 @@ def _server_figures(report: dict, run: RunData, robot_ids: list) -> None:
         r = run.robots.get(rid, RobotRun())
         sent = int(sum(r.keyframes_sent_sessions))
         entry["keyframes_sent"] = sent
+        entry["keyframes_held_back"] = int(sum(r.held_back_sessions))
         entry["keyframes_stored"] = stored.get(str(rid))
         # Sent by this run's clients and never stored (a loaded map's robots sent none now).
         entry["keyframes_lost"] = (
