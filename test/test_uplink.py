@@ -295,25 +295,54 @@ def test_a_radio_budget_spreads_what_goes_and_keeps_the_rest_on_the_robot():
     total = sum(n for _, n in sent_bytes)
     assert total <= 25_000 * 10 + 12_500  # the budget, and half a second's burst
     assert 15 <= len(sent_ids) <= 30
-    assert uplink.planner.held_back == 100 - len(sent_ids)
+    assert uplink.planner.gate.held_back == 100 - len(sent_ids)
     assert uplink.keyframes_sent == len(sent_ids)
     # spread evenly: no second carries more than the budget and a burst
     per_s = np.bincount([int(t) for t, _ in sent_bytes], weights=[n for _, n in sent_bytes])
     assert per_s.max() <= 50_000
     # no budget: everything goes
     free = RadioBudget(0.0)
-    assert free.affords("whole", 0.0) and not free.limited
+    assert free.take("whole", 0.0) == 0.0 and not free.limited
 
 
 def test_a_radio_budget_lets_through_what_the_server_asks_for_and_waits_out_the_debt():
     from coop_slam.uplink.budget import RadioBudget
 
     budget = RadioBudget(5.0)  # 5 kB/s, a 2.5 kB bucket, full
-    assert budget.affords("signature", 0.0)  # (the first of a kind needs a full bucket)
-    budget.spend("signature", 2000)
-    budget.spend("whole", 40_000)  # asked for: goes anyway, 39.5 kB in debt
-    assert not budget.affords("signature", 1.0)
-    assert not budget.affords("signature", 8.0)  # 500 bytes after 8 s x 5 kB/s
-    assert budget.affords("signature", 8.4)
+    charge = budget.take("signature", 0.0)  # the first of a kind: a full bucket
+    assert charge == pytest.approx(2500.0)
+    budget.settle("signature", charge, 2000)  # it cost 2 kB: 500 bytes left
+    budget.settle("whole", 0.0, 40_000)  # asked for: went anyway, 39.5 kB in debt
+    assert budget.take("signature", 1.0) is None
+    assert budget.take("signature", 8.0) is None  # 500 bytes after 8 s x 5 kB/s
+    assert budget.take("signature", 8.4) == pytest.approx(2000.0)  # what one costs now
     with pytest.raises(ConfigError, match="budget_kBps"):
         UplinkConfig(budget_kBps=-1.0).validate()
+
+
+def test_new_keyframes_wait_for_the_budget_in_a_peak_and_stay_on_the_robot_beyond_it():
+    """A peak of keyframes goes a little later; one that waited 2 s stays on the robot, its
+    updates and removal with it; a waiting keyframe's update replaces it; a removal takes it out
+    of the queue unsent and uncounted."""
+    from coop_slam.uplink.budget import BudgetGate, RadioBudget
+
+    gate = BudgetGate(RadioBudget(10.0), "whole", defer_s=2.0)  # 10 kB/s, 5 kB bucket
+    kfs = {k: make_keyframe(n=10, keyframe_id=k, seed=k) for k in range(1, 6)}
+    never = lambda k: False  # noqa: E731
+    (first,) = gate.admit([kfs[1]], 0.0, never)
+    gate.sent(1, "whole", 5000)  # whole keyframes cost 5 kB: one every half second
+    waiting = gate.admit([kfs[2], kfs[3], kfs[4]], 0.1, never)
+    assert waiting == [] and gate.held_back == 3
+    assert [r.keyframe_id for r in gate.admit([], 0.6, never)] == [2]
+    gate.sent(2, "whole", 5000)
+    moved = _moved(kfs[3], ACTION_UPDATE, 0.05)
+    assert gate.admit([moved], 0.7, never) == []  # keyframe 3 waits, now as moved
+    (third,) = gate.admit([], 1.1, never)
+    assert third.action == ACTION_NEW and third.T_map_cam[0, 3] == moved.T_map_cam[0, 3]
+    gate.sent(3, "whole", 5000)
+    assert gate.admit([dataclasses.replace(kfs[4], action=ACTION_REMOVE)], 1.2, never) == []
+    assert gate.held_back == 0  # culled while it waited: never sent, not counted
+    assert gate.admit([kfs[5]], 1.3, never) == []  # the bucket: empty at 1.1, 2 kB at 1.3
+    gate.budget.tokens = -100_000  # a large answer went meanwhile
+    assert gate.admit([], 3.4, never) == [] and gate.held_back == 1  # waited 2.1 s: kept here
+    assert gate.admit([_moved(kfs[5], ACTION_UPDATE, 0.1)], 3.5, never) == []

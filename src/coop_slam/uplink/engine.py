@@ -366,7 +366,7 @@ class ClientUplink:
                 self.planner.forget([rec.keyframe_id])
                 continue
             self.outbox.add(msg, nbytes=len(payload))
-            self.planner.budget.spend(self.planner.kind_of(how), len(payload))
+            self.planner.gate.sent(rec.keyframe_id, self.planner.kind_of(how), len(payload))
             self.keyframes_sent += rec.action == ACTION_NEW and not answers
             if not self.waiting_for_server:
                 out.append(msg)

@@ -20,7 +20,7 @@ from ..wire.observations import (
     split_moves,
 )
 from ..wire.record import ACTION_NEW, ACTION_UPDATE, KeyframeRecord
-from .budget import RadioBudget
+from .budget import BudgetGate, RadioBudget
 from .config import UplinkConfig
 from .holdback import Holdback
 
@@ -62,12 +62,8 @@ class Planner:
     When records go is :class:`Holdback`'s (full mode; in pull mode each goes as it comes):
     :meth:`offer` a record as the odometry makes it, send what it and :meth:`due` return.
 
-    Whether they go at all is the radio budget's (``budget_kBps``, :class:`RadioBudget`): a new
-    keyframe (or its signature) the budget cannot afford is held back for good -- the client
-    keeps tracking on it, the server never hears of it, nor of its updates or removal -- and an
-    update it cannot afford waits for the keyframe's next one (which then carries both). So the
-    keyframes that go are spread evenly over the budget, and each one the server holds is kept
-    up to date as the budget allows. Keyframes the server asks for always go."""
+    Whether they go at all is the radio budget's (``budget_kBps``,
+    :class:`~coop_slam.uplink.budget.BudgetGate`). Keyframes the server asks for always go."""
 
     def __init__(self, config: UplinkConfig | None = None):
         config = config or UplinkConfig()
@@ -81,9 +77,11 @@ class Planner:
             Holdback() if self.pull else Holdback(config.hold_new_s, config.coalesce_updates_s)
         )
         self._held: dict[int, _Held] = {}  # keyframe id -> what the server holds of it
-        self.budget = RadioBudget(config.budget_kBps)
-        self._held_back: set[int] = set()  # new keyframes the budget kept from the server
-        self.held_back = 0  # how many, in all
+        self.gate = BudgetGate(
+            RadioBudget(config.budget_kBps),
+            "signature" if self.pull else "whole",
+            config.budget_defer_s,
+        )
         self._now_s = 0.0  # the latest data time seen
         # Keyframes the server refused, to forget before the next message is prepared (said by
         # the acknowledgement's thread)
@@ -105,28 +103,8 @@ class Planner:
         return self._planned(self.holdback.flush())
 
     def _planned(self, records: list[KeyframeRecord]) -> list[tuple[KeyframeRecord, Outgoing]]:
-        return [(r, self._budgeted(r) or self.prepare(r)) for r in records]
-
-    def _budgeted(self, rec: KeyframeRecord) -> Outgoing | None:
-        """``Outgoing(skip)`` when the budget keeps ``rec`` from the server (see the class);
-        None when it goes (then :meth:`prepare` says how)."""
-        if not self.budget.limited:
-            return None
-        k, skip = rec.keyframe_id, Outgoing(False, skip=True)
-        if rec.action == ACTION_NEW:
-            if self.budget.affords("signature" if self.pull else "whole", self._now_s):
-                return None
-            self._held_back.add(k)
-            self.held_back += 1
-            return skip
-        if k in self._held_back:  # the server never heard of it
-            if rec.action != ACTION_UPDATE:
-                self._held_back.discard(k)
-            return skip
-        if rec.action == ACTION_UPDATE and k in self._held:
-            if not self.budget.affords("delta", self._now_s):
-                return skip  # what the server holds is unchanged: the next update carries it
-        return None
+        admitted = self.gate.admit(records, self._now_s, self._held.__contains__)
+        return [(r, self.prepare(r)) for r in admitted]
 
     @staticmethod
     def kind_of(how: Outgoing) -> str:
