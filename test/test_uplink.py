@@ -344,5 +344,15 @@ def test_new_keyframes_wait_for_the_budget_in_a_peak_and_stay_on_the_robot_beyon
     assert gate.held_back == 0  # culled while it waited: never sent, not counted
     assert gate.admit([kfs[5]], 1.3, never) == []  # the bucket: empty at 1.1, 2 kB at 1.3
     gate.budget.tokens = -100_000  # a large answer went meanwhile
-    assert gate.admit([], 3.4, never) == [] and gate.held_back == 1  # waited 2.1 s: kept here
+    # waited 2.1 s: its place signature goes instead (the server may ask for it whole)
+    assert [r.keyframe_id for r in gate.admit([], 3.4, never)] == [5] and gate.held_back == 1
+    assert gate.signed == {5}
     assert gate.admit([_moved(kfs[5], ACTION_UPDATE, 0.1)], 3.5, never) == []
+    gone = dataclasses.replace(kfs[5], action=ACTION_REMOVE)
+    assert gate.admit([gone], 3.6, never) == [gone] and gate.signed == set()
+    # pull mode: what waited too long is not sent at all, nor anything of it
+    pull = BudgetGate(RadioBudget(1.0), "signature", defer_s=2.0)
+    pull.budget.tokens = -10_000
+    assert pull.admit([kfs[1]], 0.0, never) == [] and pull.admit([], 2.5, never) == []
+    assert pull.held_back == 1 and pull.signed == set()
+    assert pull.admit([dataclasses.replace(kfs[1], action=ACTION_REMOVE)], 2.6, never) == []

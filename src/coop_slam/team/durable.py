@@ -117,15 +117,9 @@ class DurableServer:
         self.server = make_server(config)
         # Before a rebuild: a deferred global BA is in the file as a call of its own.
         self.server.defer_global_ba = defer_global_ba
+        self._pull_settings = (config.pull, config.place_recognition.database, min_consecutive)
         if config.pull.enabled:
-            server = self.server
-
-            def same_group(a: int, b: int) -> bool:
-                return server.groups.same_group(server.current_map(a), server.current_map(b))
-
-            self.pull = PullPlanner(
-                config.pull, config.place_recognition.database, min_consecutive, same_group
-            )
+            self.pull = self._new_pull_planner()
         self.order = {r: InOrder() for r in robots}
         # robot -> keyframe ids whose last message the core refused, newest last (acknowledged
         # with them: the client must not count on the server holding them)
@@ -166,6 +160,25 @@ class DurableServer:
         if self.pull is not None:  # signatures are not stored: only what the server holds
             for mid, kf in self.server.store.keys():
                 self.pull.hold(self.server.robot_of(mid), kf)
+
+    def _new_pull_planner(self) -> PullPlanner:
+        server = self.server
+
+        def same_group(a: int, b: int) -> bool:
+            return server.groups.same_group(server.current_map(a), server.current_map(b))
+
+        return PullPlanner(*self._pull_settings, same_group)
+
+    def _pull_for_signatures(self) -> PullPlanner:
+        """The pull planner, made when the first place signature comes to a server not in
+        low-bandwidth mode (a robot's radio budget sends signatures of the keyframes it holds
+        back): it holds what the server holds, and asks for whole keyframes as in low-bandwidth
+        mode."""
+        if self.pull is None:
+            self.pull = self._new_pull_planner()
+            for mid, kf in self.server.store.keys():
+                self.pull.hold(self.server.robot_of(mid), kf)
+        return self.pull
 
     @property
     def robots(self) -> list[int]:
@@ -240,11 +253,7 @@ class DurableServer:
                 )
             pull = self.pull
             if isinstance(rec, PlaceSignature):
-                if pull is None:
-                    raise MapStoreError(
-                        f"robot {rec.robot_id} sends place signatures (uplink.mode pull), but the "
-                        "server is not in low-bandwidth mode (pull.enabled)"
-                    )
+                pull = self._pull_for_signatures()
                 pull.add(rec.validate(self.server.known_robots), self.clock())
                 self._note_taken(rec.robot_id, rec.keyframe_id, rec.record.map_segment)
                 return []

@@ -68,17 +68,21 @@ class BudgetGate:
 
     A new keyframe (its signature in pull mode) waits in a queue until the budget affords it --
     a short peak of keyframes goes a little later -- and is held back for good once it has waited
-    ``defer_s`` (newer keyframes see what it saw by then): the client keeps tracking on it, the
-    server never hears of it, nor of its updates or its removal. An update of a keyframe the
-    server holds goes when the budget affords it, else waits for the keyframe's next update (which
-    then carries both). Waiting new keyframes go before updates. Records of one keyframe keep
-    their order: a waiting keyframe's update replaces it (it goes as new, as it is then), its
-    removal takes it out of the queue."""
+    ``defer_s`` (newer keyframes see what it saw by then): the client keeps tracking on it; in
+    full mode its place signature goes instead (:attr:`signed`: the server may ask for it whole,
+    its updates do not go, its removal does), in pull mode the server never hears of it. An
+    update of a keyframe the server holds goes when the budget affords it, else waits for the
+    keyframe's next update (which then carries both). Waiting new keyframes go before updates.
+    Records of one keyframe keep their order: a waiting keyframe's update replaces it (it goes
+    as new, as it is then), its removal takes it out of the queue."""
 
     def __init__(self, budget: RadioBudget, new_kind: str, defer_s: float):
         self.budget, self.new_kind, self.defer_s = budget, new_kind, float(defer_s)
         self._waiting: dict[int, tuple[float, KeyframeRecord]] = {}  # oldest first
-        self._given_up: set[int] = set()
+        self._given_up: set[int] = set()  # not sent at all
+        # Sent as place signatures instead (full mode): the server may ask for them whole
+        self.signed: set[int] = set()
+        self.sign = new_kind == "whole"  # (the uplink says when it has no vocabulary for them)
         self._given_up_count = 0
         self._taken: dict[tuple[int, str], float] = {}  # what a message that goes was charged
 
@@ -107,6 +111,10 @@ class BudgetGate:
             elif k in self._given_up:
                 if rec.action != ACTION_UPDATE:
                     self._given_up.discard(k)
+            elif k in self.signed:  # the server has its signature: a removal goes, updates not
+                if rec.action != ACTION_UPDATE:
+                    self.signed.discard(k)
+                    updates.append(rec)
             elif rec.action != ACTION_UPDATE or not server_has(k):
                 updates.append(rec)  # a removal, or an update the planner sends whole
             elif self._take(k, "delta", now_s):
@@ -121,9 +129,18 @@ class BudgetGate:
                 out.append(self._waiting.pop(k)[1])
             elif now_s - since >= self.defer_s:
                 del self._waiting[k]
-                self._given_up.add(k)
                 self._given_up_count += 1
+                if self.sign and self.new_kind == "whole":  # its signature goes (a few kB)
+                    self.signed.add(k)
+                    out.append(rec)
+                else:
+                    self._given_up.add(k)
         return out
+
+    def answered(self, keyframe_id: int) -> None:
+        """The server asked for this keyframe and it went whole: its updates go from now on."""
+        self.signed.discard(keyframe_id)
+        self._given_up.discard(keyframe_id)
 
     def _take(self, keyframe_id: int, kind: str, now_s: float) -> bool:
         charge = self.budget.take(kind, now_s)

@@ -125,7 +125,7 @@ class Planner:
         for k in refused:
             self._held.pop(k, None)
         if rec.action == ACTION_NEW:
-            if self.pull:
+            if self.pull or rec.keyframe_id in self.gate.signed:
                 return Outgoing(False, signature=True)
             refs, descriptors = self._refs(rec)
             self._hold(rec.keyframe_id, rec.static_digest(), rec, descriptors)
@@ -159,8 +159,9 @@ class Planner:
         return Outgoing(True, patched, moves=(moved, moves) if len(moved) else None)
 
     def answer(self, rec: KeyframeRecord) -> Outgoing:
-        """A keyframe the server asked for (pull mode): it goes whole, as new, and its updates
-        from now on."""
+        """A keyframe the server asked for (pull mode, or one the budget sent as a signature):
+        it goes whole, as new, and its updates from now on."""
+        self.gate.answered(rec.keyframe_id)
         self._hold(rec.keyframe_id, rec.static_digest(), rec)
         return Outgoing(False)
 
