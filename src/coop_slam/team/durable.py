@@ -118,6 +118,7 @@ class DurableServer:
         # Before a rebuild: a deferred global BA is in the file as a call of its own.
         self.server.defer_global_ba = defer_global_ba
         self._pull_settings = (config.pull, config.place_recognition.database, min_consecutive)
+        self.config_pull_enabled = config.pull.enabled
         if config.pull.enabled:
             self.pull = self._new_pull_planner()
         self.order = {r: InOrder() for r in robots}
@@ -176,9 +177,16 @@ class DurableServer:
         mode."""
         if self.pull is None:
             self.pull = self._new_pull_planner()
-            for mid, kf in self.server.store.keys():
-                self.pull.hold(self.server.robot_of(mid), kf)
+            for rec in self.server.store.records():
+                self._view_of_whole(rec)
         return self.pull
+
+    def _view_of_whole(self, rec) -> None:
+        """A whole keyframe the server holds, to the pull planner of a server not in low-bandwidth
+        mode (see :meth:`_pull_for_signatures`): held, and a view signatures can match."""
+        self.pull.hold(rec.robot_id, rec.keyframe_id)
+        bow, _ = self.server.vocabulary.transform(rec.descriptors)
+        self.pull.add_view(rec.robot_id, rec.keyframe_id, bow, rec.covisible_ids, self.clock())
 
     @property
     def robots(self) -> list[int]:
@@ -262,9 +270,17 @@ class DurableServer:
                 pull.remove(rec.robot_id, rec.keyframe_id)
                 if not held:
                     return []
-            merges = self.server.add_keyframe(rec)
+            pulled = (
+                pull is not None
+                and not self.config_pull_enabled  # (there the server checks no consistency)
+                and (rec.robot_id, rec.keyframe_id) in pull.pending
+            )
+            merges = self.server.add_keyframe(rec, pulled=pulled)
             if pull is not None and rec.action == ACTION_NEW:
-                pull.hold(rec.robot_id, rec.keyframe_id)
+                if self.config_pull_enabled:
+                    pull.hold(rec.robot_id, rec.keyframe_id)
+                else:  # a budgeted robot's whole keyframe: also a view signatures can match
+                    self._view_of_whole(rec)
             self._note_taken(rec.robot_id, rec.keyframe_id, rec.map_segment)
             if store is not None:
                 store.log_keyframe(rec)
