@@ -296,8 +296,9 @@ def test_report_pools_the_single_robot_ates_as_a_perfect_stitching_would_score()
 
 def test_low_bandwidth_team_ate_is_over_the_same_keyframes_as_the_robots_own():
     """The server holds whole (and optimizes) only the keyframes it asked for: the team ATE places
-    the others by the robot's map correction, so it is over every keyframe, as the pooled ATE is
-    (over the two the server holds it read as if the team map were far better than its parts)."""
+    the others as the server placed their nearest whole keyframe, so it is over every keyframe,
+    as the pooled ATE is (over the two the server holds it read as if the team map were far
+    better than its parts)."""
     pytest.importorskip("rosbag")
     from coop_slam.evaluation.run_data import RobotRun, RunData
     from coop_slam.evaluation.run_report import evaluate_run

@@ -156,11 +156,17 @@ def test_a_pulled_pair_merges_two_robots_that_sent_only_signatures(world, tmp_pa
     assert durable.store.count_inputs() == sum(held.values()) and (1, gone) not in durable.pull.db
 
 
-def test_signatures_to_a_server_not_in_low_bandwidth_mode_or_of_unknown_robots_are_refused(world):
+def test_a_server_not_in_low_bandwidth_mode_takes_signatures_and_refuses_unknown_robots(world):
+    """A robot's radio budget sends signatures of the keyframes it holds back: a server in the
+    default mode then asks for whole keyframes as in low-bandwidth mode, counting on those it
+    holds already."""
     sig = signature_of(world[2][0], world[3])
     plain = DurableServer(team_server_config(), lambda c: TeamServer(c, world[3]), None)
+    whole = dataclasses.replace(world[2][1], keyframe_id=77)
+    assert plain.add_keyframe(whole).taken == 1 and plain.pull is None
     taken = plain.add_keyframe(sig)
-    assert taken.rejected and "not in low-bandwidth mode" in taken.rejected[0]
+    assert taken.taken == 1 and not taken.rejected and plain.pull is not None
+    assert plain.pull.holds(whole.robot_id, 77)
     durable, _ = _pull_server(world)
     stranger = dataclasses.replace(sig, record=dataclasses.replace(sig.record, robot_id=9))
     with pytest.raises((KeyframeError, MapStoreError), match="unknown"):

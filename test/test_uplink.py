@@ -258,3 +258,101 @@ def test_a_message_that_cannot_be_serialized_takes_no_sequence_and_its_next_upda
     bad = dataclasses.replace(kfs[2], stamp_s=5e9)  # beyond a uint32 stamp: cannot travel
     assert uplink.events([VoEvent(EVENT_KEYFRAME_UPDATE, 0, 9, bad)], 3.0).messages == []
     assert uplink.outbox.sequence == 4 and uplink.unacked == 4
+
+
+def test_a_radio_budget_spreads_what_goes_and_keeps_the_rest_on_the_robot():
+    """A token bucket over data time: 10 new keyframes a second of ~10 kB each against 25 kB/s
+    -- about one in four goes (their updates as the budget allows); the others, with their
+    updates and removals, never reach the server, and are counted."""
+    from coop_slam.uplink.budget import RadioBudget
+    from coop_slam.uplink.engine import ClientUplink
+    from coop_slam.vo.types import EVENT_KEYFRAME_NEW, EVENT_KEYFRAME_UPDATE, VoEvent
+
+    class Sized:  # stands in for the ROS serializer: every message 10 kB
+        def dumps(self, msg):
+            return b"x" * 10_000
+
+        def loads(self, payload):
+            raise AssertionError("not used")
+
+    uplink = ClientUplink(
+        2, UplinkConfig(hold_new_s=0.0, budget_kBps=25.0), T_base_cam=np.eye(4), serializer=Sized()
+    )
+    rec = make_keyframe(n=20, keyframe_id=1)
+    uplink.camera = rec.camera
+    sent_bytes, sent_ids = [], []
+    for k in range(1, 101):  # 10 s of data
+        kf = map_keyframe(dataclasses.replace(rec, keyframe_id=k))
+        events = [VoEvent(EVENT_KEYFRAME_NEW, 0, k, kf)]
+        if k > 1:
+            events.append(VoEvent(EVENT_KEYFRAME_UPDATE, 0, k - 1, kf))
+        t = 0.1 * k
+        step = uplink.events(events, t)
+        for m in step.messages:
+            sent_bytes.append((t, 10_000))
+            if not m.delta:
+                sent_ids.append(m.keyframe_id)
+    total = sum(n for _, n in sent_bytes)
+    assert total <= 25_000 * 10 + 12_500  # the budget, and half a second's burst
+    assert 15 <= len(sent_ids) <= 30
+    assert uplink.planner.gate.held_back == 100 - len(sent_ids)
+    assert uplink.keyframes_sent == len(sent_ids)
+    # spread evenly: no second carries more than the budget and a burst
+    per_s = np.bincount([int(t) for t, _ in sent_bytes], weights=[n for _, n in sent_bytes])
+    assert per_s.max() <= 50_000
+    # no budget: everything goes
+    free = RadioBudget(0.0)
+    assert free.take("whole", 0.0) == 0.0 and not free.limited
+
+
+def test_a_radio_budget_lets_through_what_the_server_asks_for_and_waits_out_the_debt():
+    from coop_slam.uplink.budget import RadioBudget
+
+    budget = RadioBudget(5.0)  # 5 kB/s, a 2.5 kB bucket, full
+    charge = budget.take("signature", 0.0)  # the first of a kind: a full bucket
+    assert charge == pytest.approx(2500.0)
+    budget.settle("signature", charge, 2000)  # it cost 2 kB: 500 bytes left
+    budget.settle("whole", 0.0, 40_000)  # asked for: went anyway, 39.5 kB in debt
+    assert budget.take("signature", 1.0) is None
+    assert budget.take("signature", 8.0) is None  # 500 bytes after 8 s x 5 kB/s
+    assert budget.take("signature", 8.4) == pytest.approx(2000.0)  # what one costs now
+    with pytest.raises(ConfigError, match="budget_kBps"):
+        UplinkConfig(budget_kBps=-1.0).validate()
+
+
+def test_new_keyframes_wait_for_the_budget_in_a_peak_and_stay_on_the_robot_beyond_it():
+    """A peak of keyframes goes a little later; one that waited 2 s stays on the robot, its
+    updates and removal with it; a waiting keyframe's update replaces it; a removal takes it out
+    of the queue unsent and uncounted."""
+    from coop_slam.uplink.budget import BudgetGate, RadioBudget
+
+    gate = BudgetGate(RadioBudget(10.0), "whole", defer_s=2.0)  # 10 kB/s, 5 kB bucket
+    kfs = {k: make_keyframe(n=10, keyframe_id=k, seed=k) for k in range(1, 6)}
+    never = lambda k: False  # noqa: E731
+    (first,) = gate.admit([kfs[1]], 0.0, never)
+    gate.sent(1, "whole", 5000)  # whole keyframes cost 5 kB: one every half second
+    waiting = gate.admit([kfs[2], kfs[3], kfs[4]], 0.1, never)
+    assert waiting == [] and gate.held_back == 3
+    assert [r.keyframe_id for r in gate.admit([], 0.6, never)] == [2]
+    gate.sent(2, "whole", 5000)
+    moved = _moved(kfs[3], ACTION_UPDATE, 0.05)
+    assert gate.admit([moved], 0.7, never) == []  # keyframe 3 waits, now as moved
+    (third,) = gate.admit([], 1.1, never)
+    assert third.action == ACTION_NEW and third.T_map_cam[0, 3] == moved.T_map_cam[0, 3]
+    gate.sent(3, "whole", 5000)
+    assert gate.admit([dataclasses.replace(kfs[4], action=ACTION_REMOVE)], 1.2, never) == []
+    assert gate.held_back == 0  # culled while it waited: never sent, not counted
+    assert gate.admit([kfs[5]], 1.3, never) == []  # the bucket: empty at 1.1, 2 kB at 1.3
+    gate.budget.tokens = -100_000  # a large answer went meanwhile
+    # waited 2.1 s: its place signature goes instead (the server may ask for it whole)
+    assert [r.keyframe_id for r in gate.admit([], 3.4, never)] == [5] and gate.held_back == 1
+    assert gate.signed == {5}
+    assert gate.admit([_moved(kfs[5], ACTION_UPDATE, 0.1)], 3.5, never) == []
+    gone = dataclasses.replace(kfs[5], action=ACTION_REMOVE)
+    assert gate.admit([gone], 3.6, never) == [gone] and gate.signed == set()
+    # pull mode: what waited too long is not sent at all, nor anything of it
+    pull = BudgetGate(RadioBudget(1.0), "signature", defer_s=2.0)
+    pull.budget.tokens = -10_000
+    assert pull.admit([kfs[1]], 0.0, never) == [] and pull.admit([], 2.5, never) == []
+    assert pull.held_back == 1 and pull.signed == set()
+    assert pull.admit([dataclasses.replace(kfs[1], action=ACTION_REMOVE)], 2.6, never) == []

@@ -23,9 +23,9 @@ ROBOT_KEYS = (
     # the server's optimized poses of the robot's keyframes, aligned alone like ate_rmse_m
     # (Sim(3) for a monocular robot)
     "server_ate_rmse_m",
-    # ... over how many keyframes (low-bandwidth mode: those the server holds whole; its others
-    # enter the team ATE placed by the robot's map correction, so that team and pooled ATE are
-    # over the same keyframes)
+    # ... over how many keyframes (those the server holds whole, when a robot sends signatures:
+    # its others enter the team ATE placed as the server placed their nearest whole keyframe,
+    # so that team and pooled ATE are over the same keyframes)
     "team_keyframes_optimized",
     # the client's own last published trajectory (/robot_k/path: its keyframes with the team
     # map's corrections, pose-graph sharing), aligned alone like ate_rmse_m
@@ -53,6 +53,8 @@ ROBOT_KEYS = (
     # Delivery: new keyframes this run's clients sent (all their sessions), distinct keyframes in
     # the server's map, and the difference (sent and never stored).
     "keyframes_sent",
+    # ... and the new keyframes its radio budget kept on the robot (uplink.budget_kBps)
+    "keyframes_held_back",
     "keyframes_stored",
     "keyframes_lost",
     # Low-bandwidth mode: keyframes the server asked for whole (the others: signatures only).

@@ -35,6 +35,7 @@ class RobotRun:
     # New keyframes its client sessions sent (a restarted client counts from 0 again), and the
     # keyframe messages not acknowledged by the server at the end
     keyframes_sent_sessions: list = field(default_factory=list)
+    held_back_sessions: list = field(default_factory=list)  # ... and those its budget kept back
     unacked: int = 0
     keyframe_segments: dict = field(default_factory=dict)  # id -> map segment
     # the client's latest /robot_k/path: (keyframe id, stamp_s, T_map_base) per keyframe (id 0:

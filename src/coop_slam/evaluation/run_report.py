@@ -404,9 +404,9 @@ def _world_estimate(
         except EvaluationError:
             pass
         entry["team_keyframes_optimized"] = len(ids)
-        if results.signatures_only and r.T_world_map is not None:
+        if results.signatures_only:
             # The team ATE is compared with the robots' own, over all their keyframes: those the
-            # server holds only as signatures are placed by the robot's map correction.
+            # server holds only as signatures are placed as it places their neighbours.
             est_world[rid] = _with_corrected(est_world[rid], r, set(ids))
     elif r.T_world_map is not None:  # client poses moved by the latest correction
         est_world[rid] = (stamps, np.einsum("ij,njk->nik", r.T_world_map, poses))
@@ -420,15 +420,24 @@ def _world_estimate(
 
 
 def _with_corrected(server: tuple, r: RobotRun, optimized: set) -> tuple:
-    """``server`` (stamps, poses in world) and the robot's other keyframes moved into world by its
-    latest map correction, in time order."""
-    rest = sorted((stamp, T) for k, (stamp, T) in r.keyframes.items() if k not in optimized)
-    stamps = np.concatenate([server[0], [t for t, _ in rest]])
-    poses = np.concatenate(
-        [server[1], np.array([r.T_world_map @ T for _, T in rest]).reshape(-1, 4, 4)]
-    )
+    """``server`` (stamps, poses in world of the keyframes the server optimized) and the robot's
+    other keyframes, each placed as the team map places its nearest optimized keyframe (by
+    time), in time order."""
+    held = sorted(k for k in optimized if k in r.keyframes)
+    rest = sorted(k for k in r.keyframes if k not in optimized)
+    if not held or not rest:
+        return server
+    held_s = np.array([r.keyframes[k][0] for k in held])
+    stamps, poses = list(server[0]), list(server[1])
+    for k in rest:
+        stamp, T_map_cam = r.keyframes[k]
+        near = held[int(np.argmin(np.abs(held_s - stamp)))]
+        T_world_near = r.team_keyframes[near][1]
+        T_world_map = T_world_near @ np.linalg.inv(r.keyframes[near][1])
+        stamps.append(stamp)
+        poses.append(T_world_map @ T_map_cam)
     order = np.argsort(stamps, kind="stable")
-    return stamps[order], poses[order]
+    return np.asarray(stamps)[order], np.asarray(poses).reshape(-1, 4, 4)[order]
 
 
 def _merge_entries(
@@ -528,6 +537,7 @@ def _server_figures(report: dict, run: RunData, robot_ids: list) -> None:
         r = run.robots.get(rid, RobotRun())
         sent = int(sum(r.keyframes_sent_sessions))
         entry["keyframes_sent"] = sent
+        entry["keyframes_held_back"] = int(sum(r.held_back_sessions))
         entry["keyframes_stored"] = stored.get(str(rid))
         # Sent by this run's clients and never stored (a loaded map's robots sent none now).
         entry["keyframes_lost"] = (

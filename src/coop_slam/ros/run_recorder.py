@@ -109,10 +109,13 @@ class RunRecorder:
         r.frames += frame
         self.newest_frame_s = max(self.newest_frame_s, msg.header.stamp.to_sec())
         sent = int(getattr(msg, "keyframes_sent", 0))
+        held_back = int(getattr(msg, "keyframes_held_back", 0))  # not in older bags
         if not r.keyframes_sent_sessions or sent < r.keyframes_sent_sessions[-1]:
             r.keyframes_sent_sessions.append(sent)  # the first, or a restarted client
+            r.held_back_sessions.append(held_back)
         else:
             r.keyframes_sent_sessions[-1] = sent
+            r.held_back_sessions[-1] = held_back
         r.unacked = int(getattr(msg, "unacked", 0))
         backlog = int(getattr(msg, "mapping_backlog", 0))
         r.mapping_backlog_max = max(r.mapping_backlog_max, backlog)

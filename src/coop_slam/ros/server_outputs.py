@@ -76,13 +76,14 @@ class RosServerOutputs(ServerOutputs):
                 self.pub_ack[r] = rospy.Publisher(
                     f"/robot_{r}/keyframe_ack", self._msgs["Ack"], queue_size=5, latch=True
                 )
-                if self.low_bandwidth:
-                    self.pub_request[r] = rospy.Publisher(
-                        f"/robot_{r}/keyframe_request",
-                        self._KeyframeRequest,
-                        queue_size=10,
-                        latch=True,
-                    )
+                # Any robot may send place signatures (low-bandwidth mode, or what its radio
+                # budget held back), and the server then asks for whole keyframes.
+                self.pub_request[r] = rospy.Publisher(
+                    f"/robot_{r}/keyframe_request",
+                    self._KeyframeRequest,
+                    queue_size=10,
+                    latch=True,
+                )
         if self.on_robots is not None:
             self.on_robots(robot_ids)
 

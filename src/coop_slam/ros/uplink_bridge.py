@@ -123,7 +123,7 @@ class UplinkBridge:
         self.pub = rospy.Publisher(f"{ns}/keyframes", KeyframeMessage, queue_size=200)
         self._publish_lock = threading.Lock()  # the tracking and resend threads both publish
         self.server_wait_s = server_wait_s
-        if self.engine.pull:
+        if self.engine.signatures:
             self.engine.vocabulary = server_vocabulary(name, server_wait_s)
             self.sub_request = rospy.Subscriber(
                 f"{ns}/keyframe_request", KeyframeRequestRos, self._on_request, queue_size=10

@@ -117,15 +117,10 @@ class DurableServer:
         self.server = make_server(config)
         # Before a rebuild: a deferred global BA is in the file as a call of its own.
         self.server.defer_global_ba = defer_global_ba
+        self._pull_settings = (config.pull, config.place_recognition.database, min_consecutive)
+        self.config_pull_enabled = config.pull.enabled
         if config.pull.enabled:
-            server = self.server
-
-            def same_group(a: int, b: int) -> bool:
-                return server.groups.same_group(server.current_map(a), server.current_map(b))
-
-            self.pull = PullPlanner(
-                config.pull, config.place_recognition.database, min_consecutive, same_group
-            )
+            self.pull = self._new_pull_planner()
         self.order = {r: InOrder() for r in robots}
         # robot -> keyframe ids whose last message the core refused, newest last (acknowledged
         # with them: the client must not count on the server holding them)
@@ -166,6 +161,32 @@ class DurableServer:
         if self.pull is not None:  # signatures are not stored: only what the server holds
             for mid, kf in self.server.store.keys():
                 self.pull.hold(self.server.robot_of(mid), kf)
+
+    def _new_pull_planner(self) -> PullPlanner:
+        server = self.server
+
+        def same_group(a: int, b: int) -> bool:
+            return server.groups.same_group(server.current_map(a), server.current_map(b))
+
+        return PullPlanner(*self._pull_settings, same_group)
+
+    def _pull_for_signatures(self) -> PullPlanner:
+        """The pull planner, made when the first place signature comes to a server not in
+        low-bandwidth mode (a robot's radio budget sends signatures of the keyframes it holds
+        back): it holds what the server holds, and asks for whole keyframes as in low-bandwidth
+        mode."""
+        if self.pull is None:
+            self.pull = self._new_pull_planner()
+            for rec in self.server.store.records():
+                self._view_of_whole(rec)
+        return self.pull
+
+    def _view_of_whole(self, rec) -> None:
+        """A whole keyframe the server holds, to the pull planner of a server not in low-bandwidth
+        mode (see :meth:`_pull_for_signatures`): held, and a view signatures can match."""
+        self.pull.hold(rec.robot_id, rec.keyframe_id)
+        bow, _ = self.server.vocabulary.transform(rec.descriptors)
+        self.pull.add_view(rec.robot_id, rec.keyframe_id, bow, rec.covisible_ids, self.clock())
 
     @property
     def robots(self) -> list[int]:
@@ -240,11 +261,7 @@ class DurableServer:
                 )
             pull = self.pull
             if isinstance(rec, PlaceSignature):
-                if pull is None:
-                    raise MapStoreError(
-                        f"robot {rec.robot_id} sends place signatures (uplink.mode pull), but the "
-                        "server is not in low-bandwidth mode (pull.enabled)"
-                    )
+                pull = self._pull_for_signatures()
                 pull.add(rec.validate(self.server.known_robots), self.clock())
                 self._note_taken(rec.robot_id, rec.keyframe_id, rec.record.map_segment)
                 return []
@@ -253,9 +270,17 @@ class DurableServer:
                 pull.remove(rec.robot_id, rec.keyframe_id)
                 if not held:
                     return []
-            merges = self.server.add_keyframe(rec)
+            pulled = (
+                pull is not None
+                and not self.config_pull_enabled  # (there the server checks no consistency)
+                and (rec.robot_id, rec.keyframe_id) in pull.pending
+            )
+            merges = self.server.add_keyframe(rec, pulled=pulled)
             if pull is not None and rec.action == ACTION_NEW:
-                pull.hold(rec.robot_id, rec.keyframe_id)
+                if self.config_pull_enabled:
+                    pull.hold(rec.robot_id, rec.keyframe_id)
+                else:  # a budgeted robot's whole keyframe: also a view signatures can match
+                    self._view_of_whole(rec)
             self._note_taken(rec.robot_id, rec.keyframe_id, rec.map_segment)
             if store is not None:
                 store.log_keyframe(rec)

@@ -59,10 +59,15 @@ class PlaceRecognition:
         self.verifications = 0
 
     def query(
-        self, rec: KeyframeRecord, bow: BowVector, covisible: list[KeyframeKey]
+        self,
+        rec: KeyframeRecord,
+        bow: BowVector,
+        covisible: list[KeyframeKey],
+        consistent_already: bool = False,
     ) -> PlaceMatches:
         """Consistent candidates of a new keyframe; those in other groups verified, best first,
-        within ``max_verifications``."""
+        within ``max_verifications``. ``consistent_already``: the query's candidates passed a
+        consistency check elsewhere (a keyframe the pull planner asked for)."""
         rb, key_b = rec.map_id, rec.key
         candidates = [
             c
@@ -79,7 +84,10 @@ class PlaceRecognition:
                 and rec.stamp_s - self.store.stamp(c.key) < self.loops.min_separation_s
             )
         ]
-        consistent = self.consistency.check(rb, candidates, self.store.database)
+        if consistent_already:
+            consistent = [c.key for c in candidates]
+        else:
+            consistent = self.consistency.check(rb, candidates, self.store.database)
         cross = [k for k in consistent if not self.groups.same_group(k[0], rb)]
         found = PlaceMatches(inner=[k for k in consistent if self.groups.same_group(k[0], rb)])
         for k in cross:

@@ -82,24 +82,30 @@ class PullPlanner:
     # --- inputs -----------------------------------------------------------------------------------
     def add(self, sig: PlaceSignature, now_s: float) -> list[RobotKey]:
         """One new keyframe's signature; returns the keyframes this asks for (maybe none)."""
-        self.expire(now_s)
         rec = sig.record
-        robot, kf = int(rec.robot_id), int(rec.keyframe_id)
+        return self.add_view(rec.robot_id, rec.keyframe_id, sig.bow, rec.covisible_ids, now_s)
+
+    def add_view(self, robot: int, kf: int, bow, covisible_ids, now_s: float) -> list[RobotKey]:
+        """A new keyframe's view: from its signature, or (a robot whose budget sends some whole,
+        some as signatures) a whole keyframe the server holds, so that a signature can match it
+        and a whole keyframe can find a signature; returns the keyframes this asks for."""
+        self.expire(now_s)
+        robot, kf = int(robot), int(kf)
         key = (robot, kf)
         if key in self.db:
-            return []  # sent again (a restarted delivery): nothing new
-        covisible = [(robot, int(c)) for c in rec.covisible_ids]
+            return []  # sent again (a restarted delivery), or asked for: nothing new
+        covisible = [(robot, int(c)) for c in covisible_ids]
         # How alike two views of one place look here: the query and the robot's previous keyframe.
         previous = self._last.get(robot)
         floor = 0.0
         if previous is not None and previous in self.db:
-            floor = self.config.min_score_ratio * l1_score(sig.bow, self.db.bow(*previous))
+            floor = self.config.min_score_ratio * l1_score(bow, self.db.bow(*previous))
         self._last[robot] = key
-        self.db.add(robot, kf, sig.bow, covisible)
+        self.db.add(robot, kf, bow, covisible)
         gap = self.config.loop_min_keyframes
         candidates = [
             c
-            for c in self.db.query(sig.bow, robot, kf, covisible, other_robots_only=False)
+            for c in self.db.query(bow, robot, kf, covisible, other_robots_only=False)
             if (c.key[0] != robot or abs(c.key[1] - kf) >= gap) and c.score >= floor
         ]
         consistent = set(self.consistency.check(robot, candidates, self.db))

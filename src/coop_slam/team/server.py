@@ -138,8 +138,10 @@ class TeamServer:
         )
 
     # --- keyframes --------------------------------------------------------------------------------
-    def add_keyframe(self, rec: KeyframeRecord) -> list[MergeResult]:
-        """Store (or update / remove) one keyframe; returns the merges it caused."""
+    def add_keyframe(self, rec: KeyframeRecord, pulled: bool = False) -> list[MergeResult]:
+        """Store (or update / remove) one keyframe; returns the merges it caused. ``pulled``: a
+        keyframe the server asked for, whose place the pull planner found consistent already
+        (its place recognition verifies at once)."""
         t0 = time.perf_counter()
         self.map_moved = False
         rec.validate(self.known_robots)
@@ -171,7 +173,7 @@ class TeamServer:
                 [int(k) for k in rec.covisible_ids],
             )
             self._kf_count[rec.map_id] = self._kf_count.get(rec.map_id, 0) + 1
-            merges = self._stitch(rec, bow, covisible)
+            merges = self._stitch(rec, bow, covisible, pulled)
         if self.scale_keeper.apply_due():
             self.stitcher.need_full = True
         if rec.action == ACTION_UPDATE:
@@ -247,7 +249,7 @@ class TeamServer:
         two)."""
         return sorted({tuple(sorted({self.robot_of(m) for m in g})) for g in self.groups.groups()})
 
-    def _stitch(self, rec: KeyframeRecord, bow, covisible) -> list[MergeResult]:
+    def _stitch(self, rec: KeyframeRecord, bow, covisible, pulled: bool) -> list[MergeResult]:
         """A new keyframe through the stitching stages: rendezvous (automatic, then open
         requests), then place recognition; the first that merges ends it."""
         rdv = self.rendezvous
@@ -261,7 +263,7 @@ class TeamServer:
                 return merges
         merges = []
         if self.config.place_recognition.enabled:
-            merges = self._place_recognition(rec, bow, covisible)
+            merges = self._place_recognition(rec, bow, covisible, pulled)
         if not merges:
             self._overlap_link(rec)
         return merges
@@ -283,10 +285,12 @@ class TeamServer:
             if v is not None:
                 self.stitcher.add_constraint(v)
 
-    def _place_recognition(self, rec: KeyframeRecord, bow, covisible) -> list[MergeResult]:
+    def _place_recognition(
+        self, rec: KeyframeRecord, bow, covisible, pulled: bool
+    ) -> list[MergeResult]:
         """Matches in other groups become merges (in the order the merge plan gives); consistent
         candidates inside the own group are verified as loop closures / further links."""
-        found = self.place_recognition.query(rec, bow, covisible)
+        found = self.place_recognition.query(rec, bow, covisible, consistent_already=pulled)
         for v in found.cross:
             v.kind = self.rendezvous.kind_of(v)
         merges = self._merge_verified(found.cross)

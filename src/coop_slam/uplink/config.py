@@ -46,6 +46,14 @@ class UplinkConfig:
     # How many of the keyframes the server holds are searched for a new keyframe's map points:
     # its covisible ones first, then the newest.
     ref_keyframes: int = 32
+    # The robot's radio budget [kB/s of data time]: new keyframes (signatures in pull mode) and
+    # updates go only as far as it reaches, spread evenly (a token bucket of half a second's worth);
+    # the rest stay on the robot (coop_slam.uplink.budget). Keyframes the server asks for always
+    # go. 0 = no budget.
+    budget_kBps: float = 0.0
+    # ... a new keyframe the budget cannot afford waits this long for it, then stays on the robot
+    # (newer keyframes see what it saw by then) [s of data time]
+    budget_defer_s: float = 2.0
     # Wall-clock seconds without a camera frame after which whatever is held goes (the camera
     # stopped, or the run ended).
     idle_flush_s: float = 2.0
@@ -56,6 +64,8 @@ class UplinkConfig:
         require(self.hold_new_s >= 0, "uplink.hold_new_s must be >= 0 [s]")
         require(self.coalesce_updates_s >= 0, "uplink.coalesce_updates_s must be >= 0 [s]")
         require(self.idle_flush_s > 0, "uplink.idle_flush_s must be > 0 [s]")
+        require(self.budget_kBps >= 0, "uplink.budget_kBps must be >= 0 [kB/s]")
+        require(self.budget_defer_s >= 0, "uplink.budget_defer_s must be >= 0 [s]")
         require(
             0 <= self.share_max_bits <= 8 * DESCRIPTOR_BYTES,
             f"uplink.share_max_bits must be in [0, {8 * DESCRIPTOR_BYTES}]",

@@ -102,6 +102,7 @@ class ClientUplink:
         self.T_base_cam = np.eye(4) if T_base_cam is None else T_base_cam
         self.planner = Planner(config)
         self.outbox = Outbox(**vars(delivery or DeliveryConfig()))
+        self._vocabulary = None
         self.vocabulary = vocabulary
         self.camera: CameraModel | None = None  # the odometry's, set by the client
         # A restarted client continues above the keyframe ids and map segments the server
@@ -123,6 +124,22 @@ class ClientUplink:
             self._kept = self._restore(spool)
         # Messages a spool kept: the server must say which session it knows before any goes.
         self.waiting_for_server = bool(self._kept.messages)
+
+    @property
+    def vocabulary(self):
+        """The server's vocabulary: place signatures name its words (pull mode, and the keyframes
+        a radio budget holds back in full mode; without it, those are not sent at all)."""
+        return self._vocabulary
+
+    @vocabulary.setter
+    def vocabulary(self, vocabulary) -> None:
+        self._vocabulary = vocabulary
+        self.planner.gate.sign = vocabulary is not None
+
+    @property
+    def signatures(self) -> bool:
+        """Whether this uplink may send place signatures (and answer the server's requests)."""
+        return self.pull or self.planner.gate.budget.limited
 
     @property
     def pull(self) -> bool:
@@ -366,6 +383,7 @@ class ClientUplink:
                 self.planner.forget([rec.keyframe_id])
                 continue
             self.outbox.add(msg, nbytes=len(payload))
+            self.planner.gate.sent(rec.keyframe_id, self.planner.kind_of(how), len(payload))
             self.keyframes_sent += rec.action == ACTION_NEW and not answers
             if not self.waiting_for_server:
                 out.append(msg)

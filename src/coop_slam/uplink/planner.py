@@ -20,6 +20,7 @@ from ..wire.observations import (
     split_moves,
 )
 from ..wire.record import ACTION_NEW, ACTION_UPDATE, KeyframeRecord
+from .budget import BudgetGate, RadioBudget
 from .config import UplinkConfig
 from .holdback import Holdback
 
@@ -59,7 +60,10 @@ class Planner:
     server refused (:meth:`forget`, from its acknowledgement) is no longer counted on.
 
     When records go is :class:`Holdback`'s (full mode; in pull mode each goes as it comes):
-    :meth:`offer` a record as the odometry makes it, send what it and :meth:`due` return."""
+    :meth:`offer` a record as the odometry makes it, send what it and :meth:`due` return.
+
+    Whether they go at all is the radio budget's (``budget_kBps``,
+    :class:`~coop_slam.uplink.budget.BudgetGate`). Keyframes the server asks for always go."""
 
     def __init__(self, config: UplinkConfig | None = None):
         config = config or UplinkConfig()
@@ -73,6 +77,12 @@ class Planner:
             Holdback() if self.pull else Holdback(config.hold_new_s, config.coalesce_updates_s)
         )
         self._held: dict[int, _Held] = {}  # keyframe id -> what the server holds of it
+        self.gate = BudgetGate(
+            RadioBudget(config.budget_kBps),
+            "signature" if self.pull else "whole",
+            config.budget_defer_s,
+        )
+        self._now_s = 0.0  # the latest data time seen
         # Keyframes the server refused, to forget before the next message is prepared (said by
         # the acknowledgement's thread)
         self._refused: set[int] = set()
@@ -80,15 +90,26 @@ class Planner:
 
     def offer(self, rec: KeyframeRecord, now_s: float) -> list[tuple[KeyframeRecord, Outgoing]]:
         """A record the odometry made at data time ``now_s``: what goes now, and how."""
-        return [(r, self.prepare(r)) for r in self.holdback.offer(rec, now_s)]
+        self._now_s = max(self._now_s, now_s)
+        return self._planned(self.holdback.offer(rec, now_s))
 
     def due(self, now_s: float) -> list[tuple[KeyframeRecord, Outgoing]]:
         """The held records that go at data time ``now_s``, and how."""
-        return [(r, self.prepare(r)) for r in self.holdback.due(now_s)]
+        self._now_s = max(self._now_s, now_s)
+        return self._planned(self.holdback.due(now_s))
 
     def flush(self) -> list[tuple[KeyframeRecord, Outgoing]]:
         """Every held record, and how it goes."""
-        return [(r, self.prepare(r)) for r in self.holdback.flush()]
+        return self._planned(self.holdback.flush())
+
+    def _planned(self, records: list[KeyframeRecord]) -> list[tuple[KeyframeRecord, Outgoing]]:
+        admitted = self.gate.admit(records, self._now_s, self._held.__contains__)
+        return [(r, self.prepare(r)) for r in admitted]
+
+    @staticmethod
+    def kind_of(how: Outgoing) -> str:
+        """The budget's kind of a message that goes ``how``."""
+        return "signature" if how.signature else "delta" if how.delta else "whole"
 
     def forget(self, keyframe_ids) -> None:
         """The server refused these keyframes' last messages: it does not hold them as this
@@ -104,7 +125,7 @@ class Planner:
         for k in refused:
             self._held.pop(k, None)
         if rec.action == ACTION_NEW:
-            if self.pull:
+            if self.pull or rec.keyframe_id in self.gate.signed:
                 return Outgoing(False, signature=True)
             refs, descriptors = self._refs(rec)
             self._hold(rec.keyframe_id, rec.static_digest(), rec, descriptors)
@@ -138,8 +159,9 @@ class Planner:
         return Outgoing(True, patched, moves=(moved, moves) if len(moved) else None)
 
     def answer(self, rec: KeyframeRecord) -> Outgoing:
-        """A keyframe the server asked for (pull mode): it goes whole, as new, and its updates
-        from now on."""
+        """A keyframe the server asked for (pull mode, or one the budget sent as a signature):
+        it goes whole, as new, and its updates from now on."""
+        self.gate.answered(rec.keyframe_id)
         self._hold(rec.keyframe_id, rec.static_digest(), rec)
         return Outgoing(False)
 
