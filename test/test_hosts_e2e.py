@@ -6,6 +6,7 @@ inside the namespaces the demo makes."""
 
 import json
 import os
+import re
 import signal
 import subprocess
 import time
@@ -30,9 +31,17 @@ needs_hosts = pytest.mark.skipif(bool(_available()), reason=_available() or "ok"
 DEMO = os.path.join(REPO, "scripts", "demo")
 
 
-def _namespaces() -> set[str]:
+def _namespaces(prefix: str = "") -> set[str]:
     out = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
-    return {line.split()[0] for line in out.splitlines() if line.strip()}
+    names = {line.split()[0] for line in out.splitlines() if line.strip()}
+    return {n for n in names if n.startswith(prefix)}
+
+
+def _prefix(log: str) -> str:
+    """The namespaces' prefix the demo says it made (other runs on this machine have others)."""
+    m = re.search(r"network namespaces (\S+)_\*", log)
+    assert m, log[-2000:]
+    return m.group(1) + "_"
 
 
 def test_outages_and_launch_arguments_are_read():
@@ -52,7 +61,6 @@ def test_hosts_options_need_hosts():
 @pytest.mark.slow
 @needs_hosts
 def test_a_team_on_hosts_loses_nothing_in_an_outage_and_merges(tmp_path):
-    before = _namespaces()
     out = tmp_path / "out"
     # The team world's first 30 s: the maps merge at ~24.5 s by place recognition; robot 2's link
     # is down from 15 s to 25 s, so what it found meanwhile reaches the server afterwards.
@@ -86,7 +94,7 @@ def test_a_team_on_hosts_loses_nothing_in_an_outage_and_merges(tmp_path):
         assert robot["radio_up_kBps"] > robot["uplink_kBps"] > 0
         assert robot["radio_down_kBps"] > 0
     assert (out / "run_robot_1.bag").exists() and (out / "run_robot_2.bag").exists()
-    assert _namespaces() <= before  # the hosts are gone
+    assert not _namespaces(_prefix(proc.stdout))  # the hosts are gone
     # scripts/evaluate reads the hosts' bags as one and keeps the radio figures.
     (out / "report.json").unlink()
     proc = subprocess.run(
@@ -106,7 +114,6 @@ def test_a_team_on_hosts_loses_nothing_in_an_outage_and_merges(tmp_path):
 @pytest.mark.slow
 @needs_hosts
 def test_an_interrupted_hosts_run_removes_its_hosts(tmp_path):
-    before = _namespaces()
     proc = subprocess.Popen(
         [
             DEMO,
@@ -124,15 +131,17 @@ def test_an_interrupted_hosts_run_removes_its_hosts(tmp_path):
         text=True,
     )
     try:
-        deadline = time.monotonic() + 600
+        deadline, said = time.monotonic() + 600, ""
         for line in proc.stdout:
+            said += line
             if "sim time" in line or time.monotonic() > deadline:
                 break
-        assert _namespaces() - before, "the run made no hosts"
+        prefix = _prefix(said)
+        assert _namespaces(prefix), "the run made no hosts"
         proc.send_signal(signal.SIGTERM)
         proc.wait(120)
     finally:
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 130
-    assert _namespaces() <= before
+    assert not _namespaces(prefix)

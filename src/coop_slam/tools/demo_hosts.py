@@ -63,7 +63,8 @@ class HostsTeam:
         hosts.make()
         rate = f"{args.link_rate:g} kbit/s each way" if args.link_rate else "no rate limit"
         say(
-            f"      hosts: station {hosts.station.radio_ip} (master, server), "
+            f"      hosts (network namespaces {hosts.prefix}_*): station "
+            f"{hosts.station.radio_ip} (master, server), "
             + ", ".join(f"robot_{r} {h.radio_ip}" for r, h in hosts.robots.items())
             + f"; radio links: {rate}"
         )
