@@ -284,13 +284,21 @@ def test_outbox_waits_for_what_is_still_crossing_a_slow_link():
     assert box.due(now=11.0) == [] and box.due(now=b_due - 0.05) == []
     assert box.due(now=b_due + 0.01) == ["b"]
     assert box.due(now=c_due + 0.01) == ["c"]
-    # A queue longer than max_resend_after_s at this rate: the last waits for all of it.
+    # A queue longer than max_resend_after_s at this rate: the last waits for all of it, the
+    # copies of b and c that went meanwhile included.
     for k in range(50):
         box.add(f"q{k}", now=20.0, nbytes=8000)
-    last_due = 20.0 + 1.0 + (40000 + 50 * 8000) / rate
+    last_due = 20.0 + 1.0 + (2 * 40000 + 50 * 8000) / rate
     assert last_due > 20.0 + 30.0
     late = [t for t in np.arange(20.0, last_due + 1.0, 0.5) if "q49" in box.due(now=float(t))]
     assert late and late[0] >= last_due - 0.5
+    # A message the link went past (a later one arrived) was lost: it goes again at once.
+    lossy = Outbox(resend_after_s=1.0, max_resend_after_s=30.0)
+    for k in range(10):
+        lossy.add(f"m{k}", now=float(k), nbytes=8000)
+        if k != 5:  # m5 lost on the way
+            lossy.received(lossy.session, k + 1, now=float(k) + 0.9)
+    assert lossy.link_Bps > 0 and lossy.due(now=10.0) == ["m5"]
     plain = Outbox(resend_after_s=1.0)
     plain.add("x", now=0.0)
     plain.received(plain.session, 1, now=0.5)

@@ -132,10 +132,12 @@ class Outbox:
 
     Behind a slow radio a message takes seconds to cross (a 30 kB keyframe at 64 kbit/s: 4 s),
     and one sent again while its first copy is still on its way only queues behind it: the link
-    filled with copies and the newest keyframes never got through. So the wait before a message
-    goes again also counts the time the bytes ahead of it in the link take, at the rate the
-    server's receipts show the link delivers (:meth:`received`; without receipts or sizes, no
-    extra wait).
+    filled with copies and the newest keyframes never got through. So the outbox counts the
+    bytes it hands the link (copies too) and, from the server's receipts and acknowledgements,
+    how far the link has delivered them; a message goes again only once the bytes handed to the
+    link up to its last copy could have crossed, at the rate the link has been delivering
+    (without receipts or sizes, no extra wait). A message the link has gone past (a later one
+    arrived) was lost: it goes again after ``resend_after_s``.
 
     A restarted client continues the session of the messages it kept on disk (:meth:`restore`)
     or numbers them anew in a session of its own (:meth:`renumber`), see
@@ -166,13 +168,14 @@ class Outbox:
         self.sequence = 0  # of the last message
         # sequence -> [message, when it was last sent, the wait before it goes again,
         #              when the server said it received it (or None), its size [bytes],
-        #              whether its arrival was counted in the link's rate]
+        #              the link's byte count after its first copy, ... after its last one]
         self._unacked: OrderedDict[int, list] = OrderedDict()
         self.resent = 0
         self._server_session = 0  # the server run acknowledging
-        self.link_Bps = 0.0  # the rate the link delivers, from receipts (0: not known yet)
-        self._arrivals: deque = deque()  # (when, bytes) of messages that arrived, newest last
-        self._first_arrival: float | None = None
+        self.sent_bytes = 0  # handed to the link so far, copies included
+        self.delivered_bytes = 0  # of those, known to have crossed (receipts, acknowledgements)
+        self.link_Bps = 0.0  # the rate the link delivers (0: not known yet)
+        self._delivered: deque = deque()  # (when, delivered_bytes), newest last
 
     @property
     def full(self) -> bool:
@@ -189,7 +192,9 @@ class Outbox:
             )
         now = time.monotonic() if now is None else now
         self.sequence += 1
-        self._unacked[self.sequence] = [message, now, self.resend_after_s, None, nbytes, False]
+        self.sent_bytes += nbytes
+        mark = self.sent_bytes
+        self._unacked[self.sequence] = [message, now, self.resend_after_s, None, nbytes, mark, mark]
         return self.session, self.sequence
 
     def restore(
@@ -200,7 +205,7 @@ class Outbox:
         now = time.monotonic() if now is None else now
         self.session, self.sequence = session, sequence
         self._unacked = OrderedDict(
-            (int(q), [m, now, self.resend_after_s, None, 0, True]) for q, m in messages
+            (int(q), [m, now, self.resend_after_s, None, 0, 0, 0]) for q, m in messages
         )
 
     def renumber(self, session: int) -> list[tuple[int, Any]]:
@@ -218,15 +223,22 @@ class Outbox:
         now = time.monotonic() if now is None else now
         for entry in self._unacked.values():
             entry[1] = now
+            self._handed(entry)
         return [entry[0] for entry in self._unacked.values()]
 
-    def ack(self, session: int, sequence: int) -> int:
+    def _handed(self, entry: list) -> None:
+        """A copy of ``entry`` went to the link."""
+        self.sent_bytes += entry[4]
+        entry[6] = self.sent_bytes
+
+    def ack(self, session: int, sequence: int, now: float | None = None) -> int:
         """The server stored everything up to ``sequence``: forget those; returns how many."""
         if session != self.session:
             return 0
+        now = time.monotonic() if now is None else now
         done = [s for s in self._unacked if s <= sequence]
         for s in done:
-            del self._unacked[s]
+            self._arrived(self._unacked.pop(s), now)
         return len(done)
 
     def server_is(self, server_session: int) -> None:
@@ -248,42 +260,45 @@ class Outbox:
         entry = self._unacked.get(sequence)
         if entry is not None:
             entry[3] = now
-            self._measure(entry, now)
+            self._arrived(entry, now)
 
-    def _measure(self, entry: list, now: float) -> None:
-        """The link's rate: the bytes of the messages that arrived over the last
-        ``RATE_WINDOW_S``. Under load that is what the link delivers; idle, less (waits a little
-        longer: safe). (Each message's own crossing time misled: a radio's token bucket lets a
+    def _arrived(self, entry: list, now: float) -> None:
+        """A copy of ``entry`` crossed: the link delivered at least everything handed to it up to
+        its first copy. The link's rate is how fast that count grew over the last
+        ``RATE_WINDOW_S`` (under load what the link carries; idle, less: waits a little longer,
+        which is safe). (Each message's own crossing time misled: a radio's token bucket lets a
         burst of small messages through at once.)"""
-        if entry[5]:
+        if entry[5] <= self.delivered_bytes:
             return
-        entry[5] = True
-        if self._first_arrival is None:
-            self._first_arrival = now
-        self._arrivals.append((now, entry[4]))
-        while self._arrivals and self._arrivals[0][0] < now - RATE_WINDOW_S:
-            self._arrivals.popleft()
-        span = min(RATE_WINDOW_S, now - self._first_arrival)
-        total = sum(n for _, n in self._arrivals)
-        self.link_Bps = total / max(span, 1.0) if total > 0 else 0.0
+        self.delivered_bytes = entry[5]
+        self._delivered.append((now, self.delivered_bytes))
+        while len(self._delivered) > 2 and self._delivered[1][0] < now - RATE_WINDOW_S:
+            self._delivered.popleft()
+        t0, b0 = self._delivered[0]
+        if len(self._delivered) >= 2 and now > t0:
+            self.link_Bps = (self.delivered_bytes - b0) / max(now - t0, 1.0)
 
     def due(self, now: float | None = None) -> list[Any]:
         """The messages to send again now (oldest first), or none."""
         now = time.monotonic() if now is None else now
         out = []
-        ahead = 0  # bytes in the link up to this message (this one included)
         for i, entry in enumerate(self._unacked.values()):
             if len(out) >= self.resend_window:
                 break
             oldest = i == 0  # what the server waits for: never backed off
             if entry[3] is not None and now - entry[3] < self.max_resend_after_s:
                 continue  # the server has it
-            ahead += entry[4]
-            crossing_s = min(ahead / self.link_Bps, MAX_CROSSING_S) if self.link_Bps > 0 else 0.0
+            in_link = entry[6] - self.delivered_bytes  # handed over up to its last copy
+            crossing_s = (
+                min(in_link / self.link_Bps, MAX_CROSSING_S)
+                if self.link_Bps > 0 and in_link > 0
+                else 0.0
+            )
             if now - entry[1] >= (self.resend_after_s if oldest else entry[2]) + crossing_s:
                 if not oldest:
                     entry[2] = min(2.0 * entry[2], self.max_resend_after_s)
                 entry[1] = now
+                self._handed(entry)
                 out.append(entry[0])
         self.resent += len(out)
         return out
