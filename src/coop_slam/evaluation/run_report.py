@@ -422,7 +422,7 @@ def _world_estimate(
 def _with_corrected(server: tuple, r: RobotRun, optimized: set) -> tuple:
     """``server`` (stamps, poses in world of the keyframes the server optimized) and the robot's
     other keyframes, each placed as the team map places its nearest optimized keyframe (by
-    time), in time order."""
+    time; a monocular map's offsets scaled by the team's scale of it), in time order."""
     held = sorted(k for k in optimized if k in r.keyframes)
     rest = sorted(k for k in r.keyframes if k not in optimized)
     if not held or not rest:
@@ -432,10 +432,10 @@ def _with_corrected(server: tuple, r: RobotRun, optimized: set) -> tuple:
     for k in rest:
         stamp, T_map_cam = r.keyframes[k]
         near = held[int(np.argmin(np.abs(held_s - stamp)))]
-        T_world_near = r.team_keyframes[near][1]
-        T_world_map = T_world_near @ np.linalg.inv(r.keyframes[near][1])
+        T_near_cam = np.linalg.inv(r.keyframes[near][1]) @ T_map_cam
+        T_near_cam[:3, 3] *= r.map_scale  # a monocular map's lengths in the team's units
         stamps.append(stamp)
-        poses.append(T_world_map @ T_map_cam)
+        poses.append(r.team_keyframes[near][1] @ T_near_cam)
     order = np.argsort(stamps, kind="stable")
     return np.asarray(stamps)[order], np.asarray(poses).reshape(-1, 4, 4)[order]
 
