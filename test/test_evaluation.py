@@ -605,3 +605,20 @@ def test_plots_align_a_monocular_map_with_its_scale():
     est[:, :3, 3] *= 0.4
     res = ate(stamps, est, stamps, gt, correct_scale=True)
     np.testing.assert_allclose(aligned(res, est)[:, :3, 3], gt[:, :3, 3], atol=1e-6)
+
+
+def test_top_views_draw_the_ground_plane_whatever_the_frame():
+    """A z-up world's robots drive on x-y; a KITTI car, in its first camera's frame (y down),
+    on x-z, even on a straight road that spreads less sideways than up and down: its plot is no
+    longer a side view."""
+    from coop_slam.evaluation.plots import top_view_axes
+
+    # optical frame of a camera looking along +x of a z-up world: its y (image down) is -z
+    R_forward_x = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    ground = np.tile(np.eye(4), (20, 1, 1))
+    ground[:, :3, :3] = R_forward_x
+    ground[:, :3, 3] = np.stack([np.linspace(0, 5, 20), np.zeros(20), np.full(20, 0.5)], 1)
+    car = np.tile(np.eye(4), (20, 1, 1))  # KITTI: the camera's own frame, y down
+    car[:, :3, 3] = np.stack([np.full(20, 0.3), np.linspace(0, 1.0, 20), np.linspace(0, 60, 20)], 1)
+    assert top_view_axes(ground) == (0, 1)
+    assert top_view_axes(car) == (0, 2)

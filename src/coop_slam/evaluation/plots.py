@@ -12,9 +12,24 @@ import numpy as np
 from .metrics import EvaluationError, ate
 
 
+def top_view_axes(poses_cam: np.ndarray) -> tuple[int, int]:
+    """The two axes of the frame a top view draws, for camera poses (N, 4, 4; optical frames,
+    y down in the image): all but the one the cameras' "down" lies along (x-y in a z-up world;
+    x-z in a frame whose y points down, as KITTI's or EuRoC's first camera's: a straight road
+    spreads as little sideways as up and down, so the spread alone picked a side view)."""
+    poses_cam = np.asarray(poses_cam, float).reshape(-1, 4, 4)
+    if not len(poses_cam):
+        return 0, 1
+    down = np.abs(poses_cam[:, :3, 1].mean(axis=0))
+    vertical = int(np.argmax(down))
+    a, b = (k for k in range(3) if k != vertical)
+    return a, b
+
+
 def save_top_view(path: str, title: str, curves) -> None:
-    """x-y top view of trajectories: ``curves`` are (poses (N, 4, 4), colour index, label, is
-    estimate); ground truth dashed, estimates with keyframe dots."""
+    """Top view of trajectories on the plane they spread over (:func:`top_view_axes`):
+    ``curves`` are (poses (N, 4, 4), colour index, label, is estimate); ground truth dashed,
+    estimates with keyframe dots."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -22,13 +37,15 @@ def save_top_view(path: str, title: str, curves) -> None:
 
     fig, ax = plt.subplots(figsize=(7, 6))
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    drawn = [poses for poses, _, _, _ in curves if len(poses)]
+    a, b = top_view_axes(np.concatenate(drawn)) if drawn else (0, 1)
     for poses, k, label, estimate in curves:
         style = dict(marker="o", ms=2) if estimate else dict(linestyle="--", alpha=0.5)
         ax.plot(
-            poses[:, 0, 3], poses[:, 1, 3], color=colours[k % len(colours)], label=label, **style
+            poses[:, a, 3], poses[:, b, 3], color=colours[k % len(colours)], label=label, **style
         )
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
+    ax.set_xlabel(f"{'xyz'[a]} [m]")
+    ax.set_ylabel(f"{'xyz'[b]} [m]")
     ax.set_aspect("equal", adjustable="datalim")
     ax.legend(fontsize=8)
     ax.set_title(title)
