@@ -1,0 +1,116 @@
+"""``scripts/print_markers``: the ArUco markers to print and mount on one's own robots -- one PDF
+page per robot, its marker's black square exactly ``markers.marker_size_m`` wide when printed at
+100 % (no "fit to page"), in the dictionary the clients look for, id = robot id, with what to
+check written under it."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+import cv2
+import numpy as np
+
+from ..config import load_yaml_config
+from ..errors import CoopSlamError
+from ..markers import MarkerConfig
+
+MARGIN_M = 0.02  # white around the marker's black square: ArUco needs a quiet zone [m]
+TEXT_M = 0.03  # room for the label under it [m]
+INCH_M = 0.0254
+
+
+class MarkerSheetError(CoopSlamError):
+    """A marker cannot be made (an id outside the dictionary, a bad size or folder)."""
+
+
+def marker_image(config: MarkerConfig, marker_id: int, side_px: int = 600) -> np.ndarray:
+    """Grey uint8 image of marker ``marker_id`` of ``config.dictionary``, black square edge to
+    edge (``side_px`` wide)."""
+    aruco = cv2.aruco
+    dictionary = aruco.getPredefinedDictionary(getattr(aruco, config.dictionary))
+    count = dictionary.bytesList.shape[0]
+    if not 0 <= marker_id < count:
+        raise MarkerSheetError(
+            f"robot {marker_id}: {config.dictionary} has marker ids 0-{count - 1} (a robot's "
+            "marker id is its robot id): choose a larger dictionary (markers.dictionary)"
+        )
+    if hasattr(aruco, "generateImageMarker"):  # OpenCV >= 4.7
+        return aruco.generateImageMarker(dictionary, marker_id, side_px, borderBits=1)
+    return aruco.drawMarker(dictionary, marker_id, side_px, borderBits=1)
+
+
+def write_sheet(path: str, config: MarkerConfig, robot_id: int) -> tuple[float, float]:
+    """One robot's marker page (PDF) at its true size; returns the page (width, height) [m]."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    size = config.marker_size_m
+    width, height = size + 2 * MARGIN_M, size + 2 * MARGIN_M + TEXT_M
+    fig = plt.figure(figsize=(width / INCH_M, height / INCH_M))
+    ax = fig.add_axes([0, 0, 1, 1])
+    ax.set_xlim(0, width)
+    ax.set_ylim(0, height)
+    ax.axis("off")
+    image = marker_image(config, robot_id)
+    bottom = MARGIN_M + TEXT_M
+    extent = (MARGIN_M, MARGIN_M + size, bottom, bottom + size)
+    ax.imshow(image, cmap="gray", vmin=0, vmax=255, extent=extent, interpolation="nearest")
+    ax.text(
+        width / 2,
+        MARGIN_M + TEXT_M / 2,
+        f"robot_{robot_id}: {config.dictionary} id {robot_id}, black square {100 * size:g} cm "
+        "- print at 100 %, measure it",
+        ha="center",
+        va="center",
+        fontsize=max(4.0, 0.12 * size / INCH_M * 10),
+    )
+    fig.savefig(path)
+    plt.close(fig)
+    return width, height
+
+
+def main(argv=None) -> int:
+    """``scripts/print_markers --robots 1,2,3 [--config FILE] [--out DIR]``"""
+    p = argparse.ArgumentParser(
+        prog="scripts/print_markers",
+        description="The ArUco markers to print and mount on your robots: one PDF per robot "
+        "(marker id = robot id) at the size and in the dictionary of the clients' markers "
+        "section. Print at 100 %% and check the black square's side with a ruler: a marker "
+        "printed smaller than configured puts the other robot too far away, silently.",
+    )
+    p.add_argument("--robots", required=True, help="robot ids, comma-separated: 1,2,3")
+    p.add_argument("--config", help="client YAML (its markers section; default: the defaults)")
+    p.add_argument("--out", default="markers", help="folder for the PDFs (default: ./markers)")
+    args = p.parse_args(argv)
+    try:
+        try:
+            robots = [int(r) for r in args.robots.split(",") if r.strip()]
+        except ValueError:
+            raise MarkerSheetError(f"--robots {args.robots}: expected ids like 1,2,3") from None
+        config = load_yaml_config(MarkerConfig, args.config, "markers")
+        config.validate()
+        os.makedirs(args.out, exist_ok=True)
+        for r in robots:
+            path = os.path.join(args.out, f"marker_robot_{r}.pdf")
+            w, h = write_sheet(path, config, r)
+            print(
+                f"[print_markers] {path}: {config.dictionary} id {r}, black square "
+                f"{100 * config.marker_size_m:g} cm, page {100 * w:.1f} x {100 * h:.1f} cm"
+            )
+    except CoopSlamError as exc:
+        print(f"[print_markers] ERROR: {exc}", file=sys.stderr)
+        return 2
+    print(
+        "[print_markers] mount each flat on its robot's front, its centre where "
+        "markers.T_base_marker says (in base_link), and set markers.body_size_m to the robot's "
+        "size: both go into that robot's client configuration"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
