@@ -17,6 +17,24 @@ REDKITCHEN = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "redkit
 TINY_TUM = os.path.join(REPO, "test", "fixtures", "tiny_tum")
 
 
+def evaluate_again(out) -> dict:
+    """scripts/evaluate re-derives the report of a demo results folder (``out``, a Path) from
+    what it recorded; the new report."""
+    import json
+    import subprocess
+
+    (out / "report.json").unlink()
+    proc = subprocess.run(
+        [os.path.join(REPO, "scripts", "evaluate"), str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    with open(out / "report.json") as fh:
+        return json.load(fh)
+
+
 def wait_until(condition, timeout_s: float, what: str) -> None:
     """Wait for ``condition()`` (rostests: what another node publishes); fail naming ``what``."""
     deadline = time.monotonic() + timeout_s

@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import pytest
 
 from coop_slam.tools.demo import TEAM_MAP
-from helpers import REDKITCHEN, REPO
+from helpers import REDKITCHEN, REPO, evaluate_again
 
 pytestmark = pytest.mark.slow  # (scripts/test --quick leaves these out)
 
@@ -39,20 +39,6 @@ def _demo(tmp_path, *args, timeout=1500):
     ), f"demo failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}\n{tail}"
     with open(out / "report.json") as fh:
         return json.load(fh), tail, out
-
-
-def _evaluate_again(out):
-    """scripts/evaluate re-derives the report of a demo results folder from run.json + run.bag."""
-    (out / "report.json").unlink()
-    proc = subprocess.run(
-        [os.path.join(REPO, "scripts", "evaluate"), str(out)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    with open(out / "report.json") as fh:
-        return json.load(fh)
 
 
 def test_revisit_merges_by_place_recognition(tmp_path):
@@ -155,7 +141,7 @@ def test_no_merge_without_overlap(tmp_path, scenario):
         robot["keyframes"] for robot in report["robots"]
     ]
     if scenario == "disjoint":  # scripts/evaluate re-derives the report from the recorded bag
-        again = _evaluate_again(out)
+        again = evaluate_again(out)
         assert again["groups"] == report["groups"] and again["robots"] == report["robots"]
 
 
@@ -210,7 +196,7 @@ def test_a_stereo_and_an_rgbd_robot_build_one_map_from_a_sensor_bag(tmp_path):
     assert stereo[0] == SENSORS.index("stereo")
     assert abs(stereo[1] - SYNTHETIC_STEREO_BASELINE_M) < 1e-6
     assert rgbd[0] == SENSORS.index("rgbd")
-    again = _evaluate_again(out)
+    again = evaluate_again(out)
     assert again["robots"] == report["robots"] and again["merges"] == report["merges"]
     bag.unlink()
 

@@ -9,18 +9,9 @@ import time
 
 import pytest
 
-from coop_slam.tools.hosts import Hosts, HostsError, LinkConfig, check_available, qdisc_commands
+from coop_slam.tools.hosts import Hosts, LinkConfig, qdisc_commands, unavailable_reason
 
-
-def _available() -> str:
-    try:
-        check_available()
-    except HostsError as exc:
-        return str(exc)
-    return ""
-
-
-needs_hosts = pytest.mark.skipif(bool(_available()), reason=_available() or "ok")
+needs_hosts = pytest.mark.skipif(bool(unavailable_reason()), reason=unavailable_reason() or "ok")
 
 
 def test_a_link_is_shaped_by_tbf_under_netem_only_when_delay_or_loss_is_asked():

@@ -15,19 +15,10 @@ import pytest
 
 from coop_slam.tools.demo_args import outage_spec
 from coop_slam.tools.demo_hosts import with_arguments
-from coop_slam.tools.hosts import HostsError, check_available
-from helpers import REPO
+from coop_slam.tools.hosts import unavailable_reason
+from helpers import REPO, evaluate_again
 
-
-def _available() -> str:
-    try:
-        check_available()
-    except HostsError as exc:
-        return str(exc)
-    return ""
-
-
-needs_hosts = pytest.mark.skipif(bool(_available()), reason=_available() or "ok")
+needs_hosts = pytest.mark.skipif(bool(unavailable_reason()), reason=unavailable_reason() or "ok")
 DEMO = os.path.join(REPO, "scripts", "demo")
 
 
@@ -96,15 +87,7 @@ def test_a_team_on_hosts_loses_nothing_in_an_outage_and_merges(tmp_path):
     assert (out / "run_robot_1.bag").exists() and (out / "run_robot_2.bag").exists()
     assert not _namespaces(_prefix(proc.stdout))  # the hosts are gone
     # scripts/evaluate reads the hosts' bags as one and keeps the radio figures.
-    (out / "report.json").unlink()
-    proc = subprocess.run(
-        [os.path.join(REPO, "scripts", "evaluate"), str(out)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    again = json.loads((out / "report.json").read_text())
+    again = evaluate_again(out)
     assert again["groups"] == report["groups"]
     for a, b in zip(again["robots"], report["robots"]):
         assert a["radio_up_kBps"] == pytest.approx(b["radio_up_kBps"])

@@ -407,7 +407,7 @@ def _world_estimate(
         if results.signatures_only:
             # The team ATE is compared with the robots' own, over all their keyframes: those the
             # server holds only as signatures are placed as it places their neighbours.
-            est_world[rid] = _with_corrected(est_world[rid], r, set(ids))
+            est_world[rid] = _with_signature_only_placed(est_world[rid], r, set(ids))
     elif r.T_world_map is not None:  # client poses moved by the latest correction
         est_world[rid] = (stamps, np.einsum("ij,njk->nik", r.T_world_map, poses))
     if rid in est_world and len(stamps_gt):
@@ -419,7 +419,7 @@ def _world_estimate(
             )
 
 
-def _with_corrected(server: tuple, r: RobotRun, optimized: set) -> tuple:
+def _with_signature_only_placed(server: tuple, r: RobotRun, optimized: set) -> tuple:
     """``server`` (stamps, poses in world of the keyframes the server optimized) and the robot's
     other keyframes, each placed as the team map places its nearest optimized keyframe (by
     time; a monocular map's offsets scaled by the team's scale of it), in time order."""

@@ -152,7 +152,9 @@ def main(argv=None) -> int:
         return 0
     out_dir = args.out or os.path.join(_REPO, "results", f"benchmark-{datetime.date.today()}")
     os.makedirs(out_dir, exist_ok=True)
-    no_hosts = _hosts_missing()
+    from .hosts import unavailable_reason
+
+    no_hosts = unavailable_reason()  # why --hosts entries cannot run here
     have_data = {
         e.name: (e.needs is None or os.path.isdir(os.path.join(args.data, e.needs)))
         and not (no_hosts and "--hosts" in e.demo.split())
@@ -192,17 +194,6 @@ def main(argv=None) -> int:
         fh.write(page(rows, notes, args.suite))
     print(f"[benchmark] wrote {args.page}: {len(rows)} of {len(suite)} runs; " + "; ".join(notes))
     return 1 if failed else 0
-
-
-def _hosts_missing() -> str:
-    """Why ``--hosts`` entries cannot run here ("" when they can)."""
-    from .hosts import HostsError, check_available
-
-    try:
-        check_available()
-    except HostsError as exc:
-        return str(exc)
-    return ""
 
 
 if __name__ == "__main__":

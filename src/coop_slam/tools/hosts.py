@@ -61,6 +61,15 @@ def check_available() -> None:
         raise HostsError("--hosts needs network namespaces (kernel CONFIG_NET_NS)")
 
 
+def unavailable_reason() -> str:
+    """Why hosts cannot be made here ("" when they can): what :func:`check_available` says."""
+    try:
+        check_available()
+    except HostsError as exc:
+        return str(exc)
+    return ""
+
+
 def has_netem() -> bool:
     """Whether this kernel has the netem qdisc (delay and loss)."""
     config = "/proc/config.gz"
