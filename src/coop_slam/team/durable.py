@@ -118,7 +118,6 @@ class DurableServer:
         # Before a rebuild: a deferred global BA is in the file as a call of its own.
         self.server.defer_global_ba = defer_global_ba
         self._pull_settings = (config.pull, config.place_recognition.database, min_consecutive)
-        self.config_pull_enabled = config.pull.enabled
         if config.pull.enabled:
             self.pull = self._new_pull_planner()
         self.order = {r: InOrder() for r in robots}
@@ -161,6 +160,12 @@ class DurableServer:
         if self.pull is not None:  # signatures are not stored: only what the server holds
             for mid, kf in self.server.store.keys():
                 self.pull.hold(self.server.robot_of(mid), kf)
+
+    @property
+    def low_bandwidth(self) -> bool:
+        """The server is in low-bandwidth mode (``pull.enabled``), not only taking the
+        signatures some robot's radio budget sends."""
+        return self._pull_settings[0].enabled
 
     def _new_pull_planner(self) -> PullPlanner:
         server = self.server
@@ -272,12 +277,12 @@ class DurableServer:
                     return []
             pulled = (
                 pull is not None
-                and not self.config_pull_enabled  # (there the server checks no consistency)
+                and not self.low_bandwidth  # (there the server checks no consistency)
                 and (rec.robot_id, rec.keyframe_id) in pull.pending
             )
             merges = self.server.add_keyframe(rec, pulled=pulled)
             if pull is not None and rec.action == ACTION_NEW:
-                if self.config_pull_enabled:
+                if self.low_bandwidth:
                     pull.hold(rec.robot_id, rec.keyframe_id)
                 else:  # a budgeted robot's whole keyframe: also a view signatures can match
                     self._view_of_whole(rec)
