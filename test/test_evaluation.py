@@ -266,7 +266,7 @@ def test_sensor_bag_gives_robots_and_ground_truth_and_evaluates_without_it(tmp_p
 
     with rosbag.Bag(str(tmp_path / "other.bag"), "w") as bag:
         bag.write("/camera/rgb/image_color", Image(), rospy.Time.from_sec(1.0))
-    with pytest.raises(EvaluationError, match="no robot camera topics.*/camera/rgb/image_color"):
+    with pytest.raises(EvaluationError, match="no camera topics.*/camera/rgb/image_color"):
         read_bag_input(str(tmp_path / "other.bag"))
 
 
@@ -347,7 +347,7 @@ def test_report_judges_the_clients_published_path_against_the_truth_and_the_team
         run.robots[1] = RobotRun(
             frames=30,
             keyframes=kfs,
-            team_keyframes={k: (stamps[k], team[k]) for k in range(30)},
+            team_keyframes={k + 1: (stamps[k], team[k]) for k in range(30)},  # by keyframe id
             T_world_map=T_world_map,
             map_scale=map_scale,
             keyframe_segments=segments or {},

@@ -398,3 +398,29 @@ def test_stereo_world_renders_the_right_camera_of_a_rectified_pair(tmp_path):
     plain = small_world("plain")
     with pytest.raises(PlaybackError, match="no right images"):
         _with_sensor(RobotStream(1, plain.sequences[1]), "stereo")
+
+
+def test_a_world_of_robots_with_their_own_camera_mounts(tmp_path):
+    """``mounts``: each robot's frames are rendered from its own camera mount, world.yaml carries
+    each robot's, and reading the world gives them back."""
+    from coop_slam.synthetic.scenarios import MOUNTS_HEIGHT_M
+
+    folder = generate_mod.generate(
+        "mounts",
+        duration_s=0.6,
+        rate_hz=5.0,
+        noise=False,
+        out_dir=str(tmp_path / "w"),
+        camera=SMALL_CAMERA,
+        overlap_config=FAST_OVERLAP,
+    )
+    world = read_synthetic(folder)
+    scenario = make_scenario("mounts", duration_s=0.6, rate_hz=5.0)
+    heights = [world.mount(r)[2, 3] for r in world.robot_ids]
+    assert heights == pytest.approx(list(MOUNTS_HEIGHT_M))
+    for traj in scenario.trajectories:
+        T_base_cam = scenario.mount(traj.robot_id)
+        np.testing.assert_allclose(world.mount(traj.robot_id), T_base_cam, atol=1e-9)
+        np.testing.assert_allclose(
+            world.sequences[traj.robot_id].frame_poses(), traj.poses_se3 @ T_base_cam, atol=1e-6
+        )

@@ -298,3 +298,23 @@ def group_simultaneous(
         else:
             groups.append([item])
     return groups
+
+
+def parse_clock_offsets(text: str) -> dict[int, float]:
+    """``"2:0.3,3:-0.1"`` -> {2: 0.3, 3: -0.1}: robots whose clock runs that far ahead of the
+    master's [s] (rehearsal: ``scripts/demo --clock-offset``)."""
+    out: dict[int, float] = {}
+    for part in filter(None, (p.strip() for p in (text or "").split(","))):
+        robot, sep, seconds = part.partition(":")
+        try:
+            if not sep:
+                raise ValueError
+            rid, offset = int(robot), float(seconds)
+        except ValueError:
+            raise PlaybackError(
+                f"clock offset '{part}' is not ROBOT:SECONDS (for example 2:0.3)"
+            ) from None
+        if rid < 1 or not np.isfinite(offset) or rid in out:
+            raise PlaybackError(f"clock offset '{part}': robot id >= 1, once, finite seconds")
+        out[rid] = offset
+    return out

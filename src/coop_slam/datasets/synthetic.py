@@ -28,14 +28,19 @@ class SyntheticWorld:
     folder: str
     meta: dict
     sequences: dict[int, Sequence]
-    T_base_cam: np.ndarray
+    T_base_cam: np.ndarray  # the robots' camera mount (robot 1's where they differ)
     overlap: dict = field(
         default_factory=dict
     )  # rendezvous, revisit, marker_sightings, first_overlap
+    mounts: dict = field(default_factory=dict)  # robot id -> its own T_base_cam, where given
 
     @property
     def robot_ids(self) -> list[int]:
         return sorted(self.sequences)
+
+    def mount(self, robot_id: int) -> np.ndarray:
+        """Robot ``robot_id``'s camera optical frame in its base_link."""
+        return self.mounts.get(robot_id, self.T_base_cam)
 
     @property
     def scenario(self) -> str:
@@ -78,6 +83,7 @@ def read_synthetic(folder: str) -> SyntheticWorld:
     except (GeometryError, ValueError, TypeError) as exc:
         raise DatasetError(f"{world_file}: invalid T_base_cam: {exc}") from None
     sequences: dict[int, Sequence] = {}
+    mounts: dict[int, np.ndarray] = {}
     for k, robot in enumerate(robots):
         if (
             not isinstance(robot, dict)
@@ -93,6 +99,13 @@ def read_synthetic(folder: str) -> SyntheticWorld:
                 f"synthetic world {folder}: folder of {robot['name']} missing ({sub})"
             )
         sequences[robot["id"]] = read_tum(sub, name=str(robot["name"]))
+        if "T_base_cam" in robot:
+            try:
+                mounts[robot["id"]] = check_se3(np.array(robot["T_base_cam"], dtype=float), "")
+            except (GeometryError, ValueError, TypeError) as exc:
+                raise DatasetError(
+                    f"{world_file}: robots[{k}] has an invalid T_base_cam: {exc}"
+                ) from None
     overlap = meta.get("overlap") or {}
     if not isinstance(overlap, dict):
         raise DatasetError(f"{world_file}: 'overlap' must be a mapping")
@@ -102,4 +115,5 @@ def read_synthetic(folder: str) -> SyntheticWorld:
         sequences=sequences,
         T_base_cam=T_base_cam,
         overlap=overlap,
+        mounts=mounts,
     )

@@ -59,6 +59,9 @@ ROBOT_KEYS = (
     "keyframes_lost",
     # Low-bandwidth mode: keyframes the server asked for whole (the others: signatures only).
     "keyframes_pulled",
+    # The robot's clock minus the server's as the server estimated it [s] (low by the smallest
+    # transit time; null: no estimate, e.g. an older client)
+    "clock_offset_s",
 )
 MERGE_KEYS = (
     "type",

@@ -32,6 +32,8 @@ class RobotRun:
     # id -> (stamp_s, T_world_cam)
     team_keyframes: dict = field(default_factory=dict)
     sensor: str | None = None  # rgbd, stereo or mono, as its keyframes say
+    T_base_cam: np.ndarray | None = None  # its camera mount, as its description says
+    clock_offset_s: float = 0.0  # its clock ran this far ahead of the master's (rehearsed) [s]
     # New keyframes its client sessions sent (a restarted client counts from 0 again), and the
     # keyframe messages not acknowledged by the server at the end
     keyframes_sent_sessions: list = field(default_factory=list)

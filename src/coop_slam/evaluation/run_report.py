@@ -119,15 +119,15 @@ def _client_path_accuracy(
     first = (stamps, poses_cam)
     if r.T_world_map is None:
         return first
-    # Keyframes by stamp (a path pose carries its keyframe's; older recordings have no ids).
-    team = {round(t, 6): T for t, T in r.team_keyframes.values()}
-    stamps, poses_cam = poses(lambda k: r.keyframe_segments.get(k) == current)
+    # Keyframes by id (a robot's clock may be off the server's), by stamp in older recordings.
+    team = {k if known else round(t, 6): T for k, (t, T) in r.team_keyframes.items()}
+    keep = lambda k: r.keyframe_segments.get(k) == current  # noqa: E731
+    keys = [k if known else round(t, 6) for k, t, _ in r.path if not known or keep(k)]
+    _, poses_cam = poses(keep)
     gaps = [
-        np.linalg.norm(
-            (r.T_world_map @ scale_translation(T, r.map_scale))[:3, 3] - team[round(t, 6)][:3, 3]
-        )
-        for t, T in zip(stamps, poses_cam)
-        if round(t, 6) in team
+        np.linalg.norm((r.T_world_map @ scale_translation(T, r.map_scale))[:3, 3] - team[k][:3, 3])
+        for k, T in zip(keys, poses_cam)
+        if k in team
     ]
     if gaps:
         entry["path_team_gap_m"] = float(np.median(gaps))
@@ -233,8 +233,9 @@ def evaluate_run(
     (stamps, T_world_cam) on the playback timeline, as in :class:`RunInput`; empty arrays
     where a robot has none, whose accuracy fields then stay null); writes trajectories and plots
     into ``out_dir``. ``sensors`` (robot id -> rgbd / stereo / mono) defaults to what each
-    robot's keyframes said; ``T_base_cam``, the clients' camera mount, places their published
-    paths (base_link poses) at the camera (``path_ate_rmse_m``; none without it)."""
+    robot's keyframes said; each robot's camera mount (its description's, else ``T_base_cam``)
+    places its published path (base_link poses) at the camera (``path_ate_rmse_m``; none
+    without a mount)."""
     robot_ids = sorted(gts)
     report = new_report(robot_ids)
     _adopt_loaded_keyframes(run)
@@ -365,10 +366,9 @@ def _keyframe_accuracy(
             entry["rpe_rmse_m"] = rpe_rmse(stamps, poses, stamps_gt, poses_gt)
     except EvaluationError:
         pass
-    if r.path and T_base_cam is not None:
-        results.published[rid] = _client_path_accuracy(
-            entry, r, T_base_cam, gts[rid], sensor == "mono"
-        )
+    mount = r.T_base_cam if r.T_base_cam is not None else T_base_cam  # its own, where it said
+    if r.path and mount is not None:
+        results.published[rid] = _client_path_accuracy(entry, r, mount, gts[rid], sensor == "mono")
     _world_estimate(entry, r, rid, (stamps, poses), gts[rid], sensor, results, out_dir)
 
 
@@ -531,6 +531,7 @@ def _server_figures(report: dict, run: RunData, robot_ids: list) -> None:
     those each robot sent, the duplicates it received and its loop closures."""
     report["server_ms_per_keyframe"] = run.server_stats.get("ms_per_keyframe_mean")
     stored = run.server_stats.get("keyframes_stored") or {}
+    clocks = run.server_stats.get("clock_offset_s") or {}
     pull = run.server_stats.get("pull")
     report["pull"] = pull
     for entry, rid in zip(report["robots"], robot_ids):
@@ -539,6 +540,7 @@ def _server_figures(report: dict, run: RunData, robot_ids: list) -> None:
         entry["keyframes_sent"] = sent
         entry["keyframes_held_back"] = int(sum(r.held_back_sessions))
         entry["keyframes_stored"] = stored.get(str(rid))
+        entry["clock_offset_s"] = clocks.get(str(rid))
         # Sent by this run's clients and never stored (a loaded map's robots sent none now).
         entry["keyframes_lost"] = (
             max(0, sent - int(stored[str(rid)])) if str(rid) in stored and sent else None

@@ -1,5 +1,7 @@
 """The player's bag mode: replays a rosbag's camera topics, in lock-step with the clients or in
-real time, and drives /clock with the bag's time."""
+real time, and drives /clock with the bag's time. A bag recorded by real robots keeps its
+drivers' topic names: each camera (:mod:`coop_slam.bag_topics`) is published under the player's
+names, which the clients subscribe to."""
 
 from __future__ import annotations
 
@@ -10,7 +12,8 @@ import rospy
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Bool
 
-from ..playback import COLOR_TOPIC, PlaybackError, camera_topic_names
+from ..bag_topics import bag_cameras, describe_drivers
+from ..playback import PlaybackError
 from .lockstep import FrameAcks, wait_for_consumers
 from .player_config import PlayerConfig
 
@@ -26,7 +29,8 @@ class BagPlayer:
     """Replays a rosbag (the user's own recording, or one written by ``scripts/export_bag``) and
     drives /clock with the bag's time.
 
-    Topics keep their names; the system's own outputs in the bag are not replayed. In lock-step
+    Cameras go out under the player's topics, other topics keep their names; the system's own
+    outputs in the bag are not replayed. In lock-step
     mode, robot k's next colour image waits until its client acknowledged the previous one on
     ``robot_k/frame_stats`` (other robots' messages keep flowing meanwhile); robots without a
     consumer, and everything when not in lock-step, play at ``rate`` x real time.
@@ -48,14 +52,22 @@ class BagPlayer:
             if SYSTEM_OUTPUT_TOPICS.match(topic):
                 continue
             self.pubs[topic] = info.msg_type
-        self.robot_ids = sorted(
-            int(m.group(1)) for m in map(COLOR_TOPIC.match, self.pubs) if m is not None
-        )
+        self.cameras = bag_cameras(self.pubs)
+        self.robot_ids = [c.robot_id for c in self.cameras]
         if not self.robot_ids:
             raise PlaybackError(
-                f"bag {cfg.bag} has no robot camera topics (/robot_<k>/camera/color/image_raw "
-                "or /robot_<k>/camera/left/image_rect); "
+                f"bag {cfg.bag} has no camera topics this player knows ({describe_drivers()}); "
                 f"it has: {', '.join(sorted(self.pubs)) or 'nothing'}"
+            )
+        self.remap = {t: own for c in self.cameras for t, own in c.remap.items()}
+        self.image_of = {c.image_topic: c.robot_id for c in self.cameras}  # bag topic -> robot
+        for c in self.cameras:
+            rospy.loginfo(
+                "player: robot_%d: %s camera %s (%s topics)",
+                c.robot_id,
+                c.sensor,
+                c.namespace or "/",
+                c.driver.name,
             )
         self.acks = {rid: FrameAcks(f"robot_{rid}") for rid in self.robot_ids}
 
@@ -71,15 +83,13 @@ class BagPlayer:
                     "player: message type %s of %s unknown here; skipped", type_name, topic
                 )
                 continue
-            publishers[topic] = rospy.Publisher(topic, cls, queue_size=20)
+            publishers[topic] = rospy.Publisher(self.remap.get(topic, topic), cls, queue_size=20)
         start = self.bag.get_start_time()
         self.clock.publish(Clock(clock=rospy.Time.from_sec(max(0.0, start - 0.1))))
-        cameras = {}  # robot id -> its camera topics' publishers (images, camera infos)
-        for topic in publishers:
-            if m := COLOR_TOPIC.match(topic):
-                rid = int(m.group(1))
-                wanted = camera_topic_names(rid)
-                cameras[rid] = [p for t, p in publishers.items() if t in wanted]
+        # robot id -> its camera topics' publishers (images, camera infos)
+        cameras = {
+            c.robot_id: [publishers[t] for t in c.remap if t in publishers] for c in self.cameras
+        }
         wait_for_consumers(cameras, cfg)
         lockstep = {rid for rid, a in self.acks.items() if cfg.lockstep and a.has_consumer}
         for rid in sorted(set(self.acks) - lockstep):
@@ -97,8 +107,7 @@ class BagPlayer:
         for k, (topic, msg, t) in enumerate(self.bag.read_messages(topics=list(publishers))):
             if rospy.is_shutdown():
                 return
-            m = COLOR_TOPIC.match(topic)
-            rid = int(m.group(1)) if m else None
+            rid = self.image_of.get(topic)
             if rid in lockstep:
                 if rid in pending and not self.acks[rid].wait(pending[rid], cfg.ack_timeout_s):
                     rospy.logwarn(

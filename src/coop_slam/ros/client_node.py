@@ -25,11 +25,13 @@ from ..errors import CoopSlamError
 from ..geometry import T_base_cam_of
 from ..markers import MarkerConfig, MarkerDetector
 from ..playback import PLAYABLE_SENSORS
+from ..robot_description import describe
 from ..uplink.config import UplinkConfig
 from ..vo.config import VoConfig
 from ..vo.pipeline import VisualOdometry
 from ..vo.types import STATE_INITIALIZING
 from .camera_input import CameraInput
+from .convert import description_to_msg
 from .log_bridge import forward_core_logs
 from .params import client_params
 from .pose_output import PoseOutput
@@ -41,6 +43,7 @@ from .validation import RejectCounter
 class ClientNode:
     def __init__(self):
         from coop_slam.msg import FrameStats, MapCorrection
+        from coop_slam.msg import RobotDescription as RobotDescriptionMsg
 
         p = client_params(rospy.get_param("~", {}))
         self.robot_id = p.robot_id
@@ -72,6 +75,7 @@ class ClientNode:
             p.cloud_period_s,
             p.path_period_s,
             self.rejects,
+            p.frame_config,
         )
         self.uplink = UplinkBridge(
             name,
@@ -83,15 +87,25 @@ class ClientNode:
             self.wait_for_mapping,
             dict(robot_id=self.robot_id, T_base_cam=self.T_base_cam),
             p.spool_config,
+            p.clock_offset_s,
         )
         self.uplink.flush_now = self._flush_uplink
+        markers = load_yaml_config(MarkerConfig, p.config, "markers", p.markers)
+        # Latched: the server places sightings of our marker with our own mounts.
+        self.pub_description = rospy.Publisher(
+            f"/{name}/description", RobotDescriptionMsg, queue_size=1, latch=True
+        )
+        self.pub_description.publish(
+            description_to_msg(describe(self.robot_id, sensor, self.T_base_cam, markers))
+        )
         self.cues = TeamCues(
             self.robot_id,
             self.T_base_cam,
-            MarkerDetector(load_yaml_config(MarkerConfig, p.config, "markers", p.markers)),
+            MarkerDetector(markers),
             p.marker_every_frames,
             self._vocabulary,
             lambda: self.uplink.engine.segment_base,
+            self.pose.cam_frame,
         )
         self.camera = CameraInput(
             name,

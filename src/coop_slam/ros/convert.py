@@ -271,3 +271,51 @@ def transform_stamped(T: np.ndarray, parent: str, child: str, stamp):
     msg.header.frame_id = parent
     msg.child_frame_id = child
     return msg
+
+
+def description_to_msg(d):
+    """A :class:`coop_slam.robot_description.RobotDescription` as ``coop_slam/RobotDescription``."""
+    from coop_slam.msg import RobotDescription as RobotDescriptionMsg
+
+    return RobotDescriptionMsg(
+        robot_id=d.robot_id,
+        sensor=d.sensor,
+        camera=d.camera,
+        T_base_cam=pose_to_msg(d.T_base_cam),
+        marker_dictionary=d.marker_dictionary,
+        marker_size_m=d.marker_size_m,
+        T_base_marker=pose_to_msg(d.T_base_marker),
+        body_size_m=list(d.body_size_m),
+    )
+
+
+def description_from_msg(msg):
+    """A ``coop_slam/RobotDescription`` message -> a validated
+    :class:`coop_slam.robot_description.RobotDescription` (:class:`MessageError` if unusable)."""
+    from ..robot_description import RobotDescription, RobotDescriptionError
+
+    try:
+        d = RobotDescription(
+            robot_id=int(msg.robot_id),
+            sensor=msg.sensor,
+            T_base_cam=pose_from_msg(msg.T_base_cam, "T_base_cam"),
+            marker_dictionary=msg.marker_dictionary,
+            marker_size_m=float(msg.marker_size_m),
+            T_base_marker=pose_from_msg(msg.T_base_marker, "T_base_marker"),
+            body_size_m=tuple(float(v) for v in msg.body_size_m),
+            camera=msg.camera,
+        )
+        d.validate()
+    except RobotDescriptionError as exc:
+        raise MessageError(str(exc)) from None
+    return d
+
+
+def marker_seen_from_msg(msg):
+    """A ``coop_slam/RobotSighting`` -> :class:`coop_slam.robot_description.MarkerSeen`."""
+    from ..robot_description import MarkerSeen
+
+    size = float(msg.marker_size_m)
+    if not np.isfinite(size) or size <= 0:
+        raise MessageError(f"sighting's marker_size_m {size} is not > 0 [m]")
+    return MarkerSeen(pose_from_msg(msg.T_cam_marker, "T_cam_marker"), size)

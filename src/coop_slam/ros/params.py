@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 from ..config import load_config, require
+from ..frames import FrameConfig
 from ..ids import MAX_ROBOT_ID
 from ..uplink.spool import SpoolConfig
 from ..wire.delivery import DeliveryConfig
@@ -25,10 +26,20 @@ class ClientNodeParams:
     sensor: str = "rgbd"  # the camera: rgbd, stereo or mono
     config: str = ""  # YAML file of the sections vo, uplink, markers ("" = the defaults)
     T_base_cam: list = field(default_factory=list)  # camera in base_link [x y z qx qy qz qw]
+    # TF frame names ('' = robot_k/odom, robot_k/base_link, robot_k/camera_optical) and who
+    # publishes which edge (see coop_slam.frames)
+    odom_frame: str = ""
+    base_frame: str = ""
+    camera_frame: str = ""
+    external_odom: bool = False  # the base publishes odom -> base_link; the client map -> odom
+    publish_camera_tf: bool = True  # base_link -> camera from ~T_base_cam (false: URDF does)
     depth_scale: float = 1000.0  # 16UC1 depth units per metre (REP-118: millimetres)
     cloud_period_s: float = 2.0  # the local cloud goes out at most this often [s of data]
     path_period_s: float = 1.0  # the keyframe path goes out at most this often [s of data]
     marker_every_frames: int = 5  # look for other robots' markers every N frames; 0 = never
+    # Rehearsal only (scripts/demo --clock-offset): this robot's clock runs this far ahead of
+    # the master's; the player stamps its camera's images so, and the client its messages [s]
+    clock_offset_s: float = 0.0
     # Lock-step playback: a frame is finished when local mapping has caught up (results do not
     # depend on the machine's speed); live cameras: false.
     wait_for_mapping: bool = False
@@ -57,8 +68,20 @@ class ClientNodeParams:
             len(self.T_base_cam) in (0, 7),
             "~T_base_cam must be [x, y, z, qx, qy, qz, qw] (or [] for a level camera)",
         )
+        self.frame_config.validate()
+        self.frame_config.names(self.robot_id)
         require(self.depth_scale > 0, "~depth_scale must be > 0 [units per metre]")
         require(self.marker_every_frames >= 0, "~marker_every_frames must be >= 0")
+
+    @property
+    def frame_config(self) -> FrameConfig:
+        return FrameConfig(
+            self.odom_frame,
+            self.base_frame,
+            self.camera_frame,
+            self.external_odom,
+            self.publish_camera_tf,
+        )
 
     @property
     def spool_config(self) -> SpoolConfig:
@@ -78,7 +101,6 @@ class ServerNodeParams:
 
     config: str = ""  # YAML file of section server ("" = the defaults)
     vocabulary: str = ""  # the shared vocabulary ("" = the default one setup builds)
-    T_base_cam: list = field(default_factory=list)  # the robots' camera mount (marker sightings)
     cloud_period_s: float = 2.0  # the team cloud goes out at most this often [s of data]
     cloud_max_busy_share: float = 0.2  # building it takes at most this share of the wall time
     map: str = ""  # the team map file ("" = a new one per run in $ROS_HOME/coop_slam; off = none)
@@ -86,10 +108,6 @@ class ServerNodeParams:
     load_map: str = ""  # start from a map saved in an earlier session
 
     def validate(self) -> None:
-        require(
-            len(self.T_base_cam) in (0, 7),
-            "~T_base_cam must be [x, y, z, qx, qy, qz, qw] (or [] for none)",
-        )
         require(self.cloud_period_s > 0, "~cloud_period_s must be > 0 [s]")
         require(0 < self.cloud_max_busy_share <= 1, "~cloud_max_busy_share must be in (0, 1]")
 

@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass, field
 
 from ..config import require
+from ..playback import PlaybackError, parse_clock_offsets
 
 
 @dataclass
@@ -42,6 +43,9 @@ class PlayerConfig:
     # station of scripts/demo --hosts); camera: play ~only_robots when the conductor steps.
     role: str = "all"
     exit_when_done: bool = False  # exit after the last frame instead of spinning (latched topics)
+    # Rehearsal: robots whose clock runs ahead of the master's, "ROBOT:SECONDS,...": their
+    # camera's images are stamped on their clock (scripts/demo --clock-offset)
+    clock_offsets: str = ""
 
     def validate(self) -> None:
         require(
@@ -63,6 +67,10 @@ class PlayerConfig:
             "player: a bag plays on one host (~role all): split it per robot to play it on hosts",
         )
         require(self.robots >= 0, "player: ~robots must be >= 0")
+        try:
+            parse_clock_offsets(self.clock_offsets)
+        except PlaybackError as exc:
+            require(False, f"player: ~clock_offsets: {exc}")
         require(self.duration_s >= 0, "player: ~duration_s must be >= 0")
         require(
             self.depth_encoding in ("32FC1", "16UC1"),

@@ -33,6 +33,7 @@ from ..playback import (
     group_simultaneous,
     image_topic,
     load_streams,
+    parse_clock_offsets,
     parse_robot_ids,
     parse_sensors,
 )
@@ -45,9 +46,11 @@ from .player_config import PlayerConfig
 
 
 class _RobotTopics:
-    def __init__(self, stream: RobotStream, depth_encoding: str):
+    def __init__(self, stream: RobotStream, depth_encoding: str, clock_offset_s: float = 0.0):
         self.stream = stream
         self.depth_encoding = depth_encoding
+        # A robot whose clock runs ahead stamps its images so (and acknowledges them so).
+        self.clock_offset_s = clock_offset_s
         self.T_world_cam = ground_truth_by_frame(stream)
         self.pubs = {}
         first = stream.sequence.frames[0]
@@ -62,7 +65,8 @@ class _RobotTopics:
 
     def messages(self, play_s: float, frame) -> list:
         T_world_cam = self.T_world_cam[frame.index]
-        return frame_messages(self.stream, frame, play_s, self.depth_encoding, T_world_cam)
+        stamp_s = play_s + self.clock_offset_s
+        return frame_messages(self.stream, frame, stamp_s, self.depth_encoding, T_world_cam)
 
     def publish(self, play_s: float, frame, messages: list | None = None) -> None:
         for topic, msg in messages if messages is not None else self.messages(play_s, frame):
@@ -75,7 +79,7 @@ class _RobotTopics:
         gone = False
         while True:
             remaining = deadline - time.monotonic()
-            if self.acks.wait(play_s, min(1.0, max(remaining, 0.0))):
+            if self.acks.wait(play_s + self.clock_offset_s, min(1.0, max(remaining, 0.0))):
                 return True
             if remaining <= 1.0 or rospy.is_shutdown():
                 return False
@@ -114,8 +118,9 @@ class PlayerNode:
         )
         self.schedule = build_schedule(self.source.streams, keep_timing=cfg.keep_timing)
         # A conductor only steps through the frames: the cameras stand on the robots' hosts.
+        clocks = parse_clock_offsets(cfg.clock_offsets)
         self.topics = {
-            s.robot_id: _RobotTopics(s, cfg.depth_encoding)
+            s.robot_id: _RobotTopics(s, cfg.depth_encoding, clocks.get(s.robot_id, 0.0))
             for s in self.source.streams
             if cfg.role != "conductor"
         }

@@ -1,5 +1,6 @@
 """What a client shows of itself: its camera pose (``/robot_k/pose``), TF ``robot_k/map ->
-robot_k/odom -> robot_k/base_link -> robot_k/camera_optical`` (REP-105), its keyframe path and
+robot_k/odom -> robot_k/base_link -> robot_k/camera_optical`` (REP-105; names and who publishes
+which edge: :mod:`coop_slam.frames`, a base with its own odometry), its keyframe path and
 local cloud, each with the team map's correction laid over it (pose-graph sharing,
 :mod:`coop_slam.vo.shared_poses`): the odometry goes on in its own frame.
 
@@ -16,6 +17,7 @@ import rospy
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 
+from ..frames import FrameConfig, T_map_odom_over
 from ..geometry import invert, transform_points
 from ..vo.shared_poses import NEWEST, SharedPoses
 from ..wire.record import ACTION_NEW, ACTION_REMOVE
@@ -38,23 +40,36 @@ class PoseOutput:
         cloud_period_s: float,
         path_period_s: float,
         rejects: RejectCounter,
+        frames: FrameConfig | None = None,
     ):
         import tf2_ros
         from sensor_msgs.msg import PointCloud2
 
         self.robot_id, self.T_base_cam, self.rejects = robot_id, T_base_cam, rejects
         name = f"robot_{robot_id}"
-        self.map_frame, self.odom_frame = f"{name}/map", f"{name}/odom"
-        self.base_frame, self.cam_frame = f"{name}/base_link", f"{name}/camera_optical"
+        self.frames = frames or FrameConfig()
+        names = self.frames.names(robot_id)
+        self.map_frame, self.odom_frame = names.map, names.odom
+        self.base_frame, self.cam_frame = names.base, names.camera
         self.cloud_period_s = cloud_period_s
         # The path holds every keyframe: rebuilt at each keyframe change it cost milliseconds on
         # the frames that insert keyframes and grew with the map (docs/tuning.md).
         self.path_period_s = path_period_s
         self.tf = tf2_ros.TransformBroadcaster()
         self.static_tf = tf2_ros.StaticTransformBroadcaster()
-        self.static_tf.sendTransform(
-            transform_stamped(T_base_cam, self.base_frame, self.cam_frame, rospy.Time(0))
-        )
+        if self.frames.publish_camera_tf:
+            self.static_tf.sendTransform(
+                transform_stamped(T_base_cam, self.base_frame, self.cam_frame, rospy.Time(0))
+            )
+        self.tf_buffer = None
+        if self.frames.external_odom:  # the base's own odom -> base_link, to publish over it
+            self.tf_buffer = tf2_ros.Buffer(cache_time=rospy.Duration(30.0))
+            self.tf_listener = tf2_ros.TransformListener(self.tf_buffer)
+            self._tf_errors = (
+                tf2_ros.LookupException,
+                tf2_ros.ConnectivityException,
+                tf2_ros.ExtrapolationException,
+            )
         self.pub_pose = rospy.Publisher(f"/{name}/pose", PoseStamped, queue_size=10)
         self.pub_path = rospy.Publisher(f"/{name}/path", Path, queue_size=1, latch=True)
         self.pub_cloud = rospy.Publisher(
@@ -130,11 +145,35 @@ class PoseOutput:
         msg.header.stamp, msg.header.frame_id = stamp, self.map_frame
         self.pub_pose.publish(msg)
         T_odom_base = T_odom_cam @ invert(self.T_base_cam)
+        if self.tf_buffer is not None:
+            self._publish_over_external_odom(stamp, T_map_odom @ T_odom_base)
+            return
         self.tf.sendTransform(
             [
                 transform_stamped(T_map_odom, self.map_frame, self.odom_frame, stamp),
                 transform_stamped(T_odom_base, self.odom_frame, self.base_frame, stamp),
             ]
+        )
+
+    def _publish_over_external_odom(self, stamp, T_map_base: np.ndarray) -> None:
+        """map -> odom over the base's own odom -> base_link at the image's stamp."""
+        try:
+            tf = self.tf_buffer.lookup_transform(
+                self.odom_frame, self.base_frame, stamp, rospy.Duration(0.05)
+            )
+        except self._tf_errors as exc:
+            rospy.logwarn_throttle(
+                10.0,
+                f"client robot_{self.robot_id}: external_odom: no {self.odom_frame} -> "
+                f"{self.base_frame} at the image's stamp ({exc}); is the base's odometry "
+                "running, and are the clocks of camera and base the same?",
+            )
+            return
+        T_odom_base = transform_from_msg(tf.transform, "odom -> base_link")
+        self.tf.sendTransform(
+            transform_stamped(
+                T_map_odom_over(T_map_base, T_odom_base), self.map_frame, self.odom_frame, stamp
+            )
         )
 
     def _odom_poses(self, vo, kf_id_base: int) -> dict[int, np.ndarray]:

@@ -16,12 +16,13 @@ import numpy as np
 
 from ..evaluation import EvaluationError
 from ..evaluation.run_data import RobotRun, RunData, RunInput
-from ..playback import COLOR_TOPIC, GROUND_TRUTH_TOPIC, camera_topics, image_topic
+from ..playback import GROUND_TRUTH_TOPIC
 from ..team.results import TYPE_LINK, TYPE_LOOP
 from .convert import (
     MessageError,
     cloud_colours_from_msg,
     cloud_from_msg,
+    description_from_msg,
     pose_from_msg,
     transform_from_msg,
 )
@@ -35,6 +36,7 @@ ROBOT_TOPICS = {  # relative to /robot_k; the message type of each
     "path": "nav_msgs/Path",
     "local_map": "sensor_msgs/PointCloud2",
     "keyframe_ack": "coop_slam/KeyframeAck",
+    "description": "coop_slam/RobotDescription",
 }
 # What the server publishes per robot: recorded on the station with --hosts (the rest of a robot's
 # topics on its own host, so that recording never pulls them across the radio).
@@ -61,8 +63,13 @@ class RunRecorder:
     """Builds :class:`RunData` from what the system publishes: :meth:`feed` takes one message with
     the sim time it was seen at and its serialized size; the same code serves live and bag input."""
 
-    def __init__(self, robot_ids: list[int]):
-        self.run = RunData(robots={int(r): RobotRun() for r in robot_ids})
+    def __init__(self, robot_ids: list[int], clock_offsets: dict | None = None):
+        # clock_offsets: robot id -> how far its clock ran ahead of the master's (rehearsed) [s]:
+        # its own stamps (keyframes, path) are read back on the master's clock, as the data's.
+        offsets = {int(r): float(s) for r, s in (clock_offsets or {}).items()}
+        self.run = RunData(
+            robots={int(r): RobotRun(clock_offset_s=offsets.get(int(r), 0.0)) for r in robot_ids}
+        )
         self.lock = threading.Lock()
         self.done = False  # the player said it has played everything
         self.newest_frame_s = 0.0  # data time: the newest frame any client has finished
@@ -125,6 +132,12 @@ class RunRecorder:
         if not msg.tracking_ok and r.first_keyframe is not None:
             r.lost_frames += 1
 
+    def _on_description(self, msg, r: RobotRun, t_s, nbytes) -> None:
+        try:
+            r.T_base_cam = description_from_msg(msg).T_base_cam
+        except MessageError:
+            pass  # the report then places its path with the run's one mount
+
     def _on_cloud(self, msg) -> None:
         try:
             self.run.team_cloud = (cloud_from_msg(msg), cloud_colours_from_msg(msg))
@@ -140,6 +153,7 @@ class RunRecorder:
             return
         if kf.T_map_cam is None:
             return
+        kf = kf._replace(stamp_s=kf.stamp_s - r.clock_offset_s)
         r.sensor = kf.sensor or r.sensor
         r.keyframes[kf.keyframe_id] = (kf.stamp_s, kf.T_map_cam)
         if kf.points_cam is not None:  # (a delta update saw the same, in the camera frame)
@@ -153,7 +167,8 @@ class RunRecorder:
         path = []
         for ps in msg.poses:
             try:
-                path.append((ps.header.seq, ps.header.stamp.to_sec(), pose_from_msg(ps.pose)))
+                stamp_s = ps.header.stamp.to_sec() - r.clock_offset_s
+                path.append((ps.header.seq, stamp_s, pose_from_msg(ps.pose)))
             except MessageError:
                 continue
         r.path = path
@@ -214,15 +229,17 @@ class RunRecorder:
         )
 
 
-def run_data_from_bag(bag_paths: str | list[str], robot_ids: list[int]) -> RunData:
+def run_data_from_bag(
+    bag_paths: str | list[str], robot_ids: list[int], clock_offsets: dict | None = None
+) -> RunData:
     """Replay a recorded run through :class:`RunRecorder` (bag time is the sim time); several
-    bags (one per host) are read as one, in time order."""
+    bags (one per host) are read as one, in time order. ``clock_offsets``: see RunRecorder."""
     import heapq
 
     import rosbag
 
     paths = [bag_paths] if isinstance(bag_paths, str) else list(bag_paths)
-    rec = RunRecorder(robot_ids)
+    rec = RunRecorder(robot_ids, clock_offsets)
     topics = list(rec.topics())
     bags = []
     try:
@@ -255,10 +272,13 @@ def run_bags(results: str) -> list[str]:
 
 
 def read_bag_input(bag_path: str) -> RunInput:
-    """The run input of a sensor bag (``scripts/demo --bag``): robots from
-    ``/robot_<k>/camera/color/image_raw``, ground truth from ``/robot_<k>/ground_truth/pose`` (as
-    the player publishes it)."""
+    """The run input of a sensor bag (``scripts/demo --bag``): robots from its camera topics
+    (:mod:`coop_slam.bag_topics`), ground truth from ``/robot_<k>/ground_truth/pose`` (as the
+    player publishes it) or, for the one camera of a TUM RGB-D benchmark bag, from its ``/tf``
+    ``world -> kinect`` (the motion capture's)."""
     import rosbag
+
+    from ..bag_topics import bag_cameras, describe_drivers
 
     if not os.path.isfile(bag_path):
         raise EvaluationError(f"bag not found: {bag_path}")
@@ -268,15 +288,17 @@ def read_bag_input(bag_path: str) -> RunInput:
         raise EvaluationError(f"cannot read bag {bag_path}: {exc}") from exc
     with bag:
         topics = bag.get_type_and_topic_info().topics
-        colors = {t: int(m.group(1)) for t in topics if (m := COLOR_TOPIC.match(t))}
-        if not colors:
+        cameras = bag_cameras(topics)
+        if not cameras:
             raise EvaluationError(
-                f"bag {bag_path} has no robot camera topics (/robot_<k>/camera/color/image_raw); "
+                f"bag {bag_path} has no camera topics the player knows ({describe_drivers()}); "
                 f"it has: {', '.join(sorted(topics)) or 'nothing'}"
             )
-        robot_ids = sorted(colors.values())
+        robot_ids = [c.robot_id for c in cameras]
         gt_topics = {t: int(m.group(1)) for t in topics if (m := GROUND_TRUTH_TOPIC.match(t))}
         samples = {rid: ([], []) for rid in robot_ids}
+        if len(cameras) == 1 and cameras[0].driver.name == "tum" and "/tf" in topics:
+            samples[robot_ids[0]] = _tum_ground_truth(bag)
         if gt_topics:
             for topic, msg, _ in bag.read_messages(topics=list(gt_topics)):
                 rid = gt_topics[topic]
@@ -295,18 +317,29 @@ def read_bag_input(bag_path: str) -> RunInput:
                 np.asarray(stamps, float)[order],
                 np.asarray(poses, float).reshape(-1, 4, 4)[order],
             )
-        # A monocular camera publishes as an RGB-D camera's colour, without the depth image.
-        sensors = {}
-        for t, rid in colors.items():
-            if t == image_topic(rid, "stereo"):
-                sensors[rid] = "stereo"
-            else:
-                sensors[rid] = "rgbd" if camera_topics(rid, "rgbd")["second"] in topics else "mono"
         return RunInput(
             robot_ids,
-            sum(topics[t].message_count for t in colors),
+            sum(topics[c.image_topic].message_count for c in cameras),
             bag.get_start_time(),
             bag.get_end_time(),
             gts,
-            sensors=[sensors[rid] for rid in robot_ids],
+            sensors=[c.sensor for c in cameras],
         )
+
+
+def _tum_ground_truth(bag) -> tuple[list, list]:
+    """(stamps, T_world_kinect) of a TUM RGB-D benchmark bag's ``/tf`` (its ground truth: the
+    colour camera's optical centre, as its groundtruth.txt)."""
+    stamps, poses = [], []
+    for _, msg, _ in bag.read_messages(topics=["/tf"]):
+        for tf in msg.transforms:
+            if (
+                tf.header.frame_id.strip("/") == "world"
+                and tf.child_frame_id.strip("/") == "kinect"
+            ):
+                try:
+                    poses.append(transform_from_msg(tf.transform, "/tf world -> kinect"))
+                except MessageError:
+                    continue
+                stamps.append(tf.header.stamp.to_sec())
+    return stamps, poses

@@ -1,6 +1,8 @@
 """Server node: receives every robot's keyframes, stitches the maps, publishes merges and TF.
 
-Subscribes ``/robot_k/keyframes`` for each configured robot and ``/robot_sightings``; publishes
+Subscribes ``/robot_k/keyframes`` and ``/robot_k/description`` (each robot's camera and marker
+mounts, :mod:`coop_slam.robot_description`) for each configured robot and ``/robot_sightings``;
+publishes
 ``/merge_events`` (``coop_slam/MergeEvent``), TF ``world -> robot_k/map`` for every robot in the
 master's group, ``/robot_k/correction`` (``coop_slam/MapCorrection``), the team map
 (``/team_map/cloud``, ``/team_map/markers``, ``/team_map/robot_k/path``: optimized keyframe poses,
@@ -33,33 +35,21 @@ import rospy
 from ..bow import Vocabulary
 from ..config import load_yaml_config
 from ..errors import CoopSlamError
-from ..geometry import se3_from_quat
 from ..team.config import ServerConfig
 from ..team.durable import DurableServer
+from ..team.jobs import GlobalBaJob, MapFileJob, RelocalizeJob, RendezvousJob
 from ..team.publish_cadence import PublishCadenceConfig
 from ..team.server import TeamServer
-from ..team.worker import (
-    GlobalBaJob,
-    MapFileJob,
-    RelocalizeJob,
-    RendezvousJob,
-    ServerWorker,
-    default_map_path,
-)
+from ..team.worker import ServerWorker, default_map_path
 from ..wire.codec import WireError, signature_bow
 from ..wire.messages import KeyframeMessage
-from .convert import MessageError, pose_from_msg
+from .convert import MessageError, description_from_msg, marker_seen_from_msg
 from .link_watch import LinkWatch
 from .log_bridge import forward_core_logs
 from .params import server_params
 from .server_outputs import RosServerOutputs
 from .uplink_bridge import VOCABULARY_SHA256_TOPIC
 from .wire_bridge import from_ros
-
-
-def _server_mount(base_cam):
-    """The robots' camera mount (7 numbers), or None: marker sightings then only say when."""
-    return se3_from_quat(base_cam[:3], base_cam[3:]) if base_cam else None
 
 
 def load_vocabulary(path: str) -> tuple[Vocabulary, bytes]:
@@ -84,6 +74,7 @@ class ServerNode:
         from std_msgs.msg import String
 
         from coop_slam.msg import KeyframeMessage as KeyframeMessageRos
+        from coop_slam.msg import RobotDescription as RobotDescriptionMsg
         from coop_slam.msg import RobotSighting
         from coop_slam.msg import Vocabulary as VocabularyMsg
         from coop_slam.srv import GlobalBundleAdjustment, LoadMap, Relocalize, Rendezvous, SaveMap
@@ -115,13 +106,13 @@ class ServerNode:
             )
         )
         self._KeyframeMessage = KeyframeMessageRos
+        self._RobotDescription = RobotDescriptionMsg
         self.watch = LinkWatch("server")
         self.subs: set[int] = set()  # robots whose keyframes are subscribed
         self.worker = ServerWorker(
             self.cfg,
             self._open_map,
             self.out,
-            T_base_cam=_server_mount(p.T_base_cam),
             cadence=PublishCadenceConfig(p.cloud_period_s, p.cloud_max_busy_share),
             resume=p.resume,
             load_path=p.load_map.strip() or None,
@@ -196,10 +187,17 @@ class ServerNode:
                     ),
                     f"robot {r}'s keyframe",
                 )
+                rospy.Subscriber(
+                    f"/robot_{r}/description",
+                    self._RobotDescription,
+                    self._on_description,
+                    callback_args=r,
+                    queue_size=2,
+                )
 
     # --- callbacks: ROS in, jobs to the worker ----------------------------------------------------
     def _on_keyframe(self, msg, topic_robot: int) -> None:
-        self.worker.receive(from_ros(msg, KeyframeMessage), topic_robot)
+        self.worker.receive(from_ros(msg, KeyframeMessage), topic_robot, rospy.get_time())
 
     def _on_sighting(self, msg) -> None:
         """A marker sighting asks for a rendezvous check (at most once per pair and period)."""
@@ -211,15 +209,26 @@ class ServerNode:
             )
             return
         try:
-            T_cam_body = pose_from_msg(msg.T_cam_body, "T_cam_body")
+            seen = marker_seen_from_msg(msg)
         except MessageError as exc:
             self.worker.reject("/robot_sightings", str(exc))
             return
         self.worker.put(
-            RendezvousJob(
-                msg.observer_id, msg.observed_id, msg.header.stamp.to_sec(), T_cam_body, True
-            )
+            RendezvousJob(msg.observer_id, msg.observed_id, msg.header.stamp.to_sec(), seen, True)
         )
+
+    def _on_description(self, msg, topic_robot: int) -> None:
+        """A robot's own description: how its sightings are placed."""
+        topic = f"/robot_{topic_robot}/description"
+        try:
+            description = description_from_msg(msg)
+        except MessageError as exc:
+            self.worker.reject(topic, str(exc))
+            return
+        if description.robot_id != topic_robot:
+            self.worker.reject(topic, f"describes robot {description.robot_id}")
+            return
+        self.worker.sightings.describe(description)
 
     def _ask(self, job, timeout_s: float, urgent: bool = False):
         """Hand ``job`` to the worker and wait for its answer (None: timed out)."""

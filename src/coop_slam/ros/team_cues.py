@@ -33,11 +33,13 @@ class TeamCues:
         marker_every: int,
         vocabulary: Callable[[], object],
         segment_base: Callable[[], int],
+        cam_frame: str = "",
     ):
         from coop_slam.msg import RobotSighting
 
         self.robot_id, self.T_base_cam = robot_id, T_base_cam
-        self.name, self.cam_frame = f"robot_{robot_id}", f"robot_{robot_id}/camera_optical"
+        self.name = f"robot_{robot_id}"
+        self.cam_frame = cam_frame or f"{self.name}/camera_optical"
         self.markers, self.marker_every = markers, marker_every
         self.vocabulary, self.segment_base = vocabulary, segment_base
         self.pub_sighting = rospy.Publisher("/robot_sightings", RobotSighting, queue_size=10)
@@ -60,7 +62,8 @@ class TeamCues:
                 observer_id=self.robot_id,
                 observed_id=s.marker_id,
                 marker_id=s.marker_id,
-                T_cam_body=pose_to_msg(s.T_cam_body),
+                T_cam_marker=pose_to_msg(s.T_cam_marker),
+                marker_size_m=cfg.marker_size_m,
                 reprojection_error_px=s.reprojection_error_px,
             )
             msg.header.stamp, msg.header.frame_id = stamp, self.cam_frame

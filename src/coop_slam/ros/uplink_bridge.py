@@ -104,6 +104,7 @@ class UplinkBridge:
         hold_for_player: bool,
         uplink_args: dict,
         spool: SpoolConfig | None = None,
+        clock_offset_s: float = 0.0,
     ):
         from coop_slam.msg import KeyframeAck as KeyframeAckRos
         from coop_slam.msg import KeyframeMessage
@@ -112,6 +113,7 @@ class UplinkBridge:
         self.name, self.rejects, self.odometry = name, rejects, odometry
         self.hold_for_player = hold_for_player
         serializer = RosSerializer()
+        self.clock_offset_s = clock_offset_s  # rehearsed: this robot's clock runs ahead
         self.engine = ClientUplink(
             config=uplink,
             delivery=delivery,
@@ -205,6 +207,8 @@ class UplinkBridge:
         for msg in messages:
             try:
                 ros = to_ros(msg)
+                # When it went, on this robot's clock: its server measures the clock with it.
+                ros.sent = rospy.Time.from_sec(rospy.get_time() + self.clock_offset_s)
             except Exception as exc:
                 why = f"{type(exc).__name__}: {exc}"
             else:

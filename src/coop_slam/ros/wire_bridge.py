@@ -57,6 +57,8 @@ def from_ros(msg, wire_cls: type):
     its fields)."""
     values = {}
     for name, hint in _hints(wire_cls).items():
+        if not hasattr(msg, name):  # a field added since it was recorded: its default
+            continue
         value = getattr(msg, name)
         if hint is wm.Stamp:
             value = wm.Stamp(int(value.secs), int(value.nsecs))

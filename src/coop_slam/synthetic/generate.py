@@ -75,6 +75,10 @@ def _params(scenario: Scenario, noise: bool, camera: CameraModel) -> dict:
         "routes_sha1": _routes_digest(scenario),
         "layout": scenario.layout,
     }
+    if scenario.mounts:  # robots' own camera mounts: another world (others keep their keys)
+        params["mounts"] = {
+            str(r): np.round(T, 6).tolist() for r, T in sorted(scenario.mounts.items())
+        }
     if scenario.meta.get("dark"):  # frames of a covered camera: another world
         params["dark"] = scenario.meta["dark"]
     if scenario.noise != NoiseConfig():
@@ -159,8 +163,9 @@ def _render_frames(scenario, noise, camera, out_dir, robot_id, frames) -> int:
     ]
     scale = camera.depth_scale
     dark = (scenario.meta.get("dark") or {}).get(str(robot_id))
+    T_base_cam = scenario.mount(robot_id)
     for k in frames:
-        T_world_cam = me.poses_se3[k] @ scenario.T_base_cam
+        T_world_cam = me.poses_se3[k] @ T_base_cam
         others = [  # hand-held cameras have no robot body for the others to see
             DynamicObject(t.poses_se3[k], bodies[rid, scenario.marker_size_m])
             for rid, t in trajs.items()
@@ -171,7 +176,7 @@ def _render_frames(scenario, noise, camera, out_dir, robot_id, frames) -> int:
         if cfg.enabled and cfg.needs_motion:
 
             def pose_at(dt_s, stamp_s=me.stamps_s[k]):  # sub-frame camera poses
-                return me.poses_at(stamp_s + np.asarray(dt_s, float)) @ scenario.T_base_cam
+                return me.poses_at(stamp_s + np.asarray(dt_s, float)) @ T_base_cam
 
         bgr, depth = renderer.render(
             T_world_cam, others, noise_seed=seed, pose_at=pose_at, gain=float(gains[k])
@@ -236,7 +241,13 @@ def _world_yaml(
         "frame_count": len(scenario.trajectories[0].stamps_s),
         "rate_hz": scenario.rate_hz,
         "robots": [
-            {"id": t.robot_id, "name": t.name, "folder": t.name, "marker_id": t.robot_id}
+            {
+                "id": t.robot_id,
+                "name": t.name,
+                "folder": t.name,
+                "marker_id": t.robot_id,
+                "T_base_cam": np.asarray(scenario.mount(t.robot_id), float).round(12).tolist(),
+            }
             for t in scenario.trajectories
         ],
         "T_base_cam": np.asarray(scenario.T_base_cam, float).round(12).tolist(),
@@ -344,7 +355,7 @@ def _generate_into(tmp, sc: Scenario, params, noise, camera, ocfg, progress, wor
             os.makedirs(os.path.join(folder, "right"))
         _write_lists(folder, t.stamps_s, camera.baseline_m > 0)
         write_tum_trajectory(
-            os.path.join(folder, "groundtruth.txt"), t.stamps_s, t.poses_se3 @ sc.T_base_cam
+            os.path.join(folder, "groundtruth.txt"), t.stamps_s, t.poses_se3 @ sc.mount(t.robot_id)
         )
         write_tum_trajectory(os.path.join(folder, "groundtruth_base.txt"), t.stamps_s, t.poses_se3)
         write_camera_yaml(os.path.join(folder, "camera.yaml"), camera)

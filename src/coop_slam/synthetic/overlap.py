@@ -247,7 +247,7 @@ def _observations(scenario: Scenario, vis: _Visibility, frames: np.ndarray):
     for a in trajs:
         rows, cols = [], []
         for r, k in enumerate(frames):
-            T_world_cam = a.poses_se3[k] @ scenario.T_base_cam
+            T_world_cam = a.poses_se3[k] @ scenario.mount(a.robot_id)
             feats, depth_low = vis.frame(T_world_cam)
             rows.append(np.full(len(feats), r))
             cols.append(feats)

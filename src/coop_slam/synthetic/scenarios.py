@@ -87,10 +87,16 @@ class Scenario:
     # and the camera does not stay level (no planar-motion prior).
     hand_held: bool = False
     noise: NoiseConfig = field(default_factory=NoiseConfig)  # the sensor's noise profile
+    # Robots whose camera is mounted otherwise than T_base_cam: robot id -> their T_base_cam
+    mounts: dict = field(default_factory=dict)
 
     @property
     def robot_ids(self) -> list[int]:
         return [t.robot_id for t in self.trajectories]
+
+    def mount(self, robot_id: int) -> np.ndarray:
+        """Robot ``robot_id``'s camera optical frame in its base_link."""
+        return self.mounts.get(robot_id, self.T_base_cam)
 
 
 # --- route building ------------------------------------------------------------------------------
@@ -297,16 +303,23 @@ def _jitter(rng: np.random.Generator, amount: float = 0.08) -> float:
     return float(rng.uniform(-amount, amount))
 
 
-def rendezvous(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenario:
-    """Robots 0 and 1 approach head-on in the south corridor (seeing each other's marker), stop,
-    robot 2 turns around and both drive east together looking at the same scene."""
-    rng = np.random.default_rng(seed)
+def _meeting_pair(rng: np.random.Generator) -> tuple[Route, Route, float]:
+    """Two robots approach head-on in the south corridor (seeing each other's marker), stop; the
+    second turns around and both drive east together looking at the same scene. Returns the
+    routes and when they set off together [s from the start]."""
     v = _speeds(rng, 1)[0]  # same speed for both: robot 1 follows robot 2 at a constant gap
     a = Route(2.0 + _jitter(rng), 1.0, 0.0, v).drive((5.2, 1.0))
     b = Route(10.0 + _jitter(rng), 1.0, 180.0, v).drive((7.0, 1.0)).wait(1.0).turn_to(0.0)
     start = max(a.time_s, b.time_s) + 0.5
     a.wait_until(start).drive((9.4, 1.0))
     b.wait_until(start).drive((11.0, 1.0), (11.0, 3.2))
+    return a, b, start
+
+
+def rendezvous(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenario:
+    """Robots 0 and 1 approach head-on in the south corridor (seeing each other's marker), stop,
+    robot 2 turns around and both drive east together looking at the same scene."""
+    a, b, start = _meeting_pair(np.random.default_rng(seed))
     return _scenario(
         "rendezvous",
         seed,
@@ -383,6 +396,49 @@ def team(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenario:
             )
         )
     return _scenario("team", seed, "ring", rate_hz, duration_s, routes, team.__doc__)
+
+
+MOUNTS_HEIGHT_M = (0.3, 0.8, 0.5)  # robots 1, 2, 3
+MOUNTS_PITCH_DOWN_DEG = (0.0, 20.0, 10.0)
+
+
+def camera_mount(height_m: float, pitch_down_deg: float, forward_m: float = 0.1) -> np.ndarray:
+    """A forward-looking camera's ``T_base_cam`` at ``height_m`` above the floor, pitched down."""
+    a = math.radians(pitch_down_deg)
+    R_pitch = np.array(
+        [[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]]
+    )
+    T = DEFAULT_T_BASE_CAM.copy()
+    T[:3, :3] = R_pitch @ T[:3, :3]
+    T[:3, 3] = [forward_m, 0.0, height_m]
+    return T
+
+
+def mounts(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenario:
+    """Three robots, each with its own camera mount: at 0.3, 0.8 and 0.5 m, pitched down by 0,
+    20 and 10 degrees. Robots 1 and 2 meet as in ``rendezvous`` (the server must place each
+    one's marker sightings with its own mount); robot 3 comes round from the north corridor
+    through the west one into the south corridor, where robot 1 started (a revisit)."""
+    rng = np.random.default_rng(seed)
+    a, b, start = _meeting_pair(rng)
+    c = Route(4.5 + _jitter(rng), 7.0, 180.0, _speeds(rng, 1, base=0.45)[0])
+    c.drive((1.0, 7.0), (1.0, 1.0), (6.0, 1.0))
+    sc = _scenario(
+        "mounts",
+        seed,
+        "ring",
+        rate_hz,
+        duration_s,
+        [a, b, c],
+        mounts.__doc__,
+        meet_time_s=START_STAMP_S + start,
+    )
+    sc.mounts = {
+        t.robot_id: camera_mount(h, p)
+        for t, h, p in zip(sc.trajectories, MOUNTS_HEIGHT_M, MOUNTS_PITCH_DOWN_DEG)
+    }
+    sc.T_base_cam = sc.mounts[1]
+    return sc
 
 
 def kidnap(seed: int, robots: int, duration_s: float, rate_hz: float) -> Scenario:
@@ -533,6 +589,7 @@ SCENARIOS = {
     "kidnap": ScenarioSpec(kidnap, 2, 2, 2, 40.0),
     "multi": ScenarioSpec(multi, 4, 2, 8, 90.0),
     "kitchen": ScenarioSpec(kitchen, 2, 2, 3, 28.0, KITCHEN_RATE_HZ, hand_held=True),
+    "mounts": ScenarioSpec(mounts, 3, 3, 3, 40.0),
 }
 DEFAULT_SCENARIO = "team"
 

@@ -12,6 +12,7 @@ from ..bow.database import DatabaseConfig
 from ..config import require
 from ..registration.relative_pose import RegistrationConfig
 from .assisted_relocalization import AssistConfig
+from .clocks import ClockConfig
 from .global_ba import GlobalBaConfig
 from .map_scale import MapScaleConfig
 from .marker_scale import MarkerScaleConfig
@@ -186,6 +187,7 @@ class ServerConfig:
     pose_feedback: PoseFeedbackConfig = field(default_factory=PoseFeedbackConfig)
     pull: PullConfig = field(default_factory=PullConfig)
     assisted_relocalization: AssistConfig = field(default_factory=AssistConfig)
+    clock: ClockConfig = field(default_factory=ClockConfig)
     optimize_every: int = 5  # incremental (iSAM2) update every N keyframes; full after each merge
     # ... or every N updates of keyframes (local BA moved them a little): a client sends several
     # per keyframe, and an incremental update after each 5 messages grew with the team graph
@@ -213,3 +215,4 @@ class ServerConfig:
         self.pose_feedback.validate()
         self.pull.validate()
         self.assisted_relocalization.validate()
+        self.clock.validate()

@@ -17,68 +17,29 @@ import logging
 import os
 import queue
 import time
-from concurrent.futures import Future
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 
 from ..errors import CoopSlamError
-from ..geometry import invert
-from ..wire.codec import Decoded, WireError, decode
+from ..wire.codec import WireError, decode
 from ..wire.delivery import new_session
 from ..wire.legacy import decode_legacy, is_legacy
 from ..wire.messages import Header, KeyframeAck, KeyframeMessage, KeyframeRequest, Stamp
 from .assisted_relocalization import local_map_for
+from .clocks import RobotClocks
 from .config import ServerConfig
 from .durable import DurableServer
 from .global_ba import GlobalBaError
+from .jobs import GlobalBaJob, KeyframeJob, MapFileJob, RelocalizeJob, RendezvousJob
 from .map_builder import TeamMapBuilder
 from .map_store import MapStoreError, remove_map_file
 from .publish_cadence import PublishCadence, PublishCadenceConfig
 from .results import TYPE_LINK, TYPE_LOOP
+from .sightings import SightingPlacer
 
 log = logging.getLogger(__name__)
-
-
-# --- jobs ----------------------------------------------------------------------------------------
-@dataclass
-class KeyframeJob:
-    item: Decoded
-    stamp_s: float  # the message's header stamp
-    session: int = 0  # delivery (see coop_slam.wire.delivery); 0 = unsequenced
-    sequence: int = 0
-
-
-@dataclass
-class RendezvousJob:
-    robot_a: int
-    robot_b: int
-    stamp_s: float | None  # None: now (the robots' latest keyframes)
-    T_camA_bodyB: np.ndarray | None = None  # marker sighting: robot b's body in a's camera
-    sighting: bool = False  # a marker sighting (rate-limited) rather than an operator request
-    reply: Future | None = None  # (merge or None, message)
-
-
-@dataclass
-class GlobalBaJob:
-    robot_id: int | None
-    reply: Future  # (GlobalBaResult or None, message)
-
-
-@dataclass
-class RelocalizeJob:
-    robot_id: int
-    map_segment: int
-    bow: Any  # BowVector of the lost robot's view
-    reply: Future  # (LocalMap or None, message, pending)
-
-
-@dataclass
-class MapFileJob:
-    path: str
-    load: bool  # load (else save)
-    reply: Future  # (success, message, path)
 
 
 # --- what the worker says ------------------------------------------------------------------------
@@ -191,7 +152,6 @@ class ServerWorker:
         cfg: ServerConfig,
         open_map: Callable[[bool, str | None], DurableServer],
         outputs: ServerOutputs | None = None,
-        T_base_cam: np.ndarray | None = None,
         cadence: PublishCadenceConfig | None = None,
         resume: bool = False,
         load_path: str | None = None,
@@ -202,7 +162,8 @@ class ServerWorker:
         self.clock = clock
         self._open_map = open_map
         self.durable = open_map(resume, load_path)
-        self.T_base_cam = T_base_cam  # the robots' camera mounting (marker sightings)
+        self.sightings = SightingPlacer()  # each robot's description places its sightings
+        self.clocks = RobotClocks(cfg.clock)  # each robot's clock against the server's
         self.cadence = PublishCadence(cadence)
         self.map_builder = TeamMapBuilder(self.out.cloud, self.cadence)
         self.queue: queue.Queue = queue.Queue()
@@ -238,10 +199,15 @@ class ServerWorker:
         self.rejected += 1
         self.out.reject(where, why)
 
-    def intake(self, msg: KeyframeMessage, topic_robot: int) -> KeyframeJob | None:
+    def intake(
+        self, msg: KeyframeMessage, topic_robot: int, arrived_s: float = 0.0
+    ) -> KeyframeJob | None:
         """A robot's keyframe message as a job (decoded and checked here, in the receiving
         thread, so the worker only applies it); None when refused. A message of a run recorded
-        before each kind had its own type is read as such (:mod:`coop_slam.wire.legacy`)."""
+        before each kind had its own type is read as such (:mod:`coop_slam.wire.legacy`).
+        ``arrived_s``: when it arrived on the server's clock (0: not known); with when it was
+        sent on the robot's, it measures the robot's clock, and its stamps are taken in the
+        server's time (see :mod:`.clocks`)."""
         topic = f"/robot_{topic_robot}/keyframes"
         if msg.robot_id != topic_robot:
             self.reject(topic, f"keyframe of robot {msg.robot_id} on robot {topic_robot}'s topic")
@@ -252,12 +218,19 @@ class ServerWorker:
         except WireError as exc:
             self.reject(topic, str(exc))
             return None
+        sent = getattr(msg, "sent", None)  # (not in older recordings)
+        if sent is not None and arrived_s > 0:
+            self.clocks.observe(topic_robot, sent.to_sec(), arrived_s)
+        item = self.clocks.to_server_time(item)
+        stamp_s = msg.header.stamp.to_sec()
+        if stamp_s > 0:
+            stamp_s -= self.clocks.correction(topic_robot)
         session, sequence = getattr(msg, "session", 0), getattr(msg, "sequence", 0)
-        return KeyframeJob(item, msg.header.stamp.to_sec(), session, sequence)
+        return KeyframeJob(item, stamp_s, session, sequence)
 
-    def receive(self, msg: KeyframeMessage, topic_robot: int) -> None:
+    def receive(self, msg: KeyframeMessage, topic_robot: int, arrived_s: float = 0.0) -> None:
         """The node's subscriber: :meth:`intake`, queue the job, and say it was received."""
-        job = self.intake(msg, topic_robot)
+        job = self.intake(msg, topic_robot, arrived_s)
         if job is None:
             return
         self.queue.put(job)
@@ -432,18 +405,26 @@ class ServerWorker:
 
     def _rendezvous(self, job: RendezvousJob) -> list | None:
         """The merges a request made; None for a sighting that is not a request."""
-        T_body_cam = None if self.T_base_cam is None else invert(self.T_base_cam)
-        T_camA_bodyB = job.T_camA_bodyB if T_body_cam is not None else None
+        refusal = self.clocks.refusal(job.robot_a, job.robot_b)
+        if refusal is not None:
+            if not job.sighting:
+                log.warning("rendezvous request robot_%d / robot_%d: %s", *job.pair, refusal)
+            if job.reply is not None:
+                job.reply.set_result((None, refusal))
+            return None if job.sighting else []
+        if job.sighting and job.stamp_s is not None:  # seen on the observer's clock
+            job.stamp_s -= self.clocks.correction(job.robot_a)
+        T_camA_bodyB, T_bodyB_camB = self.sightings.place(job.robot_b, job.marker)
         if job.sighting:
             outcome = self.durable.sighting(
-                job.robot_a, job.robot_b, job.stamp_s, T_camA_bodyB, T_body_cam
+                job.robot_a, job.robot_b, job.stamp_s, T_camA_bodyB, T_bodyB_camB
             )
             if outcome is None:
                 return None  # within rendezvous.sighting_period_s of the pair's last request
             merge, message = outcome
         else:
             merge, message = self.durable.request_rendezvous(
-                job.robot_a, job.robot_b, job.stamp_s, T_camA_bodyB, T_body_cam
+                job.robot_a, job.robot_b, job.stamp_s, T_camA_bodyB, T_bodyB_camB
             )
         log.info("rendezvous request robot_%d / robot_%d: %s", job.robot_a, job.robot_b, message)
         if job.reply is not None:
@@ -675,5 +656,7 @@ class ServerWorker:
             "metric": {str(r): server.is_metric(server.current_map(r)) for r in robots},
             "map_scale": {str(r): server.map_scale(server.current_map(r)) for r in robots},
             "map_file": durable.store.path if durable.store is not None else None,
+            # Robot clock minus the server's [s], low by the smallest transit time
+            "clock_offset_s": {str(r): o for r, o in self.clocks.said().items()},
             "idle": idle,
         }

@@ -50,7 +50,7 @@ def render_fps(frames: int = 60, camera=None, noise: bool = True) -> float:
         renderer = Renderer(world, camera, NoiseConfig(enabled=noise))
         traj = scenario.trajectories[0]
         idx = np.linspace(0, len(traj.stamps_s) - 1, max(1, frames)).astype(int)
-        poses = [traj.poses_se3[i] @ scenario.T_base_cam for i in idx]
+        poses = [traj.poses_se3[i] @ scenario.mount(traj.robot_id) for i in idx]
         for T in poses:
             renderer.render(T)  # warm-up: build the textures this route sees
         start = time.perf_counter()

@@ -157,14 +157,16 @@ def synthesized_streams(
             _log(f"rendering the world: frame {done}/{total}")
 
     world = read_synthetic(generate(scenario, robots=robots, progress=rendered))
-    cfg = client_vo_config(world.T_base_cam, not SCENARIOS[scenario].hand_held)
+    ground = not SCENARIOS[scenario].hand_held
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # one core, as one client has: the machine is shared
     arrivals: list[Arrival] = []
     try:
         for k, robot in enumerate(world.robot_ids, 1):
             label = f"robot {k} of {len(world.robot_ids)}: "
-            arrivals += robot_stream(robot, world.sequences[robot], cfg, world.T_base_cam, label)
+            mount = world.mount(robot)
+            cfg = client_vo_config(mount, ground)
+            arrivals += robot_stream(robot, world.sequences[robot], cfg, mount, label)
     finally:
         cv2.setNumThreads(threads)
     # Stable: a robot's messages of one frame stay in their sending order.

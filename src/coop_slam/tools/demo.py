@@ -69,6 +69,8 @@ class _RunPlan:
     faults: Faults
     ground: bool  # the robots drive on a level floor (client vo.planar.enabled)
     base_cam: list  # the cameras' mounting [x y z qx qy qz qw]; [] = the launch file's default
+    base_cams: dict  # robot id -> its own mounting, for robots whose mount differs (or {})
+    clock_offsets: dict  # robot id -> how far its clock runs ahead (rehearsed) [s]
     record_ids: list[int]  # the robots the bag records and the report covers
 
 
@@ -113,7 +115,7 @@ def _run_system(
     server settle and stop it; what the monitor saw."""
     master = team.master(out) if team else private_master(out)
     launch_args = _launch_arguments(args, plan, out)
-    _write_run_info(out, args, plan.robot_ids, plan.ground, plan.base_cam)
+    _write_run_info(out, args, plan.robot_ids, plan.ground, plan.base_cam, plan.base_cams)
     rviz_config = (
         _framed_rviz_config(out, plan.source, plan.inputs, plan.base_cam, team is not None)
         if args.record
@@ -191,6 +193,8 @@ def _prepare_data(args: argparse.Namespace) -> _RunPlan:
         faults=parse_faults(args.faults or "", robot_ids),
         ground=_ground_robots(args),
         base_cam=_base_cam(source),
+        base_cams=_base_cams(source),
+        clock_offsets=dict(args.clock_offset),
         # A loaded map's robots do not run, but the server shows them: record them for the report.
         record_ids=all_ids if args.load_map else robot_ids,
     )
@@ -277,7 +281,22 @@ def _base_cam(source: Source | None) -> list:
     or [] when it has none."""
     if source is None or "T_base_cam" not in (source.meta or {}):
         return []
-    t, q = quat_from_se3(np.asarray(source.meta["T_base_cam"], float))
+    return _mount_numbers(source.meta["T_base_cam"])
+
+
+def _base_cams(source: Source | None) -> dict:
+    """Robot id -> its own camera mounting [x y z qx qy qz qw], for the source's robots that
+    carry one (a synthetic world's robots each do)."""
+    robots = (source.meta or {}).get("robots") if source is not None else None
+    return {
+        int(r["id"]): _mount_numbers(r["T_base_cam"])
+        for r in robots or []
+        if isinstance(r, dict) and "T_base_cam" in r
+    }
+
+
+def _mount_numbers(T_base_cam) -> list:
+    t, q = quat_from_se3(np.asarray(T_base_cam, float))
     return [round(float(v), 6) for v in (*t, *q)]
 
 
@@ -292,6 +311,7 @@ def _launch_arguments(args: argparse.Namespace, plan: _RunPlan, out: str) -> lis
         played_ids=plan.robot_ids,
         sensors=plan.sensors,
         base_cam=plan.base_cam,
+        base_cams=plan.base_cams,
         ground=plan.ground,
         faults=plan.faults,
         map_path=map_path,
@@ -304,7 +324,12 @@ def _launch_arguments(args: argparse.Namespace, plan: _RunPlan, out: str) -> lis
 
 
 def _write_run_info(
-    out: str, args: argparse.Namespace, robot_ids: list[int], ground: bool, base_cam: list
+    out: str,
+    args: argparse.Namespace,
+    robot_ids: list[int],
+    ground: bool,
+    base_cam: list,
+    base_cams: dict,
 ) -> None:
     """What ``scripts/evaluate`` needs to find the ground truth of this run again, and
     ``scripts/replay`` the server's launch settings."""
@@ -328,9 +353,12 @@ def _write_run_info(
         "ground_robots": ground,
         "commit": git_commit(),
         "T_base_cam": base_cam,  # [x y z qx qy qz qw], [] = the launch file's default
+        "T_base_cams": {str(r): v for r, v in base_cams.items()},  # robots' own, where given
         "hosts": args.hosts,
         "link_rate": args.link_rate,  # [kbit/s], 0 = unlimited
         "outage": [f"{r}@{a:g}-{b:g}" for r, a, b in args.outage],
+        # robot -> how far its clock ran ahead (rehearsed) [s]: its stamps are on that clock
+        "clock_offsets": {str(r): s for r, s in args.clock_offset},
     }
     with open(os.path.join(out, "run.json"), "w", encoding="utf-8") as fh:
         json.dump(info, fh, indent=2)
@@ -522,7 +550,7 @@ def _evaluate(plan: _RunPlan, monitor: Monitor, out: str) -> tuple[str, str, str
     if os.path.isfile(bag_path):  # what the system published, as recorded
         bags = run_bags(out)
         say(f"      from the recorded bag{'s' * (len(bags) > 1)} {', '.join(bags)}")
-        run_data = run_data_from_bag(bags, plan.record_ids)
+        run_data = run_data_from_bag(bags, plan.record_ids, plan.clock_offsets)
     else:
         say("      WARNING: no bag was recorded; evaluating what this process received")
     run_data.duration_s = monitor.run.duration_s

@@ -135,6 +135,16 @@ def _add_system_options(p: argparse.ArgumentParser) -> None:
         "comma-separated, e.g. server-kill@25,drop:0.1",
     )
     p.add_argument(
+        "--clock-offset",
+        action="append",
+        default=[],
+        type=clock_offset_spec,
+        metavar="ROBOT:SECONDS",
+        help="rehearse an unsynchronized clock: robot ROBOT's clock runs SECONDS ahead of the "
+        "master's (its images and messages are stamped on it); the server estimates it "
+        "(clock_offset_s in /server/stats and the report); repeatable",
+    )
+    p.add_argument(
         "--low-bandwidth",
         action="store_true",
         help="low-bandwidth mode: each new keyframe goes as its place signature (pose and BoW "
@@ -169,6 +179,17 @@ def _add_hosts_options(p: argparse.ArgumentParser) -> None:
         help="with --hosts: robot ROBOT's radio link is down from START to END s of data time; "
         "repeatable",
     )
+
+
+def clock_offset_spec(text: str) -> tuple[int, float]:
+    """``ROBOT:SECONDS`` -> (robot, seconds)."""
+    from ..playback import PlaybackError, parse_clock_offsets
+
+    try:
+        ((robot, seconds),) = parse_clock_offsets(text).items()
+    except (PlaybackError, ValueError) as exc:
+        raise argparse.ArgumentTypeError(str(exc) or f"'{text}' is not ROBOT:SECONDS") from None
+    return robot, seconds
 
 
 def outage_spec(text: str) -> tuple[int, float, float]:

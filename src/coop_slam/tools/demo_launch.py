@@ -88,6 +88,7 @@ def launch_arguments(
     played_ids: list[int],
     sensors: list[str],
     base_cam: list,
+    base_cams: dict,
     ground: bool,
     faults: Faults,
     map_path: str,
@@ -96,8 +97,8 @@ def launch_arguments(
 ) -> list[str]:
     """demo.launch's arguments for this run. ``all_ids`` are the source's robots, ``played_ids``
     those that run (``--only-robots``), ``sensors`` the cameras of ``all_ids``, ``base_cam`` the
-    cameras' mounting (``[]``: the launch file's default), ``record_ids`` the robots whose topics
-    go into ``bag_path``."""
+    cameras' mounting (``[]``: the launch file's default), ``base_cams`` robots' own where they
+    differ, ``record_ids`` the robots whose topics go into ``bag_path``."""
     from ..ros.run_recorder import RunRecorder
 
     launch_args = [
@@ -111,8 +112,10 @@ def launch_arguments(
     launch_args += _source_arguments(args)
     if args.rate is not None:
         launch_args += ["lockstep:=false", f"rate:={args.rate}"]
-    if base_cam:
-        launch_args.append(f"T_base_cam:=[{', '.join(f'{v:.6f}' for v in base_cam)}]")
+    mounts = [base_cams.get(r, base_cam) for r in range(1, max(all_ids) + 1)]
+    if any(mounts):  # robot k's is the k-th; one robot's without one gets the launch default
+        text = [",".join(f"{v:.6f}" for v in m) for m in mounts]
+        launch_args.append(f"T_base_cams:={';'.join(text)}")
     if args.no_clients:
         launch_args += ["clients:=false", "server:=false"]
     launch_args += _config_arguments(args)
@@ -130,6 +133,9 @@ def launch_arguments(
         launch_args.append(f"radio_drop:={faults.drop}")
     if args.low_bandwidth:
         launch_args.append("low_bandwidth:=true")
+    if args.clock_offset:
+        text = ",".join(f"{r}:{s:g}" for r, s in args.clock_offset)
+        launch_args.append(f"clock_offsets:={text}")
     launch_args.append(f"record_bag:={bag_path}")
     launch_args.append(f"record_topics:={' '.join(RunRecorder(record_ids).topics())}")
     return launch_args

@@ -43,7 +43,7 @@ def main(argv=None) -> int:
             options = dict(info, only_robots=None) if info.get("load_map") else info
             inputs = run_input_of(load_run_source(options), bool(info.get("keep_timing")))
         print(f"[evaluate] reading {', '.join(bags)}", flush=True)
-        run = run_data_from_bag(bags, inputs.robot_ids)
+        run = run_data_from_bag(bags, inputs.robot_ids, info.get("clock_offsets"))
         run.duration_s = inputs.end_s - inputs.start_s
         run.radio_bytes = {int(r): tuple(b) for r, b in (info.get("radio_bytes") or {}).items()}
         faults = {"faults": {"spec": info["faults"]}} if info.get("faults") else None

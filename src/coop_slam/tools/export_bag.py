@@ -1,5 +1,7 @@
 """``scripts/export_bag``: write a synthetic scenario or a dataset folder as a rosbag with the
-player's topics (per robot ``robot_k/camera/...`` and ``robot_k/ground_truth/pose``).
+player's topics (per robot ``robot_k/camera/...`` and ``robot_k/ground_truth/pose``), or with
+the TUM RGB-D benchmark's own (``--topics tum``: one camera, ``/camera/rgb/image_color``,
+``/camera/depth/image``, ``/camera/rgb/camera_info``, ground truth as ``/tf world -> kinect``).
 
 Such a bag is what a team of real robots would record; ``scripts/demo --bag`` runs the system on
 it, and evaluates against the ground-truth topic when the bag has one.
@@ -23,10 +25,16 @@ class ExportError(CoopSlamError):
 
 
 def export_bag(
-    source, out_path: str, keep_timing: bool = False, depth_encoding: str = "16UC1", progress=None
+    source,
+    out_path: str,
+    keep_timing: bool = False,
+    depth_encoding: str = "16UC1",
+    progress=None,
+    topics: str = "coop_slam",
 ) -> int:
     """Write every robot's frames of ``source`` (see :func:`coop_slam.playback.load_streams`) in
-    playback order to ``out_path`` (LZ4-compressed); returns the number of frames written."""
+    playback order to ``out_path`` (LZ4-compressed); returns the number of frames written.
+    ``topics``: the player's (``coop_slam``) or the TUM benchmark's (``tum``, one RGB-D camera)."""
     import rosbag
     import rospy
 
@@ -36,6 +44,7 @@ def export_bag(
     schedule = build_schedule(source.streams, keep_timing=keep_timing)
     if not schedule:
         raise ExportError("nothing to export: the source has no frames")
+    rename = _tum_names(source) if topics == "tum" else None
     streams = {s.robot_id: s for s in source.streams}
     gt = {s.robot_id: ground_truth_by_frame(s) for s in source.streams}
     parent = os.path.dirname(os.path.abspath(out_path))
@@ -50,6 +59,10 @@ def export_bag(
                 for topic, msg in frame_messages(
                     streams[item.robot_id], item.frame, item.play_s, depth_encoding, T_world_cam
                 ):
+                    if rename is not None:
+                        topic, msg = rename(topic, msg)
+                        if topic is None:
+                            continue
                     bag.write(topic, msg, stamp)
                 if progress is not None:
                     progress(n, len(schedule))
@@ -58,6 +71,47 @@ def export_bag(
         raise ExportError(str(exc)) from None
     os.replace(tmp, out_path)
     return len(schedule)
+
+
+def _tum_names(source):
+    """(player topic, message) -> (the TUM benchmark bag's topic, message) of a one-camera RGB-D
+    source; the ground truth as /tf world -> kinect."""
+    from geometry_msgs.msg import TransformStamped
+    from tf2_msgs.msg import TFMessage
+
+    from ..bag_topics import DRIVERS
+    from ..playback import camera_topics
+
+    if len(source.streams) != 1 or source.streams[0].sequence.camera.sensor != "rgbd":
+        raise ExportError("--topics tum: a TUM RGB-D bag holds one RGB-D camera")
+    rid = source.streams[0].robot_id
+    tum = next(d for d in DRIVERS if d.name == "tum")
+    own = camera_topics(rid, "rgbd")
+    names = {own["image"]: "/" + tum.image, own["second"]: "/" + tum.second}
+    names.update({own["infos"][role]: "/" + t for role, t in tum.infos.items()})
+
+    def rename(topic, msg):
+        if topic in names:
+            msg.header.frame_id = "openni_rgb_optical_frame"
+            return names[topic], msg
+        if topic.endswith("/ground_truth/pose"):
+            tf = TransformStamped()
+            tf.header.stamp, tf.header.frame_id, tf.child_frame_id = (
+                msg.header.stamp,
+                "/world",
+                "/kinect",
+            )
+            p, o = msg.pose.position, msg.pose.orientation
+            tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = (
+                p.x,
+                p.y,
+                p.z,
+            )
+            tf.transform.rotation = o
+            return "/tf", TFMessage([tf])
+        return None, None
+
+    return rename
 
 
 def main(argv=None) -> int:
@@ -79,6 +133,13 @@ def main(argv=None) -> int:
     p.add_argument(
         "--depth-encoding", choices=("16UC1", "32FC1"), default="16UC1", help="depth image type"
     )
+    p.add_argument(
+        "--topics",
+        choices=("coop_slam", "tum"),
+        default="coop_slam",
+        help="topic names: the player's (per robot) or the TUM RGB-D benchmark's (one camera, "
+        "ground truth on /tf world -> kinect; with --depth-encoding 32FC1 as theirs)",
+    )
     p.add_argument("--out", required=True, help="bag file to write")
     args = p.parse_args(argv)
     check_duration(p, args)
@@ -91,7 +152,9 @@ def main(argv=None) -> int:
 
     try:
         source = load_run_source(vars(args))
-        n = export_bag(source, args.out, args.keep_timing, args.depth_encoding, progress)
+        n = export_bag(
+            source, args.out, args.keep_timing, args.depth_encoding, progress, args.topics
+        )
     except CoopSlamError as exc:
         print(f"[export_bag] ERROR: {exc}", file=sys.stderr)
         return 2

@@ -43,47 +43,61 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
 
     from ..bow import Vocabulary
     from ..default_vocabulary import ensure_default_vocabulary
-    from ..geometry import se3_from_quat
-    from ..ros.convert import MessageError, pose_from_msg
+    from ..geometry import T_base_cam_of
+    from ..markers import MarkerConfig
+    from ..robot_description import describe
+    from ..ros.convert import MessageError, description_from_msg, marker_seen_from_msg
     from ..ros.recorded import KEYFRAME_TOPIC, is_removal, keyframe_message
     from ..team.durable import DurableServer
+    from ..team.jobs import RendezvousJob
     from ..team.server import TeamServer
-    from ..team.worker import RendezvousJob, ServerWorker
+    from ..team.worker import ServerWorker
 
     cfg = _server_config(config_path, info, overrides or {})
     vocab = Vocabulary.load(ensure_default_vocabulary())
-    base_cam = info.get("T_base_cam") or []
-    T_base_cam = se3_from_quat(base_cam[:3], base_cam[3:]) if base_cam else None
     # The node's worker, its global BA at once after a merge (the node runs it when no message
     # waits, which a bag does not record): the same input gives the same decisions.
     worker = ServerWorker(
         cfg,
         lambda resume, load: DurableServer(cfg, lambda c: TeamServer(c, vocab), None),
-        T_base_cam=T_base_cam,
     )
+    # Robots' descriptions in the bag replace these: a run recorded before robots described
+    # themselves has only the run's mounts.
+    own = info.get("T_base_cams") or {}
+    for r in cfg.robots:
+        base_cam = own.get(str(r)) or info.get("T_base_cam") or []
+        if base_cam:
+            worker.sightings.describe(describe(r, "rgbd", T_base_cam_of(base_cam), MarkerConfig()))
     server = worker.server
     topics = [KEYFRAME_TOPIC.format(r) for r in cfg.robots] + ["/robot_sightings"]
+    topics += [f"/robot_{r}/description" for r in cfg.robots]
     rejected = 0
     stamps = {}  # (robot, keyframe) -> stamp_s of every keyframe received, culled ones included
     try:
         with rosbag.Bag(bag_path) as bag:
-            for topic, msg, _ in bag.read_messages(topics=topics):
+            for topic, msg, t in bag.read_messages(topics=topics):
                 if topic == "/robot_sightings":
                     try:
-                        T_cam_body = pose_from_msg(msg.T_cam_body, "T_cam_body")
+                        seen = marker_seen_from_msg(msg)
                     except MessageError:
                         rejected += 1
                         continue
                     stamp_s = msg.header.stamp.to_sec()
                     worker.handle(
-                        RendezvousJob(msg.observer_id, msg.observed_id, stamp_s, T_cam_body, True)
+                        RendezvousJob(msg.observer_id, msg.observed_id, stamp_s, seen, True)
                     )
+                    continue
+                if topic.endswith("/description"):
+                    try:
+                        worker.sightings.describe(description_from_msg(msg))
+                    except MessageError:
+                        rejected += 1
                     continue
                 msg = keyframe_message(msg)
                 if not is_removal(msg):  # a removal carries no stamp
                     key = (msg.robot_id, msg.keyframe_id)
                     stamps.setdefault(key, msg.header.stamp.to_sec())
-                job = worker.intake(msg, msg.robot_id)
+                job = worker.intake(msg, msg.robot_id, t.to_sec())  # (recorded on arrival)
                 if job is not None:
                     worker.handle(job)
     finally:

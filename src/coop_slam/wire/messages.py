@@ -134,6 +134,7 @@ class KeyframeMessage:
     keyframe: list = field(default_factory=list)  # [WholeKeyframe] for KIND_KEYFRAME
     delta: list = field(default_factory=list)  # [KeyframeDelta] for KIND_DELTA
     signature: list = field(default_factory=list)  # [PlaceSignatureMsg] for KIND_SIGNATURE
+    sent: Stamp = field(default_factory=Stamp)  # made at, on the robot's clock (0: not said)
 
     @property
     def kind_name(self) -> str:
