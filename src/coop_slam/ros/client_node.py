@@ -20,6 +20,7 @@ import time
 import rospy
 from sensor_msgs.msg import Image
 
+from ..camera_presets import layered, load_preset
 from ..config import load_yaml_config
 from ..errors import CoopSlamError
 from ..geometry import T_base_cam_of
@@ -55,7 +56,8 @@ class ClientNode:
             )
         self.sensor = sensor
         self.T_base_cam = T_base_cam_of(p.T_base_cam)
-        self.vo_cfg = load_yaml_config(VoConfig, p.config, "vo", p.vo)
+        preset = load_preset(p.camera)  # a known camera's values, under the node's own
+        self.vo_cfg = load_yaml_config(VoConfig, p.config, "vo", layered(preset, "vo", p.vo))
         if self.vo_cfg.planar.enabled:  # the floor normal (base z) as the camera sees it
             self.vo_cfg.planar.up_cam = (self.T_base_cam[:3, :3].T @ [0.0, 0.0, 1.0]).tolist()
         # Lock-step playback: a frame is finished when local mapping has caught up too, so that
@@ -79,7 +81,7 @@ class ClientNode:
         )
         self.uplink = UplinkBridge(
             name,
-            load_yaml_config(UplinkConfig, p.config, "uplink", p.uplink),
+            load_yaml_config(UplinkConfig, p.config, "uplink", layered(preset, "uplink", p.uplink)),
             p.delivery,
             p.server_wait_s,
             self.rejects,
@@ -90,13 +92,15 @@ class ClientNode:
             p.clock_offset_s,
         )
         self.uplink.flush_now = self._flush_uplink
-        markers = load_yaml_config(MarkerConfig, p.config, "markers", p.markers)
+        markers = load_yaml_config(
+            MarkerConfig, p.config, "markers", layered(preset, "markers", p.markers)
+        )
         # Latched: the server places sightings of our marker with our own mounts.
         self.pub_description = rospy.Publisher(
             f"/{name}/description", RobotDescriptionMsg, queue_size=1, latch=True
         )
         self.pub_description.publish(
-            description_to_msg(describe(self.robot_id, sensor, self.T_base_cam, markers))
+            description_to_msg(describe(self.robot_id, sensor, self.T_base_cam, markers, p.camera))
         )
         self.cues = TeamCues(
             self.robot_id,
@@ -111,7 +115,7 @@ class ClientNode:
             name,
             self.robot_id,
             sensor,
-            p.depth_scale,
+            p.depth_scale or float((preset.get("camera") or {}).get("depth_scale", 1000.0)),
             self.rejects,
             self.lock,
             self._camera_changed,

@@ -25,6 +25,8 @@ class ClientNodeParams:
     robot_id: int = 0  # robot id k >= 1: topics /robot_k/..., frames robot_k/...
     sensor: str = "rgbd"  # the camera: rgbd, stereo or mono
     config: str = ""  # YAML file of the sections vo, uplink, markers ("" = the defaults)
+    # Camera preset layered over it (config/cameras/NAME.yaml, or a path; "" = none)
+    camera: str = ""
     T_base_cam: list = field(default_factory=list)  # camera in base_link [x y z qx qy qz qw]
     # TF frame names ('' = robot_k/odom, robot_k/base_link, robot_k/camera_optical) and who
     # publishes which edge (see coop_slam.frames)
@@ -33,7 +35,8 @@ class ClientNodeParams:
     camera_frame: str = ""
     external_odom: bool = False  # the base publishes odom -> base_link; the client map -> odom
     publish_camera_tf: bool = True  # base_link -> camera from ~T_base_cam (false: URDF does)
-    depth_scale: float = 1000.0  # 16UC1 depth units per metre (REP-118: millimetres)
+    # 16UC1 depth units per metre (REP-118: millimetres); 0 = the camera preset's, else 1000
+    depth_scale: float = 0.0
     cloud_period_s: float = 2.0  # the local cloud goes out at most this often [s of data]
     path_period_s: float = 1.0  # the keyframe path goes out at most this often [s of data]
     marker_every_frames: int = 5  # look for other robots' markers every N frames; 0 = never
@@ -70,7 +73,7 @@ class ClientNodeParams:
         )
         self.frame_config.validate()
         self.frame_config.names(self.robot_id)
-        require(self.depth_scale > 0, "~depth_scale must be > 0 [units per metre]")
+        require(self.depth_scale >= 0, "~depth_scale must be >= 0 [units per metre]")
         require(self.marker_every_frames >= 0, "~marker_every_frames must be >= 0")
 
     @property

@@ -75,30 +75,32 @@ def _vo_runs():
     with an RGB-D and with a stereo camera, RedKitchen (hand-held RGB-D; whole, whole paced at the
     camera's 30 Hz as a live camera delivers it, and as two robots), the KITTI clip (stereo,
     1226x370 at 10 Hz) and the EuRoC clip (stereo, 752x480 at 20 Hz) when the shared data is
-    present. Unpaced runs hand over the next frame as soon as tracking returns."""
+    present. Unpaced runs hand over the next frame as soon as tracking returns. Each with the
+    camera preset scripts/demo picks for its folder ('' for synthetic worlds)."""
     import dataclasses
 
+    from ..camera_presets import preset_for_dataset
     from ..datasets import read_euroc, read_kitti, read_tum, split_ranges
     from ..datasets.synthetic import read_synthetic
     from ..playback import SYNTHETIC_STEREO_BASELINE_M
     from ..synthetic.generate import generate
 
     world = read_synthetic(generate("revisit"))
-    yield "revisit_robot_1", world.sequences[1], True, False
+    yield "revisit_robot_1", world.sequences[1], True, False, ""
     stereo = read_synthetic(generate("revisit", stereo_baseline_m=SYNTHETIC_STEREO_BASELINE_M))
     seq = stereo.sequences[1]
     camera = dataclasses.replace(seq.camera, sensor="stereo")
-    yield "stereo_revisit_robot_1", dataclasses.replace(seq, camera=camera), True, False
+    yield "stereo_revisit_robot_1", dataclasses.replace(seq, camera=camera), True, False, ""
     if os.path.isdir(REDKITCHEN):
-        seq = read_tum(REDKITCHEN)
-        yield "redkitchen", seq, False, False
-        yield "redkitchen_paced", seq, False, True
+        seq, preset = read_tum(REDKITCHEN), preset_for_dataset(REDKITCHEN)
+        yield "redkitchen", seq, False, False, preset
+        yield "redkitchen_paced", seq, False, True, preset
         for part in split_ranges(seq, "0-299,300-599"):
-            yield f"redkitchen_{part.name.rsplit('_', 1)[1]}", part, False, False
+            yield f"redkitchen_{part.name.rsplit('_', 1)[1]}", part, False, False, preset
     if os.path.isdir(KITTI):
-        yield "stereo_kitti_clip", read_kitti(KITTI), False, False
+        yield "stereo_kitti_clip", read_kitti(KITTI), False, False, preset_for_dataset(KITTI)
     if os.path.isdir(EUROC):
-        yield "stereo_euroc_static", read_euroc(EUROC), False, False
+        yield "stereo_euroc_static", read_euroc(EUROC), False, False, preset_for_dataset(EUROC)
 
 
 def bench_vo() -> Iterator[Figure]:
@@ -107,13 +109,16 @@ def bench_vo() -> Iterator[Figure]:
 
     import numpy as np
 
+    from ..camera_presets import load_preset
     from ..config import load_yaml_config, with_values
     from ..evaluation.vo_run import keyframe_ate, run_sequence
     from ..geometry import path_length
     from ..vo.config import VoConfig
 
-    cfg = load_yaml_config(VoConfig, os.path.join(CONFIG_DIR, "client.yaml"), section="vo")
-    for name, seq, ground, paced in _vo_runs():
+    for name, seq, ground, paced, preset in _vo_runs():
+        cfg = load_yaml_config(
+            VoConfig, os.path.join(CONFIG_DIR, "client.yaml"), "vo", load_preset(preset).get("vo")
+        )
         duration = seq.stamps_s[-1] - seq.stamps_s[0]
         rate_hz = (len(seq) - 1) / duration if paced else None
         # As scripts/demo runs them: synthetic robots are ground robots.

@@ -158,6 +158,21 @@ def say(msg: str) -> None:
     print(f"[demo] {msg}", flush=True)
 
 
+def _camera_presets(args: argparse.Namespace) -> str:
+    """The clients' camera presets (demo.launch ``cameras``): --camera-preset, else a dataset
+    folder's own; checked here, so that a wrong name fails before anything starts."""
+    from ..camera_presets import load_preset, preset_for_dataset
+
+    text = args.camera_preset or (preset_for_dataset(args.dataset) if args.dataset else "")
+    if text == "none":
+        return ""
+    for name in filter(None, text.split(",")):
+        load_preset(name)
+    if text:
+        say(f"      camera preset: {text} (config/cameras/)")
+    return text
+
+
 def _results_folder(args: argparse.Namespace) -> str:
     """``--out``, or results/<date>-<source>; created."""
     name = args.scenario or os.path.basename(os.path.normpath(args.dataset or args.bag or "run"))
@@ -181,6 +196,7 @@ def _prepare_data(args: argparse.Namespace) -> _RunPlan:
             raise CoopSlamError(f"--rendezvous {a},{b}: this run has robots {robot_ids}")
     if args.rendezvous and args.no_clients:
         raise CoopSlamError("--rendezvous needs the server: drop --no-clients")
+    args.presets = _camera_presets(args)
     return _RunPlan(
         source=source,
         inputs=inputs,
@@ -350,6 +366,7 @@ def _write_run_info(
         "rate": args.rate,  # None: lock-step
         "low_bandwidth": args.low_bandwidth,
         "sensors": args.sensors,
+        "camera_presets": getattr(args, "presets", ""),
         "ground_robots": ground,
         "commit": git_commit(),
         "T_base_cam": base_cam,  # [x y z qx qy qz qw], [] = the launch file's default

@@ -78,6 +78,13 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
     add_duration_argument(p)
     p.add_argument("--camera", help="camera.yaml for a dataset folder without one")
     p.add_argument(
+        "--camera-preset",
+        metavar="NAME[,NAME...]",
+        help="the clients' camera preset (config/cameras/: kitti, euroc, tum_fr1, tum_fr2, "
+        "tum_fr3, kinect_v1, realsense_d435), one per robot or one for all; default: a dataset "
+        "folder's own (a KITTI folder: kitti), none for synthetic worlds and bags; 'none' for none",
+    )
+    p.add_argument(
         "--rate", type=float, default=None, help="play at RATE x real time instead of lock-step"
     )
     rec = p.add_mutually_exclusive_group()

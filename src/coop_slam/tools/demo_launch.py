@@ -133,6 +133,8 @@ def launch_arguments(
         launch_args.append(f"radio_drop:={faults.drop}")
     if args.low_bandwidth:
         launch_args.append("low_bandwidth:=true")
+    if getattr(args, "presets", ""):
+        launch_args.append(f"cameras:={args.presets}")
     if args.clock_offset:
         text = ",".join(f"{r}:{s:g}" for r, s in args.clock_offset)
         launch_args.append(f"clock_offsets:={text}")
