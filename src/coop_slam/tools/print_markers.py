@@ -17,7 +17,8 @@ from ..errors import CoopSlamError
 from ..markers import MarkerConfig
 
 MARGIN_M = 0.02  # white around the marker's black square: ArUco needs a quiet zone [m]
-TEXT_M = 0.03  # room for the label under it [m]
+TEXT_M = 0.05  # room for the label and the scale bar under it [m]
+SCALE_BAR_M = 0.05  # a bar to check the print with a ruler [m]
 INCH_M = 0.0254
 
 
@@ -59,14 +60,39 @@ def write_sheet(path: str, config: MarkerConfig, robot_id: int) -> tuple[float, 
     bottom = MARGIN_M + TEXT_M
     extent = (MARGIN_M, MARGIN_M + size, bottom, bottom + size)
     ax.imshow(image, cmap="gray", vmin=0, vmax=255, extent=extent, interpolation="nearest")
+    fontsize = max(4.0, 0.12 * size / INCH_M * 10)
     ax.text(
         width / 2,
-        MARGIN_M + TEXT_M / 2,
+        MARGIN_M + 0.75 * TEXT_M,
         f"robot_{robot_id}: {config.dictionary} id {robot_id}, black square {100 * size:g} cm "
         "- print at 100 %, measure it",
         ha="center",
         va="center",
-        fontsize=max(4.0, 0.12 * size / INCH_M * 10),
+        fontsize=fontsize,
+    )
+    x, y, z = config.base_marker()[:3, 3]
+    ax.text(
+        width / 2,
+        MARGIN_M + 0.45 * TEXT_M,
+        f"mount: flat on the robot's front, centre at x {x:.3f}, y {y:.3f}, z {z:.3f} m in "
+        "base_link (markers.T_base_marker)",
+        ha="center",
+        va="center",
+        fontsize=0.8 * fontsize,
+    )
+    # A ruler check of the print's scale: the bar is SCALE_BAR_M long, ticks each centimetre.
+    bar = min(SCALE_BAR_M, size)
+    y0 = MARGIN_M + 0.12 * TEXT_M
+    ax.plot([MARGIN_M, MARGIN_M + bar], [y0, y0], color="black", linewidth=1.5)
+    for k in range(int(round(bar * 100)) + 1):
+        ax.plot([MARGIN_M + k / 100] * 2, [y0, y0 + 0.003], color="black", linewidth=0.6)
+    ax.text(
+        MARGIN_M + bar + 0.005,
+        y0,
+        f"{100 * bar:g} cm",
+        ha="left",
+        va="center",
+        fontsize=0.8 * fontsize,
     )
     fig.savefig(path)
     plt.close(fig)
