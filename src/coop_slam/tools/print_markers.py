@@ -16,7 +16,7 @@ from ..config import load_yaml_config
 from ..errors import CoopSlamError
 from ..markers import MarkerConfig
 
-MARGIN_M = 0.02  # white around the marker's black square: ArUco needs a quiet zone [m]
+MARGIN_M = 0.02  # the least white around the marker's black square [m]
 TEXT_M = 0.05  # room for the label and the scale bar under it [m]
 SCALE_BAR_M = 0.05  # a bar to check the print with a ruler [m]
 INCH_M = 0.0254
@@ -42,6 +42,14 @@ def marker_image(config: MarkerConfig, marker_id: int, side_px: int = 600) -> np
     return aruco.drawMarker(dictionary, marker_id, side_px, borderBits=1)
 
 
+def quiet_zone_m(config: MarkerConfig) -> float:
+    """White around the black square: one of the marker's cells at least. Seen against a
+    darker body a thinner one (2 cm of a 25 cm marker) was not detected at all; one cell was at
+    every size and background tried (test_print_markers)."""
+    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, config.dictionary))
+    return max(MARGIN_M, config.marker_size_m / (dictionary.markerSize + 2))
+
+
 def write_sheet(path: str, config: MarkerConfig, robot_id: int) -> tuple[float, float]:
     """One robot's marker page (PDF) at its true size; returns the page (width, height) [m]."""
     import matplotlib
@@ -49,21 +57,21 @@ def write_sheet(path: str, config: MarkerConfig, robot_id: int) -> tuple[float, 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    size = config.marker_size_m
-    width, height = size + 2 * MARGIN_M, size + 2 * MARGIN_M + TEXT_M
+    size, margin = config.marker_size_m, quiet_zone_m(config)
+    width, height = size + 2 * margin, size + 2 * margin + TEXT_M
     fig = plt.figure(figsize=(width / INCH_M, height / INCH_M))
     ax = fig.add_axes([0, 0, 1, 1])
     ax.set_xlim(0, width)
     ax.set_ylim(0, height)
     ax.axis("off")
     image = marker_image(config, robot_id)
-    bottom = MARGIN_M + TEXT_M
-    extent = (MARGIN_M, MARGIN_M + size, bottom, bottom + size)
+    bottom = margin + TEXT_M
+    extent = (margin, margin + size, bottom, bottom + size)
     ax.imshow(image, cmap="gray", vmin=0, vmax=255, extent=extent, interpolation="nearest")
     fontsize = max(4.0, 0.12 * size / INCH_M * 10)
     ax.text(
         width / 2,
-        MARGIN_M + 0.75 * TEXT_M,
+        margin + 0.75 * TEXT_M,
         f"robot_{robot_id}: {config.dictionary} id {robot_id}, black square {100 * size:g} cm "
         "- print at 100 %, measure it",
         ha="center",
@@ -73,7 +81,7 @@ def write_sheet(path: str, config: MarkerConfig, robot_id: int) -> tuple[float, 
     x, y, z = config.base_marker()[:3, 3]
     ax.text(
         width / 2,
-        MARGIN_M + 0.45 * TEXT_M,
+        margin + 0.45 * TEXT_M,
         f"mount: flat on the robot's front, centre at x {x:.3f}, y {y:.3f}, z {z:.3f} m in "
         "base_link (markers.T_base_marker)",
         ha="center",
@@ -82,12 +90,12 @@ def write_sheet(path: str, config: MarkerConfig, robot_id: int) -> tuple[float, 
     )
     # A ruler check of the print's scale: the bar is SCALE_BAR_M long, ticks each centimetre.
     bar = min(SCALE_BAR_M, size)
-    y0 = MARGIN_M + 0.12 * TEXT_M
-    ax.plot([MARGIN_M, MARGIN_M + bar], [y0, y0], color="black", linewidth=1.5)
+    y0 = margin + 0.12 * TEXT_M
+    ax.plot([margin, margin + bar], [y0, y0], color="black", linewidth=1.5)
     for k in range(int(round(bar * 100)) + 1):
-        ax.plot([MARGIN_M + k / 100] * 2, [y0, y0 + 0.003], color="black", linewidth=0.6)
+        ax.plot([margin + k / 100] * 2, [y0, y0 + 0.003], color="black", linewidth=0.6)
     ax.text(
-        MARGIN_M + bar + 0.005,
+        margin + bar + 0.005,
         y0,
         f"{100 * bar:g} cm",
         ha="left",
