@@ -1,10 +1,13 @@
 """What a client tells the team besides its keyframes: the other robots it sees (their markers,
 ``/robot_sightings``, a rendezvous cue; their bodies are masked for the odometry, a robot being a
-moving object), and, when it is lost and its own map cannot place the camera, its view, asking the
-server for the team's local map there (``/server/relocalize``)."""
+moving object, with the size and marker mount each sighted robot describes on
+``/robot_k/description``, its own until that came), and, when it is lost and its own map cannot
+place the camera, its view, asking the server for the team's local map there
+(``/server/relocalize``)."""
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from typing import Callable
@@ -15,8 +18,9 @@ import rospy
 from ..errors import CoopSlamError
 from ..geometry import invert, transform_points
 from ..markers import MarkerDetector, body_box_cam
+from ..robot_description import MarkerSeen
 from ..wire.bow_signature import encode_signature
-from .convert import pose_to_msg
+from .convert import MessageError, description_from_msg, pose_to_msg
 
 ASK_EVERY_S = 1.0  # at most one relocalization question a second, one at a time
 
@@ -44,6 +48,8 @@ class TeamCues:
         self.vocabulary, self.segment_base = vocabulary, segment_base
         self.pub_sighting = rospy.Publisher("/robot_sightings", RobotSighting, queue_size=10)
         self._RobotSighting = RobotSighting
+        self._described: dict = {}  # robot id -> its RobotDescription (subscribed when sighted)
+        self._description_subs: dict = {}
         self._busy, self._last_s = False, 0.0
 
     # --- markers ----------------------------------------------------------------------------------
@@ -56,7 +62,8 @@ class TeamCues:
             if s.marker_id == self.robot_id or s.marker_id < 1:
                 continue  # our own body, or not a robot id
             if res.ok and cfg.mask_s > 0:  # a robot is a moving object, not a landmark
-                corners_map = transform_points(res.T_map_cam, body_box_cam(cfg, s.T_cam_body))
+                box_cfg, T_cam_body = self._body_of(s, cfg)
+                corners_map = transform_points(res.T_map_cam, body_box_cam(box_cfg, T_cam_body))
                 vo.ignore_region(corners_map, stamp.to_sec() + cfg.mask_s)
             msg = self._RobotSighting(
                 observer_id=self.robot_id,
@@ -68,6 +75,33 @@ class TeamCues:
             )
             msg.header.stamp, msg.header.frame_id = stamp, self.cam_frame
             self.pub_sighting.publish(msg)
+
+    def _body_of(self, s, cfg):
+        """(marker config with the sighted robot's body size, its body in the camera frame):
+        from its own description once it came, else as this robot's configuration assumes."""
+        rid = s.marker_id
+        if rid not in self._description_subs:
+            from coop_slam.msg import RobotDescription
+
+            self._description_subs[rid] = rospy.Subscriber(
+                f"/robot_{rid}/description",
+                RobotDescription,
+                lambda msg, r=rid: self._on_description(r, msg),
+                queue_size=1,
+            )
+        d = self._described.get(rid)
+        if d is None:
+            return cfg, s.T_cam_body
+        box = dataclasses.replace(cfg, body_size_m=list(d.body_size_m))
+        return box, d.T_cam_body(MarkerSeen(s.T_cam_marker, cfg.marker_size_m))
+
+    def _on_description(self, robot_id: int, msg) -> None:
+        try:
+            self._described[robot_id] = description_from_msg(msg)
+        except MessageError as exc:
+            rospy.logwarn_throttle(
+                30.0, f"client {self.name}: robot_{robot_id}'s description is unusable: {exc}"
+            )
 
     # --- a lost robot -----------------------------------------------------------------------------
     def maybe_ask(self, vo) -> None:
