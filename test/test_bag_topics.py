@@ -85,3 +85,26 @@ def test_a_player_stereo_pair_is_one_camera_and_a_bare_image_raw_needs_its_info(
 def test_colour_with_depth_is_rgbd_not_mono(depth):
     topics = {"/camera/color/image_raw", "/camera/color/camera_info", depth}
     assert [c.sensor for c in bag_cameras(topics)] == ["rgbd"]
+
+
+def test_a_cameras_other_streams_are_not_taken_for_more_robots():
+    """openni2 also records depth and IR images with their infos, stereo_image_proc keeps the
+    raw images beside the rectified ones: one camera each, a real second camera still found."""
+    openni2 = {
+        "/camera/rgb/image_raw",
+        "/camera/rgb/camera_info",
+        "/camera/depth_registered/image_raw",
+        "/camera/depth/image_raw",
+        "/camera/depth/camera_info",
+        "/camera/ir/image_raw",
+        "/camera/ir/camera_info",
+    }
+    assert _names(bag_cameras(openni2)) == [(1, "rgbd", "openni2", "")]
+    stereo = {
+        f"/stereo/{side}/{name}"
+        for side in ("left", "right")
+        for name in ("image_rect", "image_raw", "camera_info")
+    }
+    assert _names(bag_cameras(stereo)) == [(1, "stereo", "stereo_image_proc", "/stereo")]
+    usb = {"/usb_cam/image_raw", "/usb_cam/camera_info"}
+    assert _names(bag_cameras(openni2 | usb))[1] == (2, "mono", "mono_raw", "/usb_cam")

@@ -78,9 +78,13 @@ def test_clock_offsets_to_rehearse_are_read_and_bad_ones_refused():
 
     assert parse_clock_offsets("2:0.3, 3:-0.1") == {2: 0.3, 3: -0.1}
     assert parse_clock_offsets("") == {}
-    for bad in ("2", "x:0.3", "0:0.3", "2:0.3,2:0.1", "2:nan"):
+    for bad in ("2", "x:0.3", "0:0.3", "2:0.3,2:0.1", "2:nan", "2:-1"):
         with pytest.raises(PlaybackError, match="clock offset"):
             parse_clock_offsets(bad)
+    from coop_slam.tools.demo_args import parse_args
+
+    with pytest.raises(SystemExit):  # a bag's stamps are its own
+        parse_args(["--bag", "x.bag", "--clock-offset", "2:0.3"])
 
 
 class _Durable:
@@ -122,7 +126,9 @@ def test_the_worker_takes_a_late_clocks_stamps_in_the_servers_time():
             job = worker.intake(msg, robot, arrived_s=10.0 + k + 0.001)
             worker._keyframe(job)
     stamps = {(i.robot_id, i.keyframe_id): i.stamp_s for i in durable.taken}
-    assert stamps[(1, 5)] == pytest.approx(14.0) and stamps[(2, 5)] == pytest.approx(14.0, abs=2e-3)
+    for k in range(5):  # from the first message on
+        assert stamps[(1, k + 1)] == pytest.approx(10.0 + k)
+        assert stamps[(2, k + 1)] == pytest.approx(10.0 + k, abs=2e-3)
     assert worker.clocks.said()[2] == pytest.approx(0.3, abs=2e-3)  # (/server/stats)
     worker.handle(RendezvousJob(2, 1, 20.3, None, sighting=True))
     assert durable.requests[-1][2] == pytest.approx(20.0, abs=2e-3)
@@ -135,3 +141,20 @@ def _message(kf, sent_s):
     msg = encode(kf, WHOLE)
     msg.sent = Stamp.from_sec(sent_s)
     return msg
+
+
+def test_a_sighting_recorded_before_sightings_carried_the_marker_is_read_back():
+    """scripts/replay of an older run: its RobotSighting has T_cam_body (placed with the default
+    marker) and no marker pose or size."""
+    from types import SimpleNamespace
+
+    from coop_slam.geometry import se3
+    from coop_slam.markers import MarkerConfig
+    from coop_slam.robot_description import describe
+    from coop_slam.ros.convert import marker_seen_from_msg, pose_to_msg
+
+    T_cam_body = se3(t=[0.3, 0.1, 2.0])
+    old = SimpleNamespace(T_cam_body=pose_to_msg(T_cam_body))
+    seen = marker_seen_from_msg(old)
+    robot = describe(2, "rgbd", np.eye(4), MarkerConfig())
+    np.testing.assert_allclose(robot.T_cam_body(seen), T_cam_body, atol=1e-9)

@@ -75,3 +75,22 @@ def test_a_printed_marker_seen_by_a_camera_is_placed_at_its_true_distance(backgr
     (seen,) = MarkerDetector(config).detect(view, K)
     assert seen.marker_id == 4
     assert np.linalg.norm(seen.T_cam_marker[:3, 3] - [0.1, 0.05, distance]) < 0.01 * distance
+
+
+def test_the_sheets_label_and_scale_bar_stay_out_of_the_quiet_zone(tmp_path):
+    from coop_slam.tools.print_markers import write_sheet
+
+    config = MarkerConfig(marker_size_m=0.2)
+    width_m, height_m = write_sheet(str(tmp_path / "sheet.png"), config, 3)
+    sheet = cv2.imread(str(tmp_path / "sheet.png"), cv2.IMREAD_GRAYSCALE)
+    px_per_m = sheet.shape[0] / height_m
+    margin = quiet_zone_m(config)
+
+    def band(lo_m, hi_m):  # rows between these heights above the page's bottom edge
+        rows = sheet.shape[0] - 1 - np.arange(int(lo_m * px_per_m), int(hi_m * px_per_m))
+        return sheet[rows]
+
+    # white all round the black square, below it too (the label sits under the quiet zone)
+    assert band(TEXT_M + 0.1 * margin, TEXT_M + 0.9 * margin).min() > 240
+    assert band(height_m - 0.9 * margin, height_m - 0.1 * margin).min() > 240
+    assert band(0.0, TEXT_M).min() < 50  # the label and the scale bar are there

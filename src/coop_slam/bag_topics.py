@@ -106,6 +106,13 @@ def _join(namespace: str, name: str) -> str:
     return f"{namespace}/{name}"
 
 
+def _inside(ns: str, camera_ns: str, driver: Driver) -> bool:
+    """Whether namespace ``ns`` lies in the topic tree of a camera found at ``camera_ns`` (its
+    driver's first name components: ``camera``, or ``left`` and ``right``)."""
+    heads = {name.split("/")[0] for name in (driver.image, driver.second or "") if name}
+    return any(ns == _join(camera_ns, h) or ns.startswith(_join(camera_ns, h) + "/") for h in heads)
+
+
 def bag_cameras(topics) -> list[BagCamera]:
     """The cameras among a bag's topic names (an iterable of ``/...`` names), by robot id; raises
     :class:`BagTopicsError` when one namespace would hold two cameras."""
@@ -128,6 +135,8 @@ def bag_cameras(topics) -> list[BagCamera]:
                 if d.image == driver.image and d.second
             ):
                 continue  # a depth image beside it: not a monocular camera
+            if driver.second is None and any(_inside(ns, n, found[n]) for n in found):
+                continue  # a stream of a camera already found (its depth, IR or raw images)
             found[ns] = driver
             claimed.update(_join(ns, n) for n in [driver.image, *needed])
     taken = {int(m.group(1)) for ns in found if (m := ROBOT_NAMESPACE.match(ns))}
@@ -145,6 +154,10 @@ def bag_cameras(topics) -> list[BagCamera]:
             if _join(ns, name) in topics:
                 remap[_join(ns, name)] = own["infos"][role]
         cameras.append(BagCamera(rid, ns, d, remap))
+    mapped = [t for c in cameras for t in c.remap]
+    twice = sorted({t for t in mapped if mapped.count(t) > 1})
+    if twice:
+        raise BagTopicsError(f"bag topics {twice} would feed two robots' cameras")
     return sorted(cameras, key=lambda c: c.robot_id)
 
 

@@ -316,5 +316,10 @@ def parse_clock_offsets(text: str) -> dict[int, float]:
             ) from None
         if rid < 1 or not np.isfinite(offset) or rid in out:
             raise PlaybackError(f"clock offset '{part}': robot id >= 1, once, finite seconds")
+        if offset <= -PLAYBACK_T0_S + 0.1:  # its first images would be stamped at or before 0
+            raise PlaybackError(
+                f"clock offset '{part}': a clock behind by {PLAYBACK_T0_S - 0.1:g} s or more "
+                f"cannot be rehearsed (playback starts at {PLAYBACK_T0_S:g} s)"
+            )
         out[rid] = offset
     return out

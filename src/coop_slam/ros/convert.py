@@ -312,9 +312,16 @@ def description_from_msg(msg):
 
 
 def marker_seen_from_msg(msg):
-    """A ``coop_slam/RobotSighting`` -> :class:`coop_slam.robot_description.MarkerSeen`."""
+    """A ``coop_slam/RobotSighting`` -> :class:`coop_slam.robot_description.MarkerSeen`. One
+    recorded before sightings carried the marker (its observed body, ``T_cam_body``, placed with
+    the default marker) is read back to the marker it saw."""
+    from ..markers import MarkerConfig
     from ..robot_description import MarkerSeen
 
+    if not hasattr(msg, "T_cam_marker"):
+        default = MarkerConfig()
+        T_cam_body = pose_from_msg(msg.T_cam_body, "T_cam_body")
+        return MarkerSeen(T_cam_body @ default.base_marker(), default.marker_size_m)
     size = float(msg.marker_size_m)
     if not np.isfinite(size) or size <= 0:
         raise MessageError(f"sighting's marker_size_m {size} is not > 0 [m]")

@@ -114,7 +114,8 @@ class RunRecorder:
             return
         frame = not msg.header.stamp.is_zero()  # stamp 0: the delivery counters alone
         r.frames += frame
-        self.newest_frame_s = max(self.newest_frame_s, msg.header.stamp.to_sec())
+        frame_s = msg.header.stamp.to_sec() - r.clock_offset_s  # (on the master's clock)
+        self.newest_frame_s = max(self.newest_frame_s, frame_s)
         sent = int(getattr(msg, "keyframes_sent", 0))
         held_back = int(getattr(msg, "keyframes_held_back", 0))  # not in older bags
         if not r.keyframes_sent_sessions or sent < r.keyframes_sent_sessions[-1]:

@@ -8,20 +8,22 @@ whose clock runs 0.3 s ahead puts its keyframes 0.3 s late (12 cm at 0.4 m/s).
 Every keyframe message says when it was sent on the robot's clock; the server notes when it
 arrived on its own. ``sent - arrived`` is the robot's offset minus the message's transit time,
 so the largest values seen are the offset minus the smallest transit times (the estimate is low
-by that much: milliseconds on a LAN, more on a slow radio). Not the largest itself but a high
-percentile (``percentile``) of the newest ``window`` messages: a server whose own clock reading is
-late (ROS sim time, ``/clock`` delivered after a message that raced it) would otherwise raise the
-estimate for good. Once a robot's estimate is beyond
+by that much: milliseconds on a LAN, more on a slow radio, where a robot with a right clock reads
+as behind by the radio's least delay; the correction then moves its stamps by that delay). Not
+the largest itself but a high percentile (``percentile``) of the newest ``window`` messages: a
+server whose own clock reading is late (ROS sim time, ``/clock`` delivered after a message that
+raced it) would otherwise raise the estimate for good. Once a robot's estimate is beyond
 ``correct_above_s`` its stamps are taken in the server's time (the estimate subtracted) before
 anything is stored, so every comparison across robots is in one time; beyond ``max_offset_s``
-the estimate is too far from a synchronized clock to be trusted for timing across robots, and
-rendezvous involving that robot are refused with the fix: synchronize the clocks (chrony/NTP).
+the clock is broken (never set), not drifting, and rendezvous involving that robot are refused
+with the fix: synchronize the clocks (chrony/NTP).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 from collections import deque
 from dataclasses import dataclass
 
@@ -42,10 +44,15 @@ class ClockConfig:
     # (below, the estimate's own bias -- the smallest transit time -- would be all it moves).
     correct_above_s: float = 0.02
     warn_above_s: float = 0.1  # the server warns (with the fix) beyond this offset [s]
-    # Beyond this a clock is broken, not drifting: rendezvous with that robot are refused [s]
-    max_offset_s: float = 5.0
-    min_messages: int = 5  # messages before an offset is estimated
-    window: int = 100  # the newest messages an estimate is made of
+    # Beyond this a clock is broken (never set), not drifting: rendezvous with that robot are
+    # refused [s]. Far above any radio's delay, which reads as a clock behind (see above).
+    max_offset_s: float = 60.0
+    # Messages before an offset is estimated: the first already bounds it (keyframes stored
+    # before it would stay on the robot's clock)
+    min_messages: int = 1
+    # The newest messages an estimate is made of: many, so that a backlog after an outage (each
+    # message late by its wait) does not read as a clock behind
+    window: int = 500
     percentile: float = 90.0  # of their sent - arrived [%]
 
     def validate(self) -> None:
@@ -64,14 +71,17 @@ class RobotClocks:
         self.config.validate()
         self._samples: dict[int, deque] = {}  # robot -> the newest sent - arrived [s]
         self._warned: set[int] = set()
+        # Messages are observed in the subscribers' threads, offsets read in the worker's.
+        self._lock = threading.Lock()
 
     def observe(self, robot_id: int, sent_s: float, arrived_s: float) -> None:
         """A message robot ``robot_id`` sent at ``sent_s`` (its clock; 0 = not said) arrived at
         ``arrived_s`` (the server's)."""
         if sent_s <= 0 or arrived_s <= 0:
             return
-        window = self._samples.setdefault(robot_id, deque(maxlen=self.config.window))
-        window.append(sent_s - arrived_s)
+        with self._lock:
+            window = self._samples.setdefault(robot_id, deque(maxlen=self.config.window))
+            window.append(sent_s - arrived_s)
         offset = self.offset(robot_id)
         if (
             offset is not None
@@ -98,13 +108,16 @@ class RobotClocks:
 
     def offset(self, robot_id: int) -> float | None:
         """Robot clock minus server clock [s] (low by the smallest transit time), or None."""
-        window = self._samples.get(robot_id, ())
+        with self._lock:
+            window = np.asarray(self._samples.get(robot_id, ()), float)
         if len(window) < self.config.min_messages:
             return None
-        return float(np.percentile(np.asarray(window), self.config.percentile))
+        return float(np.percentile(window, self.config.percentile))
 
     def offsets(self) -> dict[int, float]:
-        return {r: o for r in self._samples if (o := self.offset(r)) is not None}
+        with self._lock:
+            robots = list(self._samples)
+        return {r: o for r in robots if (o := self.offset(r)) is not None}
 
     def correction(self, robot_id: int) -> float:
         """What to subtract from the robot's stamps to have them in the server's time."""

@@ -240,6 +240,8 @@ def _check(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     check_duration(p, args)
     if args.split and not args.dataset:
         p.error("--split needs --dataset")
+    if args.bag and args.clock_offset:
+        p.error("--clock-offset rehearses a robot's clock on a played source; a bag has its own")
     if args.bag and (args.robots is not None or args.keep_timing or args.camera or args.sensors):
         p.error("--bag: robots, timing, camera and sensors come from the bag")
     if args.faults:

@@ -65,13 +65,13 @@ def write_sheet(path: str, config: MarkerConfig, robot_id: int) -> tuple[float, 
     ax.set_ylim(0, height)
     ax.axis("off")
     image = marker_image(config, robot_id)
-    bottom = margin + TEXT_M
+    bottom = TEXT_M + margin  # the label under the quiet zone, not in it
     extent = (margin, margin + size, bottom, bottom + size)
     ax.imshow(image, cmap="gray", vmin=0, vmax=255, extent=extent, interpolation="nearest")
     fontsize = max(4.0, 0.12 * size / INCH_M * 10)
     ax.text(
         width / 2,
-        margin + 0.75 * TEXT_M,
+        0.75 * TEXT_M,
         f"robot_{robot_id}: {config.dictionary} id {robot_id}, black square {100 * size:g} cm "
         "- print at 100 %, measure it",
         ha="center",
@@ -81,7 +81,7 @@ def write_sheet(path: str, config: MarkerConfig, robot_id: int) -> tuple[float, 
     x, y, z = config.base_marker()[:3, 3]
     ax.text(
         width / 2,
-        margin + 0.45 * TEXT_M,
+        0.45 * TEXT_M,
         f"mount: flat on the robot's front, centre at x {x:.3f}, y {y:.3f}, z {z:.3f} m in "
         "base_link (markers.T_base_marker)",
         ha="center",
@@ -90,7 +90,7 @@ def write_sheet(path: str, config: MarkerConfig, robot_id: int) -> tuple[float, 
     )
     # A ruler check of the print's scale: the bar is SCALE_BAR_M long, ticks each centimetre.
     bar = min(SCALE_BAR_M, size)
-    y0 = margin + 0.12 * TEXT_M
+    y0 = 0.2 * TEXT_M
     ax.plot([margin, margin + bar], [y0, y0], color="black", linewidth=1.5)
     for k in range(int(round(bar * 100)) + 1):
         ax.plot([margin + k / 100] * 2, [y0, y0 + 0.003], color="black", linewidth=0.6)
