@@ -13,9 +13,7 @@ from __future__ import annotations
 import os
 from typing import Any
 
-import yaml
-
-from .config import merge_overrides
+from .config import merge_overrides, read_yaml_mapping
 from .errors import ConfigError
 
 PRESETS_DIR = os.path.normpath(
@@ -43,15 +41,7 @@ def load_preset(name_or_path: str) -> dict[str, Any]:
                 f"unknown camera preset '{name_or_path}'; presets: {', '.join(preset_names())} "
                 "(or a YAML file's path)"
             )
-    try:
-        with open(path, encoding="utf-8") as fh:
-            data = yaml.safe_load(fh) or {}
-    except FileNotFoundError:
-        raise ConfigError(f"camera preset file not found: {path}") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"camera preset {path} is not valid YAML: {exc}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"camera preset {path}: expected a mapping at the top level")
+    data = read_yaml_mapping(path, "camera preset")
     unknown = sorted(set(data) - set(SECTIONS) - {"camera"})
     if unknown:
         raise ConfigError(

@@ -95,15 +95,7 @@ def load_yaml_config(
     the defaults with the overrides. The one loader of every config file: nodes and tools alike."""
     data: Any = {}
     if path:
-        try:
-            with open(path, encoding="utf-8") as fh:
-                data = yaml.safe_load(fh) or {}
-        except FileNotFoundError:
-            raise ConfigError(f"config file not found: {path}") from None
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"config file {path} is not valid YAML: {exc}") from None
-        if not isinstance(data, Mapping):
-            raise ConfigError(f"config file {path}: expected a mapping at the top level")
+        data = read_yaml_mapping(path)
         if section is not None:
             if section not in data:
                 stray = sorted(set(data) & {f.name for f in dataclasses.fields(cls)})
@@ -117,6 +109,20 @@ def load_yaml_config(
         raise ConfigError(f"config file {path}: expected a mapping at '{section or 'top level'}'")
     values = merge_overrides(data, overrides or {})
     return load_config(cls, values, prefix=f"{section}." if section else "")
+
+
+def read_yaml_mapping(path: str | os.PathLike, what: str = "config file") -> dict:
+    """A YAML file's top-level mapping (empty file: {}); ConfigError naming ``what`` and why."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = yaml.safe_load(fh) or {}
+    except FileNotFoundError:
+        raise ConfigError(f"{what} not found: {path}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{what} {path} is not valid YAML: {exc}") from None
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{what} {path}: expected a mapping at the top level")
+    return dict(data)
 
 
 def merge_overrides(values: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict:
