@@ -54,7 +54,20 @@ def test_team_ate_uses_one_alignment():
     off = se3(t=[0.5, 0, 0])
     est[2] = (stamps, np.array([off @ p for p in gt]))
     assert ate(*est[2], *gts[2]).rmse_m < 1e-6
-    assert team_ate(est, gts).rmse_m > 0.2
+    team = team_ate(est, gts)
+    assert team.rmse_m > 0.2
+    # Each robot's share: its keyframes' errors under the one alignment, on its own timeline.
+    shares = team.robot_rmse()
+    assert set(shares) == {1, 2} and min(shares.values()) > 0.1
+    n = np.bincount(team.robot_ids)[1:]
+    assert team.rmse_m**2 * n.sum() == pytest.approx(shares[1] ** 2 * n[0] + shares[2] ** 2 * n[1])
+    np.testing.assert_allclose(team.robot_stamps_s[team.robot_ids == 2], stamps)
+    # A third robot with a small error of its own keeps a small share.
+    bumpy = gt.copy()
+    bumpy[:, 2, 3] += 0.01
+    est, gts = {1: (stamps, gt), 3: (stamps + 7.0, bumpy)}, {1: (stamps, gt), 3: (stamps + 7, gt)}
+    shares = team_ate(est, gts).robot_rmse()
+    assert shares[3] < 0.011 and shares[1] < 0.011
 
 
 def test_associate_pairs_nearest_stamps_within_the_tolerance():

@@ -33,6 +33,16 @@ class AteResult:
     # the associated estimated poses' stamps and their position errors after the alignment [m]
     stamps_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
     errors_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # team_ate: the robot of each error, and its keyframes' stamps on its own timeline
+    robot_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    robot_stamps_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def robot_rmse(self) -> dict[int, float]:
+        """team_ate: each robot's keyframes' RMSE under the team's one alignment."""
+        return {
+            int(r): float(np.sqrt(np.mean(self.errors_m[self.robot_ids == r] ** 2)))
+            for r in np.unique(self.robot_ids)
+        }
 
 
 def _traj(poses, stamps):
@@ -107,8 +117,9 @@ def team_ate(
     est: dict[int, tuple], gt: dict[int, tuple], max_dt_s: float = 0.02, correct_scale=False
 ) -> AteResult:
     """ATE over all robots' poses together (all in one estimated frame, e.g. ``world``) with a
-    single SE(3) alignment for the whole team (Sim(3) with ``correct_scale``)."""
-    stamps, poses_e, poses_g = [], [], []
+    single SE(3) alignment for the whole team (Sim(3) with ``correct_scale``); each error's robot
+    in ``robot_ids``."""
+    stamps, poses_e, poses_g, spans = [], [], [], []
     offset = 0.0
     for rid in sorted(est):
         if rid not in gt:
@@ -118,13 +129,14 @@ def team_ate(
         i_est, i_gt = associate(se, sg, max_dt_s)
         # Robots may share stamps: shift each robot onto its own stretch of a synthetic timeline.
         stamps.append(np.asarray(se, float)[i_est] - float(np.min(se)) + offset)
+        spans.append((rid, offset - 1.0, float(np.min(se)) - offset))
         offset = float(stamps[-1].max()) + 1000.0 if len(stamps[-1]) else offset
         poses_e.append(np.asarray(pe, float)[i_est])
         poses_g.append(np.asarray(pg, float)[i_gt])
     if not stamps:
         raise EvaluationError("no robot has both an estimate and ground truth")
     s = np.concatenate(stamps)
-    return ate(
+    res = ate(
         s,
         np.concatenate(poses_e),
         s,
@@ -132,6 +144,12 @@ def team_ate(
         max_dt_s=1e-6,
         correct_scale=correct_scale,
     )
+    # Each robot's stretch of the synthetic timeline starts after the one before it.
+    starts = np.array([start for _, start, _ in spans])
+    which = np.searchsorted(starts, res.stamps_s, side="right") - 1
+    res.robot_ids = np.array([spans[k][0] for k in which], int)
+    res.robot_stamps_s = res.stamps_s + np.array([spans[k][2] for k in which])
+    return res
 
 
 def rpe_rmse(

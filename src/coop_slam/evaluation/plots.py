@@ -96,9 +96,11 @@ def plot_trajectories(out_dir: str, keyframes: dict, gts: dict, mono=()) -> None
     )
 
 
-def plot_team(out_dir: str, est_world: dict, gt_world: dict, team) -> None:
+def plot_team(out_dir: str, est_world: dict, gt_world: dict, team, own_ate: dict) -> None:
     """``team_trajectories.png``: top view of every robot's keyframes in world (one alignment,
-    ``team``'s, for the team: a similarity for a world of monocular maps) and ground truth."""
+    ``team``'s, for the team: a similarity for a world of monocular maps) and ground truth; and
+    ``team_errors.png`` (see :func:`plot_team_errors`; ``own_ate``: robot id -> its own ATE)."""
+    plot_team_errors(out_dir, team, own_ate)
     curves = []
     for k, rid in enumerate(sorted(est_world)):
         curves.append((gt_world[rid][1], k, f"robot_{rid} ground truth", False))
@@ -110,6 +112,46 @@ def plot_team(out_dir: str, est_world: dict, gt_world: dict, team) -> None:
         f"team map: one alignment for all robots (team ATE {100 * team.rmse_m:.1f} cm)",
         curves,
     )
+
+
+def plot_team_errors(out_dir: str, team, own_ate: dict) -> None:  # (drawn by plot_team)
+    """``team_errors.png``: each keyframe's position error in the team map (the team's one
+    alignment) over time, coloured by robot, beside each robot's own ATE (its map aligned
+    alone, dashed): where a team's error comes from."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    shares = team.robot_rmse()
+    for k, rid in enumerate(sorted(shares)):
+        sel = team.robot_ids == rid
+        colour = f"C{k}"
+        ax.plot(
+            team.robot_stamps_s[sel],
+            100 * team.errors_m[sel],
+            ".-",
+            color=colour,
+            lw=0.8,
+            label=f"robot_{rid}: {100 * shares[rid]:.2f} cm in the team map",
+        )
+        if rid in own_ate:
+            ax.axhline(
+                100 * own_ate[rid],
+                color=colour,
+                ls="--",
+                lw=0.8,
+                label=f"robot_{rid}: own ATE {100 * own_ate[rid]:.2f} cm",
+            )
+    ax.set_xlabel("keyframe stamp [s]")
+    ax.set_ylabel("position error [cm]")
+    ax.set_title(f"team map: keyframe errors (team ATE {100 * team.rmse_m:.2f} cm)")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(os.path.join(out_dir, "team_errors.png"), dpi=100)
+    plt.close(fig)
 
 
 def keyframe_errors(stamps, poses, stamps_gt, poses_gt, mono: bool = False):

@@ -23,6 +23,9 @@ ROBOT_KEYS = (
     # the server's optimized poses of the robot's keyframes, aligned alone like ate_rmse_m
     # (Sim(3) for a monocular robot)
     "server_ate_rmse_m",
+    # its keyframes in the team map under the team's one alignment (what of the team ATE is its
+    # share: against its own ate_rmse_m, what placing its map in the team cost or gained)
+    "team_map_ate_rmse_m",
     # ... over how many keyframes (those the server holds whole, when a robot sends signatures:
     # its others enter the team ATE placed as the server placed their nearest whole keyframe,
     # so that team and pooled ATE are over the same keyframes)

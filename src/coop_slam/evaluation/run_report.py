@@ -500,21 +500,22 @@ def _team_accuracy(
     world_metric: bool,
     out_dir: str | None,
 ) -> dict:
-    """``team_ate_rmse_m`` (the robots placed in world, aligned at once; a lone robot's own ATE)
-    and ``single_ate_pooled_m``; draws the team's trajectories into ``out_dir``. Returns the
-    robots' keyframes in world as judged: those with ground truth when there was a team ATE."""
+    """``team_ate_rmse_m`` (one alignment for all; a lone robot's own ATE), each robot's share and
+    ``single_ate_pooled_m``; the team's pictures into ``out_dir``. Returns the robots' keyframes
+    in world as judged: those with ground truth when there was a team ATE."""
     est_world, gt_world, own_ate = results.est_world, results.gt_world, results.own_ate
     if len(gt_world) >= 2 or (len(robot_ids) == 1 and gt_world):
         est_world = {rid: est_world[rid] for rid in gt_world}  # only what can be judged
-        try:
-            # Metric: one SE(3) alignment for all; a world of monocular maps only has no metric
-            # scale, and is aligned with one similarity.
+        try:  # one SE(3) alignment for all; a similarity for monocular maps only (no metres)
             team = team_ate(est_world, gt_world, correct_scale=not world_metric)
             report["team_ate_rmse_m"] = team.rmse_m
         except EvaluationError:
             team = None
+        shares = team.robot_rmse() if team is not None else {}
+        for entry in report["robots"]:
+            entry["team_map_ate_rmse_m"] = shares.get(entry["id"])
         if out_dir and team is not None:
-            plot_team(out_dir, est_world, gt_world, team)
+            plot_team(out_dir, est_world, gt_world, team, {r: e for r, (e, _) in own_ate.items()})
     if report["team_ate_rmse_m"] is None and len(robot_ids) == 1:
         report["team_ate_rmse_m"] = report["robots"][0]["ate_rmse_m"]
     if report["team_ate_rmse_m"] is not None:
