@@ -197,6 +197,8 @@ def _prepare_data(args: argparse.Namespace) -> _RunPlan:
     if args.rendezvous and args.no_clients:
         raise CoopSlamError("--rendezvous needs the server: drop --no-clients")
     args.presets = _camera_presets(args)
+    if args.vocabulary and not os.path.isfile(args.vocabulary):
+        raise CoopSlamError(f"--vocabulary {args.vocabulary}: no such file")
     return _RunPlan(
         source=source,
         inputs=inputs,
@@ -367,6 +369,7 @@ def _write_run_info(
         "low_bandwidth": args.low_bandwidth,
         "sensors": args.sensors,
         "camera_presets": getattr(args, "presets", ""),
+        "vocabulary": os.path.abspath(args.vocabulary) if args.vocabulary else None,
         "ground_robots": ground,
         "commit": git_commit(),
         "T_base_cam": base_cam,  # [x y z qx qy qz qw], [] = the launch file's default

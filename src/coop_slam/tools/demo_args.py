@@ -142,6 +142,11 @@ def _add_system_options(p: argparse.ArgumentParser) -> None:
         "comma-separated, e.g. server-kill@25,drop:0.1",
     )
     p.add_argument(
+        "--vocabulary",
+        metavar="FILE",
+        help="the team's vocabulary (scripts/train_vocabulary; default: the one setup builds)",
+    )
+    p.add_argument(
         "--clock-offset",
         action="append",
         default=[],

@@ -133,6 +133,8 @@ def launch_arguments(
         launch_args.append(f"radio_drop:={faults.drop}")
     if args.low_bandwidth:
         launch_args.append("low_bandwidth:=true")
+    if args.vocabulary:
+        launch_args.append(f"vocabulary:={os.path.abspath(args.vocabulary)}")
     if getattr(args, "presets", ""):
         launch_args.append(f"cameras:={args.presets}")
     if args.clock_offset:

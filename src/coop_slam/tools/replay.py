@@ -54,7 +54,7 @@ def replay(bag_path: str, info: dict, config_path: str, overrides: dict | None =
     from ..team.worker import ServerWorker
 
     cfg = _server_config(config_path, info, overrides or {})
-    vocab = Vocabulary.load(ensure_default_vocabulary())
+    vocab = Vocabulary.load(info.get("vocabulary") or ensure_default_vocabulary())
     # The node's worker, its global BA at once after a merge (the node runs it when no message
     # waits, which a bag does not record): the same input gives the same decisions.
     worker = ServerWorker(
