@@ -12,8 +12,9 @@
    with known disparity that doubled the median error;
 3. matches whose best patch cost exceeds 1.5 x 1.4 x the median cost are outliers.
 
-Vectorised: step 1 lists the candidate pairs from the right keypoints sorted by row (a few dozen
-per left keypoint rather than all of them) and takes descriptor distances of those pairs only;
+Vectorised: step 1 lists, per left pyramid level, the candidate pairs from the right keypoints of
+the neighbouring levels sorted by row (a few dozen per left keypoint rather than all of them) and
+takes descriptor distances of those pairs only;
 step 2 gathers every patch of one pyramid level at once.
 """
 
@@ -75,21 +76,33 @@ def _candidate_matches(
     """(K, 2) (left, right) index pairs: each left keypoint with its best right candidate (step 1
     of the module docstring)."""
     uR, vR, oR = right.uv_px[:, 0], right.uv_px[:, 1], right.octaves.astype(int)
-    order = np.argsort(vR, kind="stable")
-    v_sorted = vR[order]
-    band = config.stereo.row_tolerance_px * scales[-1]  # the widest any right keypoint allows
-    lo = np.searchsorted(v_sorted, left.uv_px[:, 1] - band, side="left")
-    hi = np.searchsorted(v_sorted, left.uv_px[:, 1] + band, side="right")
-    counts = hi - lo
-    if counts.sum() == 0:
+    oL = left.octaves.astype(int)
+    li_parts, ri_parts = [], []
+    # Per left level, the right keypoints of its neighbouring levels only, in a band as wide as
+    # the widest of them allows: a fraction of all row-band pairs.
+    for level in np.unique(oL):
+        lefts = np.flatnonzero(oL == level)
+        rights = np.flatnonzero(np.abs(oR - level) <= 1)
+        if len(rights) == 0:
+            continue
+        order = rights[np.argsort(vR[rights], kind="stable")]
+        v_sorted = vR[order]
+        band = config.stereo.row_tolerance_px * scales[min(level + 1, len(scales) - 1)]
+        lo = np.searchsorted(v_sorted, left.uv_px[lefts, 1] - band, side="left")
+        hi = np.searchsorted(v_sorted, left.uv_px[lefts, 1] + band, side="right")
+        counts = hi - lo
+        total = int(counts.sum())
+        if total == 0:
+            continue
+        li_parts.append(np.repeat(lefts, counts))
+        starts = np.repeat(lo - np.r_[0, np.cumsum(counts)[:-1]], counts)
+        ri_parts.append(order[np.arange(total) + starts])
+    if not li_parts:
         return np.zeros((0, 2), np.int64)
-    li = np.repeat(np.arange(len(left)), counts)
-    starts = np.repeat(lo - np.r_[0, np.cumsum(counts)[:-1]], counts)
-    ri = order[np.arange(counts.sum()) + starts]
+    li, ri = np.concatenate(li_parts), np.concatenate(ri_parts)
     disparity = left.uv_px[li, 0] - uR[ri]
     ok = (
         (np.abs(left.uv_px[li, 1] - vR[ri]) <= config.stereo.row_tolerance_px * scales[oR[ri]])
-        & (np.abs(left.octaves[li].astype(int) - oR[ri]) <= 1)
         & (disparity >= 0)
         & (disparity < fx)
     )
