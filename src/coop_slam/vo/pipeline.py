@@ -162,6 +162,7 @@ class VisualOdometry:
         self._frame_dt_s = stamp_s - self._last_stamp if self._last_stamp is not None else 0.0
         self._last_stamp = stamp_s
         self.frames_processed += 1
+        self._sensor.begin(second)  # stereo: the right image's features meanwhile
         feats = self._sensor.features(self._extractor.extract(gray), gray, second)
         if self._sensor.warning:
             self._emit(VoEvent(EVENT_WARNING, self.map_segment, message=self._sensor.warning))

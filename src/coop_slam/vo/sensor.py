@@ -12,6 +12,8 @@ are (u, v), its map points come from triangulation, and its map has no metric sc
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import cv2
 import numpy as np
 
@@ -92,6 +94,10 @@ class Sensor:
         self.bf = camera.fx * baseline_m  # [px * m]
         self.close_depth_m = close_m
         self.warning: str | None = None
+
+    def begin(self, second) -> None:
+        """Start on what a frame's second image needs, before the first is extracted (stereo:
+        the right image, in a thread); nothing for the others."""
 
     def u_right(self, u_px: np.ndarray, depths_m: np.ndarray) -> np.ndarray:
         """Right-image u = u - fx b / z [px] of keypoints at u_px with depths (0 or NaN = none);
@@ -216,6 +222,17 @@ class StereoSensor(Sensor):
         self._scales = level_scales(config)
         self._right_extractor = OrbExtractor(config, camera)
         self._frames_since_check = None  # frames since the last rectification check
+        # The right image's features are made in this thread while the left image's are made
+        # in the caller's (OpenCV's extraction runs without Python's lock): see begin().
+        self._right_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="right_orb")
+        self._right_pending = None
+
+    def begin(self, right: np.ndarray) -> None:
+        """Start on the right image (its keypoints and pyramid) before the left is extracted."""
+        self._right_pending = (right, self._right_worker.submit(self._right_features, right))
+
+    def _right_features(self, right: np.ndarray):
+        return self._right_extractor.extract(right), level_images(right, self._scales)
 
     def check_input(self, image, right) -> tuple[np.ndarray, np.ndarray]:
         """(left grey, right grey) uint8 of one pair; raises VoError naming what is wrong."""
@@ -227,12 +244,16 @@ class StereoSensor(Sensor):
     def features(self, kps: OrbKeypoints, gray: np.ndarray, right: np.ndarray) -> FrameFeatures:
         """The left keypoints with their measured right-image coordinate and depth (none beyond
         ``close_depth_m``, nor without a match)."""
-        right_kps = self._right_extractor.extract(right)
+        pending, self._right_pending = self._right_pending, None
+        if pending is not None and pending[0] is right:
+            right_kps, right_levels = pending[1].result()
+        else:  # (not begun: made here)
+            right_kps, right_levels = self._right_features(right)
         u_right = match_stereo(
             kps,
             right_kps,
             level_images(gray, self._scales),
-            level_images(right, self._scales),
+            right_levels,
             self._scales,
             self.camera.fx,
             self.config,
