@@ -304,8 +304,9 @@ class VisualOdometry:
         self._ignored = []  # given in the dropped map's frame
 
     def close(self) -> None:
-        """Stop the local-mapping thread and worker process."""
+        """Stop the local-mapping thread and worker process (and the sensor's helper thread)."""
         self._mapper.close()
+        self._sensor.close()
 
     def __enter__(self) -> Self:
         return self

@@ -99,6 +99,9 @@ class Sensor:
         """Start on what a frame's second image needs, before the first is extracted (stereo:
         the right image, in a thread); nothing for the others."""
 
+    def close(self) -> None:
+        """Stop what :meth:`begin` started."""
+
     def u_right(self, u_px: np.ndarray, depths_m: np.ndarray) -> np.ndarray:
         """Right-image u = u - fx b / z [px] of keypoints at u_px with depths (0 or NaN = none);
         NaN where there is none or it is beyond close_depth_m: far depth is too noisy for the
@@ -230,6 +233,9 @@ class StereoSensor(Sensor):
     def begin(self, right: np.ndarray) -> None:
         """Start on the right image (its keypoints and pyramid) before the left is extracted."""
         self._right_pending = (right, self._right_worker.submit(self._right_features, right))
+
+    def close(self) -> None:
+        self._right_worker.shutdown(wait=False, cancel_futures=True)
 
     def _right_features(self, right: np.ndarray):
         return self._right_extractor.extract(right), level_images(right, self._scales)
