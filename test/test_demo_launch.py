@@ -61,7 +61,6 @@ def test_launch_arguments_carry_each_robots_mount_clock_and_camera_preset(tmp_pa
     args = parse_args(
         ["--scenario", "mounts", "--clock-offset", "2:0.3", "--camera-preset", "kinect_v1"]
     )
-    args.presets = "kinect_v1"
     mount_2 = [0.1, 0.0, 0.8, -0.4, 0.4, -0.5, 0.6]
     launch = launch_arguments(
         args,
@@ -70,6 +69,7 @@ def test_launch_arguments_carry_each_robots_mount_clock_and_camera_preset(tmp_pa
         sensors=["rgbd"] * 3,
         base_cam=[],
         base_cams={2: mount_2},
+        presets="kinect_v1",
         ground=True,
         faults=parse_faults("", [1, 2, 3]),
         map_path=str(tmp_path / "map.db"),

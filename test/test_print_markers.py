@@ -8,13 +8,7 @@ import numpy as np
 import pytest
 
 from coop_slam.markers import MarkerConfig
-from coop_slam.tools.print_markers import (
-    TEXT_M,
-    MarkerSheetError,
-    main,
-    marker_image,
-    quiet_zone_m,
-)
+from coop_slam.tools.print_markers import TEXT_M, MarkerSheetError, main, marker_image, quiet_zone_m
 
 
 def test_a_marker_sheet_prints_the_black_square_at_its_configured_size(tmp_path):

@@ -60,9 +60,8 @@ def test_descriptions_are_validated_with_the_robot_and_field_named():
         (dict(body_size_m=(0.4, 0.4)), "body_size_m"),
     ]
     for change, field in bad:
-        d = RobotDescription(**{**good.__dict__, **change})
         with pytest.raises(RobotDescriptionError, match=f"robot 3.*{field}"):
-            d.validate()
+            RobotDescription(**{**good.__dict__, **change})
 
 
 def test_camera_mount_height_and_pitch():

@@ -115,7 +115,7 @@ def _inside(ns: str, camera_ns: str, driver: Driver) -> bool:
 
 def bag_cameras(topics) -> list[BagCamera]:
     """The cameras among a bag's topic names (an iterable of ``/...`` names), by robot id; raises
-    :class:`BagTopicsError` when one namespace would hold two cameras."""
+    :class:`BagTopicsError` when one bag topic would feed two robots' cameras."""
     topics = set(topics)
     found: dict[str, Driver] = {}  # namespace -> its driver (first that fits, most complete)
     claimed: set[str] = set()

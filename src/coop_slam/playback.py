@@ -34,9 +34,8 @@ PLAYBACK_T0_S = 1.0  # first sim time when robots start together (ROS time 0 mea
 SYNTHETIC_STEREO_BASELINE_M = 0.12
 # A monocular camera plays the colour image of RGB-D data or the left image of a stereo pair.
 PLAYABLE_SENSORS = ("rgbd", "stereo", "mono")
-# A robot's streams as the player publishes them (and a sensor bag must hold them): the colour
-# (RGB-D, monocular) or left (stereo) image tells which robots there are; ground truth is optional.
-COLOR_TOPIC = re.compile(r"^/robot_(\d+)/camera/(?:color/image_raw|left/image_rect)$")
+# A robot's ground truth as the player publishes it (a sensor bag's is optional; its cameras:
+# coop_slam.bag_topics).
 GROUND_TRUTH_TOPIC = re.compile(r"^/robot_(\d+)/ground_truth/pose$")
 
 

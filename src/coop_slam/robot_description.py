@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import CoopSlamError
-from .geometry import invert
+from .errors import CoopSlamError, GeometryError
+from .geometry import check_se3, invert
 from .markers import MarkerConfig
 
 SENSORS = ("rgbd", "stereo", "mono")
@@ -49,6 +49,9 @@ class RobotDescription:
     body_size_m: tuple[float, float, float]  # box (x, y, z) around base_link, on the floor [m]
     camera: str = ""  # camera preset name ("" = none)
 
+    def __post_init__(self) -> None:
+        self.validate()  # a description that exists is one the server can use
+
     def validate(self) -> None:
         who = f"robot {self.robot_id}'s description"
         if self.robot_id < 1:
@@ -56,12 +59,10 @@ class RobotDescription:
         if self.sensor not in SENSORS:
             raise RobotDescriptionError(f"{who}: sensor {self.sensor!r} is not one of {SENSORS}")
         for name in ("T_base_cam", "T_base_marker"):
-            T = np.asarray(getattr(self, name), float)
-            if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-                raise RobotDescriptionError(f"{who}: {name} is not a finite 4x4 transform")
-            R = T[:3, :3]
-            if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
-                raise RobotDescriptionError(f"{who}: {name} has no rotation (not orthonormal)")
+            try:
+                check_se3(getattr(self, name), name)
+            except GeometryError as exc:
+                raise RobotDescriptionError(f"{who}: {exc}") from None
         if not np.isfinite(self.marker_size_m) or self.marker_size_m <= 0:
             raise RobotDescriptionError(f"{who}: marker_size_m must be > 0 [m]")
         if len(self.body_size_m) != 3 or min(self.body_size_m) <= 0:
@@ -81,7 +82,7 @@ def describe(
     robot_id: int, sensor: str, T_base_cam: np.ndarray, markers: MarkerConfig, camera: str = ""
 ) -> RobotDescription:
     """A client's description of its robot from its own configuration."""
-    d = RobotDescription(
+    return RobotDescription(
         robot_id=robot_id,
         sensor=sensor,
         T_base_cam=np.asarray(T_base_cam, float),
@@ -91,5 +92,3 @@ def describe(
         body_size_m=tuple(float(v) for v in markers.body_size_m),
         camera=camera,
     )
-    d.validate()
-    return d

@@ -295,7 +295,7 @@ def description_from_msg(msg):
     from ..robot_description import RobotDescription, RobotDescriptionError
 
     try:
-        d = RobotDescription(
+        return RobotDescription(
             robot_id=int(msg.robot_id),
             sensor=msg.sensor,
             T_base_cam=pose_from_msg(msg.T_base_cam, "T_base_cam"),
@@ -305,10 +305,8 @@ def description_from_msg(msg):
             body_size_m=tuple(float(v) for v in msg.body_size_m),
             camera=msg.camera,
         )
-        d.validate()
     except RobotDescriptionError as exc:
         raise MessageError(str(exc)) from None
-    return d
 
 
 def marker_seen_from_msg(msg):

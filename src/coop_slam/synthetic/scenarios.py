@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import CoopSlamError
+from ..geometry import exp_so3
 from .bodies import DEFAULT_MARKER_SIZE_M
 from .hand_held import kitchen_walk
 from .render import NoiseConfig, kinect_noise
@@ -404,12 +405,9 @@ MOUNTS_PITCH_DOWN_DEG = (0.0, 20.0, 10.0)
 
 def camera_mount(height_m: float, pitch_down_deg: float, forward_m: float = 0.1) -> np.ndarray:
     """A forward-looking camera's ``T_base_cam`` at ``height_m`` above the floor, pitched down."""
-    a = math.radians(pitch_down_deg)
-    R_pitch = np.array(
-        [[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]]
-    )
     T = DEFAULT_T_BASE_CAM.copy()
-    T[:3, :3] = R_pitch @ T[:3, :3]
+    # About base y: +x (forward) turns towards -z (the floor).
+    T[:3, :3] = exp_so3(np.array([0.0, math.radians(pitch_down_deg), 0.0])) @ T[:3, :3]
     T[:3, 3] = [forward_m, 0.0, height_m]
     return T
 

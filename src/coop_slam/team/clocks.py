@@ -82,12 +82,10 @@ class RobotClocks:
         with self._lock:
             window = self._samples.setdefault(robot_id, deque(maxlen=self.config.window))
             window.append(sent_s - arrived_s)
+        if robot_id in self._warned:
+            return  # said once
         offset = self.offset(robot_id)
-        if (
-            offset is not None
-            and abs(offset) > self.config.warn_above_s
-            and robot_id not in self._warned
-        ):
+        if offset is not None and abs(offset) > self.config.warn_above_s:
             self._warned.add(robot_id)
             log.warning(
                 "robot %d's clock is %.3f s %s the server's: synchronize the robots' clocks "
@@ -126,9 +124,10 @@ class RobotClocks:
             return 0.0
         return offset
 
-    def to_server_time(self, item: Decoded) -> Decoded:
-        """A decoded keyframe message with its stamps in the server's time."""
-        shift = self.correction(item.robot_id)
+    def to_server_time(self, item: Decoded, shift_s: float | None = None) -> Decoded:
+        """A decoded keyframe message with its stamps in the server's time (``shift_s``: its
+        robot's :meth:`correction`, when the caller has it already)."""
+        shift = self.correction(item.robot_id) if shift_s is None else shift_s
         return _shifted(item, shift) if shift else item
 
     def said(self) -> dict[int, float]:

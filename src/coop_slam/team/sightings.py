@@ -20,7 +20,6 @@ class SightingPlacer:
     def describe(self, description: RobotDescription) -> None:
         """A robot's own description (its latched ``/robot_k/description``); a new one replaces
         the old (a client restarted with another mount)."""
-        description.validate()
         old = self.descriptions.get(description.robot_id)
         self.descriptions[description.robot_id] = description
         if old is None or not np.allclose(old.T_base_cam, description.T_base_cam):

@@ -221,10 +221,11 @@ class ServerWorker:
         sent = getattr(msg, "sent", None)  # (not in older recordings)
         if sent is not None and arrived_s > 0:
             self.clocks.observe(topic_robot, sent.to_sec(), arrived_s)
-        item = self.clocks.to_server_time(item)
+        shift_s = self.clocks.correction(topic_robot)
+        item = self.clocks.to_server_time(item, shift_s)
         stamp_s = msg.header.stamp.to_sec()
-        if stamp_s > 0:
-            stamp_s -= self.clocks.correction(topic_robot)
+        if stamp_s > 0:  # (a removal carries none)
+            stamp_s -= shift_s
         session, sequence = getattr(msg, "session", 0), getattr(msg, "sequence", 0)
         return KeyframeJob(item, stamp_s, session, sequence)
 

@@ -71,6 +71,7 @@ class _RunPlan:
     base_cam: list  # the cameras' mounting [x y z qx qy qz qw]; [] = the launch file's default
     base_cams: dict  # robot id -> its own mounting, for robots whose mount differs (or {})
     clock_offsets: dict  # robot id -> how far its clock runs ahead (rehearsed) [s]
+    presets: str  # the clients' camera presets (demo.launch cameras; "" = none)
     record_ids: list[int]  # the robots the bag records and the report covers
 
 
@@ -115,7 +116,7 @@ def _run_system(
     server settle and stop it; what the monitor saw."""
     master = team.master(out) if team else private_master(out)
     launch_args = _launch_arguments(args, plan, out)
-    _write_run_info(out, args, plan.robot_ids, plan.ground, plan.base_cam, plan.base_cams)
+    _write_run_info(out, args, plan)
     rviz_config = (
         _framed_rviz_config(out, plan.source, plan.inputs, plan.base_cam, team is not None)
         if args.record
@@ -196,7 +197,6 @@ def _prepare_data(args: argparse.Namespace) -> _RunPlan:
             raise CoopSlamError(f"--rendezvous {a},{b}: this run has robots {robot_ids}")
     if args.rendezvous and args.no_clients:
         raise CoopSlamError("--rendezvous needs the server: drop --no-clients")
-    args.presets = _camera_presets(args)
     if args.vocabulary and not os.path.isfile(args.vocabulary):
         raise CoopSlamError(f"--vocabulary {args.vocabulary}: no such file")
     return _RunPlan(
@@ -213,6 +213,7 @@ def _prepare_data(args: argparse.Namespace) -> _RunPlan:
         base_cam=_base_cam(source),
         base_cams=_base_cams(source),
         clock_offsets=dict(args.clock_offset),
+        presets=_camera_presets(args),
         # A loaded map's robots do not run, but the server shows them: record them for the report.
         record_ids=all_ids if args.load_map else robot_ids,
     )
@@ -330,6 +331,7 @@ def _launch_arguments(args: argparse.Namespace, plan: _RunPlan, out: str) -> lis
         sensors=plan.sensors,
         base_cam=plan.base_cam,
         base_cams=plan.base_cams,
+        presets=plan.presets,
         ground=plan.ground,
         faults=plan.faults,
         map_path=map_path,
@@ -341,14 +343,7 @@ def _launch_arguments(args: argparse.Namespace, plan: _RunPlan, out: str) -> lis
     return launch_args
 
 
-def _write_run_info(
-    out: str,
-    args: argparse.Namespace,
-    robot_ids: list[int],
-    ground: bool,
-    base_cam: list,
-    base_cams: dict,
-) -> None:
+def _write_run_info(out: str, args: argparse.Namespace, plan: _RunPlan) -> None:
     """What ``scripts/evaluate`` needs to find the ground truth of this run again, and
     ``scripts/replay`` the server's launch settings."""
     info = {
@@ -361,24 +356,24 @@ def _write_run_info(
         "camera": os.path.abspath(args.camera) if args.camera else None,
         "keep_timing": args.keep_timing,
         "bag": os.path.abspath(args.bag) if args.bag else None,
-        "robot_ids": robot_ids,
+        "robot_ids": plan.robot_ids,
         "only_robots": args.only_robots,
         "load_map": os.path.abspath(args.load_map) if args.load_map else None,
         "faults": args.faults,
         "rate": args.rate,  # None: lock-step
         "low_bandwidth": args.low_bandwidth,
         "sensors": args.sensors,
-        "camera_presets": getattr(args, "presets", ""),
+        "camera_presets": plan.presets,
         "vocabulary": os.path.abspath(args.vocabulary) if args.vocabulary else None,
-        "ground_robots": ground,
+        "ground_robots": plan.ground,
         "commit": git_commit(),
-        "T_base_cam": base_cam,  # [x y z qx qy qz qw], [] = the launch file's default
-        "T_base_cams": {str(r): v for r, v in base_cams.items()},  # robots' own, where given
+        "T_base_cam": plan.base_cam,  # [x y z qx qy qz qw], [] = the launch file's default
+        "T_base_cams": {str(r): v for r, v in plan.base_cams.items()},  # robots' own, where given
         "hosts": args.hosts,
         "link_rate": args.link_rate,  # [kbit/s], 0 = unlimited
         "outage": [f"{r}@{a:g}-{b:g}" for r, a, b in args.outage],
         # robot -> how far its clock ran ahead (rehearsed) [s]: its stamps are on that clock
-        "clock_offsets": {str(r): s for r, s in args.clock_offset},
+        "clock_offsets": {str(r): s for r, s in plan.clock_offsets.items()},
     }
     with open(os.path.join(out, "run.json"), "w", encoding="utf-8") as fh:
         json.dump(info, fh, indent=2)

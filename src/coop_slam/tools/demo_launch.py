@@ -89,6 +89,7 @@ def launch_arguments(
     sensors: list[str],
     base_cam: list,
     base_cams: dict,
+    presets: str,
     ground: bool,
     faults: Faults,
     map_path: str,
@@ -98,7 +99,8 @@ def launch_arguments(
     """demo.launch's arguments for this run. ``all_ids`` are the source's robots, ``played_ids``
     those that run (``--only-robots``), ``sensors`` the cameras of ``all_ids``, ``base_cam`` the
     cameras' mounting (``[]``: the launch file's default), ``base_cams`` robots' own where they
-    differ, ``record_ids`` the robots whose topics go into ``bag_path``."""
+    differ, ``presets`` the clients' camera presets, ``record_ids`` the robots whose topics go into
+    ``bag_path``."""
     from ..ros.run_recorder import RunRecorder
 
     launch_args = [
@@ -135,8 +137,8 @@ def launch_arguments(
         launch_args.append("low_bandwidth:=true")
     if args.vocabulary:
         launch_args.append(f"vocabulary:={os.path.abspath(args.vocabulary)}")
-    if getattr(args, "presets", ""):
-        launch_args.append(f"cameras:={args.presets}")
+    if presets:
+        launch_args.append(f"cameras:={presets}")
     if args.clock_offset:
         text = ",".join(f"{r}:{s:g}" for r, s in args.clock_offset)
         launch_args.append(f"clock_offsets:={text}")

@@ -108,6 +108,19 @@ class DeliveryConfig:
     max_resend_after_s: float = 30.0  # the longest wait between sends of one message [s]
 
 
+@dataclass
+class _Pending:
+    """A message the server has not acknowledged, as the outbox keeps it."""
+
+    message: Any
+    sent_s: float  # when it was last sent
+    wait_s: float  # the wait before it goes again (backs off)
+    received_s: float | None = None  # when the server said it received it
+    nbytes: int = 0  # its size on the wire (0: not known)
+    first_mark: int = 0  # the link's byte count after its first copy ...
+    last_mark: int = 0  # ... and after its last one
+
+
 class Outbox:
     """The client side: messages sent and not yet acknowledged, to send again.
 
@@ -166,10 +179,7 @@ class Outbox:
         self.resend_window, self.max_resend_after_s = resend_window, max_resend_after_s
         self.session = new_session()
         self.sequence = 0  # of the last message
-        # sequence -> [message, when it was last sent, the wait before it goes again,
-        #              when the server said it received it (or None), its size [bytes],
-        #              the link's byte count after its first copy, ... after its last one]
-        self._unacked: OrderedDict[int, list] = OrderedDict()
+        self._unacked: OrderedDict[int, _Pending] = OrderedDict()  # sequence -> its message
         self.resent = 0
         self._server_session = 0  # the server run acknowledging
         self.sent_bytes = 0  # handed to the link so far, copies included
@@ -194,7 +204,9 @@ class Outbox:
         self.sequence += 1
         self.sent_bytes += nbytes
         mark = self.sent_bytes
-        self._unacked[self.sequence] = [message, now, self.resend_after_s, None, nbytes, mark, mark]
+        self._unacked[self.sequence] = _Pending(
+            message, now, self.resend_after_s, None, nbytes, mark, mark
+        )
         return self.session, self.sequence
 
     def restore(
@@ -205,7 +217,7 @@ class Outbox:
         now = time.monotonic() if now is None else now
         self.session, self.sequence = session, sequence
         self._unacked = OrderedDict(
-            (int(q), [m, now, self.resend_after_s, None, 0, 0, 0]) for q, m in messages
+            (int(q), _Pending(m, now, self.resend_after_s)) for q, m in messages
         )
 
     def renumber(self, session: int) -> list[tuple[int, Any]]:
@@ -214,22 +226,22 @@ class Outbox:
         entries = list(self._unacked.values())
         self.session, self.sequence = session, len(entries)
         for entry in entries:
-            entry[3] = None
+            entry.received_s = None
         self._unacked = OrderedDict((i + 1, e) for i, e in enumerate(entries))
-        return [(q, e[0]) for q, e in self._unacked.items()]
+        return [(q, e.message) for q, e in self._unacked.items()]
 
     def pending(self, now: float | None = None) -> list[Any]:
         """Every message kept, oldest first, as sent ``now``."""
         now = time.monotonic() if now is None else now
         for entry in self._unacked.values():
-            entry[1] = now
+            entry.sent_s = now
             self._handed(entry)
-        return [entry[0] for entry in self._unacked.values()]
+        return [entry.message for entry in self._unacked.values()]
 
-    def _handed(self, entry: list) -> None:
+    def _handed(self, entry: _Pending) -> None:
         """A copy of ``entry`` went to the link."""
-        self.sent_bytes += entry[4]
-        entry[6] = self.sent_bytes
+        self.sent_bytes += entry.nbytes
+        entry.last_mark = self.sent_bytes
 
     def ack(self, session: int, sequence: int, now: float | None = None) -> int:
         """The server stored everything up to ``sequence``: forget those; returns how many."""
@@ -247,7 +259,7 @@ class Outbox:
         if server_session != self._server_session:
             self._server_session = server_session
             for entry in self._unacked.values():
-                entry[3] = None
+                entry.received_s = None
 
     def received(self, session: int, sequence: int, now: float | None = None) -> None:
         """The server has received this message and queued it to store: it does not go again
@@ -259,18 +271,18 @@ class Outbox:
         now = time.monotonic() if now is None else now
         entry = self._unacked.get(sequence)
         if entry is not None:
-            entry[3] = now
+            entry.received_s = now
             self._arrived(entry, now)
 
-    def _arrived(self, entry: list, now: float) -> None:
+    def _arrived(self, entry: _Pending, now: float) -> None:
         """A copy of ``entry`` crossed: the link delivered at least everything handed to it up to
         its first copy. The link's rate is how fast that count grew over the last
         ``RATE_WINDOW_S`` (under load what the link carries; idle, less: waits a little longer,
         which is safe). (Each message's own crossing time misled: a radio's token bucket lets a
         burst of small messages through at once.)"""
-        if entry[5] <= self.delivered_bytes:
+        if entry.first_mark <= self.delivered_bytes:
             return
-        self.delivered_bytes = entry[5]
+        self.delivered_bytes = entry.first_mark
         self._delivered.append((now, self.delivered_bytes))
         while len(self._delivered) > 2 and self._delivered[1][0] < now - RATE_WINDOW_S:
             self._delivered.popleft()
@@ -286,20 +298,20 @@ class Outbox:
             if len(out) >= self.resend_window:
                 break
             oldest = i == 0  # what the server waits for: never backed off
-            if entry[3] is not None and now - entry[3] < self.max_resend_after_s:
+            if entry.received_s is not None and now - entry.received_s < self.max_resend_after_s:
                 continue  # the server has it
-            in_link = entry[6] - self.delivered_bytes  # handed over up to its last copy
+            in_link = entry.last_mark - self.delivered_bytes  # handed over up to its last copy
             crossing_s = (
                 min(in_link / self.link_Bps, MAX_CROSSING_S)
                 if self.link_Bps > 0 and in_link > 0
                 else 0.0
             )
-            if now - entry[1] >= (self.resend_after_s if oldest else entry[2]) + crossing_s:
+            if now - entry.sent_s >= (self.resend_after_s if oldest else entry.wait_s) + crossing_s:
                 if not oldest:
-                    entry[2] = min(2.0 * entry[2], self.max_resend_after_s)
-                entry[1] = now
+                    entry.wait_s = min(2.0 * entry.wait_s, self.max_resend_after_s)
+                entry.sent_s = now
                 self._handed(entry)
-                out.append(entry[0])
+                out.append(entry.message)
         self.resent += len(out)
         return out
 
