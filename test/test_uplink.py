@@ -308,51 +308,110 @@ def test_a_radio_budget_spreads_what_goes_and_keeps_the_rest_on_the_robot():
 def test_a_radio_budget_lets_through_what_the_server_asks_for_and_waits_out_the_debt():
     from coop_slam.uplink.budget import RadioBudget
 
-    budget = RadioBudget(5.0)  # 5 kB/s, a 2.5 kB bucket, full
-    charge = budget.take("signature", 0.0)  # the first of a kind: a full bucket
+    budget = RadioBudget(5.0)  # 5 kB/s, a 2.5 kB burst; empty at first
+    assert budget.take("signature", 0.0) is None
+    charge = budget.take("signature", 0.5)  # the first of a kind: half a second's worth
     assert charge == pytest.approx(2500.0)
     budget.settle("signature", charge, 2000)  # it cost 2 kB: 500 bytes left
     budget.settle("whole", 0.0, 40_000)  # asked for: went anyway, 39.5 kB in debt
+    assert budget.capacity == 40_000  # the bucket holds the largest message
     assert budget.take("signature", 1.0) is None
-    assert budget.take("signature", 8.0) is None  # 500 bytes after 8 s x 5 kB/s
-    assert budget.take("signature", 8.4) == pytest.approx(2000.0)  # what one costs now
+    assert budget.take("signature", 8.5) is None  # 500 bytes after 8 s x 5 kB/s
+    assert budget.take("signature", 8.9) == pytest.approx(2000.0)  # what one costs now
     with pytest.raises(ConfigError, match="budget_kBps"):
         UplinkConfig(budget_kBps=-1.0).validate()
 
 
-def test_new_keyframes_wait_for_the_budget_in_a_peak_and_stay_on_the_robot_beyond_it():
-    """A peak of keyframes goes a little later; one that waited 2 s stays on the robot, its
-    updates and removal with it; a waiting keyframe's update replaces it; a removal takes it out
-    of the queue unsent and uncounted."""
+def _seeing(rec, keyframe_id, ids, covisible):
+    """``rec`` as keyframe ``keyframe_id`` observing map points ``ids`` (on its first keypoints),
+    covisible with ``covisible``."""
+    ids = np.asarray(ids, np.uint32)
+    out = dataclasses.replace(
+        rec,
+        keyframe_id=keyframe_id,
+        map_point_ids=np.concatenate([ids, np.zeros(len(rec.keypoints) - len(ids), np.uint32)]),
+        map_points=np.zeros((len(ids), 3), np.float32),
+        covisible_ids=np.asarray(covisible, np.uint32),
+        covisible_weights=np.full(len(covisible), 10, np.uint16),
+    )
+    out.validate({rec.robot_id})
+    return out
+
+
+def test_the_budget_sends_signatures_at_once_and_the_newest_views_whole_first():
+    """Full mode: every new keyframe's place signature goes at once; the budget then lets
+    through whole the candidate that shows most the server has not seen (not the oldest); a
+    candidate's update replaces it, its removal goes; after ``defer_s`` a candidate stays a
+    signature (the server may still ask for it)."""
     from coop_slam.uplink.budget import BudgetGate, RadioBudget
 
-    gate = BudgetGate(RadioBudget(10.0), "whole", defer_s=2.0)  # 10 kB/s, 5 kB bucket
-    kfs = {k: make_keyframe(n=10, keyframe_id=k, seed=k) for k in range(1, 6)}
+    gate = BudgetGate(RadioBudget(10.0), "whole", defer_s=2.0)  # 10 kB/s, 5 kB burst
+    gate.budget.tokens = 5000.0  # half a second's worth saved up
+    base = make_keyframe(n=10)
+    kf = {
+        1: _seeing(base, 1, [1, 2, 3, 4], []),
+        2: _seeing(base, 2, [1, 2, 3, 4], [1]),  # nothing new
+        3: _seeing(base, 3, [3, 4, 5, 6], [1]),  # half new
+        4: _seeing(base, 4, [7, 8, 9, 10], [1]),  # all new
+        5: _seeing(base, 5, [5, 6, 11, 12], [3]),
+    }
     never = lambda k: False  # noqa: E731
-    (first,) = gate.admit([kfs[1]], 0.0, never)
-    gate.sent(1, "whole", 5000)  # whole keyframes cost 5 kB: one every half second
-    waiting = gate.admit([kfs[2], kfs[3], kfs[4]], 0.1, never)
-    assert waiting == [] and gate.held_back == 3
-    assert [r.keyframe_id for r in gate.admit([], 0.6, never)] == [2]
-    gate.sent(2, "whole", 5000)
-    moved = _moved(kfs[3], ACTION_UPDATE, 0.05)
+    (first,) = gate.admit([kf[1]], 0.0, never)
+    assert gate.sent(1, "whole", 5000) is False  # whole keyframes cost 5 kB: one in 0.5 s
+    signatures = gate.admit([kf[2], kf[3], kf[4]], 0.1, never)
+    assert [r.keyframe_id for r in signatures] == [4, 3, 2] and gate.signed == {2, 3, 4}
+    for r in signatures:
+        gate.sent(r.keyframe_id, "signature", 0)  # (free here, to follow the whole ones)
+    assert gate.held_back == 3
+    assert [gate.novelty(kf[k]) for k in (2, 3, 4)] == [0.0, 0.5, 1.0]
+    (upgrade,) = gate.admit([], 0.6, never)
+    assert upgrade.keyframe_id == 4 and gate.signed == {2, 3}
+    assert gate.sent(4, "whole", 5000) is True  # its signature went: not a new keyframe again
+    moved = _moved(kf[3], ACTION_UPDATE, 0.05)
     assert gate.admit([moved], 0.7, never) == []  # keyframe 3 waits, now as moved
     (third,) = gate.admit([], 1.1, never)
-    assert third.action == ACTION_NEW and third.T_map_cam[0, 3] == moved.T_map_cam[0, 3]
+    assert third.keyframe_id == 3 and third.action == ACTION_NEW
+    assert third.T_map_cam[0, 3] == moved.T_map_cam[0, 3]
     gate.sent(3, "whole", 5000)
-    assert gate.admit([dataclasses.replace(kfs[4], action=ACTION_REMOVE)], 1.2, never) == []
-    assert gate.held_back == 0  # culled while it waited: never sent, not counted
-    assert gate.admit([kfs[5]], 1.3, never) == []  # the bucket: empty at 1.1, 2 kB at 1.3
+    gone = dataclasses.replace(kf[2], action=ACTION_REMOVE)
+    assert gate.admit([gone], 1.2, never) == [gone]  # the server has its signature
+    assert gate.signed == set() and gate.held_back == 1  # (it never went whole)
+    # keyframe 5 sees two of keyframe 3's points: half new
+    (sig,) = gate.admit([kf[5]], 1.3, never)
+    assert sig.keyframe_id == 5 and gate.novelty(kf[5]) == 0.5
     gate.budget.tokens = -100_000  # a large answer went meanwhile
-    # waited 2.1 s: its place signature goes instead (the server may ask for it whole)
-    assert [r.keyframe_id for r in gate.admit([], 3.4, never)] == [5] and gate.held_back == 1
-    assert gate.signed == {5}
-    assert gate.admit([_moved(kfs[5], ACTION_UPDATE, 0.1)], 3.5, never) == []
-    gone = dataclasses.replace(kfs[5], action=ACTION_REMOVE)
-    assert gate.admit([gone], 3.6, never) == [gone] and gate.signed == set()
-    # pull mode: what waited too long is not sent at all, nor anything of it
-    pull = BudgetGate(RadioBudget(1.0), "signature", defer_s=2.0)
+    assert gate.admit([], 3.4, never) == [] and gate.held_back == 2 and gate.signed == {5}
+    gate.budget.tokens = gate.budget.capacity
+    assert gate.admit([], 3.5, never) == []  # waited beyond defer_s: it stays a signature
+    assert gate.admit([_moved(kf[5], ACTION_UPDATE, 0.1)], 3.6, never) == []
+    gate.answered(kf[5])  # the server asked for it: its updates go from now on
+    assert gate.held_back == 1 and gate.signed == set()
+
+
+def test_in_pull_mode_the_newest_views_signatures_go_first_and_the_rest_at_the_end():
+    """Pull mode: a candidate is its signature; the most novel goes first, one that waited
+    ``defer_s`` stays on the robot (the server never hears of it, nor of its removal); when the
+    camera stops, what still waits goes (a few kB)."""
+    from coop_slam.uplink.budget import BudgetGate, RadioBudget
+
+    base = make_keyframe(n=10)
+    kf = {
+        1: _seeing(base, 1, [1, 2, 3, 4], []),
+        2: _seeing(base, 2, [1, 2, 3, 4], [1]),
+        3: _seeing(base, 3, [1, 2, 5, 6], [1]),
+        4: _seeing(base, 4, [1, 2, 7, 8], [1]),
+    }
+    never = lambda k: False  # noqa: E731
+    pull = BudgetGate(RadioBudget(1.0), "signature", defer_s=2.0)  # 1 kB/s, 500 B burst
+    pull.budget.tokens = 500.0
+    (first,) = pull.admit([kf[1]], 0.0, never)
+    pull.sent(1, "signature", 500)
+    assert pull.admit([kf[2], kf[3]], 0.1, never) == [] and pull.held_back == 2
+    assert [r.keyframe_id for r in pull.admit([], 0.6, never)] == [3]  # half new, before 2
+    pull.sent(3, "signature", 2500)  # 2 kB over: no more until 2.6 s
+    assert pull.admit([], 2.2, never) == [] and pull.held_back == 1  # 2 stayed on the robot
+    assert pull.admit([dataclasses.replace(kf[2], action=ACTION_REMOVE)], 2.3, never) == []
     pull.budget.tokens = -10_000
-    assert pull.admit([kfs[1]], 0.0, never) == [] and pull.admit([], 2.5, never) == []
-    assert pull.held_back == 1 and pull.signed == set()
-    assert pull.admit([dataclasses.replace(kfs[1], action=ACTION_REMOVE)], 2.6, never) == []
+    assert pull.admit([kf[4]], 2.4, never) == []
+    assert [r.keyframe_id for r in pull.admit([], 2.5, never, flush=True)] == [4]
+    assert pull.signed == set() and pull.held_back == 1

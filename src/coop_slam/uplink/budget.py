@@ -7,31 +7,38 @@ from __future__ import annotations
 import dataclasses
 from typing import Callable
 
+import numpy as np
+
 from ..wire.record import ACTION_NEW, ACTION_UPDATE, KeyframeRecord
 
 KINDS = ("whole", "delta", "signature")
 
 
 class RadioBudget:
-    """Tokens (bytes) accrue at ``kBps`` per second of data time up to ``burst_s`` seconds'
-    worth. A message goes when the tokens cover what a message of its kind has cost lately
-    (:meth:`take`; at most a full bucket: a whole RGB-D keyframe may be larger, and then leaves
-    the bucket in debt), and is settled at what it really cost (:meth:`settle`; one that must go
-    -- the server asked for it -- may leave the bucket in debt too, which later messages wait
-    out). ``kBps`` 0: no budget."""
+    """Tokens (bytes) accrue at ``kBps`` per second of data time, from none, up to ``burst_s``
+    seconds' worth or the cost of the largest kind of message, whichever is more (a whole RGB-D
+    keyframe is more than half a second of a small budget). A message goes when the tokens cover
+    what a message of its kind has cost lately (:meth:`take`), and is settled at what it really
+    cost (:meth:`settle`); one that must go -- the server asked for it, a place signature -- may
+    leave the bucket in debt, which later messages wait out. So what a robot sends up to data
+    time t is at most ``kBps`` x t and what must go. ``kBps`` 0: no budget."""
 
     def __init__(self, kBps: float = 0.0, burst_s: float = 0.5):
         self.rate_Bps = 1000.0 * float(kBps)
-        self.capacity = self.rate_Bps * float(burst_s)
-        self.tokens = self.capacity
+        self.burst = self.rate_Bps * float(burst_s)
+        self.tokens = 0.0
         self._t: float | None = None
-        # What a message of each kind cost lately [bytes]; until one went, a full bucket
-        self._cost = {kind: self.capacity for kind in KINDS}
+        # What a message of each kind cost lately [bytes]; until one went, half a second's worth
+        self._cost = {kind: self.burst for kind in KINDS}
         self._seen: set[str] = set()
 
     @property
     def limited(self) -> bool:
         return self.rate_Bps > 0
+
+    @property
+    def capacity(self) -> float:
+        return max(self.burst, max(self._cost.values()))
 
     def _refill(self, now_s: float) -> None:
         if self._t is not None and now_s > self._t:
@@ -45,7 +52,7 @@ class RadioBudget:
         if not self.limited:
             return 0.0
         self._refill(now_s)
-        charge = min(self._cost[kind], self.capacity)
+        charge = self._cost[kind]
         if self.tokens < charge:
             return None
         self.tokens -= charge
@@ -66,81 +73,160 @@ class RadioBudget:
 class BudgetGate:
     """Which keyframe records the radio budget lets through, in order.
 
-    A new keyframe (its signature in pull mode) waits in a queue until the budget affords it --
-    a short peak of keyframes goes a little later -- and is held back for good once it has waited
-    ``defer_s`` (newer keyframes see what it saw by then): the client keeps tracking on it; in
-    full mode its place signature goes instead (:attr:`signed`: the server may ask for it whole,
-    its updates do not go, its removal does), in pull mode the server never hears of it. An
-    update of a keyframe the server holds goes when the budget affords it, else waits for the
-    keyframe's next update (which then carries both). Waiting new keyframes go before updates.
-    Records of one keyframe keep their order: a waiting keyframe's update replaces it (it goes
-    as new, as it is then), its removal takes it out of the queue."""
+    New keyframes are candidates for ``defer_s`` of data time; whenever the budget affords one,
+    the candidate that adds most to what the server has goes (:meth:`novelty`: the share of its
+    map points no keyframe the server has a view of observes -- a new view of the scene first,
+    one much like what went already last). In full mode every candidate's place signature goes at
+    once (a few kB: the server can recognise the place and ask for the keyframe whole), and a
+    candidate the budget then affords goes whole after it (:attr:`signed` holds those the server
+    has only as signatures: their updates do not go, their removal does); in pull mode a
+    candidate is its signature, and one the budget never affords stays on the robot (the server
+    never hears of it). An update of a keyframe the server holds goes when the budget affords it,
+    else waits for the keyframe's next update (which then carries both). Candidates go before
+    updates. Records of one keyframe keep their order: a candidate's update replaces it (it goes
+    as new, as it is then), its removal takes it out of the candidates."""
 
     def __init__(self, budget: RadioBudget, new_kind: str, defer_s: float):
         self.budget, self.new_kind, self.defer_s = budget, new_kind, float(defer_s)
-        self._waiting: dict[int, tuple[float, KeyframeRecord]] = {}  # oldest first
+        self._candidates: dict[int, tuple[float, KeyframeRecord]] = {}  # id -> (since, latest)
         self._given_up: set[int] = set()  # not sent at all
-        # Sent as place signatures instead (full mode): the server may ask for them whole
+        # Sent as place signatures only (full mode): the server may ask for them whole
         self.signed: set[int] = set()
         self.sign = new_kind == "whole"  # (the uplink says when it has no vocabulary for them)
         self._given_up_count = 0
+        self._signed_count = 0  # keyframes whose signature went and that never went whole
         self._taken: dict[tuple[int, str], float] = {}  # what a message that goes was charged
+        self._upgrades: set[int] = set()  # signed keyframes let through whole, not sent yet
+        # Map point ids of each keyframe the server has a view of (whole in full mode, its
+        # signature in pull mode), as it went: what a candidate's novelty is measured against.
+        self._views: dict[int, np.ndarray] = {}
+        self._novelty: dict[int, tuple[int, int, float]] = {}  # id -> (views, record, novelty)
+        self._views_version = 0
+
+    @property
+    def waiting(self) -> int:
+        """Candidates the server has not heard of yet."""
+        return sum(1 for k in self._candidates if k not in self.signed)
 
     @property
     def held_back(self) -> int:
-        """New keyframes the budget has kept from the server (waiting ones included)."""
-        return self._given_up_count + len(self._waiting)
+        """New keyframes the budget has kept from the server, whole (candidates included)."""
+        return self._given_up_count + self._signed_count + self.waiting
+
+    def novelty(self, rec: KeyframeRecord) -> float:
+        """The share of ``rec``'s map points that none of its covisible keyframes the server has
+        a view of observes (1: a new view of the scene; 0: nothing the server has not seen)."""
+        k = rec.keyframe_id
+        cached = self._novelty.get(k)
+        if cached is not None and cached[:2] == (self._views_version, id(rec)):
+            return cached[2]
+        ids = np.asarray(rec.map_point_ids)
+        ids = ids[ids != 0]
+        seen = [self._views[int(c)] for c in rec.covisible_ids if int(c) in self._views]
+        if len(ids) == 0:
+            value = 1.0
+        elif not seen:
+            value = 1.0
+        else:
+            value = 1.0 - float(np.isin(ids, np.concatenate(seen)).mean())
+        self._novelty[k] = (self._views_version, id(rec), value)
+        return value
 
     def admit(
-        self, records: list[KeyframeRecord], now_s: float, server_has: Callable[[int], bool]
+        self,
+        records: list[KeyframeRecord],
+        now_s: float,
+        server_has: Callable[[int], bool],
+        flush: bool = False,
     ) -> list[KeyframeRecord]:
-        """Of ``records`` (and those waiting), what goes at data time ``now_s``."""
+        """Of ``records`` (and the candidates), what goes at data time ``now_s``. ``flush``: the
+        candidates' time is up (the camera stopped, the map ends): in pull mode their
+        signatures go, whatever the budget."""
         if not self.budget.limited:
             return records
         updates = []
         for rec in records:
             k = rec.keyframe_id
             if rec.action == ACTION_NEW:
-                self._waiting[k] = (now_s, rec)
-            elif k in self._waiting:
+                self._candidates[k] = (now_s, rec)
+            elif k in self._candidates:
                 if rec.action == ACTION_UPDATE:  # still new to the server: as it is now
-                    since = self._waiting[k][0]
-                    self._waiting[k] = (since, dataclasses.replace(rec, action=ACTION_NEW))
+                    since = self._candidates[k][0]
+                    self._candidates[k] = (since, dataclasses.replace(rec, action=ACTION_NEW))
                 else:
-                    del self._waiting[k]
+                    del self._candidates[k]
+                    if k in self.signed:
+                        self._forget(k)
+                        updates.append(rec)
             elif k in self._given_up:
                 if rec.action != ACTION_UPDATE:
                     self._given_up.discard(k)
             elif k in self.signed:  # the server has its signature: a removal goes, updates not
                 if rec.action != ACTION_UPDATE:
-                    self.signed.discard(k)
+                    self._forget(k)
                     updates.append(rec)
             elif rec.action != ACTION_UPDATE or not server_has(k):
+                if rec.action != ACTION_UPDATE:
+                    self._forget(k)
                 updates.append(rec)  # a removal, or an update the planner sends whole
             elif self._take(k, "delta", now_s):
                 updates.append(rec)
-        return self._release(now_s) + updates
+        return self._release(now_s, flush) + updates
 
-    def _release(self, now_s: float) -> list[KeyframeRecord]:
+    def _release(self, now_s: float, flush: bool) -> list[KeyframeRecord]:
         out = []
-        for k in list(self._waiting):
-            since, rec = self._waiting[k]
-            if self._take(k, self.new_kind, now_s):
-                out.append(self._waiting.pop(k)[1])
-            elif now_s - since >= self.defer_s:
-                del self._waiting[k]
-                self._given_up_count += 1
-                if self.sign and self.new_kind == "whole":  # its signature goes (a few kB)
-                    self.signed.add(k)
+        ranked = sorted(self._candidates, key=lambda k: -self.novelty(self._candidates[k][1]))
+        affords = True
+        for k in ranked:
+            since, rec = self._candidates[k]
+            if affords and self._take(k, self.new_kind, now_s):
+                del self._candidates[k]
+                if k in self.signed:  # its signature went: now it goes whole
+                    self.signed.discard(k)
+                    self._signed_count -= 1
+                    self._upgrades.add(k)
+                self._add_view(rec)
+                out.append(rec)
+                continue
+            affords = False  # (every candidate costs the same)
+            if self.sign and k not in self.signed:  # its place signature goes now
+                self.signed.add(k)
+                self._signed_count += 1
+                out.append(rec)
+            if flush or now_s - since >= self.defer_s or now_s < since:
+                del self._candidates[k]
+                if self.sign:
+                    continue
+                if flush and self.new_kind == "signature":  # (a few kB each)
+                    self._add_view(rec)
                     out.append(rec)
                 else:
                     self._given_up.add(k)
+                    self._given_up_count += 1
         return out
 
-    def answered(self, keyframe_id: int) -> None:
-        """The server asked for this keyframe and it went whole: its updates go from now on."""
+    def _add_view(self, rec: KeyframeRecord) -> None:
+        ids = np.asarray(rec.map_point_ids)
+        self._views[rec.keyframe_id] = ids[ids != 0]
+        self._views_version += 1
+
+    def _forget(self, keyframe_id: int) -> None:
+        """A keyframe removed: the server no longer has it."""
         self.signed.discard(keyframe_id)
-        self._given_up.discard(keyframe_id)
+        self._novelty.pop(keyframe_id, None)
+        if self._views.pop(keyframe_id, None) is not None:
+            self._views_version += 1
+
+    def answered(self, rec: KeyframeRecord) -> None:
+        """The server asked for this keyframe and it went whole: its updates go from now on."""
+        k = rec.keyframe_id
+        if k in self.signed:
+            self.signed.discard(k)
+            self._signed_count -= 1
+        self._given_up.discard(k)
+        self._candidates.pop(k, None)
+        if self.budget.limited:
+            self._add_view(rec)
 
     def _take(self, keyframe_id: int, kind: str, now_s: float) -> bool:
         charge = self.budget.take(kind, now_s)
@@ -149,7 +235,12 @@ class BudgetGate:
         self._taken[(keyframe_id, kind)] = charge
         return True
 
-    def sent(self, keyframe_id: int, kind: str, nbytes: int) -> None:
+    def sent(self, keyframe_id: int, kind: str, nbytes: int) -> bool:
         """A message went: what it cost (a message the budget did not let through -- one the
-        server asked for -- is charged now)."""
+        server asked for, a signature -- is charged now). True when it was a keyframe whose
+        signature went before (it is not a new keyframe to the server)."""
         self.budget.settle(kind, self._taken.pop((keyframe_id, kind), 0.0), nbytes)
+        if kind == "whole" and keyframe_id in self._upgrades:
+            self._upgrades.discard(keyframe_id)
+            return True
+        return False

@@ -148,7 +148,7 @@ class ClientUplink:
     @property
     def held(self) -> int:
         """Records held back, not sent yet."""
-        return len(self.planner.holdback)
+        return len(self.planner.holdback) + self.planner.gate.waiting
 
     @property
     def unacked(self) -> int:
@@ -383,8 +383,10 @@ class ClientUplink:
                 self.planner.forget([rec.keyframe_id])
                 continue
             self.outbox.add(msg, nbytes=len(payload))
-            self.planner.gate.sent(rec.keyframe_id, self.planner.kind_of(how), len(payload))
-            self.keyframes_sent += rec.action == ACTION_NEW and not answers
+            upgrade = self.planner.gate.sent(
+                rec.keyframe_id, self.planner.kind_of(how), len(payload)
+            )
+            self.keyframes_sent += rec.action == ACTION_NEW and not answers and not upgrade
             if not self.waiting_for_server:
                 out.append(msg)
         return out

@@ -99,11 +99,13 @@ class Planner:
         return self._planned(self.holdback.due(now_s))
 
     def flush(self) -> list[tuple[KeyframeRecord, Outgoing]]:
-        """Every held record, and how it goes."""
-        return self._planned(self.holdback.flush())
+        """Every held record, and how it goes (the radio budget's candidates too)."""
+        return self._planned(self.holdback.flush(), flush=True)
 
-    def _planned(self, records: list[KeyframeRecord]) -> list[tuple[KeyframeRecord, Outgoing]]:
-        admitted = self.gate.admit(records, self._now_s, self._held.__contains__)
+    def _planned(
+        self, records: list[KeyframeRecord], flush: bool = False
+    ) -> list[tuple[KeyframeRecord, Outgoing]]:
+        admitted = self.gate.admit(records, self._now_s, self._held.__contains__, flush)
         return [(r, self.prepare(r)) for r in admitted]
 
     @staticmethod
@@ -161,7 +163,7 @@ class Planner:
     def answer(self, rec: KeyframeRecord) -> Outgoing:
         """A keyframe the server asked for (pull mode, or one the budget sent as a signature):
         it goes whole, as new, and its updates from now on."""
-        self.gate.answered(rec.keyframe_id)
+        self.gate.answered(rec)
         self._hold(rec.keyframe_id, rec.static_digest(), rec)
         return Outgoing(False)
 
