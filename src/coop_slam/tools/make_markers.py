@@ -1,4 +1,4 @@
-"""``scripts/print_markers``: the ArUco markers to print and mount on one's own robots -- one PDF
+"""``scripts/make_markers``: the ArUco markers to print and mount on one's own robots -- one PDF
 page per robot, its marker's black square exactly ``markers.marker_size_m`` wide when printed at
 100 % (no "fit to page"), in the dictionary the clients look for, id = robot id, with what to
 check written under it."""
@@ -45,7 +45,7 @@ def marker_image(config: MarkerConfig, marker_id: int, side_px: int = 600) -> np
 def quiet_zone_m(config: MarkerConfig) -> float:
     """White around the black square: one of the marker's cells at least. Seen against a
     darker body a thinner one (2 cm of a 25 cm marker) was not detected at all; one cell was at
-    every size and background tried (test_print_markers)."""
+    every size and background tried (test_make_markers)."""
     dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, config.dictionary))
     return max(MARGIN_M, config.marker_size_m / (dictionary.markerSize + 2))
 
@@ -108,12 +108,12 @@ def write_sheet(path: str, config: MarkerConfig, robot_id: int) -> tuple[float, 
 
 
 def main(argv=None) -> int:
-    """``scripts/print_markers --robots 1,2,3 [--config FILE] [--out DIR]``"""
+    """``scripts/make_markers --robots 1,2,3 [--config FILE] [--out DIR]``"""
     p = argparse.ArgumentParser(
-        prog="scripts/print_markers",
+        prog="scripts/make_markers",
         description="The ArUco markers to print and mount on your robots: one PDF per robot "
         "(marker id = robot id) at the size and in the dictionary of the clients' markers "
-        "section. Print at 100 %% and check the black square's side with a ruler: a marker "
+        "section. Print at 100 % and check the black square's side with a ruler: a marker "
         "printed smaller than configured puts the other robot too far away, silently.",
     )
     p.add_argument("--robots", required=True, help="robot ids, comma-separated: 1,2,3")
@@ -132,14 +132,14 @@ def main(argv=None) -> int:
             path = os.path.join(args.out, f"marker_robot_{r}.pdf")
             w, h = write_sheet(path, config, r)
             print(
-                f"[print_markers] {path}: {config.dictionary} id {r}, black square "
+                f"[make_markers] {path}: {config.dictionary} id {r}, black square "
                 f"{100 * config.marker_size_m:g} cm, page {100 * w:.1f} x {100 * h:.1f} cm"
             )
     except CoopSlamError as exc:
-        print(f"[print_markers] ERROR: {exc}", file=sys.stderr)
+        print(f"[make_markers] ERROR: {exc}", file=sys.stderr)
         return 2
     print(
-        "[print_markers] mount each flat on its robot's front, its centre where "
+        "[make_markers] mount each flat on its robot's front, its centre where "
         "markers.T_base_marker says (in base_link), and set markers.body_size_m to the robot's "
         "size: both go into that robot's client configuration"
     )

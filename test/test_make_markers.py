@@ -1,4 +1,4 @@
-"""scripts/print_markers: a robot's marker sheet at its true size, in the clients' dictionary,
+"""scripts/make_markers: a robot's marker sheet at its true size, in the clients' dictionary,
 id = robot id; an id the dictionary lacks is refused with what to do."""
 
 import re
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from coop_slam.markers import MarkerConfig
-from coop_slam.tools.print_markers import TEXT_M, MarkerSheetError, main, marker_image, quiet_zone_m
+from coop_slam.tools.make_markers import TEXT_M, MarkerSheetError, main, marker_image, quiet_zone_m
 
 
 def test_a_marker_sheet_prints_the_black_square_at_its_configured_size(tmp_path):
@@ -72,7 +72,7 @@ def test_a_printed_marker_seen_by_a_camera_is_placed_at_its_true_distance(backgr
 
 
 def test_the_sheets_label_and_scale_bar_stay_out_of_the_quiet_zone(tmp_path):
-    from coop_slam.tools.print_markers import write_sheet
+    from coop_slam.tools.make_markers import write_sheet
 
     config = MarkerConfig(marker_size_m=0.2)
     width_m, height_m = write_sheet(str(tmp_path / "sheet.png"), config, 3)
