@@ -220,6 +220,8 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
     assert _local_merge_error(run.merges[0], run, gts) is None  # no truth for robot 1
     r = run.robots[2]
     assert sorted(r.keyframes) == [1, 2, 3, 4, 5] and len(r.kf_bytes) == 6  # with the update
+    assert list(r.kf_kinds) == ["whole"] and r.kf_kinds["whole"][0] == 6
+    assert r.kf_kinds["whole"][1] == sum(n for _, n in r.kf_bytes)
     assert np.allclose(r.keyframes[4][1], moved.T_map_cam)
     # Each keyframe's 3D from depth (the report's overlap agreement), one point per keypoint.
     assert all(len(r.keyframe_points[k]) == 50 for k in (1, 2, 3, 5))
@@ -547,12 +549,14 @@ def test_frame_stats_count_dropped_frames_and_a_mapper_behind_the_camera():
 
 def test_bandwidth_gives_uplink_and_downlink_per_robot():
     """Uplink = a robot's keyframe messages; downlink = the server's corrections and acks to it."""
-    from coop_slam.evaluation.bandwidth import bandwidth, downlink_kBps
+    from coop_slam.evaluation.bandwidth import bandwidth, downlink_kBps, uplink_by_kind
+    from coop_slam.evaluation.report import _fmt
     from coop_slam.evaluation.run_data import RobotRun, RunData
 
     run = RunData(robots={1: RobotRun(), 2: RobotRun()}, duration_s=10.0)
     run.robots[1].kf_bytes = [(0.5, 40_000), (1.5, 60_000)]
     run.robots[2].kf_bytes = [(2.0, 20_000)]
+    run.robots[1].kf_kinds = {"whole": (1, 40_000), "signature": (1, 60_000)}
     run.topic_bytes["/robot_1/correction"] = [(3.0, 5_000), (4.0, 4_000)]
     run.topic_bytes["/robot_1/keyframe_ack"] = [(3.0, 1_000)]
     bw = bandwidth(run)
@@ -560,6 +564,13 @@ def test_bandwidth_gives_uplink_and_downlink_per_robot():
     assert downlink_kBps(run, 1) == pytest.approx(1.0)
     assert downlink_kBps(run, 2) is None  # nothing recorded: unknown, not zero
     assert bw["downlink_per_robot_kBps"] == pytest.approx(1.0)
+    by_kind = uplink_by_kind(run, run.robots[1])
+    assert by_kind == {
+        "signature": {"messages": 1, "kBps": pytest.approx(6.0)},
+        "whole": {"messages": 1, "kBps": pytest.approx(4.0)},
+    }
+    assert uplink_by_kind(run, run.robots[2]) is None  # (a run recorded before kinds were)
+    assert _fmt(by_kind) == "signature 1 (6.0 kB/s), whole 1 (4.0 kB/s)"
 
 
 def test_a_similarity_merge_is_judged_against_the_maps_scale_around_its_keyframes():

@@ -25,6 +25,18 @@ def uplink_kBps(run: RunData, r: RobotRun) -> float | None:
     return sum(n for _, n in r.kf_bytes) / max(run.duration_s, 1e-9) / 1e3 if r.kf_bytes else None
 
 
+def uplink_by_kind(run: RunData, r: RobotRun) -> dict | None:
+    """Robot -> server by what its messages carried (whole keyframes, delta updates, place
+    signatures, removals): messages and kB/s over the run each."""
+    if not r.kf_kinds:
+        return None
+    duration = max(run.duration_s, 1e-9)
+    return {
+        kind: {"messages": int(n), "kBps": float(nbytes / duration / 1e3)}
+        for kind, (n, nbytes) in sorted(r.kf_kinds.items())
+    }
+
+
 def bandwidth(run: RunData) -> dict:
     """The report's ``bandwidth``: uplink per robot (mean), the busiest second of a robot's uplink,
     the total and the mean size of a keyframe message; downlink per robot (mean)."""

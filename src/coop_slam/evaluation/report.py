@@ -42,6 +42,8 @@ ROBOT_KEYS = (
     "track_ms_p95",
     # Radio: robot -> server (keyframe messages) and server -> robot (corrections, acks) [kB/s]
     "uplink_kBps",
+    # ... by what its messages carried: {whole|delta|signature|removal: {messages, kBps}}
+    "uplink_by_kind",
     "downlink_kBps",
     # ... and on the wire with --hosts: the robot's radio interface, sent / received (every topic,
     # TCP/IP and ROS overhead included) over the data's duration [kB/s]
@@ -56,7 +58,8 @@ ROBOT_KEYS = (
     # Delivery: new keyframes this run's clients sent (all their sessions), distinct keyframes in
     # the server's map, and the difference (sent and never stored).
     "keyframes_sent",
-    # ... and the new keyframes its radio budget kept on the robot (uplink.budget_kBps)
+    # ... and the new keyframes its radio budget kept on the robot (uplink.budget_kBps): sent as
+    # place signatures only (the server may still ask for them), or not at all
     "keyframes_held_back",
     "keyframes_stored",
     "keyframes_lost",
@@ -184,6 +187,8 @@ def _fmt(v: Any, digits: int = 3) -> str:
         return "–"
     if isinstance(v, float):
         return f"{v:.{digits}f}"
+    if isinstance(v, dict) and all(isinstance(x, dict) and "kBps" in x for x in v.values()):
+        return ", ".join(f"{k} {x['messages']} ({x['kBps']:.1f} kB/s)" for k, x in v.items())
     return str(v)
 
 

@@ -26,6 +26,7 @@ class RobotRun:
     # a keyframe the client culls while the merge is on its way
     keyframe_stamps: dict = field(default_factory=dict)
     kf_bytes: list = field(default_factory=list)  # (sim stamp_s, bytes) per keyframe message
+    kf_kinds: dict = field(default_factory=dict)  # kind -> (messages, bytes): what they carried
     T_world_map: np.ndarray | None = None  # latest correction, when merged
     map_scale: float = 1.0  # ... and its metres per unit of the robot's map (monocular)
     # server's optimized keyframe poses in world (latest /team_map/robot_k/path, when merged):

@@ -21,7 +21,7 @@ from ..registration.umeyama import umeyama
 from ..team.map_scale import scale_translation
 from ..team.results import TYPE_LINK
 from .agreement import KeyframeCloud, team_agreement
-from .bandwidth import bandwidth, downlink_kBps, topic_bandwidth, uplink_kBps
+from .bandwidth import bandwidth, downlink_kBps, topic_bandwidth, uplink_by_kind, uplink_kBps
 from .metrics import EvaluationError, ate, merge_error, relative_pose_error, rpe_rmse, team_ate
 from .overlap_view import plot_overlap
 from .plots import plot_path_errors, plot_team, plot_trajectories, write_ply
@@ -309,7 +309,7 @@ def _evaluate_robot(
     entry["frames"] = r.frames
     entry["frames_dropped"] = r.frames_dropped
     entry["mapping_backlog_max"] = r.mapping_backlog_max
-    entry["uplink_kBps"] = uplink_kBps(run, r)
+    entry["uplink_kBps"], entry["uplink_by_kind"] = uplink_kBps(run, r), uplink_by_kind(run, r)
     entry["downlink_kBps"] = downlink_kBps(run, rid)
     if rid in run.radio_bytes and run.duration_s > 0:  # on the wire: every topic, TCP and ROS
         sent, received = run.radio_bytes[rid]

@@ -14,7 +14,7 @@ from ..registration.camera import backproject
 from ..wire import legacy
 from ..wire.codec import keypoints_and_depths, pose_of
 from ..wire.legacy import is_legacy
-from ..wire.messages import KIND_KEYFRAME, KIND_REMOVAL, KeyframeMessage
+from ..wire.messages import KIND_DELTA, KIND_KEYFRAME, KIND_REMOVAL, KIND_SIGNATURE, KeyframeMessage
 from ..wire.record import ACTION_REMOVE
 from .wire_bridge import from_ros
 
@@ -49,6 +49,25 @@ class KeyframeSeen(NamedTuple):
     T_map_cam: np.ndarray | None  # None: not readable
     sensor: str | None  # None: the message does not say (a delta update)
     points_cam: np.ndarray | None  # keypoints with depth, camera frame; None: not carried
+
+
+_KIND_NAMES = {
+    KIND_KEYFRAME: "whole",
+    KIND_DELTA: "delta",
+    KIND_SIGNATURE: "signature",
+    KIND_REMOVAL: "removal",
+}
+
+
+def message_kind(msg) -> str:
+    """What a recorded keyframe message (either format) carried: ``whole``, ``delta``,
+    ``signature`` or ``removal``."""
+    msg = keyframe_message(msg)
+    if is_removal(msg):
+        return "removal"
+    if is_legacy(msg):
+        return "delta" if getattr(msg, "delta", False) else "whole"
+    return _KIND_NAMES.get(msg.kind, "whole")
 
 
 def keyframe_seen(msg) -> KeyframeSeen:
