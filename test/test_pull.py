@@ -167,7 +167,12 @@ def test_a_server_not_in_low_bandwidth_mode_takes_signatures_and_refuses_unknown
     taken = plain.add_keyframe(sig)
     assert taken.taken == 1 and not taken.rejected and plain.pull is not None
     assert plain.pull.holds(whole.robot_id, 77)
+    # A whole keyframe is cheap against a robot's budget: a lower floor, more of them a minute
+    pull = team_server_config().pull
+    assert plain.pull.config.min_score_ratio == pull.budget_min_score_ratio < pull.min_score_ratio
+    assert plain.pull.config.keyframes_per_min == pull.budget_keyframes_per_min
     durable, _ = _pull_server(world)
+    assert durable.pull.config.min_score_ratio == pull.min_score_ratio
     stranger = dataclasses.replace(sig, record=dataclasses.replace(sig.record, robot_id=9))
     with pytest.raises((KeyframeError, MapStoreError), match="unknown"):
         durable.add_keyframe(stranger)

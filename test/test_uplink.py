@@ -26,6 +26,22 @@ def _what(records):
     return [(r.keyframe_id, r.action, round(float(r.T_map_cam[0, 3]), 3)) for r in records]
 
 
+def test_a_full_mode_budget_keeps_a_whole_keyframe_in_hand_for_the_servers_requests():
+    """What the server asks for goes whatever the budget holds; in full mode the bucket keeps one
+    whole keyframe in hand for it, so a request does not take the robot over its budget."""
+    from coop_slam.uplink.budget import RadioBudget
+
+    budget = RadioBudget(10.0, reserve="whole")  # 10 kB/s
+    budget.settle("whole", 0.0, 20_000)  # a first whole keyframe (asked for): 20 kB in debt
+    assert budget.capacity == 40_000  # one to send and one in hand
+    assert budget.take("whole", 0.0) is None
+    assert budget.take("whole", 5.9) is None  # 39 kB
+    assert budget.take("whole", 6.0) == pytest.approx(20_000)
+    budget.settle("whole", 0.0, 20_000)  # the server asks for one: it goes from the hand
+    assert budget.tokens == pytest.approx(0.0)
+    assert RadioBudget(10.0).capacity == 5000  # no reserve: half a second's worth
+
+
 def test_new_keyframes_wait_and_go_as_they_are_then_culled_ones_never():
     hold = Holdback(hold_new_s=1.0, coalesce_s=1.0)
     kf1, kf2 = make_keyframe(keyframe_id=1), make_keyframe(keyframe_id=2, seed=1)

@@ -8,6 +8,7 @@ state from it and carries on (``resume``), or starts from a saved map of an earl
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import os
@@ -173,7 +174,14 @@ class DurableServer:
         def same_group(a: int, b: int) -> bool:
             return server.groups.same_group(server.current_map(a), server.current_map(b))
 
-        return PullPlanner(*self._pull_settings, same_group)
+        config, database, min_consecutive = self._pull_settings
+        if not config.enabled:  # signatures of what a robot's radio budget holds back
+            config = dataclasses.replace(
+                config,
+                min_score_ratio=config.budget_min_score_ratio,
+                keyframes_per_min=config.budget_keyframes_per_min,
+            )
+        return PullPlanner(config, database, min_consecutive, same_group)
 
     def _pull_for_signatures(self) -> PullPlanner:
         """The pull planner, made when the first place signature comes to a server not in

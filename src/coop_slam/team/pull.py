@@ -41,6 +41,12 @@ class PullConfig:
     # keyframe do: a whole keyframe costs 50-60 kB, so only views that resemble each other as
     # much as two neighbouring views of one place are worth asking for.
     min_score_ratio: float = 0.8
+    # Where the server is not in low-bandwidth mode (a robot's radio budget sends signatures of
+    # the keyframes it holds back), a whole keyframe is a second or so of a robot's budget, which
+    # the robot charges it to: the floor is lower (0.8 lost the merge of the RedKitchen thirds at
+    # 50 kB/s, issue #49's note), and a robot is asked for more keyframes per minute.
+    budget_min_score_ratio: float = 0.7
+    budget_keyframes_per_min: float = 12.0
     # Robots seen together (a marker sighting): their alike signatures match at once for this
     # long [s] (the rendezvous; otherwise place recognition's consistency over keyframes).
     rendezvous_window_s: float = 10.0
@@ -51,6 +57,8 @@ class PullConfig:
         require(self.timeout_s > 0, "pull.timeout_s must be > 0 [s]")
         require(self.loop_min_keyframes >= 1, "pull.loop_min_keyframes must be >= 1")
         require(self.min_score_ratio >= 0, "pull.min_score_ratio must be >= 0")
+        require(self.budget_min_score_ratio >= 0, "pull.budget_min_score_ratio must be >= 0")
+        require(self.budget_keyframes_per_min > 0, "pull.budget_keyframes_per_min must be > 0")
         require(self.rendezvous_window_s >= 0, "pull.rendezvous_window_s must be >= 0 [s]")
 
 

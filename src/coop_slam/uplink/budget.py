@@ -21,11 +21,15 @@ class RadioBudget:
     what a message of its kind has cost lately (:meth:`take`), and is settled at what it really
     cost (:meth:`settle`); one that must go -- the server asked for it, a place signature -- may
     leave the bucket in debt, which later messages wait out. So what a robot sends up to data
-    time t is at most ``kBps`` x t and what must go. ``kBps`` 0: no budget."""
+    time t is at most ``kBps`` x t and what must go. ``reserve``: a kind of message the bucket
+    keeps one of in hand for what must go (full mode: a whole keyframe the server asks for), so
+    that even that stays within ``kBps`` x t unless the server asks for more at once. ``kBps``
+    0: no budget."""
 
-    def __init__(self, kBps: float = 0.0, burst_s: float = 0.5):
+    def __init__(self, kBps: float = 0.0, burst_s: float = 0.5, reserve: str | None = None):
         self.rate_Bps = 1000.0 * float(kBps)
         self.burst = self.rate_Bps * float(burst_s)
+        self.reserve = reserve
         self.tokens = 0.0
         self._t: float | None = None
         # What a message of each kind cost lately [bytes]; until one went, half a second's worth
@@ -37,8 +41,13 @@ class RadioBudget:
         return self.rate_Bps > 0
 
     @property
+    def held_in_hand(self) -> float:
+        """Tokens kept for what must go [bytes]."""
+        return self._cost[self.reserve] if self.reserve else 0.0
+
+    @property
     def capacity(self) -> float:
-        return max(self.burst, max(self._cost.values()))
+        return max(self.burst, max(self._cost.values())) + self.held_in_hand
 
     def _refill(self, now_s: float) -> None:
         if self._t is not None and now_s > self._t:
@@ -53,7 +62,7 @@ class RadioBudget:
             return 0.0
         self._refill(now_s)
         charge = self._cost[kind]
-        if self.tokens < charge:
+        if self.tokens < charge + self.held_in_hand:
             return None
         self.tokens -= charge
         return charge

@@ -78,7 +78,8 @@ class Planner:
         )
         self._held: dict[int, _Held] = {}  # keyframe id -> what the server holds of it
         self.gate = BudgetGate(
-            RadioBudget(config.budget_kBps),
+            # (in full mode a whole keyframe in hand for the server's requests)
+            RadioBudget(config.budget_kBps, reserve=None if self.pull else "whole"),
             "signature" if self.pull else "whole",
             config.budget_defer_s,
         )
