@@ -67,7 +67,7 @@ def _uplink(path, camera, max_unacked=1000, max_mb=200.0) -> ClientUplink:
     spool = Spool(path, ROBOT, PickleSerializer.format_id, int(max_mb * 1e6))
     up = ClientUplink(
         ROBOT,
-        UplinkConfig(hold_new_s=0.0, coalesce_updates_s=0.0),
+        UplinkConfig(hold_new_s=0.0, coalesce_updates_s=0.0, budget_kBps=0.0),
         DeliveryConfig(max_unacked=max_unacked),
         serializer=PickleSerializer(),
         spool=spool,

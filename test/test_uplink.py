@@ -100,7 +100,7 @@ def test_uplink_offers_through_its_holdback_and_prepares_deltas_in_sending_order
     """What the server ends up holding is the keyframe's last state, with the delta protocol
     intact: the update after a held new keyframe is a patch against what that new carried (the
     points local BA moved while it was held), not against the keyframe as first made."""
-    uplink = Planner(UplinkConfig(hold_new_s=0.5, coalesce_updates_s=0.5))
+    uplink = Planner(UplinkConfig(hold_new_s=0.5, coalesce_updates_s=0.5, budget_kBps=0.0))
     kf = make_keyframe(n=60, keyframe_id=7)
     assert uplink.offer(kf, 0.0) == []
     moved = _moved(kf, ACTION_UPDATE, 0.02)
@@ -120,7 +120,7 @@ def test_uplink_offers_through_its_holdback_and_prepares_deltas_in_sending_order
         rec.map_point_ids[rec.map_point_ids != 0][:3]
     )
     # pull mode (low-bandwidth): no holding, its own rules
-    pull = Planner(UplinkConfig(mode="pull"))
+    pull = Planner(UplinkConfig(mode="pull", pull_budget_kBps=0.0))
     ((rec, out),) = pull.offer(make_keyframe(keyframe_id=8), 0.0)
     assert out.signature
 
@@ -184,7 +184,9 @@ def test_the_client_uplink_sends_each_kind_numbered_and_what_it_held_on_flush():
         "keyframe",
     ]
     uplink = ClientUplink(
-        3, UplinkConfig(hold_new_s=0.0, coalesce_updates_s=0.0), T_base_cam=np.eye(4)
+        3,
+        UplinkConfig(hold_new_s=0.0, coalesce_updates_s=0.0, budget_kBps=0.0),
+        T_base_cam=np.eye(4),
     )
     uplink.camera = rec.camera
     sent = uplink.events(events, 4.5).messages
@@ -213,7 +215,7 @@ def test_a_restarted_client_continues_above_the_servers_keyframes_and_answers_re
 
     rec = make_keyframe(n=20, keyframe_id=2)
     kf = map_keyframe(rec)
-    uplink = ClientUplink(4, UplinkConfig(hold_new_s=0.0), T_base_cam=np.eye(4))
+    uplink = ClientUplink(4, UplinkConfig(hold_new_s=0.0, budget_kBps=0.0), T_base_cam=np.eye(4))
     uplink.camera = rec.camera
     uplink.continue_after(last_keyframe_id=30, last_map_segment=1)
     (msg,) = uplink.events([VoEvent(EVENT_KEYFRAME_NEW, 0, 2, kf)], 1.0).messages
@@ -251,7 +253,7 @@ def test_a_message_that_cannot_be_serialized_takes_no_sequence_and_its_next_upda
     kfs = [map_keyframe(r) for r in recs]
     uplink = ClientUplink(
         3,
-        UplinkConfig(hold_new_s=0.0, coalesce_updates_s=0.0),
+        UplinkConfig(hold_new_s=0.0, coalesce_updates_s=0.0, budget_kBps=0.0),
         T_base_cam=np.eye(4),
         serializer=RefusesKeyframe8(),
     )
@@ -431,3 +433,16 @@ def test_in_pull_mode_the_newest_views_signatures_go_first_and_the_rest_at_the_e
     assert pull.admit([kf[4]], 2.4, never) == []
     assert [r.keyframe_id for r in pull.admit([], 2.5, never, flush=True)] == [4]
     assert pull.signed == set() and pull.held_back == 1
+
+
+def test_in_pull_mode_the_budget_decides_which_signatures_go():
+    """With the server's vocabulary, full mode sends what the budget holds back as signatures;
+    pull mode's keyframes are signatures already, and the budget holds some back for good."""
+    from coop_slam.uplink.engine import ClientUplink
+
+    for mode, signs in (("full", True), ("pull", False)):
+        uplink = ClientUplink(2, UplinkConfig(mode=mode), T_base_cam=np.eye(4))
+        uplink.vocabulary = object()  # (what signatures name: the server's words)
+        assert uplink.planner.gate.sign is signs
+        uplink.vocabulary = None
+        assert uplink.planner.gate.sign is False

@@ -46,13 +46,16 @@ class UplinkConfig:
     # How many of the keyframes the server holds are searched for a new keyframe's map points:
     # its covisible ones first, then the newest.
     ref_keyframes: int = 32
-    # The robot's radio budget [kB/s of data time]: new keyframes (signatures in pull mode) and
-    # updates go only as far as it reaches, spread evenly (a token bucket of half a second's worth);
-    # the rest stay on the robot (coop_slam.uplink.budget). Keyframes the server asks for always
-    # go. 0 = no budget.
-    budget_kBps: float = 0.0
-    # ... a new keyframe the budget cannot afford waits this long for it, then stays on the robot
-    # (newer keyframes see what it saw by then) [s of data time]
+    # The robot's radio budget in full mode [kB/s of data time]: every new keyframe's place
+    # signature goes, and whole keyframes and updates only as far as the budget reaches, those
+    # that show most the server has not seen first (coop_slam.uplink.budget); the server asks
+    # for others whole when it recognises their place. 0 = no budget: every keyframe whole.
+    budget_kBps: float = 50.0
+    # ... and in pull mode (low-bandwidth): signatures go as far as it reaches; the rest stay on
+    # the robot. Keyframes the server asks for always go. 0 = no budget.
+    pull_budget_kBps: float = 5.0
+    # A new keyframe the budget cannot afford now waits this long for it, then stays as it went
+    # (its signature in full mode, nothing in pull mode) [s of data time]
     budget_defer_s: float = 2.0
     # Wall-clock seconds without a camera frame after which whatever is held goes (the camera
     # stopped, or the run ended).
@@ -65,6 +68,7 @@ class UplinkConfig:
         require(self.coalesce_updates_s >= 0, "uplink.coalesce_updates_s must be >= 0 [s]")
         require(self.idle_flush_s > 0, "uplink.idle_flush_s must be > 0 [s]")
         require(self.budget_kBps >= 0, "uplink.budget_kBps must be >= 0 [kB/s]")
+        require(self.pull_budget_kBps >= 0, "uplink.pull_budget_kBps must be >= 0 [kB/s]")
         require(self.budget_defer_s >= 0, "uplink.budget_defer_s must be >= 0 [s]")
         require(
             0 <= self.share_max_bits <= 8 * DESCRIPTOR_BYTES,

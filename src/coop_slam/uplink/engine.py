@@ -134,7 +134,9 @@ class ClientUplink:
     @vocabulary.setter
     def vocabulary(self, vocabulary) -> None:
         self._vocabulary = vocabulary
-        self.planner.gate.sign = vocabulary is not None
+        # (full mode: what the budget holds back goes as its signature; in pull mode every new
+        # keyframe is one, and the budget says which go)
+        self.planner.gate.sign = vocabulary is not None and not self.pull
 
     @property
     def signatures(self) -> bool:

@@ -79,7 +79,10 @@ class Planner:
         self._held: dict[int, _Held] = {}  # keyframe id -> what the server holds of it
         self.gate = BudgetGate(
             # (in full mode a whole keyframe in hand for the server's requests)
-            RadioBudget(config.budget_kBps, reserve=None if self.pull else "whole"),
+            RadioBudget(
+                config.pull_budget_kBps if self.pull else config.budget_kBps,
+                reserve=None if self.pull else "whole",
+            ),
             "signature" if self.pull else "whole",
             config.budget_defer_s,
         )
