@@ -109,7 +109,8 @@ class BudgetGate:
         # Map point ids of each keyframe the server has a view of (whole in full mode, its
         # signature in pull mode), as it went: what a candidate's novelty is measured against.
         self._views: dict[int, np.ndarray] = {}
-        self._novelty: dict[int, tuple[int, int, float]] = {}  # id -> (views, record, novelty)
+        # candidate id -> (views version, id of its record, novelty)
+        self._novelty: dict[int, tuple[int, int, float]] = {}
         self._views_version = 0
 
     @property
@@ -212,6 +213,7 @@ class BudgetGate:
                 else:
                     self._given_up.add(k)
                     self._given_up_count += 1
+        self._novelty = {k: v for k, v in self._novelty.items() if k in self._candidates}
         return out
 
     def _add_view(self, rec: KeyframeRecord) -> None:
@@ -222,7 +224,6 @@ class BudgetGate:
     def _forget(self, keyframe_id: int) -> None:
         """A keyframe removed: the server no longer has it."""
         self.signed.discard(keyframe_id)
-        self._novelty.pop(keyframe_id, None)
         if self._views.pop(keyframe_id, None) is not None:
             self._views_version += 1
 
