@@ -440,3 +440,17 @@ def test_monocular_odometry_on_a_synthetic_world(revisit_run):
     assert run.keyframes_created <= 2 + frames / VoConfig().for_sensor("mono").keyframes.min_frames
     assert all(kf.depths_m.max() == 0 for kf in run.keyframes)
     assert sum((kf.map_point_ids > 0).sum() for kf in run.keyframes) > 100 * len(run.keyframes)
+
+
+def test_a_monocular_maps_ate_is_taken_after_a_similarity():
+    """A map at half the true scale: its SE(3) ATE is its scale error, its Sim(3) ATE none."""
+    from coop_slam.evaluation.vo_run import ate_rmse
+    from coop_slam.geometry import se3
+
+    angles = np.linspace(0, np.pi, 20)
+    gt = np.stack([se3(t=[2 * np.cos(a), 2 * np.sin(a), 0.1 * a]) for a in angles])
+    half = gt.copy()
+    half[:, :3, 3] *= 0.5
+    stamps = np.arange(20) * 0.1
+    assert ate_rmse(stamps, half, gt) > 0.3
+    assert ate_rmse(stamps, half, gt, correct_scale=True) < 1e-6

@@ -135,9 +135,10 @@ def run_sequence(
     )
 
 
-def ate_rmse(stamps_s, poses_est, poses_gt) -> float:
+def ate_rmse(stamps_s, poses_est, poses_gt, correct_scale: bool = False) -> float:
     """ATE RMSE [m] of estimated against ground-truth poses (same length and order), after an SE(3)
-    Umeyama alignment without scale. Pairs where either pose is NaN are left out."""
+    Umeyama alignment without scale (Sim(3) with ``correct_scale``: a monocular map). Pairs where
+    either pose is NaN are left out."""
     stamps_s = np.asarray(stamps_s, dtype=float)
     poses_est = np.asarray(poses_est, dtype=float).reshape(-1, 4, 4)
     poses_gt = np.asarray(poses_gt, dtype=float).reshape(-1, 4, 4)
@@ -150,7 +151,8 @@ def ate_rmse(stamps_s, poses_est, poses_gt) -> float:
     if valid.sum() < 3:
         return float("nan")
     stamps = stamps_s[valid]
-    return ate(stamps, poses_est[valid], stamps, poses_gt[valid], max_dt_s=1e-9).rmse_m
+    est, gt = poses_est[valid], poses_gt[valid]
+    return ate(stamps, est, stamps, gt, max_dt_s=1e-9, correct_scale=correct_scale).rmse_m
 
 
 def ground_truth_at(seq: Sequence, stamps_s) -> np.ndarray:
@@ -163,9 +165,11 @@ def ground_truth_at(seq: Sequence, stamps_s) -> np.ndarray:
 
 
 def keyframe_ate(run: VoRun, seq: Sequence) -> float:
-    """Keyframe trajectory ATE RMSE [m] of a run against the sequence's ground truth."""
+    """Keyframe trajectory ATE RMSE [m] of a run against the sequence's ground truth (aligned
+    with Sim(3) for a monocular camera, whose map has no metric scale)."""
     stamps, poses = run.keyframe_trajectory()
-    return ate_rmse(stamps, poses, ground_truth_at(seq, stamps))
+    mono = seq.camera.sensor == "mono"
+    return ate_rmse(stamps, poses, ground_truth_at(seq, stamps), correct_scale=mono)
 
 
 def frame_ate(run: VoRun, seq: Sequence) -> float:

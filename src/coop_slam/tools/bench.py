@@ -73,7 +73,8 @@ def bench_bow() -> Iterator[Figure]:
 def _vo_runs():
     """(name, sequence, ground robot, paced) of the odometry benchmarks: a synthetic (wheeled) robot
     with an RGB-D and with a stereo camera, RedKitchen (hand-held RGB-D; whole, whole paced at the
-    camera's 30 Hz as a live camera delivers it, and as two robots), the KITTI clip (stereo,
+    camera's 30 Hz as a live camera delivers it, as two robots, and its colour images alone as a
+    monocular camera's), the KITTI clip (stereo,
     1226x370 at 10 Hz) and the EuRoC clip (stereo, 752x480 at 20 Hz) when the shared data is
     present. Unpaced runs hand over the next frame as soon as tracking returns. Each with the
     camera preset scripts/demo picks for its folder ('' for synthetic worlds)."""
@@ -97,6 +98,8 @@ def _vo_runs():
         yield "redkitchen_paced", seq, False, True, preset
         for part in split_ranges(seq, "0-299,300-599"):
             yield f"redkitchen_{part.name.rsplit('_', 1)[1]}", part, False, False, preset
+        mono = dataclasses.replace(seq, camera=dataclasses.replace(seq.camera, sensor="mono"))
+        yield "mono_redkitchen", mono, False, False, preset  # its colour images only
     if os.path.isdir(KITTI):
         yield "stereo_kitti_clip", read_kitti(KITTI), False, False, preset_for_dataset(KITTI)
     if os.path.isdir(EUROC):
