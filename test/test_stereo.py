@@ -55,6 +55,26 @@ def test_stereo_matching_finds_the_rendered_disparity():
     )
 
 
+def test_a_pairs_disparity_offset_is_added_to_every_measured_disparity():
+    """A pair whose right camera's columns are off by a constant (KITTI's clip: 0.2 px): the
+    configured offset moves every disparity by it, and the depth and right coordinate with it."""
+    planes = helpers_vo.room(np.random.default_rng(1))
+    left, right, _ = _pair(planes, se3(t=[0.1, -0.1, 0.3]))
+    feats = {}
+    for offset in (0.0, 0.7):
+        cfg = dataclasses.replace(VoConfig(), stereo=dataclasses.replace(VoConfig().stereo))
+        cfg.stereo.disparity_offset_px = offset
+        sensor = StereoSensor(cfg, STEREO)
+        gray, right_gray = sensor.check_input(left, right)
+        feats[offset] = sensor.features(OrbExtractor(cfg, STEREO).extract(gray), gray, right_gray)
+    has = (feats[0.0].depths_m > 0) & (feats[0.7].depths_m > 0)
+    assert has.sum() > 50
+    bf = STEREO.fx * BASELINE_M
+    d0, d1 = (bf / feats[o].depths_m[has] for o in (0.0, 0.7))
+    np.testing.assert_allclose(d1 - d0, 0.7, atol=1e-4)
+    np.testing.assert_allclose(feats[0.0].u_right_px[has] - feats[0.7].u_right_px[has], 0.7)
+
+
 @pytest.mark.slow
 def test_stereo_odometry_tracks_a_rendered_sequence():
     planes = helpers_vo.room(np.random.default_rng(0))
@@ -148,3 +168,24 @@ def test_kitti_clip_as_one_stereo_robot():
     assert run.ok.all(), "never lost"
     length = path_length(seq.frame_poses())
     assert frame_ate(run, seq) < 0.01 * length, f"ATE over 1 % of {length:.0f} m"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not os.path.isdir(KITTI), reason=f"KITTI clip not found at {KITTI}")
+def test_kitti_clip_with_its_preset_keeps_scale_with_a_keyframe_every_other_frame():
+    """The kitti preset (its pair's disparity offset, far points, a keyframe at most every
+    other frame): no frame lost, at most 60 % of the frames keyframes, keyframe ATE within
+    0.1 % of the path (ORB-SLAM3 on these frames: 0.08-0.09 %)."""
+    from coop_slam.camera_presets import load_preset, preset_for_dataset
+    from coop_slam.config import load_yaml_config
+    from coop_slam.datasets import read_kitti
+    from coop_slam.evaluation.vo_run import keyframe_ate
+
+    seq = read_kitti(KITTI)
+    preset = load_preset(preset_for_dataset(KITTI)).get("vo")
+    cfg = load_yaml_config(VoConfig, os.path.join(REPO, "config", "client.yaml"), "vo", preset)
+    cfg.threaded = False
+    run = run_sequence(seq, cfg)
+    assert run.ok.all(), "never lost"
+    assert run.keyframes_created <= 0.6 * len(seq)
+    assert keyframe_ate(run, seq) < 0.001 * path_length(seq.frame_poses())

@@ -72,6 +72,10 @@ class StereoConfig:
     # Points farther than this many baselines are used without depth: their disparity is a few
     # pixels and its error dominates (ORB-SLAM2's 40).
     close_baselines: float = 40.0
+    # Added to every measured disparity [px]: a rectified pair whose calibration leaves the rows
+    # right but the columns off by a constant (the KITTI clip's: 0.2, measured against ground
+    # truth) biases every depth, far ones most, and the odometry's scale with them.
+    disparity_offset_px: float = 0.0
 
     def validate(self) -> None:
         require(

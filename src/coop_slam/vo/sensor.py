@@ -265,6 +265,7 @@ class StereoSensor(Sensor):
             self.config,
         )
         self._check_rectified(kps, right_kps, np.isfinite(u_right).mean() if len(kps) else 1.0)
+        u_right = u_right - self.config.stereo.disparity_offset_px
         disparity = kps.uv_px[:, 0] - u_right
         with np.errstate(divide="ignore", invalid="ignore"):
             depth = self.bf / disparity
