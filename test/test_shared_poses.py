@@ -88,3 +88,26 @@ def test_nothing_received_leaves_the_odometry_as_it_is():
     assert np.array_equal(shared.T_map_odom, np.eye(4))
     for k, T in shared.keyframe_poses(odom).items():
         assert np.array_equal(T, odom[k])
+
+
+def test_keyframes_the_server_does_not_hold_follow_their_nearest_corrected_neighbour():
+    """A radio budget sent keyframes 2, 3 and 7 as signatures only: the server sends no pose for
+    them. They take the correction of the nearest corrected keyframe of their map segment; a
+    keyframe the server holds and sent no pose for stays where the odometry has it."""
+    rng = np.random.default_rng(5)
+    odom = _odometry(9, rng)
+    team = {k: se3(exp_so3(rng.normal(0, 0.01, 3)), rng.normal(0, 0.02, 3)) @ odom[k] for k in odom}
+    signatures_only = {2, 3, 7}
+    shared = SharedPoses(server_holds=lambda k: k not in signatures_only)
+    shared.receive({1: team[1], 4: team[4], 6: team[6], 9: team[9]}, odom)
+    C = {k: team[k] @ invert(odom[k]) for k in (1, 4, 6, 9)}
+    poses = shared.keyframe_poses(odom)
+    for k, near in ((2, 1), (3, 4), (7, 6)):  # (a tie goes to the older)
+        assert transform_error(poses[k], C[near] @ odom[k])[0] < 1e-12, k
+    assert transform_error(poses[5], odom[5])[0] < 1e-12  # held: within the server's thresholds
+    # A new map segment from keyframe 8: its keyframes never take an older segment's correction.
+    shared.start_segment(8)
+    shared.forget(9)
+    signatures_only.add(8)
+    assert transform_error(shared.keyframe_poses(odom)[8], odom[8])[0] < 1e-12
+    assert transform_error(shared.keyframe_poses(odom)[7], C[6] @ odom[7])[0] < 1e-12

@@ -92,6 +92,8 @@ class ClientNode:
             p.clock_offset_s,
         )
         self.uplink.flush_now = self._flush_uplink
+        # Keyframes a budget sent as signatures only get no pose back: they follow their neighbours
+        self.pose.shared.server_holds = self.uplink.engine.planner.holds
         markers = load_yaml_config(
             MarkerConfig, p.config, "markers", layered(preset, "markers", p.markers)
         )

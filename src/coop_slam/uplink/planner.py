@@ -112,6 +112,10 @@ class Planner:
         admitted = self.gate.admit(records, self._now_s, self._held.__contains__, flush)
         return [(r, self.prepare(r)) for r in admitted]
 
+    def holds(self, keyframe_id: int) -> bool:
+        """Whether the server holds this keyframe whole (as far as this uplink knows)."""
+        return int(keyframe_id) in self._held
+
     @staticmethod
     def kind_of(how: Outgoing) -> str:
         """The budget's kind of a message that goes ``how``."""

@@ -20,12 +20,18 @@ offset, not as a fixed pose). Keyframes the server has not sent a pose for are w
 thresholds of their odometry pose (identity), except those newer than the newest corrected one
 (the server has not seen them yet): they move with it, as the live pose does -- unless they begin
 a new map segment, another odometry frame the server has not placed yet (identity until it
-does).
+does). Keyframes the server does not hold (``server_holds``: a radio budget sent them as place
+signatures only, or low-bandwidth mode) get no pose from it: they take the correction of the
+corrected keyframe nearest to them in their map segment, so the published path follows the team
+map through them rather than jumping back to the odometry between its corrected neighbours.
 
 Pure core: numpy in, numpy out.
 """
 
 from __future__ import annotations
+
+import bisect
+from typing import Callable
 
 import numpy as np
 
@@ -40,10 +46,12 @@ NEWEST = np.iinfo(np.int64).max
 class SharedPoses:
     """Corrections of one robot's keyframes (keyed by the ids its messages carry)."""
 
-    def __init__(self) -> None:
+    def __init__(self, server_holds: Callable[[int], bool] | None = None) -> None:
         self._C: dict[int, np.ndarray] = {}
         self._newest: int | None = None
         self._segment_start = 0  # the first keyframe id of the current map segment
+        self.server_holds = server_holds  # None: the server holds every keyframe
+        self._ids: list[int] | None = None  # corrected ids, sorted (None: to sort again)
 
     def receive(
         self, T_map_cam_team: dict[int, np.ndarray], T_odom_cam: dict[int, np.ndarray]
@@ -56,6 +64,7 @@ class SharedPoses:
             C = np.asarray(T_map_cam_team[k], float) @ invert(T_odom_cam[k])
             C.setflags(write=False)
             self._C[k] = C
+            self._ids = None
         if taken:
             self._newest = max(*taken, self._newest or 0)  # (ids are >= 1)
         return len(taken)
@@ -66,7 +75,8 @@ class SharedPoses:
 
     def forget(self, kf_id: int) -> None:
         """A keyframe the odometry culled."""
-        self._C.pop(kf_id, None)
+        if self._C.pop(kf_id, None) is not None:
+            self._ids = None
         if kf_id == self._newest:  # the newest corrected is the newest of those left
             self._newest = max(self._C, default=None)
 
@@ -88,7 +98,25 @@ class SharedPoses:
         newest = self._newest
         if newest is not None and kf_id > newest and not newest < self._segment_start <= kf_id:
             return self._C[newest]
+        if self._C and self.server_holds is not None and not self.server_holds(kf_id):
+            near = self._nearest_corrected(kf_id)
+            if near is not None:
+                return self._C[near]
         return _I
+
+    def _nearest_corrected(self, kf_id: int) -> int | None:
+        """The corrected keyframe nearest to ``kf_id`` by id on its side of the current map
+        segment's start (an older segment's corrections place another odometry frame)."""
+        if self._ids is None:
+            self._ids = sorted(self._C)
+        ids, start = self._ids, self._segment_start
+        lo, hi = (bisect.bisect_left(ids, start), len(ids)) if kf_id >= start else (0, None)
+        hi = bisect.bisect_left(ids, start) if hi is None else hi
+        if lo >= hi:
+            return None
+        i = bisect.bisect_left(ids, kf_id, lo, hi)
+        near = [ids[j] for j in (i - 1, i) if lo <= j < hi]
+        return min(near, key=lambda k: (abs(k - kf_id), k))
 
     def keyframe_poses(self, T_odom_cam: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
         """The keyframes' poses in robot_k/map: each odometry pose with its correction."""
