@@ -167,6 +167,9 @@ def test_a_server_not_in_low_bandwidth_mode_takes_signatures_and_refuses_unknown
     taken = plain.add_keyframe(sig)
     assert taken.taken == 1 and not taken.rejected and plain.pull is not None
     assert plain.pull.holds(whole.robot_id, 77)
+    # Stored: the whole keyframe, not the one heard of as a signature only (not in the map file)
+    assert plain.keyframes_stored()[whole.robot_id] == 1
+    assert plain.last_ids()[whole.robot_id][0] == max(77, sig.keyframe_id)
     # A whole keyframe is cheap against a robot's budget: a lower floor, more of them a minute
     pull = team_server_config().pull
     assert plain.pull.config.min_score_ratio == pull.budget_min_score_ratio < pull.min_score_ratio

@@ -12,6 +12,7 @@ from coop_slam.config import ConfigError
 from coop_slam.uplink.config import UplinkConfig
 from coop_slam.uplink.holdback import Holdback
 from coop_slam.uplink.planner import Planner
+from coop_slam.wire.messages import KeyframeRequest
 from coop_slam.wire.record import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE
 from helpers import make_keyframe, map_keyframe
 
@@ -375,16 +376,16 @@ def test_the_budget_sends_signatures_at_once_and_the_newest_views_whole_first():
     }
     never = lambda k: False  # noqa: E731
     (first,) = gate.admit([kf[1]], 0.0, never)
-    assert gate.sent(1, "whole", 5000) is False  # whole keyframes cost 5 kB: one in 0.5 s
+    gate.sent(1, "whole", 5000)  # whole keyframes cost 5 kB: one in 0.5 s
     signatures = gate.admit([kf[2], kf[3], kf[4]], 0.1, never)
     assert [r.keyframe_id for r in signatures] == [4, 3, 2] and gate.signed == {2, 3, 4}
     for r in signatures:
         gate.sent(r.keyframe_id, "signature", 0)  # (free here, to follow the whole ones)
-    assert gate.held_back == 3
+    assert gate.held_back == 0  # (the server has heard of every one)
     assert [gate.novelty(kf[k]) for k in (2, 3, 4)] == [0.0, 0.5, 1.0]
     (upgrade,) = gate.admit([], 0.6, never)
     assert upgrade.keyframe_id == 4 and gate.signed == {2, 3}
-    assert gate.sent(4, "whole", 5000) is True  # its signature went: not a new keyframe again
+    gate.sent(4, "whole", 5000)
     moved = _moved(kf[3], ACTION_UPDATE, 0.05)
     assert gate.admit([moved], 0.7, never) == []  # keyframe 3 waits, now as moved
     (third,) = gate.admit([], 1.1, never)
@@ -393,17 +394,17 @@ def test_the_budget_sends_signatures_at_once_and_the_newest_views_whole_first():
     gate.sent(3, "whole", 5000)
     gone = dataclasses.replace(kf[2], action=ACTION_REMOVE)
     assert gate.admit([gone], 1.2, never) == [gone]  # the server has its signature
-    assert gate.signed == set() and gate.held_back == 1  # (it never went whole)
+    assert gate.signed == set()
     # keyframe 5 sees two of keyframe 3's points: half new
     (sig,) = gate.admit([kf[5]], 1.3, never)
     assert sig.keyframe_id == 5 and gate.novelty(kf[5]) == 0.5
     gate.budget.tokens = -100_000  # a large answer went meanwhile
-    assert gate.admit([], 3.4, never) == [] and gate.held_back == 2 and gate.signed == {5}
+    assert gate.admit([], 3.4, never) == [] and gate.signed == {5}
     gate.budget.tokens = gate.budget.capacity
     assert gate.admit([], 3.5, never) == []  # waited beyond defer_s: it stays a signature
     assert gate.admit([_moved(kf[5], ACTION_UPDATE, 0.1)], 3.6, never) == []
     gate.answered(kf[5])  # the server asked for it: its updates go from now on
-    assert gate.held_back == 1 and gate.signed == set()
+    assert gate.held_back == 0 and gate.signed == set()
 
 
 def test_in_pull_mode_the_newest_views_signatures_go_first_and_the_rest_at_the_end():
@@ -446,3 +447,38 @@ def test_in_pull_mode_the_budget_decides_which_signatures_go():
         assert uplink.planner.gate.sign is signs
         uplink.vocabulary = None
         assert uplink.planner.gate.sign is False
+
+
+def test_the_uplink_counts_keyframes_sent_whole_and_held_back():
+    """Full mode with a small budget and the server's vocabulary: every new keyframe's signature
+    goes; those that never went whole are held back; one the server then asks for counts as
+    sent whole."""
+    from coop_slam.uplink.engine import ClientUplink
+    from coop_slam.vo.types import EVENT_KEYFRAME_NEW, VoEvent
+    from helpers import team_vocabulary
+
+    class Sized:  # stands in for the ROS serializer: a whole keyframe 10 kB, a signature 1 kB
+        def dumps(self, msg):
+            return b"x" * (1000 if msg.signature else 10_000)
+
+        def loads(self, payload):
+            raise AssertionError("not used")
+
+    recs = [make_keyframe(n=40, robot_id=2, keyframe_id=k, seed=k) for k in range(1, 11)]
+    config = UplinkConfig(hold_new_s=0.0, budget_kBps=10.0)
+    uplink = ClientUplink(2, config, T_base_cam=np.eye(4), serializer=Sized())
+    uplink.vocabulary = team_vocabulary(recs)
+    uplink.camera = recs[0].camera
+    whole = []
+    for i, rec in enumerate(recs):
+        step = uplink.events(
+            [VoEvent(EVENT_KEYFRAME_NEW, 0, rec.keyframe_id, map_keyframe(rec))], 0.2 * i
+        )
+        whole += [m.keyframe_id for m in step.messages if not m.signature]
+    assert uplink.keyframes_sent == len(set(whole)) < 10
+    assert uplink.keyframes_held_back == 10 - uplink.keyframes_sent
+    held = next(r.keyframe_id for r in recs if r.keyframe_id not in whole)
+    request = KeyframeRequest(robot_id=2, keyframe_ids=[held], request=1)
+    uplink.answer(request, lambda k: map_keyframe(recs[k - 1]))
+    assert uplink.keyframes_sent == len(set(whole)) + 1
+    assert uplink.keyframes_held_back == 9 - len(set(whole))

@@ -55,11 +55,11 @@ ROBOT_KEYS = (
     "sensor",
     "ate_sim3_rmse_m",
     "scale_error",
-    # Delivery: new keyframes this run's clients sent (all their sessions), distinct keyframes in
-    # the server's map, and the difference (sent and never stored).
+    # Delivery: new keyframes this run's clients sent whole (all their sessions), distinct
+    # keyframes in the server's map, and the difference (sent and never stored).
     "keyframes_sent",
-    # ... and the new keyframes its radio budget kept on the robot (uplink.budget_kBps): sent as
-    # place signatures only (the server may still ask for them), or not at all
+    # ... and the new keyframes that did not go whole (the radio budget, low-bandwidth mode): sent
+    # as place signatures only (the server may still ask for them), or not at all
     "keyframes_held_back",
     "keyframes_stored",
     "keyframes_lost",

@@ -234,7 +234,7 @@ class ClientNode:
     def _counters(self, stats) -> None:
         stats.keyframes = len(self.pose.kf_poses)
         stats.keyframes_sent = self.uplink.engine.keyframes_sent
-        stats.keyframes_held_back = self.uplink.engine.planner.gate.held_back
+        stats.keyframes_held_back = self.uplink.engine.keyframes_held_back
         stats.unacked = self.uplink.engine.unacked
 
     def _flush_uplink(self, blocking: bool = True) -> None:

@@ -151,6 +151,8 @@ class DurableServer:
         # robot -> (keyframe ids taken, highest map segment): what a restarted client continues
         # above, kept here rather than asked of the file for every message.
         self._logged: dict[int, tuple[set[int], int]] = {}
+        # robot -> ids of keyframes heard of only as place signatures (not in the map file)
+        self._signatures_only: dict[int, set[int]] = {}
         if self.store is not None:
             self._logged = self.store.logged_keyframes()
         else:  # a map loaded without a file of its own: the keyframes the server holds
@@ -221,11 +223,22 @@ class DurableServer:
         return {r: (max(ids), seg) for r, (ids, seg) in self._logged.items() if ids}
 
     def keyframes_stored(self) -> dict[int, int]:
-        """robot -> keyframes taken (culled ones included)."""
-        return {r: len(ids) for r, (ids, _) in self._logged.items()}
+        """robot -> keyframes taken whole (culled ones included; not those heard of only as
+        place signatures, which the map file does not keep)."""
+        return {
+            r: len(ids - self._signatures_only.get(r, set()))
+            for r, (ids, _) in self._logged.items()
+        }
 
-    def _note_taken(self, robot_id: int, keyframe_id: int, segment: int) -> None:
+    def _note_taken(
+        self, robot_id: int, keyframe_id: int, segment: int, signature: bool = False
+    ) -> None:
         ids, top = self._logged.get(robot_id, (set(), 0))
+        only = self._signatures_only.setdefault(robot_id, set())
+        if not signature:
+            only.discard(keyframe_id)
+        elif keyframe_id not in ids:  # (a keyframe taken whole before stays whole)
+            only.add(keyframe_id)
         ids.add(keyframe_id)
         self._logged[robot_id] = (ids, max(top, segment))
 
@@ -276,7 +289,9 @@ class DurableServer:
             if isinstance(rec, PlaceSignature):
                 pull = self._pull_for_signatures()
                 pull.add(rec.validate(self.server.known_robots), self.clock())
-                self._note_taken(rec.robot_id, rec.keyframe_id, rec.record.map_segment)
+                self._note_taken(
+                    rec.robot_id, rec.keyframe_id, rec.record.map_segment, signature=True
+                )
                 return []
             if pull is not None and rec.action == ACTION_REMOVE:
                 held = pull.holds(rec.robot_id, rec.keyframe_id)

@@ -103,9 +103,7 @@ class BudgetGate:
         self.signed: set[int] = set()
         self.sign = new_kind == "whole"  # (the uplink says when it has no vocabulary for them)
         self._given_up_count = 0
-        self._signed_count = 0  # keyframes whose signature went and that never went whole
         self._taken: dict[tuple[int, str], float] = {}  # what a message that goes was charged
-        self._upgrades: set[int] = set()  # signed keyframes let through whole, not sent yet
         # Map point ids of each keyframe the server has a view of (whole in full mode, its
         # signature in pull mode), as it went: what a candidate's novelty is measured against.
         self._views: dict[int, np.ndarray] = {}
@@ -120,8 +118,9 @@ class BudgetGate:
 
     @property
     def held_back(self) -> int:
-        """New keyframes the budget has kept from the server, whole (candidates included)."""
-        return self._given_up_count + self._signed_count + self.waiting
+        """New keyframes the budget has kept from the server altogether (candidates that have
+        not gone in any form included)."""
+        return self._given_up_count + self.waiting
 
     def novelty(self, rec: KeyframeRecord) -> float:
         """The share of ``rec``'s map points that none of its covisible keyframes the server has
@@ -191,17 +190,13 @@ class BudgetGate:
             since, rec = self._candidates[k]
             if affords and self._take(k, self.new_kind, now_s):
                 del self._candidates[k]
-                if k in self.signed:  # its signature went: now it goes whole
-                    self.signed.discard(k)
-                    self._signed_count -= 1
-                    self._upgrades.add(k)
+                self.signed.discard(k)  # (its signature may have gone: now it goes whole)
                 self._add_view(rec)
                 out.append(rec)
                 continue
             affords = False  # (every candidate costs the same)
             if self.sign and k not in self.signed:  # its place signature goes now
                 self.signed.add(k)
-                self._signed_count += 1
                 out.append(rec)
             if flush or now_s - since >= self.defer_s or now_s < since:
                 del self._candidates[k]
@@ -230,9 +225,7 @@ class BudgetGate:
     def answered(self, rec: KeyframeRecord) -> None:
         """The server asked for this keyframe and it went whole: its updates go from now on."""
         k = rec.keyframe_id
-        if k in self.signed:
-            self.signed.discard(k)
-            self._signed_count -= 1
+        self.signed.discard(k)
         self._given_up.discard(k)
         self._candidates.pop(k, None)
         if self.budget.limited:
@@ -245,12 +238,7 @@ class BudgetGate:
         self._taken[(keyframe_id, kind)] = charge
         return True
 
-    def sent(self, keyframe_id: int, kind: str, nbytes: int) -> bool:
+    def sent(self, keyframe_id: int, kind: str, nbytes: int) -> None:
         """A message went: what it cost (a message the budget did not let through -- one the
-        server asked for, a signature -- is charged now). True when it was a keyframe whose
-        signature went before (it is not a new keyframe to the server)."""
+        server asked for, a signature -- is charged now)."""
         self.budget.settle(kind, self._taken.pop((keyframe_id, kind), 0.0), nbytes)
-        if kind == "whole" and keyframe_id in self._upgrades:
-            self._upgrades.discard(keyframe_id)
-            return True
-        return False

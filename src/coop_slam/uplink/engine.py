@@ -108,7 +108,10 @@ class ClientUplink:
         # A restarted client continues above the keyframe ids and map segments the server
         # stored; after a camera change the next odometry's continue above this one's.
         self.kf_id_base, self.segment_base = 0, 0
-        self.keyframes_sent = 0  # new keyframes sent (not those a spool kept from before)
+        # New keyframes sent whole (not those a spool kept from before), and those sent as place
+        # signatures only (pull mode, or a radio budget's; until the server asks for them)
+        self._whole: set[int] = set()
+        self._signature_only: set[int] = set()
         self.refused_full = 0  # messages refused: the outbox or the spool was full
         self.resent_from_spool = 0  # messages a spool kept from before, sent by this run
         self._full_since = -1  # refused_full when it became full (-1: not full)
@@ -146,6 +149,17 @@ class ClientUplink:
     @property
     def pull(self) -> bool:
         return self.planner.pull
+
+    @property
+    def keyframes_sent(self) -> int:
+        """New keyframes sent whole by this run."""
+        return len(self._whole)
+
+    @property
+    def keyframes_held_back(self) -> int:
+        """New keyframes not sent whole: as place signatures only, or (a radio budget's) not at
+        all."""
+        return len(self._signature_only) + self.planner.gate.held_back
 
     @property
     def held(self) -> int:
@@ -346,7 +360,7 @@ class ClientUplink:
                 )
                 rec.action = ACTION_NEW
                 going.append((rec, self.planner.answer(rec)))
-            return self._send(going, answers=True)
+            return self._send(going)
 
     def _as_sent(self, rec: KeyframeRecord) -> KeyframeRecord:
         """A record with this client run's keyframe ids and map segments."""
@@ -355,12 +369,9 @@ class ClientUplink:
         rec.map_segment += self.segment_base
         return rec
 
-    def _send(
-        self, going: list[tuple[KeyframeRecord, Outgoing]], answers: bool = False
-    ) -> list[KeyframeMessage]:
+    def _send(self, going: list[tuple[KeyframeRecord, Outgoing]]) -> list[KeyframeMessage]:
         """The messages of records as the planner prepared them, numbered (none while waiting
-        for the server: they go with what the spool kept); ``answers``: keyframes the server
-        asked for, sent before (as signatures), so not counted as new again. A record whose
+        for the server: they go with what the spool kept). A record whose
         message cannot travel, or that finds no room, is left out and forgotten by the planner
         (its next update goes whole); no sequence number is used, so the server sees no gap."""
         out = []
@@ -385,10 +396,13 @@ class ClientUplink:
                 self.planner.forget([rec.keyframe_id])
                 continue
             self.outbox.add(msg, nbytes=len(payload))
-            upgrade = self.planner.gate.sent(
-                rec.keyframe_id, self.planner.kind_of(how), len(payload)
-            )
-            self.keyframes_sent += rec.action == ACTION_NEW and not answers and not upgrade
+            self.planner.gate.sent(rec.keyframe_id, self.planner.kind_of(how), len(payload))
+            if rec.action == ACTION_NEW:
+                if how.signature:
+                    self._signature_only.add(rec.keyframe_id)
+                else:
+                    self._signature_only.discard(rec.keyframe_id)
+                    self._whole.add(rec.keyframe_id)
             if not self.waiting_for_server:
                 out.append(msg)
         return out
