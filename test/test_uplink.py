@@ -482,3 +482,6 @@ def test_the_uplink_counts_keyframes_sent_whole_and_held_back():
     uplink.answer(request, lambda k: map_keyframe(recs[k - 1]))
     assert uplink.keyframes_sent == len(set(whole)) + 1
     assert uplink.keyframes_held_back == 9 - len(set(whole))
+    # Asked for one that went whole meanwhile (its request crossed it): it is not sent again
+    again = KeyframeRequest(robot_id=2, keyframe_ids=[whole[0], held], request=2)
+    assert uplink.answer(again, lambda k: map_keyframe(recs[k - 1])) == []

@@ -520,7 +520,7 @@ class ServerWorker:
                 continue
             self._request_count += 1
             log.info(
-                "asking robot %d for whole keyframes %s (low-bandwidth mode)",
+                "asking robot %d for whole keyframes %s (their place signatures matched)",
                 robot,
                 sorted(ids),
             )

@@ -342,15 +342,19 @@ class ClientUplink:
     def answer(
         self, request: KeyframeRequest, keyframe: Callable[[int], MapKeyframe | None]
     ) -> list[KeyframeMessage]:
-        """The server asks for whole keyframes (low-bandwidth mode): each goes as new, in full;
-        keyframes the odometry no longer has (``keyframe(odometry id)`` None) are not sent (the
-        server gives up on them). A latched request already answered: nothing."""
+        """The server asks for whole keyframes (low-bandwidth mode, or those a radio budget sent
+        as signatures): each goes as new, in full; keyframes the odometry no longer has
+        (``keyframe(odometry id)`` None) are not sent (the server gives up on them), nor those
+        that went whole already (the budget let one through while the request was on its way:
+        it arrives as it is). A latched request already answered: nothing."""
         with self._lock:
             if request.request and request.request <= self._request_seen:
                 return []
             self._request_seen = request.request
             going = []
             for kid in request.keyframe_ids:
+                if self.planner.holds(kid):
+                    continue
                 kf = keyframe(int(kid) - self.kf_id_base)
                 if kf is None:
                     log.info("the server asks for keyframe %d, gone", kid)
