@@ -114,6 +114,9 @@ class Planner:
 
     def holds(self, keyframe_id: int) -> bool:
         """Whether the server holds this keyframe whole (as far as this uplink knows)."""
+        with self._refused_lock:
+            if int(keyframe_id) in self._refused:
+                return False
         return int(keyframe_id) in self._held
 
     @staticmethod
