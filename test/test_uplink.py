@@ -281,12 +281,14 @@ def test_a_message_that_cannot_be_serialized_takes_no_sequence_and_its_next_upda
 
 
 def test_a_radio_budget_spreads_what_goes_and_keeps_the_rest_on_the_robot():
-    """A token bucket over data time: 10 new keyframes a second of ~10 kB each against 25 kB/s
-    -- about one in four goes (their updates as the budget allows); the others, with their
-    updates and removals, never reach the server, and are counted."""
+    """A token bucket over data time (pull mode): 10 new keyframes a second, their signatures
+    ~10 kB each against 25 kB/s -- about one in four goes; the others, with their updates and
+    removals, never reach the server, and are counted. Full mode before the server's vocabulary
+    came (no signatures to send instead): every keyframe goes whole."""
     from coop_slam.uplink.budget import RadioBudget
     from coop_slam.uplink.engine import ClientUplink
     from coop_slam.vo.types import EVENT_KEYFRAME_NEW, EVENT_KEYFRAME_UPDATE, VoEvent
+    from helpers import team_vocabulary
 
     class Sized:  # stands in for the ROS serializer: every message 10 kB
         def dumps(self, msg):
@@ -295,11 +297,11 @@ def test_a_radio_budget_spreads_what_goes_and_keeps_the_rest_on_the_robot():
         def loads(self, payload):
             raise AssertionError("not used")
 
-    uplink = ClientUplink(
-        2, UplinkConfig(hold_new_s=0.0, budget_kBps=25.0), T_base_cam=np.eye(4), serializer=Sized()
-    )
+    config = UplinkConfig(mode="pull", pull_budget_kBps=25.0)
+    uplink = ClientUplink(2, config, T_base_cam=np.eye(4), serializer=Sized())
     rec = make_keyframe(n=20, keyframe_id=1)
     uplink.camera = rec.camera
+    uplink.vocabulary = team_vocabulary([rec])
     sent_bytes, sent_ids = [], []
     for k in range(1, 101):  # 10 s of data
         kf = map_keyframe(dataclasses.replace(rec, keyframe_id=k))
@@ -313,13 +315,22 @@ def test_a_radio_budget_spreads_what_goes_and_keeps_the_rest_on_the_robot():
             if not m.delta:
                 sent_ids.append(m.keyframe_id)
     total = sum(n for _, n in sent_bytes)
-    assert total <= 25_000 * 10 + 12_500  # the budget, and half a second's burst
+    assert total <= 25_000 * 10  # the budget
     assert 15 <= len(sent_ids) <= 30
-    assert uplink.planner.gate.held_back == 100 - len(sent_ids)
-    assert uplink.keyframes_sent == len(sent_ids)
+    assert uplink.planner.gate.held_back == 100 - len(sent_ids)  # not sent at all
+    assert uplink.keyframes_held_back == 100 and uplink.keyframes_sent == 0  # (none whole)
     # spread evenly: no second carries more than the budget and a burst
     per_s = np.bincount([int(t) for t, _ in sent_bytes], weights=[n for _, n in sent_bytes])
     assert per_s.max() <= 50_000
+    # full mode without the server's vocabulary: every keyframe whole, charged to the budget
+    unsigned = ClientUplink(
+        2, UplinkConfig(hold_new_s=0.0), T_base_cam=np.eye(4), serializer=Sized()
+    )
+    unsigned.camera = rec.camera
+    for k in range(1, 11):
+        kf = map_keyframe(dataclasses.replace(rec, keyframe_id=k))
+        assert len(unsigned.events([VoEvent(EVENT_KEYFRAME_NEW, 0, k, kf)], 0.1 * k).messages) == 1
+    assert unsigned.keyframes_sent == 10 and unsigned.planner.gate.budget.tokens < 0
     # no budget: everything goes
     free = RadioBudget(0.0)
     assert free.take("whole", 0.0) == 0.0 and not free.limited

@@ -101,7 +101,9 @@ class BudgetGate:
         self._given_up: set[int] = set()  # not sent at all
         # Sent as place signatures only (full mode): the server may ask for them whole
         self.signed: set[int] = set()
-        self.sign = new_kind == "whole"  # (the uplink says when it has no vocabulary for them)
+        # Full mode: what the budget holds back goes as its signature (the uplink says when it
+        # has no vocabulary to make them)
+        self.sign = new_kind == "whole"
         self._given_up_count = 0
         self._taken: dict[tuple[int, str], float] = {}  # what a message that goes was charged
         # Map point ids of each keyframe the server has a view of (whole in full mode, its
@@ -151,7 +153,10 @@ class BudgetGate:
         """Of ``records`` (and the candidates), what goes at data time ``now_s``. ``flush``: the
         candidates' time is up (the camera stopped, the map ends): in pull mode their
         signatures go, whatever the budget."""
-        if not self.budget.limited:
+        if not self.budget.limited or (self.new_kind == "whole" and not self.sign):
+            # (full mode without the server's vocabulary -- a client started before the server:
+            # without signatures the server could not ask for what the budget held back, so
+            # everything goes whole, charged to the budget, rather than be lost)
             return records
         updates = []
         for rec in records:
