@@ -21,7 +21,10 @@ from helpers import wait_until  # noqa: E402
 
 
 def _new(m) -> bool:
-    """A new keyframe (sent whole for the first time)."""
+    """A new keyframe: sent whole for the first time, or as its place signature (what the
+    radio budget holds back)."""
+    if m.kind == m.KIND_SIGNATURE:
+        return True
     return m.kind == m.KIND_KEYFRAME and not m.keyframe[0].replaces
 
 
