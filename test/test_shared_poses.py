@@ -111,3 +111,17 @@ def test_keyframes_the_server_does_not_hold_follow_their_nearest_corrected_neigh
     signatures_only.add(8)
     assert transform_error(shared.keyframe_poses(odom)[8], odom[8])[0] < 1e-12
     assert transform_error(shared.keyframe_poses(odom)[7], C[6] @ odom[7])[0] < 1e-12
+
+
+def test_a_keyframe_never_takes_another_map_segments_correction():
+    """Segments 1-10, 11-20 and 21-: keyframe 10, not held, is nearest to 11 by id but takes
+    keyframe 8's correction, its own segment's."""
+    rng = np.random.default_rng(6)
+    odom = _odometry(22, rng)
+    shared = SharedPoses(server_holds=lambda k: k not in (9, 10, 12))
+    shared.start_segment(11)
+    shared.start_segment(21)
+    far = se3(t=[5.0, 0.0, 0.0])
+    shared.receive({8: odom[8], 11: far @ odom[11], 22: odom[22]}, odom)
+    assert transform_error(shared.correction(10), np.eye(4))[0] < 1e-12
+    assert transform_error(shared.correction(12), far)[0] < 1e-12

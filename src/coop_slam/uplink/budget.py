@@ -105,7 +105,9 @@ class BudgetGate:
         # has no vocabulary to make them)
         self.sign = new_kind == "whole"
         self._given_up_count = 0
-        self._taken: dict[tuple[int, str], float] = {}  # what a message that goes was charged
+        # What the message of a keyframe that goes was charged (the planner may send an update
+        # it was charged for as a delta whole: it is settled at what it cost all the same)
+        self._taken: dict[int, float] = {}
         # Map point ids of each keyframe the server has a view of (whole in full mode, its
         # signature in pull mode), as it went: what a candidate's novelty is measured against.
         self._views: dict[int, np.ndarray] = {}
@@ -115,8 +117,8 @@ class BudgetGate:
 
     @property
     def waiting(self) -> int:
-        """Candidates the server has not heard of yet."""
-        return sum(1 for k in self._candidates if k not in self.signed)
+        """Candidates the server has not heard of yet (read by other threads: no iteration)."""
+        return len(self._candidates.keys() - self.signed)
 
     @property
     def held_back(self) -> int:
@@ -240,10 +242,10 @@ class BudgetGate:
         charge = self.budget.take(kind, now_s)
         if charge is None:
             return False
-        self._taken[(keyframe_id, kind)] = charge
+        self._taken[keyframe_id] = charge
         return True
 
     def sent(self, keyframe_id: int, kind: str, nbytes: int) -> None:
         """A message went: what it cost (a message the budget did not let through -- one the
         server asked for, a signature -- is charged now)."""
-        self.budget.settle(kind, self._taken.pop((keyframe_id, kind), 0.0), nbytes)
+        self.budget.settle(kind, self._taken.pop(keyframe_id, 0.0), nbytes)

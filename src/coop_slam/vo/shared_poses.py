@@ -50,6 +50,7 @@ class SharedPoses:
         self._C: dict[int, np.ndarray] = {}
         self._newest: int | None = None
         self._segment_start = 0  # the first keyframe id of the current map segment
+        self._segment_starts: list[int] = [0]  # of every map segment, in order
         self.server_holds = server_holds  # None: the server holds every keyframe
         self._ids: list[int] | None = None  # corrected ids, sorted (None: to sort again)
 
@@ -72,6 +73,8 @@ class SharedPoses:
     def start_segment(self, first_kf_id: int) -> None:
         """The odometry starts a new map segment with this keyframe id."""
         self._segment_start = int(first_kf_id)
+        if self._segment_start > self._segment_starts[-1]:
+            self._segment_starts.append(self._segment_start)
 
     def forget(self, kf_id: int) -> None:
         """A keyframe the odometry culled."""
@@ -105,13 +108,14 @@ class SharedPoses:
         return _I
 
     def _nearest_corrected(self, kf_id: int) -> int | None:
-        """The corrected keyframe nearest to ``kf_id`` by id on its side of the current map
-        segment's start (an older segment's corrections place another odometry frame)."""
+        """The corrected keyframe nearest to ``kf_id`` by id in its own map segment (another
+        segment's corrections place another odometry frame)."""
         if self._ids is None:
             self._ids = sorted(self._C)
-        ids, start = self._ids, self._segment_start
-        lo, hi = (bisect.bisect_left(ids, start), len(ids)) if kf_id >= start else (0, None)
-        hi = bisect.bisect_left(ids, start) if hi is None else hi
+        ids, starts = self._ids, self._segment_starts
+        s = bisect.bisect_right(starts, kf_id) - 1
+        lo = bisect.bisect_left(ids, starts[s]) if s >= 0 else 0
+        hi = bisect.bisect_left(ids, starts[s + 1]) if s + 1 < len(starts) else len(ids)
         if lo >= hi:
             return None
         i = bisect.bisect_left(ids, kf_id, lo, hi)
