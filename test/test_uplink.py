@@ -497,3 +497,22 @@ def test_the_uplink_counts_keyframes_sent_whole_and_held_back():
     # Asked for one that went whole meanwhile (its request crossed it): it is not sent again
     again = KeyframeRequest(robot_id=2, keyframe_ids=[whole[0], held], request=2)
     assert uplink.answer(again, lambda k: map_keyframe(recs[k - 1])) == []
+
+
+def test_an_update_the_budget_cannot_afford_goes_when_it_can():
+    """An update of a keyframe the server holds waits for the budget (not for the keyframe's next
+    update, which may never come): a newer one replaces it; when the camera stops, it goes."""
+    from coop_slam.uplink.budget import BudgetGate, RadioBudget
+
+    gate = BudgetGate(RadioBudget(10.0), "whole", defer_s=2.0)  # 10 kB/s
+    held = lambda k: True  # noqa: E731  (the server holds keyframes 1 and 2 whole)
+    kf1, kf2 = (make_keyframe(n=10, keyframe_id=k, seed=k) for k in (1, 2))
+    gate.budget.tokens = -10_000  # a whole keyframe went: 1 s of debt
+    first = _moved(kf1, ACTION_UPDATE, 0.01)
+    assert gate.admit([first, _moved(kf2, ACTION_UPDATE, 0.01)], 0.0, held) == []
+    newer = _moved(kf1, ACTION_UPDATE, 0.02)
+    assert gate.admit([newer], 0.5, held) == []  # replaces the first, keeps its place
+    (went,) = gate.admit([], 1.6, held)  # 6 kB: one delta (cost: half a second's worth)
+    assert went is newer
+    gate.sent(1, "delta", 1000)
+    assert [r.keyframe_id for r in gate.admit([], 1.6, held, flush=True)] == [2]

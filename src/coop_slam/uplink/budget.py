@@ -91,14 +91,17 @@ class BudgetGate:
     has only as signatures: their updates do not go, their removal does); in pull mode a
     candidate is its signature, and one the budget never affords stays on the robot (the server
     never hears of it). An update of a keyframe the server holds goes when the budget affords it,
-    else waits for the keyframe's next update (which then carries both). Candidates go before
-    updates. Records of one keyframe keep their order: a candidate's update replaces it (it goes
+    else waits, the oldest first, until it does (a newer update of the keyframe replaces it and
+    carries both; when the camera stops, it goes). Candidates go before updates. Records of one keyframe keep their order: a candidate's update replaces it (it goes
     as new, as it is then), its removal takes it out of the candidates."""
 
     def __init__(self, budget: RadioBudget, new_kind: str, defer_s: float):
         self.budget, self.new_kind, self.defer_s = budget, new_kind, float(defer_s)
         self._candidates: dict[int, tuple[float, KeyframeRecord]] = {}  # id -> (since, latest)
         self._given_up: set[int] = set()  # not sent at all
+        # The latest update of a keyframe the server holds that the budget could not afford yet
+        # (a keyframe's last local-BA refinement must reach the server), oldest first
+        self._unsent: dict[int, KeyframeRecord] = {}
         # Sent as place signatures only (full mode): the server may ask for them whole
         self.signed: set[int] = set()
         # Full mode: what the budget holds back goes as its signature (the uplink says when it
@@ -182,12 +185,21 @@ class BudgetGate:
                     self._forget(k)
                     updates.append(rec)
             elif rec.action != ACTION_UPDATE or not server_has(k):
+                self._unsent.pop(k, None)
                 if rec.action != ACTION_UPDATE:
                     self._forget(k)
                 updates.append(rec)  # a removal, or an update the planner sends whole
             elif self._take(k, "delta", now_s):
+                self._unsent.pop(k, None)
                 updates.append(rec)
-        return self._release(now_s, flush) + updates
+            else:  # it goes when the budget affords it (or with the keyframe's next update)
+                self._unsent[k] = rec
+        new = self._release(now_s, flush)
+        for k in list(self._unsent):  # the oldest first
+            if not (flush or self._take(k, "delta", now_s)):
+                break
+            updates.append(self._unsent.pop(k))
+        return new + updates
 
     def _release(self, now_s: float, flush: bool) -> list[KeyframeRecord]:
         out = []
