@@ -92,8 +92,9 @@ class BudgetGate:
     candidate is its signature, and one the budget never affords stays on the robot (the server
     never hears of it). An update of a keyframe the server holds goes when the budget affords it,
     else waits, the oldest first, until it does (a newer update of the keyframe replaces it and
-    carries both; when the camera stops, it goes). Candidates go before updates. Records of one keyframe keep their order: a candidate's update replaces it (it goes
-    as new, as it is then), its removal takes it out of the candidates."""
+    carries both; when the camera stops, it goes). Candidates go before updates. Records of one
+    keyframe keep their order: a candidate's update replaces it (it goes as new, as it is then),
+    its removal takes it out of the candidates."""
 
     def __init__(self, budget: RadioBudget, new_kind: str, defer_s: float):
         self.budget, self.new_kind, self.defer_s = budget, new_kind, float(defer_s)
