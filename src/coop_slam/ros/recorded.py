@@ -49,6 +49,7 @@ class KeyframeSeen(NamedTuple):
     T_map_cam: np.ndarray | None  # None: not readable
     sensor: str | None  # None: the message does not say (a delta update)
     points_cam: np.ndarray | None  # keypoints with depth, camera frame; None: not carried
+    kind: str  # what it carried: whole, delta, signature or removal
 
 
 _KIND_NAMES = {
@@ -59,27 +60,20 @@ _KIND_NAMES = {
 }
 
 
-def message_kind(msg) -> str:
-    """What a recorded keyframe message (either format) carried: ``whole``, ``delta``,
-    ``signature`` or ``removal``."""
-    msg = keyframe_message(msg)
-    if is_removal(msg):
-        return "removal"
-    if is_legacy(msg):
-        return "delta" if getattr(msg, "delta", False) else "whole"
-    return _KIND_NAMES.get(msg.kind, "whole")
-
-
 def keyframe_seen(msg) -> KeyframeSeen:
     """A recorded keyframe message (either format) as a run's report sees it."""
     msg = keyframe_message(msg)
     stamp_s = msg.header.stamp.to_sec()
     if is_removal(msg):
-        return KeyframeSeen(msg.keyframe_id, msg.map_segment, stamp_s, True, None, None, None)
+        return KeyframeSeen(
+            msg.keyframe_id, msg.map_segment, stamp_s, True, None, None, None, "removal"
+        )
     if is_legacy(msg):
-        body, sensor_type = msg, msg.camera.sensor_type
-        points = None if getattr(msg, "delta", False) else _legacy_points(msg)
+        delta = getattr(msg, "delta", False)
+        body, sensor_type, kind = msg, msg.camera.sensor_type, "delta" if delta else "whole"
+        points = None if delta else _legacy_points(msg)
     else:
+        kind = _KIND_NAMES.get(msg.kind, "whole")
         body = (msg.keyframe or msg.delta or msg.signature)[0]
         camera = getattr(body, "camera", None)
         sensor_type = None if camera is None else camera.sensor_type
@@ -93,7 +87,7 @@ def keyframe_seen(msg) -> KeyframeSeen:
     sensor = (
         SENSORS[sensor_type] if sensor_type is not None and sensor_type < len(SENSORS) else None
     )
-    return KeyframeSeen(msg.keyframe_id, msg.map_segment, stamp_s, False, T, sensor, points)
+    return KeyframeSeen(msg.keyframe_id, msg.map_segment, stamp_s, False, T, sensor, points, kind)
 
 
 def _backprojected(uv: np.ndarray, z: np.ndarray, c) -> np.ndarray:

@@ -26,7 +26,7 @@ from .convert import (
     pose_from_msg,
     transform_from_msg,
 )
-from .recorded import keyframe_seen, message_kind
+from .recorded import keyframe_seen
 
 ROBOT_TOPICS = {  # relative to /robot_k; the message type of each
     "keyframes": "coop_slam/KeyframeMessage",
@@ -147,10 +147,9 @@ class RunRecorder:
 
     def _on_keyframes(self, msg, r: RobotRun, t_s, nbytes) -> None:
         r.kf_bytes.append((float(t_s), int(nbytes)))
-        kind = message_kind(msg)
-        count, total = r.kf_kinds.get(kind, (0, 0))
-        r.kf_kinds[kind] = (count + 1, total + int(nbytes))
         kf = keyframe_seen(msg)
+        count, total = r.kf_kinds.get(kf.kind, (0, 0))
+        r.kf_kinds[kf.kind] = (count + 1, total + int(nbytes))
         if kf.removal:
             r.keyframes.pop(kf.keyframe_id, None)
             r.keyframe_points.pop(kf.keyframe_id, None)

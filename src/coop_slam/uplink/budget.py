@@ -115,9 +115,6 @@ class BudgetGate:
         # Map point ids of each keyframe the server has a view of (whole in full mode, its
         # signature in pull mode), as it went: what a candidate's novelty is measured against.
         self._views: dict[int, np.ndarray] = {}
-        # candidate id -> (views version, id of its record, novelty)
-        self._novelty: dict[int, tuple[int, int, float]] = {}
-        self._views_version = 0
 
     @property
     def waiting(self) -> int:
@@ -133,21 +130,12 @@ class BudgetGate:
     def novelty(self, rec: KeyframeRecord) -> float:
         """The share of ``rec``'s map points that none of its covisible keyframes the server has
         a view of observes (1: a new view of the scene; 0: nothing the server has not seen)."""
-        k = rec.keyframe_id
-        cached = self._novelty.get(k)
-        if cached is not None and cached[:2] == (self._views_version, id(rec)):
-            return cached[2]
         ids = np.asarray(rec.map_point_ids)
         ids = ids[ids != 0]
         seen = [self._views[int(c)] for c in rec.covisible_ids if int(c) in self._views]
-        if len(ids) == 0:
-            value = 1.0
-        elif not seen:
-            value = 1.0
-        else:
-            value = 1.0 - float(np.isin(ids, np.concatenate(seen)).mean())
-        self._novelty[k] = (self._views_version, id(rec), value)
-        return value
+        if len(ids) == 0 or not seen:
+            return 1.0
+        return 1.0 - float(np.isin(ids, np.concatenate(seen)).mean())
 
     def admit(
         self,
@@ -204,7 +192,9 @@ class BudgetGate:
 
     def _release(self, now_s: float, flush: bool) -> list[KeyframeRecord]:
         out = []
-        ranked = sorted(self._candidates, key=lambda k: -self.novelty(self._candidates[k][1]))
+        # (once per call: a few candidates, against the views as they are before any goes)
+        novelty = {k: self.novelty(rec) for k, (_, rec) in self._candidates.items()}
+        ranked = sorted(novelty, key=lambda k: -novelty[k])
         affords = True
         for k in ranked:
             since, rec = self._candidates[k]
@@ -228,19 +218,16 @@ class BudgetGate:
                 else:
                     self._given_up.add(k)
                     self._given_up_count += 1
-        self._novelty = {k: v for k, v in self._novelty.items() if k in self._candidates}
         return out
 
     def _add_view(self, rec: KeyframeRecord) -> None:
         ids = np.asarray(rec.map_point_ids)
         self._views[rec.keyframe_id] = ids[ids != 0]
-        self._views_version += 1
 
     def _forget(self, keyframe_id: int) -> None:
         """A keyframe removed: the server no longer has it."""
         self.signed.discard(keyframe_id)
-        if self._views.pop(keyframe_id, None) is not None:
-            self._views_version += 1
+        self._views.pop(keyframe_id, None)
 
     def answered(self, rec: KeyframeRecord) -> None:
         """The server asked for this keyframe and it went whole: its updates go from now on."""

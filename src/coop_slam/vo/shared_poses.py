@@ -49,8 +49,8 @@ class SharedPoses:
     def __init__(self, server_holds: Callable[[int], bool] | None = None) -> None:
         self._C: dict[int, np.ndarray] = {}
         self._newest: int | None = None
-        self._segment_start = 0  # the first keyframe id of the current map segment
-        self._segment_starts: list[int] = [0]  # of every map segment, in order
+        # The first keyframe id of every map segment, in order (the last: the current one's)
+        self._segment_starts: list[int] = [0]
         self.server_holds = server_holds  # None: the server holds every keyframe
         self._ids: list[int] | None = None  # corrected ids, sorted (None: to sort again)
 
@@ -72,9 +72,8 @@ class SharedPoses:
 
     def start_segment(self, first_kf_id: int) -> None:
         """The odometry starts a new map segment with this keyframe id."""
-        self._segment_start = int(first_kf_id)
-        if self._segment_start > self._segment_starts[-1]:
-            self._segment_starts.append(self._segment_start)
+        if int(first_kf_id) > self._segment_starts[-1]:  # (keyframe ids only grow)
+            self._segment_starts.append(int(first_kf_id))
 
     def forget(self, kf_id: int) -> None:
         """A keyframe the odometry culled."""
@@ -99,7 +98,8 @@ class SharedPoses:
         if kf_id in self._C:
             return self._C[kf_id]
         newest = self._newest
-        if newest is not None and kf_id > newest and not newest < self._segment_start <= kf_id:
+        start = self._segment_starts[-1]
+        if newest is not None and kf_id > newest and not newest < start <= kf_id:
             return self._C[newest]
         if self._C and self.server_holds is not None and not self.server_holds(kf_id):
             near = self._nearest_corrected(kf_id)
