@@ -271,3 +271,36 @@ def team_server_config(robots=(1, 2)):
     cfg = ServerConfig(robots=list(robots))
     cfg.global_ba.disparity_sigma_px = 0.05  # the helpers' depth is near exact (0.3 % noise)
     return cfg
+
+
+ROOM_LO_M = np.array([0.0, 0.0, 0.0])  # a 5 x 4 x 2.5 m room, z up ...
+ROOM_HI_M = np.array([5.0, 4.0, 2.5])
+TABLE_LO_M, TABLE_HI_M = np.array([2.1, 0.2, 0.0]), np.array([2.9, 0.8, 0.75])  # ... with a table
+
+
+def room_hit_distance(origin_group, dirs_group):
+    """Ray parameter of the first surface hit from inside the room (dirs need not be unit): a
+    5 x 4 x 2.5 m room, z up from its floor, with a 0.75 m high table."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        to_lo, to_hi = (ROOM_LO_M - origin_group) / dirs_group, (
+            ROOM_HI_M - origin_group
+        ) / dirs_group
+        t_room = np.where(dirs_group > 0, to_hi, np.where(dirs_group < 0, to_lo, np.inf)).min(
+            axis=1
+        )
+        a, b = (TABLE_LO_M - origin_group) / dirs_group, (TABLE_HI_M - origin_group) / dirs_group
+    t_near = np.nanmax(np.minimum(a, b), axis=1)
+    t_far = np.nanmin(np.maximum(a, b), axis=1)
+    hits_table = (t_near <= t_far) & (t_near > 0)
+    return np.where(hits_table, np.minimum(t_room, t_near), t_room)
+
+
+def room_depth_image(T_room_cam, cam: CameraModel, noise_m: float = 0.0, seed: int = 0):
+    """The depth image [m] (float32) a camera at ``T_room_cam`` sees in the room above."""
+    v, u = np.mgrid[0 : cam.height, 0 : cam.width]
+    rays_cam = np.stack(
+        [(u.ravel() - cam.cx) / cam.fx, (v.ravel() - cam.cy) / cam.fy, np.ones(u.size)], axis=1
+    )
+    depth = room_hit_distance(T_room_cam[:3, 3], rays_cam @ T_room_cam[:3, :3].T)
+    depth = depth + np.random.default_rng(seed).normal(0.0, noise_m, depth.shape)
+    return depth.reshape(cam.height, cam.width).astype(np.float32)

@@ -17,28 +17,9 @@ from coop_slam.evaluation.agreement import (
 )
 from coop_slam.evaluation.overlap_view import guess_up_axis, parse_up_axis, plot_overlap
 from coop_slam.geometry import se3
-from helpers import looking_out_pose
+from helpers import looking_out_pose, room_hit_distance
 
-ROOM_LO_M = np.array([0.0, 0.0, 0.0])  # a 5 x 4 x 2.5 m room, z up ...
-ROOM_HI_M = np.array([5.0, 4.0, 2.5])
-TABLE_LO_M, TABLE_HI_M = np.array([2.1, 0.2, 0.0]), np.array([2.9, 0.8, 0.75])  # ... with a table
 NOISE_M = 0.005
-
-
-def _hit_distance(origin_group, dirs_group):
-    """Ray parameter of the first surface hit from inside the room (dirs need not be unit)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        to_lo, to_hi = (ROOM_LO_M - origin_group) / dirs_group, (
-            ROOM_HI_M - origin_group
-        ) / dirs_group
-        t_room = np.where(dirs_group > 0, to_hi, np.where(dirs_group < 0, to_lo, np.inf)).min(
-            axis=1
-        )
-        a, b = (TABLE_LO_M - origin_group) / dirs_group, (TABLE_HI_M - origin_group) / dirs_group
-    t_near = np.nanmax(np.minimum(a, b), axis=1)
-    t_far = np.nanmin(np.maximum(a, b), axis=1)
-    hits_table = (t_near <= t_far) & (t_near > 0)
-    return np.where(hits_table, np.minimum(t_room, t_near), t_room)
 
 
 def room_keyframes(centre, seed, t0_s=0.0, n=60, period_s=0.5, laps=1.5, rays=2500):
@@ -57,7 +38,7 @@ def room_keyframes(centre, seed, t0_s=0.0, n=60, period_s=0.5, laps=1.5, rays=25
         rays_cam = np.column_stack(
             [(uv[:, 0] - (width - 1) / 2) / f, (uv[:, 1] - (height - 1) / 2) / f, np.ones(rays)]
         )
-        depth = _hit_distance(T_group_cam[:3, 3], rays_cam @ T_group_cam[:3, :3].T)  # z = 1
+        depth = room_hit_distance(T_group_cam[:3, 3], rays_cam @ T_group_cam[:3, :3].T)  # z = 1
         points_cam = rays_cam * depth[:, None] + rng.normal(0, NOISE_M, (rays, 3))
         keyframes.append(KeyframeCloud(t0_s + k * period_s, T_group_cam, points_cam))
     return keyframes

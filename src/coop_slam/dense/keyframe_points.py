@@ -1,0 +1,24 @@
+"""A keyframe's decimated depth image back-projected to 3D points in its camera's optical frame
+(REP-103: z forward, x right, y down) -- what the dense cloud and the occupancy grid place by the
+keyframe's pose."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..camera import CameraModel
+from .depth_image import DepthImage, DepthImageError
+
+
+def points_cam(image: DepthImage, camera: CameraModel, min_m: float, max_m: float) -> np.ndarray:
+    """(N, 3) float32 points of the pixels with a depth in [min_m, max_m]; ``camera`` is the
+    full-resolution model the image was decimated from."""
+    small = image.camera(camera)
+    depth = image.depth_m
+    if depth.shape != (small.height, small.width):
+        raise DepthImageError(f"depth image {depth.shape} does not match its camera model")
+    v, u = np.nonzero((depth >= min_m) & (depth <= max_m))
+    z = depth[v, u].astype(np.float32)
+    x = (u.astype(np.float32) - np.float32(small.cx)) * z / np.float32(small.fx)
+    y = (v.astype(np.float32) - np.float32(small.cy)) * z / np.float32(small.fy)
+    return np.stack([x, y, z], axis=1)

@@ -1,0 +1,147 @@
+"""The dense team map's core: depth blobs (decimate, quantize, compress and back), keyframe
+points, the voxel cloud and the floor band's occupancy grid, on a room whose geometry is exact."""
+
+import struct
+
+import numpy as np
+import pytest
+
+from coop_slam.dense import depth_image
+from coop_slam.dense.dense_cloud import place, voxel_filter
+from coop_slam.dense.grid_files import write_grid
+from coop_slam.dense.keyframe_points import points_cam
+from coop_slam.dense.occupancy import OCCUPIED, UNKNOWN, OccupancyConfig, occupancy_grid
+from coop_slam.evaluation.grid_score import grid_scores
+from helpers import ROOM_HI_M, TABLE_HI_M, TABLE_LO_M, camera, looking_out_pose, room_depth_image
+
+CAM = camera()
+
+
+def _robot_views(centre=(2.5, 2.0), n=16, height_m=0.3, noise_m=0.005):
+    """A ground robot turning on the spot: (T_room_cam, points_cam) of n keyframes."""
+    views = []
+    for k in range(n):
+        T = looking_out_pose(2 * np.pi * k / n, centre, height=height_m)
+        depth = room_depth_image(T, CAM, noise_m, seed=k)
+        blob = depth_image.encode(depth_image.decimate(depth, 4), 0.01)
+        views.append((T, points_cam(depth_image.decode(blob), CAM, 0.1, 6.0)))
+    return views
+
+
+def test_blob_round_trip_keeps_depth_within_half_a_step():
+    depth = room_depth_image(looking_out_pose(0.3, (2.5, 2.0), 0.3), CAM, noise_m=0.005)
+    small = depth_image.decimate(depth, 4)
+    blob = depth_image.encode(small, 0.01)
+    back = depth_image.decode(blob)
+    assert back.depth_m.shape == (120, 160) and back.decimation == 4
+    assert np.abs(back.depth_m - small.depth_m).max() <= 0.005 + 1e-6
+    assert len(blob) < 12_000  # a radio's price: a few kB
+
+
+def test_decimated_points_lie_on_the_surfaces_they_came_from():
+    T = looking_out_pose(0.0, (2.5, 2.0), 0.3)  # looking along +x at the wall x = 5
+    pts = points_cam(depth_image.decimate(room_depth_image(T, CAM), 4), CAM, 0.1, 10.0)
+    room = pts @ T[:3, :3].T + T[:3, 3]
+    on_wall = room[np.abs(room[:, 0] - ROOM_HI_M[0]) < 0.02]
+    assert len(on_wall) > 0.3 * len(room)
+    # A wrong principal point for the decimated image would tilt or shift these by centimetres.
+    assert np.abs(on_wall[:, 0] - ROOM_HI_M[0]).max() < 5e-3
+
+
+def test_decimation_takes_the_median_of_valid_pixels_and_drops_mostly_empty_blocks():
+    depth = np.zeros((4, 8), np.float32)
+    depth[:, :4] = [[1, 1, 1, 9], [1, 1, 1, 1], [1, 1, 2, 1], [1, 1, 1, 1]]
+    depth[0, 4:] = [2.0, np.nan, 0, 0]  # 1 valid pixel of 16: too few
+    small = depth_image.decimate(depth, 4)
+    assert small.depth_m.tolist() == [[1.0, 0.0]]
+
+
+@pytest.mark.parametrize(
+    "blob, what",
+    [
+        (b"", "too short"),
+        (b"XX" + bytes(20), "not a depth blob"),
+        (struct.pack("<2sBf", b"D1", 4, 0.01) + bytes(20), "16-bit"),
+    ],
+)
+def test_bad_blobs_are_named(blob, what):
+    with pytest.raises(depth_image.DepthImageError, match=what):
+        depth_image.decode(blob)
+
+
+def test_voxel_filter_keeps_one_centroid_per_voxel_and_placing_follows_the_pose():
+    pts = np.array([[0.01, 0.01, 0.01], [0.03, 0.03, 0.03], [0.26, 0.0, 0.0]], np.float32)
+    assert voxel_filter(pts, 0.05) == pytest.approx(np.array([[0.02, 0.02, 0.02], [0.26, 0, 0]]))
+    assert len(voxel_filter(pts, 0.05, min_points=2)) == 1
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 2.0, 3.0]
+    assert place([(T, pts)])[0].tolist() == pytest.approx([1.01, 2.01, 3.01])
+
+
+def _truth(grid):
+    """Cells a wall or the table's sides cross (occupied), inside the room and off the table
+    (free)."""
+    rows, cols = grid.shape
+    x = grid.origin_xy_m[0] + np.arange(cols + 1) * grid.cell_m  # cell borders
+    y = grid.origin_xy_m[1] + np.arange(rows + 1) * grid.cell_m
+
+    def crossing(lo, hi, borders):  # cells whose span [b_i, b_i+1] meets [lo, hi]
+        return (borders[1:] >= lo) & (borders[:-1] <= hi)
+
+    occupied = np.zeros(grid.shape, bool)
+    for lo, hi in ((np.zeros(3), ROOM_HI_M), (TABLE_LO_M, TABLE_HI_M)):
+        in_x, in_y = crossing(lo[0], hi[0], x), crossing(lo[1], hi[1], y)
+        for edge in (lo[0], hi[0]):
+            occupied |= np.outer(in_y, crossing(edge, edge, x))
+        for edge in (lo[1], hi[1]):
+            occupied |= np.outer(crossing(edge, edge, y), in_x)
+    xc, yc = (x[:-1] + x[1:]) / 2, (y[:-1] + y[1:]) / 2
+    inside = np.outer((yc > 0) & (yc < ROOM_HI_M[1]), (xc > 0) & (xc < ROOM_HI_M[0]))
+    table = np.outer(
+        (yc > TABLE_LO_M[1]) & (yc < TABLE_HI_M[1]), (xc > TABLE_LO_M[0]) & (xc < TABLE_HI_M[0])
+    )
+    return occupied, inside & ~table & ~occupied
+
+
+def test_grid_of_a_robot_turning_in_a_room_shows_its_walls_and_table():
+    grid = occupancy_grid(_robot_views(), OccupancyConfig(max_range_m=6.0))
+    scores = grid_scores(grid, *_truth(grid))
+    assert scores.iou_occupied > 0.9 and scores.iou_free > 0.95
+    assert scores.coverage_free > 0.9  # one robot turning sees all but the table's shadow
+
+
+def test_grid_scores_fail_a_grid_off_by_a_few_cells():
+    grid = occupancy_grid(_robot_views(n=8), OccupancyConfig(max_range_m=6.0))
+    occupied, free = _truth(grid)
+    shifted = np.roll(occupied, 3, axis=1), np.roll(free, 3, axis=1)
+    assert grid_scores(grid, *shifted).iou_occupied < 0.5
+
+
+def test_a_grid_follows_its_keyframes_when_the_graph_moves_them():
+    views = _robot_views(n=8)
+    yaw = np.array([[0.0, -1.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    moved = occupancy_grid([(yaw @ T, p) for T, p in views])
+    before = occupancy_grid(views)
+    # The same cells, turned by 90 degrees about z and shifted by 1 m along x.
+    assert moved.shape == before.shape[::-1]
+    assert (moved.cells == OCCUPIED).sum() == pytest.approx((before.cells == OCCUPIED).sum(), 0.05)
+
+
+def test_nothing_seen_gives_one_unknown_cell_and_points_above_the_band_say_nothing():
+    assert occupancy_grid([]).cells.tolist() == [[UNKNOWN]]
+    high = np.array([[0.0, -2.0, 1.0]], np.float32)  # 2 m above a camera at 0.3 m
+    grid = occupancy_grid([(looking_out_pose(0.0, (0.0, 0.0), 0.3), high)])
+    assert not (grid.cells == OCCUPIED).any()
+
+
+def test_grid_files_are_what_map_server_reads(tmp_path):
+    grid = occupancy_grid(_robot_views(n=4))
+    pgm, yaml_path = write_grid(grid, str(tmp_path))
+    raw = open(pgm, "rb").read()
+    header = raw.split(b"\n", 3)
+    assert header[0] == b"P5" and header[1] == f"{grid.shape[1]} {grid.shape[0]}".encode()
+    text = open(yaml_path).read()
+    assert "image: grid.pgm" in text and "resolution: 0.050000" in text
+    image = np.frombuffer(header[3], np.uint8).reshape(grid.shape)
+    # The image's top row is the grid's last row (largest y).
+    assert ((image[::-1] == 0) == (grid.cells == OCCUPIED)).all()
