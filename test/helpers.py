@@ -304,3 +304,12 @@ def room_depth_image(T_room_cam, cam: CameraModel, noise_m: float = 0.0, seed: i
     depth = room_hit_distance(T_room_cam[:3, 3], rays_cam @ T_room_cam[:3, :3].T)
     depth = depth + np.random.default_rng(seed).normal(0.0, noise_m, depth.shape)
     return depth.reshape(cam.height, cam.width).astype(np.float32)
+
+
+def depth_blob(seed: int = 0) -> np.ndarray:
+    """A keyframe's depth image blob (dense.depth_image) as a record carries it: uint8 array."""
+    from coop_slam.dense import depth_image
+
+    rng = np.random.default_rng(seed)
+    depth = (2.0 + 0.01 * rng.standard_normal((48, 64))).astype(np.float32)
+    return np.frombuffer(depth_image.encode(depth_image.DepthImage(depth, 4), 0.01), np.uint8)

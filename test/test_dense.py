@@ -3,6 +3,7 @@ points, the voxel cloud and the floor band's occupancy grid, on a room whose geo
 
 import struct
 
+import cv2
 import numpy as np
 import pytest
 
@@ -145,3 +146,32 @@ def test_grid_files_are_what_map_server_reads(tmp_path):
     image = np.frombuffer(header[3], np.uint8).reshape(grid.shape)
     # The image's top row is the grid's last row (largest y).
     assert ((image[::-1] == 0) == (grid.cells == OCCUPIED)).all()
+
+
+def test_rgbd_and_stereo_keyframes_bring_the_depth_they_saw_and_monocular_ones_none():
+    from test_stereo import STEREO, _pair
+
+    import helpers_vo
+    from coop_slam.geometry import se3
+    from coop_slam.vo.dense_depth import DenseDepthConfig, depth_image_blob
+
+    config = DenseDepthConfig()
+    planes = helpers_vo.room(np.random.default_rng(0))
+    left, right, depth = _pair(planes, se3(t=[0.1, -0.1, 0.3]))
+    gray = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY)
+    truth = depth_image.decimate(depth, 4).depth_m
+    for sensor, second, within in (
+        ("rgbd", depth, 0.006),
+        ("stereo", cv2.cvtColor(right, cv2.COLOR_BGR2GRAY), 0.03),
+    ):
+        blob = depth_image_blob(config, sensor, STEREO, gray, second, registered=True)
+        got = depth_image.decode(blob)
+        assert got.depth_m.shape == truth.shape == (120, 160), sensor
+        both = (got.depth_m > 0) & (truth > 0)
+        assert both.mean() > 0.6, sensor  # stereo: all but the left border and blank texture
+        rel = np.abs(got.depth_m[both] - truth[both]) / truth[both]
+        assert np.median(rel) < within, (sensor, np.median(rel))
+    assert depth_image_blob(config, "mono", STEREO, gray, None, registered=True) == b""
+    assert depth_image_blob(config, "rgbd", STEREO, gray, depth, registered=False) == b""
+    off = DenseDepthConfig(width_px=0)
+    assert depth_image_blob(off, "rgbd", STEREO, gray, depth, registered=True) == b""

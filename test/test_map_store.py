@@ -12,7 +12,7 @@ from coop_slam.team.map_store import MapStore, MapStoreError, decode_record, enc
 from coop_slam.team.server import TeamServer
 from coop_slam.wire.delivery import DeliveryError, InOrder, Outbox, OutboxFull
 from coop_slam.wire.record import KeyframeError
-from helpers import make_keyframe, team_keyframes, team_server_config, team_world
+from helpers import depth_blob, make_keyframe, team_keyframes, team_server_config, team_world
 
 
 @pytest.fixture(scope="module")
@@ -36,11 +36,19 @@ def _stream(kfs_a, kfs_b):
 
 def test_record_round_trip():
     rec = make_keyframe(n=40, robot_id=3, keyframe_id=7)
+    rec.depth_image = depth_blob()
     back = decode_record(encode_record(rec))
     assert (back.robot_id, back.keyframe_id, back.stamp_s) == (3, 7, rec.stamp_s)
     assert back.camera == rec.camera
     np.testing.assert_array_equal(back.T_map_cam, rec.T_map_cam)
-    for name in ("keypoints", "descriptors", "depths_m", "map_point_ids", "map_points"):
+    for name in (
+        "keypoints",
+        "descriptors",
+        "depths_m",
+        "map_point_ids",
+        "map_points",
+        "depth_image",
+    ):
         np.testing.assert_array_equal(getattr(back, name), getattr(rec, name))
         assert getattr(back, name).dtype == getattr(rec, name).dtype
     with pytest.raises(MapStoreError, match="corrupt"):
@@ -54,6 +62,7 @@ def test_an_update_is_stored_without_what_the_keyframe_saw(tmp_path):
 
     store = MapStore(str(tmp_path / "m.db"), [3])
     new = make_keyframe(n=200, robot_id=3, keyframe_id=7)
+    new.depth_image = depth_blob()
     moved = dataclasses.replace(new, action=ACTION_UPDATE, T_map_cam=new.T_map_cam.copy())
     moved.T_map_cam[:3, 3] += 0.1
     store.begin()
@@ -66,6 +75,7 @@ def test_an_update_is_stored_without_what_the_keyframe_saw(tmp_path):
     np.testing.assert_array_equal(second.T_map_cam, moved.T_map_cam)
     np.testing.assert_array_equal(second.descriptors, new.descriptors)
     np.testing.assert_array_equal(second.keypoints, new.keypoints)
+    np.testing.assert_array_equal(second.depth_image, new.depth_image)
     assert second.action == ACTION_UPDATE and first.action == new.action
 
 

@@ -516,3 +516,29 @@ def test_an_update_the_budget_cannot_afford_goes_when_it_can():
     assert went is newer
     gate.sent(1, "delta", 1000)
     assert [r.keyframe_id for r in gate.admit([], 1.6, held, flush=True)] == [2]
+
+
+@pytest.mark.parametrize(
+    "config, carried",
+    [
+        (UplinkConfig(hold_new_s=0.0, budget_kBps=0.0), True),
+        (UplinkConfig(hold_new_s=0.0, budget_kBps=0.0, depth_images=False), False),
+        (UplinkConfig(mode="pull", pull_budget_kBps=0.0), False),
+        (UplinkConfig(mode="pull", pull_budget_kBps=0.0, pull_depth_images=True), True),
+    ],
+)
+def test_a_keyframes_depth_image_goes_whole_in_full_mode_and_in_pull_mode_only_if_asked(
+    config, carried
+):
+    from coop_slam.uplink.engine import ClientUplink
+    from coop_slam.vo.types import EVENT_KEYFRAME_NEW, VoEvent
+    from helpers import depth_blob, team_vocabulary
+
+    rec = make_keyframe(n=20, keyframe_id=2)
+    kf = dataclasses.replace(map_keyframe(rec), depth_image=depth_blob().tobytes())
+    uplink = ClientUplink(4, config, T_base_cam=np.eye(4), vocabulary=team_vocabulary([rec]))
+    uplink.camera = rec.camera
+    (note,) = uplink.events([VoEvent(EVENT_KEYFRAME_NEW, 0, 2, kf)], 1.0).notes
+    assert (len(note.record.depth_image) > 0) == carried
+    answered = uplink.answer(KeyframeRequest(robot_id=4, request=1, keyframe_ids=[2]), {2: kf}.get)
+    assert all(bool(m.keyframe[0].depth_image) == carried for m in answered if m.keyframe)

@@ -233,6 +233,7 @@ def test_tracks_synthetic_room(room_sequence):
         problems = vo.vo_map.check_consistency()
     assert all(r.ok for r in results), [r.message for r in results if not r.ok]
     assert {r.state for r in results} == {STATE_OK}
+    assert kfs and all(len(kf.depth_image) for kf in kfs)  # for the team's dense map
     poses = np.array([r.T_map_cam for r in results])
     # The map frame is the first camera: compare against ground truth expressed the same way.
     gt_map = np.array([invert(gt[0]) @ T for T in gt])

@@ -30,7 +30,7 @@ from coop_slam.wire.record import (
     KeyframeError,
     KeyframeRecord,
 )
-from helpers import make_keyframe
+from helpers import depth_blob, make_keyframe
 
 SCHEMAS = {KIND_KEYFRAME: WHOLE_ARRAYS, KIND_DELTA: DELTA_ARRAYS, KIND_SIGNATURE: SIGNATURE_ARRAYS}
 
@@ -84,6 +84,7 @@ def _byte_fields(body):
 def test_a_whole_keyframe_round_trip():
     kf = make_keyframe(n=40, robot_id=2, keyframe_id=9)
     kf.T_map_cam[:3, 3] = [1.0, -2.0, 0.5]
+    kf.depth_image = depth_blob()
     msg = encode(kf, frame_id="robot_2/map")
     assert msg.kind == KIND_KEYFRAME and not msg.keyframe[0].replaces
     back = _decoded(msg)
@@ -99,6 +100,7 @@ def test_a_whole_keyframe_round_trip():
     assert np.allclose(back.map_points, kf.map_points)
     assert np.allclose(back.T_map_cam, kf.T_map_cam, atol=1e-9)
     assert back.stamp_s == pytest.approx(kf.stamp_s)
+    assert back.depth_image.tobytes() == kf.depth_image.tobytes()  # as compressed on the robot
     # Map point ids as varint steps: a byte each here (ids 1, 3, 5, ... on every other keypoint)
     assert len(_arrays(msg)["map_point_id_codes"]) == 40
     # An update sent whole replaces what the server holds.
@@ -250,6 +252,7 @@ def test_a_packed_stream_of_another_kind_or_format_is_refused():
 # --- delta updates --------------------------------------------------------------------------------
 def test_a_delta_update_rebuilds_the_same_keyframe_as_a_whole_one():
     sent = make_keyframe(n=60, robot_id=2, keyframe_id=9)
+    sent.depth_image = depth_blob()
     held = _decoded(encode(sent))
     upd = dataclasses.replace(sent, action=ACTION_UPDATE, T_map_cam=sent.T_map_cam.copy())
     upd.T_map_cam[:3, 3] += [0.1, 0.0, -0.05]
@@ -259,8 +262,11 @@ def test_a_delta_update_rebuilds_the_same_keyframe_as_a_whole_one():
     assert delta.kind == KIND_DELTA and _size(delta) < _size(whole) / 3
     full = _decoded(whole)
     got = _decoded(delta, stored=lambda _kf: held)
-    for name in ("T_map_cam", "keypoints", "octaves", "descriptors", "depths_m"):
+    for name in ("T_map_cam", "keypoints", "octaves", "descriptors", "depths_m", "depth_image"):
         np.testing.assert_array_equal(getattr(got, name), getattr(full, name))
+    # The depth image stays on the server: a delta is no larger for it.
+    bare = dataclasses.replace(upd, depth_image=np.zeros(0, np.uint8))
+    assert len(got.depth_image) and _size(delta) == _size(encode(bare, Outgoing(True, every)))
     np.testing.assert_allclose(got.map_points, upd.map_points, atol=1e-6)
     assert got.static_digest() == full.static_digest() and got.action == ACTION_UPDATE
     with pytest.raises(WireError, match="does not hold"):

@@ -57,9 +57,17 @@ class UplinkConfig:
     # A new keyframe the budget cannot afford now waits this long for it, then stays as it went
     # (its signature in full mode, nothing in pull mode) [s of data time]
     budget_defer_s: float = 2.0
+    # Whole keyframes carry the keyframe's depth image (vo.dense) for the team's dense map and
+    # occupancy grid, in full mode; in pull mode only if pull_depth_images (a low-bandwidth
+    # radio rarely affords them: 5-20 kB each).
+    depth_images: bool = True
+    pull_depth_images: bool = False
     # Wall-clock seconds without a camera frame after which whatever is held goes (the camera
     # stopped, or the run ended).
     idle_flush_s: float = 2.0
+
+    def sends_depth_images(self) -> bool:
+        return self.depth_images and (self.mode == "full" or self.pull_depth_images)
 
     def validate(self) -> None:
         require(self.point_move_m >= 0, "uplink.point_move_m must be >= 0 [m]")

@@ -101,6 +101,7 @@ class ClientUplink:
         self.frame_id = f"robot_{robot_id}/map"
         self.T_base_cam = np.eye(4) if T_base_cam is None else T_base_cam
         self.planner = Planner(config)
+        self._sends_depth = (config or UplinkConfig()).sends_depth_images()
         self.outbox = Outbox(**vars(delivery or DeliveryConfig()))
         self._vocabulary = None
         self.vocabulary = vocabulary
@@ -367,7 +368,10 @@ class ClientUplink:
             return self._send(going)
 
     def _as_sent(self, rec: KeyframeRecord) -> KeyframeRecord:
-        """A record with this client run's keyframe ids and map segments."""
+        """A record with this client run's keyframe ids and map segments (without its depth
+        image where the mode leaves it out)."""
+        if not self._sends_depth:
+            rec.depth_image = np.zeros(0, np.uint8)
         rec.keyframe_id += self.kf_id_base
         rec.covisible_ids = rec.covisible_ids + np.uint32(self.kf_id_base)
         rec.map_segment += self.segment_base

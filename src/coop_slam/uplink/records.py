@@ -49,6 +49,7 @@ def keyframe_record(
         covisible_weights=kf.covisible_weights,
         map_segment=int(kf.map_segment),
         action=action,
+        depth_image=np.frombuffer(kf.depth_image, np.uint8),
     )
 
 
@@ -83,5 +84,6 @@ def signature_of(rec: KeyframeRecord, vocabulary) -> PlaceSignature:
         depths_m=np.zeros(0, np.float32),
         map_point_ids=np.zeros(0, np.uint32),
         map_points=np.zeros((0, 3), np.float32),
+        depth_image=np.zeros(0, np.uint8),
     )
     return PlaceSignature(bare, bow, counts)

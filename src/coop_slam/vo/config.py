@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import load_config, merge_overrides, require
+from .dense_depth import DenseDepthConfig
 
 
 @dataclass
@@ -341,6 +342,7 @@ SECTIONS = (
     "ba",
     "planar",
     "mono_init",
+    "dense",
 )
 SENSOR_KINDS = ("rgbd", "stereo", "mono")
 
@@ -374,6 +376,7 @@ class VoConfig:
     ba: LocalBaConfig = field(default_factory=LocalBaConfig)
     planar: PlanarConfig = field(default_factory=PlanarConfig)
     mono_init: MonoStartConfig = field(default_factory=MonoStartConfig)
+    dense: DenseDepthConfig = field(default_factory=DenseDepthConfig)
     threaded: bool = True  # local mapping in a background thread, BA in a worker process
     # Per camera kind (rgbd, stereo, mono), the values of the sections above that differ for it,
     # nested as above (given values merge with these key by key).

@@ -109,6 +109,7 @@ def add_keyframe(
     point_ids,
     config: VoConfig,
     scales: np.ndarray,
+    depth_image: bytes = b"",
 ) -> MapKeyframe:
     """Create keyframe ``kf_id`` from the frame in ``vmap``: its tracked map points (``kp_idx``
     -> ``point_ids``) and new map points from depth for unmatched keypoints, closest first."""
@@ -152,6 +153,7 @@ def add_keyframe(
             descriptors=feats.descriptors,
             depths_m=feats.depths_m,
             map_point_ids=mp_ids,
+            depth_image=depth_image,
         )
         vmap.add_keyframe(kf)
         vmap.update_covisibility(kf_id)

@@ -25,7 +25,7 @@ from ..descriptors import hamming_rows
 class MapKeyframe:
     """A keyframe of the client's own map (its pose, keypoints and observed map points); what it
     sends the server is a :class:`coop_slam.wire.record.KeyframeRecord` made from it
-    (:mod:`.outbox`). N keypoints, M observed map points."""
+    (:mod:`coop_slam.uplink.records`). N keypoints, M observed map points."""
 
     keyframe_id: int
     stamp_s: float
@@ -43,6 +43,7 @@ class MapKeyframe:
     # (M, 3) float32 positions of the observed map points in the map frame, in the order of the
     # non-zero map_point_ids. Filled in the snapshots handed out in events; empty in the live map.
     map_points_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    depth_image: bytes = b""  # the frame's depth image for the dense map (vo.dense_depth)
     # Internal: the keypoints as FrameFeatures (KD-tree for projection search); not in snapshots.
     features: object = field(default=None, repr=False, compare=False)
 

@@ -45,6 +45,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..geometry import invert, rotation_angle_deg, transform_points
 from .config import VoConfig
+from .dense_depth import depth_image_blob
 from .features import FrameFeatures, OrbExtractor, level_scales
 from .initialization import (
     MODEL_HOMOGRAPHY,
@@ -91,6 +92,7 @@ class VisualOdometry:
         self.scales = level_scales(self.config)
         self._extractor = OrbExtractor(self.config, camera)
         self._sensor = make_sensor(self.config, camera)
+        self._frame_images = (None, None)  # the current frame's (grey, depth or right image)
         self._tracker = LocalMapTracker(self.config, self._sensor, self.scales)
         self._relocalizer = Relocalizer(self.config, self._sensor, self._tracker)
         self._keyframe_policy = KeyframePolicy(
@@ -143,6 +145,7 @@ class VisualOdometry:
         if not stamp_ok:
             raise VoError(f"timestamp {stamp_s!r} is not a finite number of seconds")
         gray, second = self._sensor.check_input(image, second)
+        self._frame_images = (gray, second)  # for a keyframe's depth image (vo.dense_depth)
         stamp_s = float(stamp_s)
         if self._last_stamp is not None and stamp_s == self._last_stamp:
             raise VoError(f"duplicate timestamp {stamp_s:.6f} s: frame ignored")
@@ -636,6 +639,13 @@ class VisualOdometry:
             point_ids,
             self.config,
             self.scales,
+            depth_image_blob(
+                self.config.dense,
+                self._sensor.kind,
+                self.camera,
+                *self._frame_images,
+                self.config.calibration.depth_registered,
+            ),
         )
         self._ref_kf_id = kf_id
         self._frames_since_kf = 0

@@ -271,6 +271,7 @@ def encode_whole(
         out.map_point_offsets_f16, points = offsets
     out.map_points = points.ravel().tolist()
     out.packed = pack_fields(arrays, WHOLE_ARRAYS)
+    out.depth_image = np.asarray(rec.depth_image, np.uint8).tobytes()  # compressed already
     return out
 
 
@@ -429,6 +430,7 @@ def decode_whole(
         map_point_ids=decode_map_point_ids(arrays["map_point_id_codes"].tobytes()),
         map_points=map_points.reshape(-1, 3),
         action=ACTION_UPDATE if body.replaces else ACTION_NEW,
+        depth_image=field_array(body.depth_image).astype(np.uint8, copy=True),
         **_covisible(arrays),
     )
     offsets = field_array(body.map_point_offsets_f16)

@@ -99,6 +99,7 @@ class WholeKeyframe:
     map_point_offsets_f16: bytes = b""
     map_points: list = field(default_factory=list)  # float32, 3 per point
     packed: bytes = b""
+    depth_image: bytes = b""  # coop_slam.dense.depth_image blob; empty = none
 
 
 @dataclass

@@ -21,7 +21,8 @@ from ..errors import CoopSlamError
 from ..geometry import GeometryError, check_se3
 
 ACTION_NEW, ACTION_UPDATE, ACTION_REMOVE = 0, 1, 2
-STATIC_ARRAYS = ("keypoints", "octaves", "descriptors", "depths_m")  # see static_digest
+# What a keyframe saw (see static_digest); depth_image: the dense.depth_image blob (empty = none)
+STATIC_ARRAYS = ("keypoints", "octaves", "descriptors", "depths_m", "depth_image")
 # Every array of a keyframe record, in field order
 ARRAY_FIELDS = STATIC_ARRAYS + (
     "map_point_ids",
@@ -53,6 +54,8 @@ KEYPOINT_ANGLE_DEG = (-1.0, 360.0)  # OpenCV: [0, 360), -1 = no orientation
 _MAX_UINT32 = (1 << 32) - 1
 _MAX_KEYFRAME_ID = _MAX_UINT32  # keyframe ids travel as uint32
 MAX_REF_KEYFRAMES = 255  # a new keyframe's descriptor references are uint8
+# A keyframe's compressed depth image: 160 x 120 takes 5-20 kB; this is a full VGA image's worth.
+MAX_DEPTH_IMAGE_BYTES = 1 << 20
 
 
 class KeyframeError(CoopSlamError):
@@ -80,6 +83,7 @@ class KeyframeRecord:
     covisible_weights: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint16))
     map_segment: int = 0
     action: int = ACTION_NEW
+    depth_image: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint8))  # blob bytes
 
     def static_digest(self) -> bytes:
         """Digest of what the keyframe saw (keypoints, octaves, descriptors, depths), which an
@@ -216,6 +220,7 @@ class KeyframeRecord:
             "map_points": (2, 3, MAX_KEYPOINTS),
             "covisible_ids": (1, None, MAX_COVISIBLE),
             "covisible_weights": (1, None, MAX_COVISIBLE),
+            "depth_image": (1, None, MAX_DEPTH_IMAGE_BYTES),
         }
         for name, (ndim, cols, limit) in shapes.items():
             arr = _numeric(getattr(self, name), name, where)

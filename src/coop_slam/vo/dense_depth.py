@@ -1,0 +1,82 @@
+"""The depth image a keyframe takes along for the team's dense map, made from the frame that
+became the keyframe while it is still at hand (in the tracking thread): an RGB-D camera's depth
+image, or a stereo pair's disparity (semi-global matching at twice the decimated size, then
+decimated: matched at the decimated size its disparities of a few pixels are biased by a
+twentieth; ~10 ms per VGA keyframe), decimated and compressed by
+:mod:`coop_slam.dense.depth_image`. A monocular camera measures no depth and sends none."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..camera import CameraModel
+from ..config import require
+from ..dense import depth_image
+
+
+@dataclass
+class DenseDepthConfig:
+    """Section ``vo.dense``: the keyframes' depth images for the team's dense map."""
+
+    width_px: int = 160  # about this wide after decimation by an integer factor; 0 = none
+    step_m: float = 0.01  # depth quantization step [m]
+    max_depth_m: float = 6.0  # farther depth is left out (noisy, and it costs bytes) [m]
+    # Stereo: semi-global matching down to this depth (its disparity range, at most a quarter of
+    # the matched image's width) [m]
+    stereo_min_depth_m: float = 0.4
+
+    def validate(self) -> None:
+        require(self.width_px >= 0, "vo.dense.width_px must be >= 0 (0 = no depth images)")
+        require(self.step_m > 0, "vo.dense.step_m must be > 0 [m]")
+        require(self.max_depth_m > 0, "vo.dense.max_depth_m must be > 0 [m]")
+        require(self.stereo_min_depth_m > 0, "vo.dense.stereo_min_depth_m must be > 0 [m]")
+
+
+def _stereo_depth(camera: CameraModel, left, right, factor: int, min_depth_m: float):
+    """(h/f, w/f) depth [m] of a rectified grey pair, matched at 1/factor of its size."""
+    h, w = (left.shape[0] // factor) * factor, (left.shape[1] // factor) * factor
+    size = (w // factor, h // factor)
+    small_l = cv2.resize(left[:h, :w], size, interpolation=cv2.INTER_AREA)
+    small_r = cv2.resize(right[:h, :w], size, interpolation=cv2.INTER_AREA)
+    bf_px_m = camera.fx * camera.baseline_m / factor
+    n_disp = int(np.ceil(bf_px_m / min_depth_m / 16.0)) * 16
+    n_disp = max(16, min(n_disp, (size[0] // 4) // 16 * 16))
+    block = 5
+    matcher = cv2.StereoSGBM_create(
+        minDisparity=0,
+        numDisparities=n_disp,
+        blockSize=block,
+        P1=8 * block * block,
+        P2=32 * block * block,
+        uniquenessRatio=10,
+        speckleWindowSize=50,
+        speckleRange=2,
+        mode=cv2.STEREO_SGBM_MODE_SGBM,
+    )
+    disparity = matcher.compute(small_l, small_r).astype(np.float32) / 16.0
+    with np.errstate(divide="ignore"):
+        return np.where(disparity > 0.5, bf_px_m / disparity, 0.0).astype(np.float32)
+
+
+def depth_image_blob(
+    config: DenseDepthConfig, sensor: str, camera: CameraModel, gray, second, registered: bool
+) -> bytes:
+    """The keyframe's compressed depth image, or b"" (none configured, monocular, or depth not
+    registered to the colour image, whose camera model the server would place it with)."""
+    if config.width_px == 0 or second is None or sensor == "mono":
+        return b""
+    factor = depth_image.decimation_for(camera.width, config.width_px)
+    if sensor == "stereo":
+        match = max([d for d in range(1, factor // 2 + 1) if factor % d == 0] or [1])
+        depth = _stereo_depth(camera, gray, second, match, config.stereo_min_depth_m)
+        small = depth_image.decimate(depth, factor // match)
+        small = depth_image.DepthImage(small.depth_m, factor)
+    elif registered:
+        small = depth_image.decimate(np.asarray(second, np.float32), factor)
+    else:
+        return b""
+    depth = np.where(small.depth_m <= config.max_depth_m, small.depth_m, 0.0)
+    return depth_image.encode(depth_image.DepthImage(depth, factor), config.step_m)
