@@ -159,14 +159,14 @@ def test_rgbd_and_stereo_keyframes_bring_the_depth_they_saw_and_monocular_ones_n
     planes = helpers_vo.room(np.random.default_rng(0))
     left, right, depth = _pair(planes, se3(t=[0.1, -0.1, 0.3]))
     gray = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY)
-    truth = depth_image.decimate(depth, 4).depth_m
+    truth = depth_image.decimate(depth, 8).depth_m
     for sensor, second, within in (
         ("rgbd", depth, 0.006),
         ("stereo", cv2.cvtColor(right, cv2.COLOR_BGR2GRAY), 0.03),
     ):
         blob = depth_image_blob(config, sensor, STEREO, gray, second, registered=True)
         got = depth_image.decode(blob)
-        assert got.depth_m.shape == truth.shape == (120, 160), sensor
+        assert got.depth_m.shape == truth.shape == (60, 80), sensor
         both = (got.depth_m > 0) & (truth > 0)
         assert both.mean() > 0.6, sensor  # stereo: all but the left border and blank texture
         rel = np.abs(got.depth_m[both] - truth[both]) / truth[both]
@@ -175,3 +175,38 @@ def test_rgbd_and_stereo_keyframes_bring_the_depth_they_saw_and_monocular_ones_n
     assert depth_image_blob(config, "rgbd", STEREO, gray, depth, registered=False) == b""
     off = DenseDepthConfig(width_px=0)
     assert depth_image_blob(off, "rgbd", STEREO, gray, depth, registered=True) == b""
+
+
+def test_the_servers_dense_map_places_each_keyframes_depth_by_its_current_pose():
+    """A robot's keyframes with room depth images: the server's dense map lies on the room's
+    walls and its grid shows them; moved by the graph, the map moves with the keyframes."""
+    from coop_slam.team.server import TeamServer
+    from helpers import team_server_config, team_world
+
+    _, _, kfs, vocab = team_world(n_keyframes=8)
+    server = TeamServer(team_server_config(robots=[1]), vocab)
+    for k, kf in enumerate(kfs):
+        T = looking_out_pose(2 * np.pi * k / len(kfs), (2.5, 2.0), height=0.3)
+        depth = room_depth_image(T, kf.camera, 0.005, seed=k)
+        blob = depth_image.encode(depth_image.decimate(depth, 8), 0.01)
+        kf.T_map_cam, kf.depth_image = T, np.frombuffer(blob, np.uint8)
+        server.add_keyframe(kf)
+    dense = server.dense_map_job()()
+    assert dense.keyframes == len(kfs) and set(dense.robot_ids.tolist()) == {1}
+    walls = (np.abs(dense.points[:, 0] - ROOM_HI_M[0]) < 0.03) | (np.abs(dense.points[:, 0]) < 0.03)
+    walls |= (np.abs(dense.points[:, 1] - ROOM_HI_M[1]) < 0.03) | (
+        np.abs(dense.points[:, 1]) < 0.03
+    )
+    assert walls.mean() > 0.3
+    assert (dense.grid.cells == OCCUPIED).sum() > 200
+    moved_by = np.eye(4)
+    moved_by[0, 3] = 1.0  # the graph moves every keyframe 1 m along x
+    pose_of = server.T_group_cam
+    server.T_group_cam = lambda m, k: moved_by @ pose_of(m, k)
+    moved = server.dense_map_job()()
+    assert len(moved.points) == pytest.approx(len(dense.points), rel=0.01)
+    assert np.median(moved.points[:, 0]) - np.median(dense.points[:, 0]) == pytest.approx(
+        1.0, abs=0.03
+    )
+    server.config.dense.enabled = False
+    assert server.dense_map_job() is None

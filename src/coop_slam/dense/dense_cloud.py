@@ -41,16 +41,25 @@ def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return (idx[:, 0] << (2 * _BITS)) | (idx[:, 1] << _BITS) | idx[:, 2]
 
 
-def voxel_filter(points: np.ndarray, voxel_m: float, min_points: int = 1) -> np.ndarray:
-    """The centroid of each voxel holding at least ``min_points`` points (float32 (M, 3))."""
+def voxel_centroids(
+    points: np.ndarray, voxel_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(centroids (M, 3) float32, index of each voxel's first point (M,), point counts (M,))."""
     points = np.asarray(points, np.float32)
     if len(points) == 0:
-        return np.zeros((0, 3), np.float32)
+        return np.zeros((0, 3), np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64)
     keys = voxel_keys(points, voxel_m)
-    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    _, first, inverse, counts = np.unique(
+        keys, return_index=True, return_inverse=True, return_counts=True
+    )
     sums = np.stack(
         [np.bincount(inverse, weights=points[:, a], minlength=len(counts)) for a in range(3)],
         axis=1,
     )
-    keep = counts >= max(1, int(min_points))
-    return (sums[keep] / counts[keep, None]).astype(np.float32)
+    return (sums / counts[:, None]).astype(np.float32), first, counts
+
+
+def voxel_filter(points: np.ndarray, voxel_m: float, min_points: int = 1) -> np.ndarray:
+    """The centroid of each voxel holding at least ``min_points`` points (float32 (M, 3))."""
+    centroids, _, counts = voxel_centroids(points, voxel_m)
+    return centroids[counts >= max(1, int(min_points))]

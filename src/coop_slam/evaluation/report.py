@@ -96,6 +96,10 @@ TOP_KEYS = (
     "loop_closures",
     "links",
     "overlap_agreement",
+    "grid_iou",
+    "grid_free_iou",
+    "grid_free_coverage",
+    "dense_surface_rmse_m",
     "topics",
 )
 BANDWIDTH_KEYS = (
@@ -144,6 +148,13 @@ def new_report(robot_ids: list[int]) -> dict:
         # from the other's surfaces (inter_m) against how far a robot's points lie from its own
         # surfaces where it revisits (intra_m); see coop_slam.evaluation.agreement.
         "overlap_agreement": [],
+        # The dense team map against the synthetic world (None elsewhere): occupancy grid IoU of
+        # occupied / free cells and the share of free space mapped (coop_slam.evaluation
+        # .grid_score), RMS distance of the dense cloud's points to the true surfaces [m].
+        "grid_iou": None,
+        "grid_free_iou": None,
+        "grid_free_coverage": None,
+        "dense_surface_rmse_m": None,
         "duplicates_received": None,  # keyframe messages the server got again (clients resending)
         "faults": None,  # faults injected (scripts/demo --faults)
         "topics": {},
@@ -235,6 +246,10 @@ def render_markdown(report: dict) -> str:
         f"mean keyframe message {_fmt(bw.get('keyframe_bytes_mean'), 0)} B; downlink per robot "
         f"{_fmt(bw.get('downlink_per_robot_kBps'), 1)} kB/s",
         f"- loop closures: {_fmt(report.get('loop_closures'))}",
+        f"- dense map: grid IoU occupied {_fmt(report.get('grid_iou'), 3)}, free "
+        f"{_fmt(report.get('grid_free_iou'), 3)} (free space mapped "
+        f"{_fmt(report.get('grid_free_coverage'), 3)}), surfaces RMS "
+        f"{_fmt(report.get('dense_surface_rmse_m'), 4)} m",
         "",
     ]
     if report.get("links"):

@@ -69,6 +69,9 @@ class RunData:
     duration_s: float = 0.0  # sim time from first to last frame
     topic_bytes: dict = field(default_factory=dict)  # topic -> [(sim t_s, bytes)] per message
     team_cloud: tuple | None = None  # latest /team_map/cloud: (points (N, 3), rgb (N, 3) uint8)
+    dense_cloud: tuple | None = None  # latest /team_map/dense, the same
+    grid: object = None  # latest /team_map/grid (coop_slam.dense.occupancy.OccupancyGrid)
+    grid_z_m: float = 0.0  # ... the height of its floor in the world frame [m]
     # robot id -> (sent, received) bytes on its radio interface during the run (--hosts only)
     radio_bytes: dict = field(default_factory=dict)
 
@@ -84,3 +87,5 @@ class RunInput:
     gts: dict  # robot id -> (stamps, T_world_cam); empty arrays for robots without ground truth
     overlap: dict | None = None  # synthetic overlap events (merge latency), when known
     sensors: list[str] | None = None  # each robot's camera (rgbd, stereo, mono), in robot_ids order
+    # The synthetic world, when the run played one: {"layout", "seed", "hand_held"}
+    world: dict | None = None

@@ -22,9 +22,10 @@ from ..team.map_scale import scale_translation
 from ..team.results import TYPE_LINK
 from .agreement import KeyframeCloud, team_agreement
 from .bandwidth import bandwidth, downlink_kBps, topic_bandwidth, uplink_by_kind, uplink_kBps
+from .map_results import DenseTruth, map_results, world_of
 from .metrics import EvaluationError, ate, merge_error, relative_pose_error, rpe_rmse, team_ate
 from .overlap_view import plot_overlap
-from .plots import plot_path_errors, plot_team, plot_trajectories, write_ply
+from .plots import plot_path_errors, plot_team, plot_trajectories
 from .report import count_wrong_merges, new_report, write_report
 from .run_data import RobotRun, RunData, RunInput
 
@@ -48,6 +49,7 @@ def run_input_of(source, keep_timing: bool = False) -> RunInput:
         gts,
         (source.meta or {}).get("overlap"),
         [s.sequence.camera.sensor for s in source.streams],
+        world_of(source.meta or {}),
     )
 
 
@@ -685,15 +687,14 @@ def evaluate_results(
     sensors: dict | None = None,
     extra: dict | None = None,
     T_base_cam: np.ndarray | None = None,
+    dense_truth: DenseTruth | None = None,
 ):
-    """Report, trajectories, plots and the team map PLY of one run into ``out_dir`` (arguments as
-    for :func:`evaluate_run`; ``extra``: fields of the run the recording does not hold, e.g. the
-    faults injected); returns (report, report.json path, report.md path, PLY path or None)."""
+    """Report, trajectories, plots and the team map PLYs and grid of one run into ``out_dir``
+    (arguments as for :func:`evaluate_run`; ``extra``: fields of the run the recording does not
+    hold, e.g. the faults injected; ``dense_truth``: the synthetic world, see :mod:`.map_results`);
+    returns (report, report.json path, report.md path, PLY path or None)."""
     report = evaluate_run(run, gts, overlap, out_dir, sensors, T_base_cam)
-    report.update(extra or {})
-    ply = None
-    if run.team_cloud is not None:
-        ply = os.path.join(out_dir, "team_map.ply")
-        write_ply(ply, *run.team_cloud)
+    dense, ply = map_results(out_dir, run, dense_truth)
+    report.update(extra or {}, **dense)
     json_path, md_path = write_report(out_dir, report)
     return report, json_path, md_path, ply

@@ -11,6 +11,7 @@ from geometry_msgs.msg import Pose, Transform
 from sensor_msgs.msg import CameraInfo, Image
 
 from ..camera import CameraError, CameraModel
+from ..dense.occupancy import OccupancyGrid
 from ..errors import CoopSlamError
 from ..geometry import GeometryError, quat_from_se3, se3_from_quat
 from ..wire.record import MAX_POSITION_M
@@ -324,3 +325,36 @@ def marker_seen_from_msg(msg):
     if not np.isfinite(size) or size <= 0:
         raise MessageError(f"sighting's marker_size_m {size} is not > 0 [m]")
     return MarkerSeen(pose_from_msg(msg.T_cam_marker, "T_cam_marker"), size)
+
+
+# --- occupancy grids ------------------------------------------------------------------------------
+def grid_to_msg(grid: OccupancyGrid, frame_id: str, stamp=None, z_m: float = 0.0):
+    """nav_msgs/OccupancyGrid of a grid whose cell (0, 0) corner is at its origin, at height z."""
+    from nav_msgs.msg import OccupancyGrid as GridMsg
+
+    msg = GridMsg()
+    if stamp is not None:
+        msg.header.stamp = msg.info.map_load_time = stamp
+    msg.header.frame_id = frame_id
+    msg.info.resolution = float(grid.cell_m)
+    msg.info.height, msg.info.width = (int(n) for n in grid.cells.shape)
+    msg.info.origin.position.x, msg.info.origin.position.y = grid.origin_xy_m
+    msg.info.origin.position.z = float(z_m)
+    msg.info.origin.orientation.w = 1.0
+    msg.data = np.ascontiguousarray(grid.cells, np.int8).tobytes()
+    return msg
+
+
+def grid_from_msg(msg) -> OccupancyGrid:
+    """The grid of a nav_msgs/OccupancyGrid (its origin's orientation must be the identity)."""
+    info = msg.info
+    cells = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, bytes) else msg.data, np.int8)
+    if len(cells) != info.width * info.height:
+        raise MessageError(
+            f"occupancy grid holds {len(cells)} cells for {info.width} x {info.height}"
+        )
+    return OccupancyGrid(
+        cells.reshape(info.height, info.width).copy(),
+        float(info.resolution),
+        (float(info.origin.position.x), float(info.origin.position.y)),
+    )

@@ -23,6 +23,7 @@ from .convert import (
     cloud_colours_from_msg,
     cloud_from_msg,
     description_from_msg,
+    grid_from_msg,
     pose_from_msg,
     transform_from_msg,
 )
@@ -45,6 +46,8 @@ TEAM_TOPICS = {
     "/merge_events": "coop_slam/MergeEvent",
     "/server/stats": "std_msgs/String",
     "/team_map/cloud": "sensor_msgs/PointCloud2",
+    "/team_map/dense": "sensor_msgs/PointCloud2",
+    "/team_map/grid": "nav_msgs/OccupancyGrid",
     "/team_map/markers": "visualization_msgs/MarkerArray",
     "/robot_sightings": "coop_slam/RobotSighting",
     "/player/done": "std_msgs/Bool",
@@ -94,6 +97,10 @@ class RunRecorder:
             parts = topic.strip("/").split("/")
             if topic == "/team_map/cloud":
                 self._on_cloud(msg)
+            elif topic == "/team_map/dense":
+                self._on_dense(msg)
+            elif topic == "/team_map/grid":
+                self._on_grid(msg)
             elif topic == "/merge_events":
                 self._on_merge(msg)
             elif topic == "/server/stats":
@@ -144,6 +151,19 @@ class RunRecorder:
             self.run.team_cloud = (cloud_from_msg(msg), cloud_colours_from_msg(msg))
         except MessageError:
             pass  # a malformed cloud is no cloud: the last good one stays
+
+    def _on_dense(self, msg) -> None:
+        try:
+            self.run.dense_cloud = (cloud_from_msg(msg), cloud_colours_from_msg(msg))
+        except MessageError:
+            pass  # as a malformed cloud
+
+    def _on_grid(self, msg) -> None:
+        try:
+            self.run.grid = grid_from_msg(msg)
+            self.run.grid_z_m = float(msg.info.origin.position.z)
+        except MessageError:
+            pass
 
     def _on_keyframes(self, msg, r: RobotRun, t_s, nbytes) -> None:
         r.kf_bytes.append((float(t_s), int(nbytes)))

@@ -1,6 +1,6 @@
 """What the server's worker decides, published on ROS: merge events, TF ``world -> robot_k/map``
-and each robot's correction, the team map (cloud, paths, markers), acknowledgements, keyframe
-requests and stats. Translation only: the decisions are
+and each robot's correction, the team map (cloud, paths, markers; the dense cloud and occupancy
+grid), acknowledgements, keyframe requests and stats. Translation only: the decisions are
 :class:`coop_slam.team.worker.ServerWorker`'s.
 """
 
@@ -15,11 +15,12 @@ import rospy
 from geometry_msgs.msg import PoseStamped
 from std_msgs.msg import String
 
+from ..team.dense_map import DenseMap
 from ..team.fusion import robot_colours
 from ..team.results import TYPE_LOOP, TYPE_OVERLAP
 from ..team.view import marker_scale
 from ..team.worker import RobotCorrection, ServerOutputs, TeamEvent, TeamMapView
-from .convert import cloud_to_msg, pose_to_msg, transform_stamped, transform_to_msg
+from .convert import cloud_to_msg, grid_to_msg, pose_to_msg, transform_stamped, transform_to_msg
 from .validation import RejectCounter
 from .wire_bridge import to_ros
 
@@ -40,7 +41,7 @@ class RosServerOutputs(ServerOutputs):
         """``on_robots(robot_ids)``: called after the robots' publishers exist (the node
         subscribes to their keyframes then)."""
         import tf2_ros
-        from nav_msgs.msg import Path
+        from nav_msgs.msg import OccupancyGrid, Path
         from sensor_msgs.msg import PointCloud2
         from visualization_msgs.msg import MarkerArray
 
@@ -56,6 +57,8 @@ class RosServerOutputs(ServerOutputs):
         self.pub_merge = rospy.Publisher("/merge_events", MergeEvent, queue_size=20, latch=True)
         self.pub_stats = rospy.Publisher("/server/stats", String, queue_size=5, latch=True)
         self.pub_cloud = rospy.Publisher("/team_map/cloud", PointCloud2, queue_size=1, latch=True)
+        self.pub_dense = rospy.Publisher("/team_map/dense", PointCloud2, queue_size=1, latch=True)
+        self.pub_grid = rospy.Publisher("/team_map/grid", OccupancyGrid, queue_size=1, latch=True)
         self.pub_markers = rospy.Publisher(
             "/team_map/markers", MarkerArray, queue_size=1, latch=True
         )
@@ -140,6 +143,16 @@ class RosServerOutputs(ServerOutputs):
             return
         points, rgb, _ = cloud
         self.pub_cloud.publish(cloud_to_msg(points, "world", rospy.Time.from_sec(stamp_s), rgb))
+
+    def dense_map(self, dense: DenseMap, stamp_s: float) -> None:
+        """In the map builder's thread: the dense cloud and the world group's grid go out."""
+        if rospy.is_shutdown():
+            return
+        stamp = rospy.Time.from_sec(stamp_s)
+        rgb = robot_colours(dense.robot_ids)
+        self.pub_dense.publish(cloud_to_msg(dense.points, "world", stamp, rgb))
+        if dense.grid is not None:
+            self.pub_grid.publish(grid_to_msg(dense.grid, "world", stamp, dense.floor_z_m))
 
     def team_map(self, view: TeamMapView, stamp_s: float) -> None:
         stamp = rospy.Time.from_sec(stamp_s) if stamp_s else rospy.Time.now()

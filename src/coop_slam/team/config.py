@@ -13,6 +13,7 @@ from ..config import require
 from ..registration.relative_pose import RegistrationConfig
 from .assisted_relocalization import AssistConfig
 from .clocks import ClockConfig
+from .dense_map import DenseMapConfig
 from .global_ba import GlobalBaConfig
 from .map_scale import MapScaleConfig
 from .marker_scale import MarkerScaleConfig
@@ -188,6 +189,7 @@ class ServerConfig:
     pull: PullConfig = field(default_factory=PullConfig)
     assisted_relocalization: AssistConfig = field(default_factory=AssistConfig)
     clock: ClockConfig = field(default_factory=ClockConfig)
+    dense: DenseMapConfig = field(default_factory=DenseMapConfig)
     optimize_every: int = 5  # incremental (iSAM2) update every N keyframes; full after each merge
     # ... or every N updates of keyframes (local BA moved them a little): a client sends several
     # per keyframe, and an incremental update after each 5 messages grew with the team graph
@@ -212,6 +214,7 @@ class ServerConfig:
         self.global_ba.validate()
         self.map_scale.validate()
         self.marker_scale.validate()
+        self.dense.validate()
         self.pose_feedback.validate()
         self.pull.validate()
         self.assisted_relocalization.validate()

@@ -35,6 +35,7 @@ from ..geometry import invert
 from ..ids import MapId, RobotId
 from ..wire.record import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE, KeyframeRecord
 from .config import ServerConfig
+from .dense_map import DenseKeyframe, DenseMap, DenseMapBuilder
 from .global_ba import GlobalBaError, GlobalBaResult, count_observations, global_bundle_adjustment
 from .groups import MergeGroups
 from .keyframe_store import KeyframeStore, StoredKeyframe, stored_keyframe
@@ -83,6 +84,7 @@ class TeamServer:
             self.map_name,
         )
         self.scales = self.scale_keeper.scales  # (read only: which maps are monocular, metric)
+        self.dense = DenseMapBuilder(config.dense)  # decoded depth images, kept between builds
         self.links = OverlapLinks(config.links, self.store, lambda key: self.T_group_cam(*key))
         self.stitcher = Stitcher(
             config.loops,
@@ -592,3 +594,24 @@ class TeamServer:
         return functools.partial(
             build_cloud, snapshot, self.config.fuse_radius_m, self.config.cloud_voxel_m
         )
+
+    def dense_map_job(self) -> Callable[[], DenseMap] | None:
+        """The dense team map as it is now, to build later or in another thread (see
+        :mod:`.dense_map`); None when it is off or no keyframe brought a depth image."""
+        if not self.config.dense.enabled:
+            return None
+        offsets = self._offsets()
+        snapshot = [
+            DenseKeyframe(
+                rec.key,
+                rec.robot_id,
+                rec.depth_image,
+                rec.camera,
+                offsets[rec.map_id] @ self.T_group_cam(rec.map_id, rec.keyframe_id),
+                self.in_world(rec.map_id),
+            )
+            for rec in self.store.records()
+            # A monocular map's depth-less keyframes bring none; metres only.
+            if len(rec.depth_image) and self.is_metric(rec.map_id)
+        ]
+        return functools.partial(self.dense.build, snapshot) if snapshot else None

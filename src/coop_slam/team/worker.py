@@ -30,6 +30,7 @@ from ..wire.messages import Header, KeyframeAck, KeyframeMessage, KeyframeReques
 from .assisted_relocalization import local_map_for
 from .clocks import RobotClocks
 from .config import ServerConfig
+from .dense_map import DenseMap
 from .durable import DurableServer
 from .global_ba import GlobalBaError
 from .jobs import GlobalBaJob, KeyframeJob, MapFileJob, RelocalizeJob, RendezvousJob
@@ -121,6 +122,9 @@ class ServerOutputs:
     def cloud(self, cloud: tuple, stamp_s: float) -> None:
         """The stitched cloud (points, colours, ...), in the map builder's thread."""
 
+    def dense_map(self, dense: DenseMap, stamp_s: float) -> None:
+        """The dense cloud and the occupancy grid (:mod:`.dense_map`), in the builder's thread."""
+
     def ack(self, ack: KeyframeAck) -> None:
         """An acknowledgement (or a receipt) for one robot; any thread."""
 
@@ -165,7 +169,7 @@ class ServerWorker:
         self.sightings = SightingPlacer()  # each robot's description places its sightings
         self.clocks = RobotClocks(cfg.clock)  # each robot's clock against the server's
         self.cadence = PublishCadence(cadence)
-        self.map_builder = TeamMapBuilder(self.out.cloud, self.cadence)
+        self.map_builder = TeamMapBuilder(self._built, self.cadence)
         self.queue: queue.Queue = queue.Queue()
         self.urgent: queue.Queue = queue.Queue()  # answered before the keyframes waiting
         self.server_session = new_session()  # this run (a restart lost what it had not stored)
@@ -603,8 +607,16 @@ class ServerWorker:
         self._map_dirty = self._merge_unshown = False
         if not self.out.wants_team_map:
             return
-        self.map_builder.submit(self.server.team_cloud_job(), stamp_s)
+        cloud, dense = self.server.team_cloud_job(), self.server.dense_map_job()
+        self.map_builder.submit(lambda: (cloud(), dense() if dense else None), stamp_s)
         self.out.team_map(self._team_map_view(), stamp_s)
+
+    def _built(self, built: tuple, stamp_s: float) -> None:
+        """In the map builder's thread: the stitched cloud and the dense map go out."""
+        cloud, dense = built
+        self.out.cloud(cloud, stamp_s)
+        if dense is not None:
+            self.out.dense_map(dense, stamp_s)
 
     def _team_map_view(self) -> TeamMapView:
         server = self.server

@@ -558,6 +558,7 @@ def _evaluate(plan: _RunPlan, monitor: Monitor, out: str) -> tuple[str, str, str
     """[3/3]: the report from the recorded bag (what this process received when there is none);
     its JSON and Markdown files and the team map's PLY (or None)."""
     from ..ros.run_recorder import run_bags, run_data_from_bag
+    from . import framing
 
     say("[3/3] evaluating")
     run_data = monitor.run
@@ -577,6 +578,7 @@ def _evaluate(plan: _RunPlan, monitor: Monitor, out: str) -> tuple[str, str, str
         plan.inputs.overlap,
         extra={"faults": plan.faults.summary()} if plan.faults.any else None,
         T_base_cam=T_base_cam_of(plan.base_cam),
+        dense_truth=framing.dense_truth_of(plan.inputs, T_base_cam_of(plan.base_cam)),
     )
     for entry in report["robots"]:
         if entry.get("keyframes_lost"):

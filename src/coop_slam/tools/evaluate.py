@@ -18,6 +18,7 @@ def main(argv=None) -> int:
     from ..geometry import T_base_cam_of
     from ..playback import load_run_source
     from ..ros.run_recorder import read_bag_input, run_bags, run_data_from_bag
+    from .framing import dense_truth_of
 
     p = argparse.ArgumentParser(prog="scripts/evaluate", description=main.__doc__.split(":")[1])
     p.add_argument("results", help="results folder of a demo run (holds run.json and run.bag)")
@@ -54,6 +55,7 @@ def main(argv=None) -> int:
             inputs.overlap,
             extra=faults,
             T_base_cam=T_base_cam_of(info.get("T_base_cam") or []),
+            dense_truth=dense_truth_of(inputs, T_base_cam_of(info.get("T_base_cam") or [])),
         )
     except (CoopSlamError, OSError, ValueError) as exc:
         print(f"[evaluate] ERROR: {exc}", file=sys.stderr)

@@ -160,6 +160,16 @@ def T_world_gt(gts: dict, T_base_cam: np.ndarray | None = None, world_robot: int
     return T_base_cam @ np.linalg.inv(poses[0])
 
 
+def dense_truth_of(inputs, T_base_cam: np.ndarray | None = None):
+    """The synthetic world a run (:class:`coop_slam.evaluation.run_data.RunInput`) played, in
+    ``world``, to score its dense map against; None when the run played no synthetic world."""
+    from ..evaluation.map_results import dense_truth
+
+    if not inputs.world:
+        return None
+    return dense_truth(inputs.world, T_world_gt(inputs.gts, T_base_cam))
+
+
 def world_camera_poses(gts: dict, T_world_gt: np.ndarray) -> np.ndarray:
     """All robots' finite ground-truth camera poses (M, 4, 4) in ``world``; at most
     ``MAX_POSES`` per robot (evenly subsampled)."""

@@ -1,8 +1,7 @@
 """The depth image a keyframe takes along for the team's dense map, made from the frame that
 became the keyframe while it is still at hand (in the tracking thread): an RGB-D camera's depth
-image, or a stereo pair's disparity (semi-global matching at twice the decimated size, then
-decimated: matched at the decimated size its disparities of a few pixels are biased by a
-twentieth; ~10 ms per VGA keyframe), decimated and compressed by
+image, or a stereo pair's disparity (semi-global matching at about 320 px wide, ~10 ms per
+keyframe, then decimated), decimated and compressed by
 :mod:`coop_slam.dense.depth_image`. A monocular camera measures no depth and sends none."""
 
 from __future__ import annotations
@@ -21,18 +20,25 @@ from ..dense import depth_image
 class DenseDepthConfig:
     """Section ``vo.dense``: the keyframes' depth images for the team's dense map."""
 
-    width_px: int = 160  # about this wide after decimation by an integer factor; 0 = none
+    # About this wide after decimation by an integer factor; 0 = none. 80 px (VGA / 8): ~2 kB a
+    # keyframe, 5 % of its message (160 px: ~6.5 kB, which the radio budget pays for in whole
+    # keyframes held back); a 5 cm grid cell still gets a depth per cell out to ~4 m.
+    width_px: int = 80
     step_m: float = 0.01  # depth quantization step [m]
     max_depth_m: float = 6.0  # farther depth is left out (noisy, and it costs bytes) [m]
     # Stereo: semi-global matching down to this depth (its disparity range, at most a quarter of
     # the matched image's width) [m]
     stereo_min_depth_m: float = 0.4
+    # Stereo: matched at an integer fraction of the image at least this wide [px], then
+    # decimated: matched at 80 px, disparities of a few pixels come out ~5 % short
+    stereo_match_width_px: int = 320
 
     def validate(self) -> None:
         require(self.width_px >= 0, "vo.dense.width_px must be >= 0 (0 = no depth images)")
         require(self.step_m > 0, "vo.dense.step_m must be > 0 [m]")
         require(self.max_depth_m > 0, "vo.dense.max_depth_m must be > 0 [m]")
         require(self.stereo_min_depth_m > 0, "vo.dense.stereo_min_depth_m must be > 0 [m]")
+        require(self.stereo_match_width_px > 0, "vo.dense.stereo_match_width_px must be > 0")
 
 
 def _stereo_depth(camera: CameraModel, left, right, factor: int, min_depth_m: float):
@@ -70,7 +76,8 @@ def depth_image_blob(
         return b""
     factor = depth_image.decimation_for(camera.width, config.width_px)
     if sensor == "stereo":
-        match = max([d for d in range(1, factor // 2 + 1) if factor % d == 0] or [1])
+        wide = [d for d in range(1, factor + 1) if factor % d == 0]
+        match = max(d for d in wide if d == 1 or camera.width / d >= config.stereo_match_width_px)
         depth = _stereo_depth(camera, gray, second, match, config.stereo_min_depth_m)
         small = depth_image.decimate(depth, factor // match)
         small = depth_image.DepthImage(small.depth_m, factor)

@@ -1,0 +1,127 @@
+"""The server's dense team map: the depth images RGB-D and stereo keyframes brought, placed by
+the keyframes' current poses -- a voxel cloud of every group (shown as the sparse cloud is, other
+groups beside the world group) and the occupancy grid of the world group's floor band.
+
+Built in the map builder's thread from a snapshot the worker takes in milliseconds
+(:meth:`coop_slam.team.server.TeamServer.dense_map_job`); each keyframe's depth image is decoded
+and thinned once (:class:`DenseMapBuilder` keeps them), so a rebuild after the graph moved costs
+placing and voxelizing points, not decoding."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..camera import CameraModel
+from ..config import require
+from ..dense import depth_image
+from ..dense.dense_cloud import place, voxel_centroids, voxel_filter
+from ..dense.keyframe_points import points_cam
+from ..dense.occupancy import OccupancyConfig, OccupancyGrid, occupancy_grid
+from ..errors import CoopSlamError
+from ..geometry import se3
+
+log = logging.getLogger(__name__)
+
+
+class DenseMapError(CoopSlamError):
+    """A keyframe's depth image the dense map cannot use (named by robot and keyframe)."""
+
+
+@dataclass
+class DenseMapConfig:
+    """Section ``server.dense``: the dense team map and its occupancy grid."""
+
+    enabled: bool = True  # build and publish them from the keyframes' depth images
+    voxel_m: float = 0.05  # voxel size of the dense cloud [m]
+    min_depth_m: float = 0.1  # depth used from the keyframes' images [m] ...
+    max_depth_m: float = 4.0  # ... up to this (farther depth is noisy and smears surfaces)
+    # The floor's height in the world frame [m]: robot 1's map frame is its base_link at start,
+    # on the floor for a ground robot (REP-105); a hand-held camera's map is at its start height.
+    floor_z_m: float = 0.0
+    grid: OccupancyConfig = field(default_factory=OccupancyConfig)
+
+    def validate(self) -> None:
+        require(self.voxel_m > 0, "dense.voxel_m must be > 0 [m]")
+        require(
+            0 <= self.min_depth_m < self.max_depth_m, "dense: need 0 <= min_depth_m < max_depth_m"
+        )
+        require(np.isfinite(self.floor_z_m), "dense.floor_z_m must be a finite height [m]")
+        self.grid.validate()
+
+
+@dataclass
+class DenseKeyframe:
+    """One keyframe of a snapshot: its key, robot, depth blob (the record's array, not copied),
+    camera, pose in the view frame, and whether its group is the world group."""
+
+    key: tuple
+    robot_id: int
+    blob: np.ndarray
+    camera: CameraModel
+    T_view_cam: np.ndarray
+    in_world: bool
+
+
+@dataclass
+class DenseMap:
+    """What one build made: voxel centroids in the view frame with each voxel's robot, the world
+    group's occupancy grid (None: no keyframe with depth in it) and the frame it is in."""
+
+    points: np.ndarray  # (N, 3) float32
+    robot_ids: np.ndarray  # (N,)
+    grid: OccupancyGrid | None
+    floor_z_m: float
+    keyframes: int  # keyframes with a depth image in the build
+
+
+@dataclass
+class _Decoded:
+    blob: np.ndarray
+    points_cam: np.ndarray
+
+
+class DenseMapBuilder:
+    """Keeps every keyframe's points decoded and thinned between builds (one lock: the worker
+    may drop keys while the builder builds)."""
+
+    def __init__(self, config: DenseMapConfig):
+        self.config = config
+        self._decoded: dict[tuple, _Decoded] = {}
+        self._lock = threading.Lock()
+
+    def _points(self, kf: DenseKeyframe) -> np.ndarray | None:
+        got = self._decoded.get(kf.key)
+        if got is not None and (got.blob is kf.blob or np.array_equal(got.blob, kf.blob)):
+            return got.points_cam
+        try:
+            image = depth_image.decode(kf.blob.tobytes())
+            pts = points_cam(image, kf.camera, self.config.min_depth_m, self.config.max_depth_m)
+        except CoopSlamError as exc:  # one robot's bad image must not stop the team's map
+            log.warning("dense map: robot %d keyframe %s left out: %s", kf.robot_id, kf.key, exc)
+            pts = np.zeros((0, 3), np.float32)
+        # Thinned at half the voxel size in the camera frame: what a voxel of the team map gets
+        # from one keyframe, for a tenth of the points at 2 m.
+        pts = voxel_filter(pts, self.config.voxel_m / 2)
+        self._decoded[kf.key] = _Decoded(kf.blob, pts)
+        return pts
+
+    def build(self, snapshot: list[DenseKeyframe]) -> DenseMap:
+        cfg = self.config
+        with self._lock:
+            views = [(kf, self._points(kf)) for kf in snapshot]
+            for key in set(self._decoded) - {kf.key for kf in snapshot}:
+                del self._decoded[key]  # removed keyframes
+        placed = place((kf.T_view_cam, pts) for kf, pts in views)
+        robots = np.concatenate(
+            [np.full(len(pts), kf.robot_id, np.int64) for kf, pts in views] or [np.zeros(0, int)]
+        )
+        centroids, first, _ = voxel_centroids(placed, cfg.voxel_m)
+        world = [(kf.T_view_cam, pts) for kf, pts in views if kf.in_world]
+        grid = None
+        if world:
+            grid = occupancy_grid(world, cfg.grid, se3(t=[0.0, 0.0, -cfg.floor_z_m]))
+        return DenseMap(centroids, robots[first], grid, cfg.floor_z_m, len(views))
