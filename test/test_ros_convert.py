@@ -95,3 +95,20 @@ def test_stereo_camera_from_the_ros_stereo_camera_infos():
     )
     with pytest.raises(MessageError, match="differ in size"):
         stereo_camera_from_infos(left, small)
+
+
+def test_an_occupancy_grid_crosses_a_topic_and_comes_back_the_same():
+    from coop_slam.dense.occupancy import FREE, OCCUPIED, UNKNOWN, OccupancyGrid
+    from coop_slam.ros.convert import grid_from_msg, grid_to_msg
+
+    cells = np.full((3, 4), UNKNOWN, np.int8)
+    cells[0, :2], cells[2, 3] = FREE, OCCUPIED
+    grid = OccupancyGrid(cells, 0.05, (-1.0, 2.5))
+    msg = _wire(grid_to_msg(grid, "world", z_m=0.1))
+    assert (msg.info.width, msg.info.height, msg.header.frame_id) == (4, 3, "world")
+    assert msg.info.origin.position.z == pytest.approx(0.1)
+    back = grid_from_msg(msg)
+    assert np.array_equal(back.cells, cells) and back.origin_xy_m == (-1.0, 2.5)
+    msg.data = msg.data[:-1]
+    with pytest.raises(MessageError, match="11 cells for 4 x 3"):
+        grid_from_msg(msg)

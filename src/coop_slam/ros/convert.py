@@ -341,14 +341,15 @@ def grid_to_msg(grid: OccupancyGrid, frame_id: str, stamp=None, z_m: float = 0.0
     msg.info.origin.position.x, msg.info.origin.position.y = grid.origin_xy_m
     msg.info.origin.position.z = float(z_m)
     msg.info.origin.orientation.w = 1.0
-    msg.data = np.ascontiguousarray(grid.cells, np.int8).tobytes()
+    msg.data = np.asarray(grid.cells, np.int8).ravel().tolist()  # int8[]: rospy takes no bytes
     return msg
 
 
 def grid_from_msg(msg) -> OccupancyGrid:
     """The grid of a nav_msgs/OccupancyGrid (its origin's orientation must be the identity)."""
     info = msg.info
-    cells = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, bytes) else msg.data, np.int8)
+    data = msg.data
+    cells = np.frombuffer(data, np.int8) if isinstance(data, bytes) else np.asarray(data, np.int8)
     if len(cells) != info.width * info.height:
         raise MessageError(
             f"occupancy grid holds {len(cells)} cells for {info.width} x {info.height}"

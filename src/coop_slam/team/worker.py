@@ -138,6 +138,16 @@ class ServerOutputs:
         """The robots the server knows (a loaded map may add some)."""
 
 
+def _dense_or_none(job) -> DenseMap | None:
+    """The dense map of ``job`` (None: none); a build that fails is said and costs the team its
+    dense map this time, not its stitched cloud."""
+    try:
+        return job() if job is not None else None
+    except Exception as exc:  # noqa: BLE001 -- the sparse cloud must still go out
+        log.error("team map: building the dense map failed (%s: %s)", type(exc).__name__, exc)
+        return None
+
+
 def default_map_path() -> str:
     """A new map file per run in ``$ROS_HOME/coop_slam`` (``~/.ros`` by default)."""
     home = os.environ.get("ROS_HOME") or os.path.join(os.path.expanduser("~"), ".ros")
@@ -608,7 +618,7 @@ class ServerWorker:
         if not self.out.wants_team_map:
             return
         cloud, dense = self.server.team_cloud_job(), self.server.dense_map_job()
-        self.map_builder.submit(lambda: (cloud(), dense() if dense else None), stamp_s)
+        self.map_builder.submit(lambda: (cloud(), _dense_or_none(dense)), stamp_s)
         self.out.team_map(self._team_map_view(), stamp_s)
 
     def _built(self, built: tuple, stamp_s: float) -> None:

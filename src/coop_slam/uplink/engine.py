@@ -101,7 +101,14 @@ class ClientUplink:
         self.frame_id = f"robot_{robot_id}/map"
         self.T_base_cam = np.eye(4) if T_base_cam is None else T_base_cam
         self.planner = Planner(config)
-        self._sends_depth = (config or UplinkConfig()).sends_depth_images()
+        config = config or UplinkConfig()
+        self._sends_depth = config.sends_depth_images()
+        if config.mode == "pull" and config.depth_images and not self._sends_depth:
+            log.info(
+                "robot %d: low-bandwidth mode sends no depth images, so the team's dense map and "
+                "occupancy grid get nothing from it (uplink.pull_depth_images: true sends them)",
+                robot_id,
+            )
         self.outbox = Outbox(**vars(delivery or DeliveryConfig()))
         self._vocabulary = None
         self.vocabulary = vocabulary
