@@ -210,3 +210,20 @@ def test_the_servers_dense_map_places_each_keyframes_depth_by_its_current_pose()
     )
     server.config.dense.enabled = False
     assert server.dense_map_job() is None
+
+
+def test_a_teammates_body_is_left_out_where_it_was_when_the_keyframe_saw_it():
+    from coop_slam.dense.teammates import BodyTrack, outside_bodies
+    from coop_slam.geometry import se3
+
+    # A teammate driving along x at 1 m/s, keyframes at 0 and 2 s: at 1 s it is at x = 1.
+    track = BodyTrack(
+        2, 1, np.array([0.0, 2.0]), np.stack([se3(t=[0, 0, 0]), se3(t=[2, 0, 0])]), (0.4, 0.3, 0.5)
+    )
+    at_1s = track.pose_at(1.0, max_gap_s=1.5)
+    assert at_1s[:3, 3].tolist() == pytest.approx([1.0, 0.0, 0.0])
+    assert track.pose_at(4.0, max_gap_s=1.5) is None  # no keyframe near: nothing is left out
+    seen = np.array([[1.0, 0.1, 0.3], [1.0, 0.0, 0.7], [0.0, 0.0, 0.3], [1.25, 0.0, 0.1]])
+    keep = outside_bodies(seen, [(at_1s, track.size_m)], margin_m=0.1)
+    # Its body (and 10 cm round it) goes; above it, and where it no longer is, stays.
+    assert keep.tolist() == [False, True, True, False]

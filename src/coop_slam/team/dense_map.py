@@ -21,6 +21,7 @@ from ..dense import depth_image
 from ..dense.dense_cloud import place, voxel_centroids, voxel_filter
 from ..dense.keyframe_points import points_cam
 from ..dense.occupancy import OccupancyConfig, OccupancyGrid, occupancy_grid
+from ..dense.teammates import BodyTrack, outside_bodies
 from ..errors import CoopSlamError
 from ..geometry import se3
 
@@ -42,6 +43,11 @@ class DenseMapConfig:
     # The floor's height in the world frame [m]: robot 1's map frame is its base_link at start,
     # on the floor for a ground robot (REP-105); a hand-held camera's map is at its start height.
     floor_z_m: float = 0.0
+    # A keyframe's points inside a teammate's body (its description's box, grown by this) at the
+    # keyframe's time are left out: robots are not obstacles (coop_slam.dense.teammates) [m] ...
+    teammate_margin_m: float = 0.1
+    # ... where the teammate has a keyframe within this long of it [s]
+    teammate_max_gap_s: float = 1.5
     grid: OccupancyConfig = field(default_factory=OccupancyConfig)
 
     def validate(self) -> None:
@@ -50,19 +56,24 @@ class DenseMapConfig:
             0 <= self.min_depth_m < self.max_depth_m, "dense: need 0 <= min_depth_m < max_depth_m"
         )
         require(np.isfinite(self.floor_z_m), "dense.floor_z_m must be a finite height [m]")
+        require(self.teammate_margin_m >= 0, "dense.teammate_margin_m must be >= 0 [m]")
+        require(self.teammate_max_gap_s >= 0, "dense.teammate_max_gap_s must be >= 0 [s]")
         self.grid.validate()
 
 
 @dataclass
 class DenseKeyframe:
-    """One keyframe of a snapshot: its key, robot, depth blob (the record's array, not copied),
-    camera, pose in the view frame, and whether its group is the world group."""
+    """One keyframe of a snapshot: its key, robot, stamp, depth blob (the record's array, not
+    copied), camera, pose in the view frame, its group's root and whether that is the world
+    group."""
 
     key: tuple
     robot_id: int
+    stamp_s: float
     blob: np.ndarray
     camera: CameraModel
     T_view_cam: np.ndarray
+    group: int
     in_world: bool
 
 
@@ -109,12 +120,28 @@ class DenseMapBuilder:
         self._decoded[kf.key] = _Decoded(kf.blob, pts)
         return pts
 
-    def build(self, snapshot: list[DenseKeyframe]) -> DenseMap:
+    def _without_teammates(self, kf: DenseKeyframe, pts: np.ndarray, bodies) -> np.ndarray:
+        cfg = self.config
+        others = [
+            (body.pose_at(kf.stamp_s, cfg.teammate_max_gap_s), body.size_m)
+            for body in bodies
+            if body.group == kf.group and body.robot_id != kf.robot_id
+        ]
+        others = [(T, size) for T, size in others if T is not None]
+        if not others or not len(pts):
+            return pts
+        placed = place([(kf.T_view_cam, pts)])
+        return pts[outside_bodies(placed, others, cfg.teammate_margin_m)]
+
+    def build(self, snapshot: list[DenseKeyframe], bodies: list[BodyTrack] = ()) -> DenseMap:
+        """The dense map of a snapshot; ``bodies``: the robots' bodies along their paths, left out
+        of their teammates' keyframes."""
         cfg = self.config
         with self._lock:
             views = [(kf, self._points(kf)) for kf in snapshot]
             for key in set(self._decoded) - {kf.key for kf in snapshot}:
                 del self._decoded[key]  # removed keyframes
+        views = [(kf, self._without_teammates(kf, pts, bodies)) for kf, pts in views]
         placed = place((kf.T_view_cam, pts) for kf, pts in views)
         robots = np.concatenate(
             [np.full(len(pts), kf.robot_id, np.int64) for kf, pts in views] or [np.zeros(0, int)]
@@ -125,3 +152,22 @@ class DenseMapBuilder:
         if world:
             grid = occupancy_grid(world, cfg.grid, se3(t=[0.0, 0.0, -cfg.floor_z_m]))
         return DenseMap(centroids, robots[first], grid, cfg.floor_z_m, len(views))
+
+
+def body_tracks(tracks: dict, bodies: dict) -> list[BodyTrack]:
+    """BodyTracks from (robot, group) -> [(stamp_s, T_view_cam)] and robot -> (T_base_cam, size)."""
+    out = []
+    for (robot_id, group), poses in tracks.items():
+        T_base_cam, size = bodies[robot_id]
+        poses.sort(key=lambda p: p[0])
+        T_cam_base = np.linalg.inv(T_base_cam)
+        out.append(
+            BodyTrack(
+                robot_id,
+                group,
+                np.array([s for s, _ in poses]),
+                np.array([T @ T_cam_base for _, T in poses]),
+                tuple(size),
+            )
+        )
+    return out

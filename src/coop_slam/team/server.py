@@ -35,7 +35,7 @@ from ..geometry import invert
 from ..ids import MapId, RobotId
 from ..wire.record import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE, KeyframeRecord
 from .config import ServerConfig
-from .dense_map import DenseKeyframe, DenseMap, DenseMapBuilder
+from .dense_map import DenseKeyframe, DenseMap, DenseMapBuilder, body_tracks
 from .global_ba import GlobalBaError, GlobalBaResult, count_observations, global_bundle_adjustment
 from .groups import MergeGroups
 from .keyframe_store import KeyframeStore, StoredKeyframe, stored_keyframe
@@ -595,23 +595,35 @@ class TeamServer:
             build_cloud, snapshot, self.config.fuse_radius_m, self.config.cloud_voxel_m
         )
 
-    def dense_map_job(self) -> Callable[[], DenseMap] | None:
+    def dense_map_job(self, bodies: dict | None = None) -> Callable[[], DenseMap] | None:
         """The dense team map as it is now, to build later or in another thread (see
-        :mod:`.dense_map`); None when it is off or no keyframe brought a depth image."""
+        :mod:`.dense_map`); None when it is off or no keyframe brought a depth image.
+        ``bodies``: robot id -> (T_base_cam, body size (x, y, z) [m]) of the robots described,
+        whose bodies their teammates' keyframes leave out."""
         if not self.config.dense.enabled:
             return None
-        offsets = self._offsets()
-        snapshot = [
-            DenseKeyframe(
-                rec.key,
-                rec.robot_id,
-                rec.depth_image,
-                rec.camera,
-                offsets[rec.map_id] @ self.T_group_cam(rec.map_id, rec.keyframe_id),
-                self.in_world(rec.map_id),
-            )
-            for rec in self.store.records()
-            # A monocular map's depth-less keyframes bring none; metres only.
-            if len(rec.depth_image) and self.is_metric(rec.map_id)
-        ]
-        return functools.partial(self.dense.build, snapshot) if snapshot else None
+        offsets, tracks = self._offsets(), {}
+        snapshot = []
+        for rec in self.store.records():
+            if not self.is_metric(rec.map_id):  # metres only
+                continue
+            T_view_cam = offsets[rec.map_id] @ self.T_group_cam(rec.map_id, rec.keyframe_id)
+            group = self.groups.root(rec.map_id)
+            if rec.robot_id in (bodies or {}):
+                tracks.setdefault((rec.robot_id, group), []).append((rec.stamp_s, T_view_cam))
+            if len(rec.depth_image):  # a monocular map's keyframes bring none
+                snapshot.append(
+                    DenseKeyframe(
+                        rec.key,
+                        rec.robot_id,
+                        rec.stamp_s,
+                        rec.depth_image,
+                        rec.camera,
+                        T_view_cam,
+                        group,
+                        self.in_world(rec.map_id),
+                    )
+                )
+        if not snapshot:
+            return None
+        return functools.partial(self.dense.build, snapshot, body_tracks(tracks, bodies or {}))

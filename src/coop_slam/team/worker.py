@@ -617,7 +617,8 @@ class ServerWorker:
         self._map_dirty = self._merge_unshown = False
         if not self.out.wants_team_map:
             return
-        cloud, dense = self.server.team_cloud_job(), self.server.dense_map_job()
+        bodies = {r: (d.T_base_cam, d.body_size_m) for r, d in self.sightings.descriptions.items()}
+        cloud, dense = self.server.team_cloud_job(), self.server.dense_map_job(bodies)
         self.map_builder.submit(lambda: (cloud(), _dense_or_none(dense)), stamp_s)
         self.out.team_map(self._team_map_view(), stamp_s)
 
