@@ -43,7 +43,7 @@ from .paths import CONFIG_DIR
 Figure = tuple[str, float, str]
 # Bump when what the synthesised streams hold changes (client behaviour, message layout): the cache
 # key has it, so an old cache is not replayed as if it were current.
-STREAM_VERSION = "4"
+STREAM_VERSION = "5"  # 5: keyframes carry their depth images (dense map)
 DEFAULT_SCENARIO, DEFAULT_ROBOTS = "multi", 8
 
 
