@@ -60,10 +60,34 @@ def _picture(grid: OccupancyGrid, truth_occupied: np.ndarray | None, path: str) 
     cv2.imwrite(path, cv2.resize(image, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST))
 
 
+def _dense_picture(points: np.ndarray, rgb: np.ndarray, z_slice: tuple, path: str) -> None:
+    """Top view of the dense map coloured by height, beside a 10 cm slice coloured by robot (a
+    wall two robots placed apart is drawn twice there)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (top, cut) = plt.subplots(1, 2, figsize=(14, 6.5))
+    order = np.argsort(points[:, 2])
+    top.scatter(points[order, 0], points[order, 1], c=points[order, 2], s=1, cmap="viridis")
+    top.set_title("dense team map, top view (colour: height)")
+    band = (points[:, 2] >= z_slice[0]) & (points[:, 2] < z_slice[1])
+    cut.scatter(points[band, 0], points[band, 1], c=rgb[band] / 255.0, s=1)
+    cut.set_title(f"slice z {z_slice[0]:.2f}-{z_slice[1]:.2f} m (colour: robot)")
+    for ax in (top, cut):
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def map_results(out_dir: str, run: RunData, truth: DenseTruth | None) -> tuple[dict, str | None]:
-    """Write ``team_map.ply``, ``team_map_dense.ply``, ``grid.pgm`` + ``grid.yaml`` and
-    ``grid.png`` of the run's last team map into ``out_dir``: (the report's dense keys, None where
-    not known; the sparse PLY's path or None)."""
+    """Write ``team_map.ply``, ``team_map_dense.ply`` (with ``dense.png``), ``grid.pgm`` +
+    ``grid.yaml`` and ``grid.png`` of the run's last team map into ``out_dir``: (the report's
+    dense keys, None where not known; the sparse PLY's path or None)."""
     ply = os.path.join(out_dir, "team_map.ply") if run.team_cloud is not None else None
     if ply:
         write_ply(ply, *run.team_cloud)
@@ -75,6 +99,11 @@ def _dense_results(out_dir: str, run: RunData, truth: DenseTruth | None) -> dict
     if run.dense_cloud is not None:
         points, rgb = run.dense_cloud
         write_ply(os.path.join(out_dir, "team_map_dense.ply"), points, rgb)
+        if len(points):
+            # Ground robots: the floor band; else where most of the map is.
+            level = truth is not None and truth.level
+            z = run.grid_z_m + 0.25 if level else float(np.median(points[:, 2]))
+            _dense_picture(points, rgb, (z - 0.05, z + 0.05), os.path.join(out_dir, "dense.png"))
         if truth is not None and len(points):
             d = surface_distances(truth.world, points, truth.T_frame_world)
             out["dense_surface_rmse_m"] = float(np.sqrt(np.mean(d**2)))
