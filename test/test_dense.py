@@ -208,6 +208,10 @@ def test_the_servers_dense_map_places_each_keyframes_depth_by_its_current_pose()
     assert np.median(moved.points[:, 0]) - np.median(dense.points[:, 0]) == pytest.approx(
         1.0, abs=0.03
     )
+    assert moved.robot_grids == {}  # only when asked for
+    server.config.dense.robot_grids = True
+    own = server.dense_map_job()().robot_grids[1]  # robot 1's map is the world frame
+    assert np.array_equal(own.cells, moved.grid.cells) and own.origin_xy_m == moved.grid.origin_xy_m
     server.config.dense.enabled = False
     assert server.dense_map_job() is None
 

@@ -48,7 +48,11 @@ class RosServerOutputs(ServerOutputs):
         from coop_slam.msg import KeyframeAck, KeyframeRequest, MapCorrection, MergeEvent
 
         self._msgs = dict(
-            Path=Path, MapCorrection=MapCorrection, MergeEvent=MergeEvent, Ack=KeyframeAck
+            Path=Path,
+            MapCorrection=MapCorrection,
+            MergeEvent=MergeEvent,
+            Ack=KeyframeAck,
+            OccupancyGrid=OccupancyGrid,
         )
         self._KeyframeRequest = KeyframeRequest
         self.low_bandwidth, self.on_robots = low_bandwidth, on_robots
@@ -63,6 +67,7 @@ class RosServerOutputs(ServerOutputs):
             "/team_map/markers", MarkerArray, queue_size=1, latch=True
         )
         self.pub_path, self.pub_corr, self.pub_ack, self.pub_request = {}, {}, {}, {}
+        self.pub_robot_grid = {}
         self._lock = threading.Lock()  # acknowledgements come from the callback threads too
 
     def robots(self, robot_ids: list[int]) -> None:
@@ -72,6 +77,9 @@ class RosServerOutputs(ServerOutputs):
                     continue
                 self.pub_path[r] = rospy.Publisher(
                     f"/team_map/robot_{r}/path", self._msgs["Path"], queue_size=1, latch=True
+                )
+                self.pub_robot_grid[r] = rospy.Publisher(
+                    f"/robot_{r}/team_grid", self._msgs["OccupancyGrid"], queue_size=1, latch=True
                 )
                 self.pub_corr[r] = rospy.Publisher(
                     f"/robot_{r}/correction", self._msgs["MapCorrection"], queue_size=5, latch=True
@@ -153,6 +161,10 @@ class RosServerOutputs(ServerOutputs):
         self.pub_dense.publish(cloud_to_msg(dense.points, "world", stamp, rgb))
         if dense.grid is not None:
             self.pub_grid.publish(grid_to_msg(dense.grid, "world", stamp, dense.floor_z_m))
+        for r, grid in dense.robot_grids.items():
+            pub = self.pub_robot_grid.get(r)
+            if pub is not None:
+                pub.publish(grid_to_msg(grid, f"robot_{r}/map", stamp))
 
     def team_map(self, view: TeamMapView, stamp_s: float) -> None:
         stamp = rospy.Time.from_sec(stamp_s) if stamp_s else rospy.Time.now()

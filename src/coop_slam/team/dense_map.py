@@ -48,6 +48,9 @@ class DenseMapConfig:
     teammate_margin_m: float = 0.1
     # ... where the teammate has a keyframe within this long of it [s]
     teammate_max_gap_s: float = 1.5
+    # Also each merged robot's grid in its own map frame (/robot_k/team_grid, in robot_k/map),
+    # for a planner that works there: one more grid per robot to build
+    robot_grids: bool = False
     grid: OccupancyConfig = field(default_factory=OccupancyConfig)
 
     def validate(self) -> None:
@@ -87,6 +90,8 @@ class DenseMap:
     grid: OccupancyGrid | None
     floor_z_m: float
     keyframes: int  # keyframes with a depth image in the build
+    # robot id -> the grid in its map frame (DenseMapConfig.robot_grids; z = 0 its floor)
+    robot_grids: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -133,9 +138,15 @@ class DenseMapBuilder:
         placed = place([(kf.T_view_cam, pts)])
         return pts[outside_bodies(placed, others, cfg.teammate_margin_m)]
 
-    def build(self, snapshot: list[DenseKeyframe], bodies: list[BodyTrack] = ()) -> DenseMap:
+    def build(
+        self,
+        snapshot: list[DenseKeyframe],
+        bodies: list[BodyTrack] = (),
+        T_world_maps: dict | None = None,
+    ) -> DenseMap:
         """The dense map of a snapshot; ``bodies``: the robots' bodies along their paths, left out
-        of their teammates' keyframes."""
+        of their teammates' keyframes; ``T_world_maps``: robot id -> its map frame in the world
+        group's, for the robots that want the grid in it."""
         cfg = self.config
         with self._lock:
             views = [(kf, self._points(kf)) for kf in snapshot]
@@ -148,10 +159,12 @@ class DenseMapBuilder:
         )
         centroids, first, _ = voxel_centroids(placed, cfg.voxel_m)
         world = [(kf.T_view_cam, pts) for kf, pts in views if kf.in_world]
-        grid = None
+        grid, robot_grids = None, {}
         if world:
             grid = occupancy_grid(world, cfg.grid, se3(t=[0.0, 0.0, -cfg.floor_z_m]))
-        return DenseMap(centroids, robots[first], grid, cfg.floor_z_m, len(views))
+            for robot_id, T_world_map in (T_world_maps or {}).items():
+                robot_grids[robot_id] = occupancy_grid(world, cfg.grid, np.linalg.inv(T_world_map))
+        return DenseMap(centroids, robots[first], grid, cfg.floor_z_m, len(views), robot_grids)
 
 
 def body_tracks(tracks: dict, bodies: dict) -> list[BodyTrack]:

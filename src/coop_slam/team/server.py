@@ -626,4 +626,11 @@ class TeamServer:
                 )
         if not snapshot:
             return None
-        return functools.partial(self.dense.build, snapshot, body_tracks(tracks, bodies or {}))
+        maps = {r: self.current_map(r) for r in self.known_robots}
+        T_world_maps = {
+            r: self.groups.T_root_map(m)
+            for r, m in maps.items()
+            if self.config.dense.robot_grids and self.in_world(m)
+        }
+        tracks = body_tracks(tracks, bodies or {})
+        return functools.partial(self.dense.build, snapshot, tracks, T_world_maps)
