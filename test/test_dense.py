@@ -226,7 +226,8 @@ def test_a_teammates_body_is_left_out_where_it_was_when_the_keyframe_saw_it():
     )
     at_1s = track.pose_at(1.0, max_gap_s=1.5)
     assert at_1s[:3, 3].tolist() == pytest.approx([1.0, 0.0, 0.0])
-    assert track.pose_at(4.0, max_gap_s=1.5) is None  # no keyframe near: nothing is left out
+    assert track.pose_at(-2.0, max_gap_s=1.5) is None  # before it started: not known
+    assert track.pose_at(9.0, max_gap_s=1.5)[:3, 3].tolist() == [2.0, 0.0, 0.0]  # it stopped
     seen = np.array([[1.0, 0.1, 0.3], [1.0, 0.0, 0.7], [0.0, 0.0, 0.3], [1.25, 0.0, 0.1]])
     keep = outside_bodies(seen, [(at_1s, track.size_m)], margin_m=0.1)
     # Its body (and 10 cm round it) goes; above it, and where it no longer is, stays.

@@ -24,12 +24,14 @@ class BodyTrack:
 
     def pose_at(self, t_s: float, max_gap_s: float) -> np.ndarray | None:
         """base_link at ``t_s``: between the two keyframes around it (position interpolated, the
-        nearer one's orientation), or None when no keyframe lies within ``max_gap_s`` of it."""
+        nearer one's orientation); after its last keyframe, there (a robot that stopped makes no
+        keyframes, and stays where it stopped); None before its first by more than
+        ``max_gap_s``."""
+        if t_s < self.stamps_s[0] - max_gap_s:
+            return None
         k = int(np.searchsorted(self.stamps_s, t_s))
         before, after = max(k - 1, 0), min(k, len(self.stamps_s) - 1)
         gap_before, gap_after = t_s - self.stamps_s[before], self.stamps_s[after] - t_s
-        if min(abs(gap_before), abs(gap_after)) > max_gap_s:
-            return None
         T = self.T_view_base[before if abs(gap_before) <= abs(gap_after) else after].copy()
         span = self.stamps_s[after] - self.stamps_s[before]
         if before != after and span > 0 and 0 <= gap_before <= span:
