@@ -224,11 +224,50 @@ def test_a_teammates_body_is_left_out_where_it_was_when_the_keyframe_saw_it():
     track = BodyTrack(
         2, 1, np.array([0.0, 2.0]), np.stack([se3(t=[0, 0, 0]), se3(t=[2, 0, 0])]), (0.4, 0.3, 0.5)
     )
-    at_1s = track.pose_at(1.0, max_gap_s=1.5)
-    assert at_1s[:3, 3].tolist() == pytest.approx([1.0, 0.0, 0.0])
-    assert track.pose_at(-2.0, max_gap_s=1.5) is None  # before it started: not known
-    assert track.pose_at(9.0, max_gap_s=1.5)[:3, 3].tolist() == [2.0, 0.0, 0.0]  # it stopped
+    at_1s = track.box_at(1.0, max_gap_s=1.5, margin_m=0.1, reach_m=0.5)
+    assert at_1s[0][:3, 3].tolist() == pytest.approx([1.0, 0.0, 0.0])
+    assert track.box_at(-2.0, 1.5, 0.1, 0.5) is None  # before it started: not known
+    T_parked, _, hi = track.box_at(9.0, 1.5, 0.1, 0.5)  # it stopped: where, or a little ahead
+    assert T_parked[:3, 3].tolist() == [2.0, 0.0, 0.0] and hi[0] == pytest.approx(0.2 + 0.1 + 0.5)
     seen = np.array([[1.0, 0.1, 0.3], [1.0, 0.0, 0.7], [0.0, 0.0, 0.3], [1.25, 0.0, 0.1]])
-    keep = outside_bodies(seen, [(at_1s, track.size_m)], margin_m=0.1)
+    keep = outside_bodies(seen, [at_1s])
     # Its body (and 10 cm round it) goes; above it, and where it no longer is, stays.
     assert keep.tolist() == [False, True, True, False]
+
+
+def _grid_points(T_room_cam, noise_m=0.003, seed=0):
+    """A keyframe's decimated depth as an organized point grid (h, w, 3) in its camera frame."""
+    image = depth_image.decimate(room_depth_image(T_room_cam, CAM, noise_m, seed), 8)
+    small = image.camera(CAM)
+    v, u = np.mgrid[0 : small.height, 0 : small.width]
+    z = np.where(image.depth_m > 0, image.depth_m, np.nan)
+    return np.stack([(u - small.cx) * z / small.fx, (v - small.cy) * z / small.fy, z], -1)
+
+
+def test_depth_icp_registers_views_far_apart_and_refuses_a_lone_wall():
+    from coop_slam.geometry import invert, se3, transform_error
+    from coop_slam.registration.depth_icp import grid_normals, register_depth
+
+    T_a = looking_out_pose(0.6, (1.5, 2.0), 1.0)
+    T_b = looking_out_pose(1.3, (2.5, 1.5), 1.0)  # 40 deg apart: ORB would rarely match
+    points_a, normals_a = grid_normals(_grid_points(T_a, seed=1))
+    grid_b = _grid_points(T_b, seed=2)
+    points_b = grid_b[np.isfinite(grid_b[..., 2])]
+    truth = invert(T_a) @ T_b
+    seed = se3(exp_so3_deg([0.0, 2.0, 0.0]), [0.05, -0.03, 0.04]) @ truth
+    res = register_depth(points_a, normals_a, points_b, seed)
+    assert res.accepted, res.reason
+    dt, dr = transform_error(res.T_a_b, truth)
+    assert dt < 0.005 and dr < 0.2, (dt, dr)
+    assert 0 < res.sigma_trans_m < 0.02 and 0 < res.sigma_rot_deg < 1.0
+    # The same view of a wall alone (points on one plane): it could slide along it.
+    on_wall = np.abs(normals_a[:, 2]) < 2  # all
+    wall = points_a[on_wall] * [1, 1, 0] + [0, 0, 2.0]
+    lone = register_depth(wall, np.tile([0, 0, -1.0], (len(wall), 1)), wall[::2], np.eye(4))
+    assert not lone.accepted and "direction" in lone.reason
+
+
+def exp_so3_deg(deg_xyz):
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_euler("xyz", deg_xyz, degrees=True).as_matrix()

@@ -22,36 +22,38 @@ class BodyTrack:
     T_view_base: np.ndarray
     size_m: tuple[float, float, float]
 
-    def pose_at(self, t_s: float, max_gap_s: float) -> np.ndarray | None:
-        """base_link at ``t_s``: between the two keyframes around it (position interpolated, the
-        nearer one's orientation); after its last keyframe, there (a robot that stopped makes no
-        keyframes, and stays where it stopped); None before its first by more than
-        ``max_gap_s``."""
-        if t_s < self.stamps_s[0] - max_gap_s:
+    def box_at(
+        self, t_s: float, max_gap_s: float, margin_m: float, reach_m: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """(T_view_base, box low, box high corner in base_link) of the body at ``t_s``: between
+        the two keyframes around it (position interpolated, the nearer one's orientation); after
+        its last keyframe, there, and up to ``reach_m`` ahead (a robot that stops makes no
+        keyframes, and it stops up to a keyframe's distance past its last one); None before its
+        first by more than ``max_gap_s``. The box is grown by ``margin_m``."""
+        stamps = self.stamps_s
+        if t_s < stamps[0] - max_gap_s:
             return None
-        k = int(np.searchsorted(self.stamps_s, t_s))
-        before, after = max(k - 1, 0), min(k, len(self.stamps_s) - 1)
-        gap_before, gap_after = t_s - self.stamps_s[before], self.stamps_s[after] - t_s
+        k = int(np.searchsorted(stamps, t_s))
+        before, after = max(k - 1, 0), min(k, len(stamps) - 1)
+        gap_before, gap_after = t_s - stamps[before], stamps[after] - t_s
         T = self.T_view_base[before if abs(gap_before) <= abs(gap_after) else after].copy()
-        span = self.stamps_s[after] - self.stamps_s[before]
+        span = stamps[after] - stamps[before]
         if before != after and span > 0 and 0 <= gap_before <= span:
             w = gap_before / span
-            T[:3, 3] = (1 - w) * self.T_view_base[before][:3, 3] + w * self.T_view_base[after][
-                :3, 3
-            ]
-        return T
+            T[:3, 3] = (1 - w) * self.T_view_base[before][:3, 3]
+            T[:3, 3] += w * self.T_view_base[after][:3, 3]
+        sx, sy, sz = self.size_m
+        lo = np.array([-sx / 2 - margin_m, -sy / 2 - margin_m, -margin_m])
+        hi = np.array([sx / 2 + margin_m, sy / 2 + margin_m, sz + margin_m])
+        if t_s > stamps[-1]:
+            hi[0] += reach_m
+        return T, lo, hi
 
 
-def outside_bodies(
-    points_view: np.ndarray, bodies_T_view_base: list[tuple[np.ndarray, tuple]], margin_m: float
-) -> np.ndarray:
-    """Mask (N,) of the points outside every body (T_view_base, size) grown by ``margin_m``."""
+def outside_bodies(points_view: np.ndarray, boxes: list[tuple]) -> np.ndarray:
+    """Mask (N,) of the points outside every box (T_view_base, low, high corner in base_link)."""
     keep = np.ones(len(points_view), bool)
-    for T, (sx, sy, sz) in bodies_T_view_base:
+    for T, lo, hi in boxes:
         local = (points_view - T[:3, 3]) @ T[:3, :3]
-        inside = (np.abs(local[:, 0]) <= sx / 2 + margin_m) & (
-            np.abs(local[:, 1]) <= sy / 2 + margin_m
-        )
-        inside &= (local[:, 2] >= -margin_m) & (local[:, 2] <= sz + margin_m)
-        keep &= ~inside
+        keep &= ~np.all((local >= lo) & (local <= hi), axis=1)
     return keep

@@ -48,6 +48,9 @@ class DenseMapConfig:
     teammate_margin_m: float = 0.1
     # ... where the teammate has a keyframe within this long of it [s]
     teammate_max_gap_s: float = 1.5
+    # ... and after its last keyframe, also this far ahead of it (it stops up to a keyframe's
+    # distance on) [m]
+    teammate_reach_m: float = 0.5
     # Also each merged robot's grid in its own map frame (/robot_k/team_grid, in robot_k/map),
     # for a planner that works there: one more grid per robot to build
     robot_grids: bool = False
@@ -61,6 +64,7 @@ class DenseMapConfig:
         require(np.isfinite(self.floor_z_m), "dense.floor_z_m must be a finite height [m]")
         require(self.teammate_margin_m >= 0, "dense.teammate_margin_m must be >= 0 [m]")
         require(self.teammate_max_gap_s >= 0, "dense.teammate_max_gap_s must be >= 0 [s]")
+        require(self.teammate_reach_m >= 0, "dense.teammate_reach_m must be >= 0 [m]")
         self.grid.validate()
 
 
@@ -127,16 +131,17 @@ class DenseMapBuilder:
 
     def _without_teammates(self, kf: DenseKeyframe, pts: np.ndarray, bodies) -> np.ndarray:
         cfg = self.config
-        others = [
-            (body.pose_at(kf.stamp_s, cfg.teammate_max_gap_s), body.size_m)
+        boxes = [
+            body.box_at(
+                kf.stamp_s, cfg.teammate_max_gap_s, cfg.teammate_margin_m, cfg.teammate_reach_m
+            )
             for body in bodies
             if body.group == kf.group and body.robot_id != kf.robot_id
         ]
-        others = [(T, size) for T, size in others if T is not None]
-        if not others or not len(pts):
+        boxes = [box for box in boxes if box is not None]
+        if not boxes or not len(pts):
             return pts
-        placed = place([(kf.T_view_cam, pts)])
-        return pts[outside_bodies(placed, others, cfg.teammate_margin_m)]
+        return pts[outside_bodies(place([(kf.T_view_cam, pts)]), boxes)]
 
     def build(
         self,
