@@ -271,3 +271,49 @@ def exp_so3_deg(deg_xyz):
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_euler("xyz", deg_xyz, degrees=True).as_matrix()
+
+
+def test_merged_robots_views_orb_cannot_match_are_linked_on_their_depth():
+    """Two robots' keyframes of one room from 40 deg apart, with descriptors that match nothing:
+    the overlap link falls back to their depth images and finds their relative pose; with depth
+    links off there is no link."""
+    from coop_slam.bow.database import DatabaseConfig
+    from coop_slam.geometry import invert, transform_error
+    from coop_slam.team.keyframe_store import KeyframeStore, stored_keyframe
+    from coop_slam.team.overlap_links import OverlapLinkConfig, OverlapLinks
+    from helpers import make_keyframe, team_vocabulary
+
+    poses = {
+        (1, 1): looking_out_pose(0.6, (1.5, 2.0), 1.0),
+        (2, 1): looking_out_pose(1.3, (2.5, 1.5), 1.0),
+    }
+    records = []
+    for seed, (map_id, kf_id) in enumerate(poses):
+        rec = make_keyframe(n=300, robot_id=map_id, keyframe_id=kf_id, seed=seed)
+        depth = room_depth_image(poses[map_id, kf_id], rec.camera, 0.003, seed)
+        blob = depth_image.encode(depth_image.decimate(depth, 8), 0.01)
+        rec.depth_image = np.frombuffer(blob, np.uint8)
+        records.append(rec)
+    store = KeyframeStore(team_vocabulary(records), DatabaseConfig())
+    for rec in records:
+        store.add(stored_keyframe(rec, rec.robot_id))
+    # The team map's estimate: robot 2's keyframe 3 cm and 1 deg off.
+    predicted = dict(poses)
+    predicted[2, 1] = poses[2, 1] @ se3_about_z(1.0, [0.03, 0.0, 0.0])
+    links = OverlapLinks(OverlapLinkConfig(), store, predicted.__getitem__)
+    v = links.verify((1, 1), (2, 1), 0.0)
+    assert v is not None and v.result.reason == "depth" and links.depth_verifications == 1
+    dt, dr = transform_error(v.result.T_a_b, invert(poses[1, 1]) @ poses[2, 1])
+    assert dt < 0.005 and dr < 0.2, (dt, dr)
+    assert (
+        OverlapLinks(OverlapLinkConfig(depth_max_m=0.0), store, predicted.__getitem__).verify(
+            (1, 1), (2, 1), 0.0
+        )
+        is None
+    )
+
+
+def se3_about_z(deg, t):
+    from coop_slam.geometry import se3
+
+    return se3(exp_so3_deg([0.0, 0.0, deg]), t)

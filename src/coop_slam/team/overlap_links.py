@@ -15,7 +15,9 @@ Two uses, one mechanism:
 
 The prediction picks the pair and seeds the registration (3D-3D with the predicted pose as one more
 hypothesis, then descriptor ICP and BA; a similarity, unseeded, for a monocular keyframe); the
-registration, not the prediction, is the constraint.
+registration, not the prediction, is the constraint. Where ORB finds no match and both keyframes
+brought depth images, the pair is registered on its depth instead (point-to-plane ICP from the
+prediction, :mod:`coop_slam.registration.depth_icp`): views far apart, plain walls.
 A result far from the prediction is refused: the estimate it contradicts rests on verified merges.
 """
 
@@ -28,9 +30,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import require
+from ..dense.depth_image import DepthImageError, decode
+from ..dense.keyframe_points import points_grid
 from ..geometry import invert, transform_error, transform_points
 from ..ids import KeyframeKey
-from ..registration.relative_pose import RegistrationConfig, estimate_3d3d
+from ..registration.depth_icp import DepthIcpConfig, grid_normals, register_depth
+from ..registration.relative_pose import RegistrationConfig, RelativePoseResult, estimate_3d3d
 from .keyframe_store import KeyframeStore
 from .map_scale import register_pair
 from .results import TYPE_OVERLAP, Verified
@@ -65,6 +70,10 @@ class OverlapLinkConfig:
     gate_trans_m: float = 0.15
     gate_rot_deg: float = 5.0
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    # Where ORB does not match and both keyframes brought depth images: register them on their
+    # depth (coop_slam.registration.depth_icp), up to this range [m]; 0 = never.
+    depth_max_m: float = 4.0
+    depth_icp: DepthIcpConfig = field(default_factory=DepthIcpConfig)
 
     def validate(self) -> None:
         require(0 < self.min_shared <= 1, "links.min_shared must be in (0, 1]")
@@ -74,6 +83,8 @@ class OverlapLinkConfig:
         require(self.gate_trans_m > 0, "links.gate_trans_m must be > 0")
         require(self.gate_rot_deg > 0, "links.gate_rot_deg must be > 0")
         self.registration.validate()
+        require(self.depth_max_m >= 0, "links.depth_max_m must be >= 0 [m] (0 = no depth links)")
+        self.depth_icp.validate()
 
 
 def shared_view(
@@ -113,6 +124,7 @@ class OverlapLinks:
         self.store = store
         self._T_group_cam = T_group_cam
         self.verifications = 0
+        self.depth_verifications = 0  # pairs ORB could not register, tried on their depth
 
     def _points(self, key: KeyframeKey) -> np.ndarray:
         view = self.store.view(key)
@@ -181,7 +193,9 @@ class OverlapLinks:
         )
         if not res.accepted:
             log.debug("overlap link %s - %s: %s", key_a, key_b, res.reason)
-            return None
+            res = self._on_depth(key_a, key_b, T_pred)
+            if res is None:
+                return None
         dt, dr = transform_error(res.T_a_b, T_pred)
         if dt > cfg.gate_trans_m or dr > cfg.gate_rot_deg:
             log.info(
@@ -193,6 +207,40 @@ class OverlapLinks:
             )
             return None
         return Verified(TYPE_OVERLAP, key_a, key_b, res, stamp_s)
+
+    def _on_depth(
+        self, key_a: KeyframeKey, key_b: KeyframeKey, T_pred
+    ) -> RelativePoseResult | None:
+        """The pair registered on the keyframes' depth images (None: one has none, or it fails)."""
+        cfg = self.config
+        rec_a, rec_b = self.store.record(key_a), self.store.record(key_b)
+        if cfg.depth_max_m == 0 or not (len(rec_a.depth_image) and len(rec_b.depth_image)):
+            return None
+        try:
+            grid_a, grid_b = (
+                points_grid(decode(rec.depth_image.tobytes()), rec.camera, 0.1, cfg.depth_max_m)
+                for rec in (rec_a, rec_b)
+            )
+        except DepthImageError as exc:
+            log.warning("depth link %s - %s: %s", key_a, key_b, exc)
+            return None
+        points_a, normals_a = grid_normals(grid_a)
+        icp = register_depth(
+            points_a, normals_a, grid_b[np.isfinite(grid_b[..., 2])], T_pred, cfg.depth_icp
+        )
+        self.depth_verifications += 1
+        if not icp.accepted:
+            log.debug("depth link %s - %s: %s", key_a, key_b, icp.reason)
+            return None
+        return RelativePoseResult(
+            True,
+            "depth",
+            icp.T_a_b,
+            n_inliers=icp.n_pairs,
+            rmse_3d_m=icp.rms_m,
+            sigma_rot_deg=icp.sigma_rot_deg,
+            sigma_trans_m=icp.sigma_trans_m,
+        )
 
     def window(self, key: KeyframeKey) -> list[KeyframeKey]:
         """The keyframe's covisible neighbours (same robot, stored), most covisible first, up to
