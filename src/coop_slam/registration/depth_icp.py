@@ -26,7 +26,9 @@ from .camera import RegistrationError
 
 @dataclass
 class DepthIcpConfig:
-    max_iterations: int = 30
+    """Point-to-plane ICP between two keyframes' depth images (``server.links.depth_icp``)."""
+
+    max_iterations: int = 30  # Gauss-Newton steps at most
     start_gate_m: float = 0.15  # nearest-neighbour gate of the first iteration [m] ...
     end_gate_m: float = 0.04  # ... shrinking to this one [m]
     huber_m: float = 0.01  # Huber kernel width [m]
