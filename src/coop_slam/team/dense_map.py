@@ -39,7 +39,8 @@ class DenseMapConfig:
     enabled: bool = True  # build and publish them from the keyframes' depth images
     voxel_m: float = 0.05  # voxel size of the dense cloud [m]
     min_depth_m: float = 0.1  # depth used from the keyframes' images [m] ...
-    max_depth_m: float = 4.0  # ... up to this (farther depth is noisy and smears surfaces)
+    # ... up to this: a cap; each camera's own range is its client's (vo.dense.max_depth_m)
+    max_depth_m: float = 30.0
     # The floor's height in the world frame [m]: robot 1's map frame is its base_link at start,
     # on the floor for a ground robot (REP-105); a hand-held camera's map is at its start height.
     floor_z_m: float = 0.0

@@ -25,7 +25,7 @@ class DenseDepthConfig:
     # keyframes held back); a 5 cm grid cell still gets a depth per cell out to ~4 m.
     width_px: int = 80
     step_m: float = 0.01  # depth quantization step [m]
-    max_depth_m: float = 6.0  # farther depth is left out (noisy, and it costs bytes) [m]
+    max_depth_m: float = 4.0  # farther depth is left out (noisy, and it costs bytes) [m]
     # Stereo: semi-global matching down to this depth (its disparity range, at most a quarter of
     # the matched image's width) [m]
     stereo_min_depth_m: float = 0.4
