@@ -313,3 +313,22 @@ def depth_blob(seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     depth = (2.0 + 0.01 * rng.standard_normal((48, 64))).astype(np.float32)
     return np.frombuffer(depth_image.encode(depth_image.DepthImage(depth, 4), 0.01), np.uint8)
+
+
+def cylinder_depth_blob(rec: KeyframeRecord, radius_m: float = 5.0) -> np.ndarray:
+    """The depth image blob (dense.depth_image, 80 x 60) of a team_keyframes keyframe looking out
+    at the cylinder world's wall (radius ``radius_m`` about the world's z axis)."""
+    from coop_slam.dense import depth_image
+
+    cam = rec.camera
+    T = TEAM_T_WORLD_MAP[rec.robot_id] @ rec.T_map_cam
+    v, u = np.mgrid[0 : cam.height, 0 : cam.width]
+    rays = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones(u.shape)], -1)
+    d = rays.reshape(-1, 3) @ T[:3, :3].T  # z = 1 along the optical axis: t is the depth
+    c = T[:3, 3]
+    a = d[:, 0] ** 2 + d[:, 1] ** 2
+    b = 2 * (c[0] * d[:, 0] + c[1] * d[:, 1])
+    disc = b**2 - 4 * a * (c[0] ** 2 + c[1] ** 2 - radius_m**2)
+    depth = ((-b + np.sqrt(np.maximum(disc, 0))) / (2 * np.maximum(a, 1e-12))).reshape(u.shape)
+    small = depth_image.decimate(depth.astype(np.float32), 8)
+    return np.frombuffer(depth_image.encode(small, 0.01), np.uint8)

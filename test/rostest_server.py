@@ -16,7 +16,7 @@ import numpy as np
 import rospy
 import rostest
 import tf2_ros
-from nav_msgs.msg import Path
+from nav_msgs.msg import OccupancyGrid, Path
 from rosgraph_msgs.msg import Log
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
@@ -28,14 +28,23 @@ from coop_slam.msg import KeyframeMessage, MapCorrection, MergeEvent  # noqa: E4
 from coop_slam.ros.convert import cloud_from_msg, pose_from_msg, transform_from_msg  # noqa: E402
 from coop_slam.ros.wire_bridge import to_ros  # noqa: E402
 from coop_slam.wire.codec import encode  # noqa: E402
-from helpers import TEAM_T_WORLD_MAP, cylinder_world, team_keyframes, wait_until  # noqa: E402
+from helpers import (  # noqa: E402
+    TEAM_T_WORLD_MAP,
+    cylinder_depth_blob,
+    cylinder_world,
+    team_keyframes,
+    wait_until,
+)
 
 
 class ServerTeamMapTest(unittest.TestCase):
     def test_team_map_after_merge(self):
         rospy.init_node("server_test")
         got, rosout = {}, []
-        event = {k: threading.Event() for k in ("merge", "cloud", "markers", "corr", "path")}
+        event = {
+            k: threading.Event()
+            for k in ("merge", "cloud", "markers", "corr", "path", "dense", "grid")
+        }
 
         def keep(name, ready=lambda m: True):
             def cb(msg):
@@ -70,6 +79,10 @@ class ServerTeamMapTest(unittest.TestCase):
                 keep("path", lambda m: m.header.frame_id == "world" and len(m.poses) == 8),
             ),
             rospy.Subscriber("/server/stats", String, keep("stats")),
+            rospy.Subscriber(
+                "/team_map/dense", PointCloud2, keep("dense", lambda m: m.width * m.height > 100)
+            ),
+            rospy.Subscriber("/team_map/grid", OccupancyGrid, keep("grid")),
         ]
         subs.append(rospy.Subscriber("/rosout", Log, lambda m: rosout.append(m.msg)))
         buf = tf2_ros.Buffer()
@@ -103,6 +116,9 @@ class ServerTeamMapTest(unittest.TestCase):
         )
         from coop_slam.msg import KeyframeAck
 
+        for kf in kfs:  # each brings its depth image: the server's dense map and grid (of a
+            # wall nearer than the features', within the grid's 4 m range)
+            kf.depth_image = cylinder_depth_blob(kf, radius_m=3.5)
         acks = []
         subs.append(rospy.Subscriber("/robot_2/keyframe_ack", KeyframeAck, acks.append))
         msgs = []
@@ -145,6 +161,13 @@ class ServerTeamMapTest(unittest.TestCase):
 
         xyz = transform_points(TEAM_T_WORLD_MAP[1], cloud_from_msg(got["cloud"]))
         self.assertLess(np.median(np.abs(np.linalg.norm(xyz[:, :2], axis=1) - 5.0)), 0.05)
+        # The dense map lies on the cylinder too; the grid is in world (cameras at 1.2 m: the
+        # floor band sees the wall below them).
+        xyz = transform_points(TEAM_T_WORLD_MAP[1], cloud_from_msg(got["dense"]))
+        self.assertLess(np.median(np.abs(np.linalg.norm(xyz[:, :2], axis=1) - 3.5)), 0.03)
+        grid = got["grid"]
+        self.assertEqual(grid.header.frame_id, "world")
+        self.assertGreater(sum(1 for c in grid.data if c == 100), 100)
         # Why the server merged is logged by the core, and a user must see it (console, rqt).
         wait_until(
             lambda: any("merged robot 2 into robot 1's map" in m for m in rosout),
