@@ -32,7 +32,11 @@ class DepthIcpConfig:
     start_gate_m: float = 0.15  # nearest-neighbour gate of the first iteration [m] ...
     end_gate_m: float = 0.04  # ... shrinking to this one [m]
     huber_m: float = 0.01  # Huber kernel width [m]
-    min_overlap: float = 0.3  # share of the moving points paired at the end
+    min_overlap: float = 0.25  # share of the moving points paired at the end
+    # Settled when a step at the final gate moves less than this [m] and this [rad]: real depth
+    # re-pairs a few points every step, so steps do not shrink to nothing.
+    settle_m: float = 0.001
+    settle_rad: float = 0.001
     max_rms_m: float = 0.02  # RMS point-to-plane residual of the pairs at the end [m]
     max_sigma_trans_m: float = 0.02  # the weakest direction's translation sigma [m] ...
     max_sigma_rot_deg: float = 1.0  # ... and rotation sigma [deg]
@@ -123,8 +127,8 @@ def register_depth(
         T = step @ T
         if (
             gate <= cfg.end_gate_m * 1.0001
-            and np.linalg.norm(delta[3:]) < 1e-4
-            and np.linalg.norm(delta[:3]) < 1e-4
+            and np.linalg.norm(delta[3:]) < cfg.settle_m
+            and np.linalg.norm(delta[:3]) < cfg.settle_rad
         ):
             settled = True
             break

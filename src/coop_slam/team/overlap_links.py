@@ -73,6 +73,9 @@ class OverlapLinkConfig:
     # Where ORB does not match and both keyframes brought depth images: register them on their
     # depth (coop_slam.registration.depth_icp), up to this range [m]; 0 = never.
     depth_max_m: float = 4.0
+    # ... and pairs whose views are this far apart are tried when both have depth images [deg]
+    # (geometry overlaps where descriptors no longer match)
+    depth_max_view_angle_deg: float = 75.0
     depth_icp: DepthIcpConfig = field(default_factory=DepthIcpConfig)
 
     def validate(self) -> None:
@@ -84,6 +87,10 @@ class OverlapLinkConfig:
         require(self.gate_rot_deg > 0, "links.gate_rot_deg must be > 0")
         self.registration.validate()
         require(self.depth_max_m >= 0, "links.depth_max_m must be >= 0 [m] (0 = no depth links)")
+        require(
+            0 < self.depth_max_view_angle_deg <= 180,
+            "links.depth_max_view_angle_deg must be in (0, 180]",
+        )
         self.depth_icp.validate()
 
 
@@ -151,11 +158,17 @@ class OverlapLinks:
         rec_b = self.store.record(key_b)
         max_angle = cfg.max_view_angle_deg if max_angle_deg is None else max_angle_deg
         cos_max = np.cos(np.radians(min(max_angle, 180.0)))
+        # Both with depth images: their depth may register where descriptors do not match.
+        cos_depth = np.cos(np.radians(max(max_angle, cfg.depth_max_view_angle_deg)))
+        depth_b = cfg.depth_max_m > 0 and len(rec_b.depth_image) > 0
         scored = []
         for key_a in candidates:
             T_g_a = self._T_group_cam(key_a)
             # Optical axes apart by more than the angle: no descriptor would match anyway.
-            if float(T_g_a[:3, 2] @ T_g_b[:3, 2]) < cos_max:
+            cos = float(T_g_a[:3, 2] @ T_g_b[:3, 2])
+            if cos < cos_max and not (
+                cos >= cos_depth and depth_b and len(self.store.record(key_a).depth_image)
+            ):
                 continue
             T_a_b = invert(T_g_a) @ T_g_b
             rec_a = self.store.record(key_a)
@@ -297,13 +310,25 @@ class OverlapLinks:
         self, robots_a: set[int], robots_b: set[int], stamp_s: float, tried: set
     ) -> list[Verified]:
         """Pairs across the whole overlap of two just-merged sides, not only around the matched
-        keyframes: b-side keyframes spread evenly over its arrival order, each against the a-side
+        keyframes, for every pair of maps across them (else the map nearest to most of the other
+        side's keyframes would take every link): see :meth:`_sweep_pair`. A merge late in a run
+        has no new keyframes after it to link by."""
+        found: list[Verified] = []
+        if self.config.sweep_pairs == 0:
+            return found
+        for map_a in sorted(robots_a):
+            for map_b in sorted(robots_b):
+                found += self._sweep_pair({map_a}, {map_b}, stamp_s, tried)
+        return found
+
+    def _sweep_pair(
+        self, robots_a: set[int], robots_b: set[int], stamp_s: float, tried: set
+    ) -> list[Verified]:
+        """b-side keyframes spread evenly over its arrival order, each against the a-side
         keyframe that sees most of its scene, until ``sweep_pairs`` hold (at most twice as many
-        tried). A merge late in a run has no new keyframes after it to link by."""
+        tried)."""
         cfg = self.config
         found: list[Verified] = []
-        if cfg.sweep_pairs == 0:
-            return found
         keys_a = [k for k in self.store.keys() if k[0] in robots_a]
         keys_b = [k for k in self.store.keys() if k[0] in robots_b]
         # Evenly spread samples bound the cost (each scores every a-side keyframe).
