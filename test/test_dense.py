@@ -155,7 +155,7 @@ def test_rgbd_and_stereo_keyframes_bring_the_depth_they_saw_and_monocular_ones_n
     from coop_slam.geometry import se3
     from coop_slam.vo.dense_depth import DenseDepthConfig, depth_image_blob
 
-    config = DenseDepthConfig()
+    config = DenseDepthConfig(stereo_max_baselines=40.0)  # the room is 24-31 baselines away
     planes = helpers_vo.room(np.random.default_rng(0))
     left, right, depth = _pair(planes, se3(t=[0.1, -0.1, 0.3]))
     gray = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY)
@@ -172,6 +172,10 @@ def test_rgbd_and_stereo_keyframes_bring_the_depth_they_saw_and_monocular_ones_n
         rel = np.abs(got.depth_m[both] - truth[both]) / truth[both]
         assert np.median(rel) < within, (sensor, np.median(rel))
     assert depth_image_blob(config, "mono", STEREO, gray, None, registered=True) == b""
+    near = depth_image.decode(
+        depth_image_blob(DenseDepthConfig(), "stereo", STEREO, gray, second, registered=True)
+    )
+    assert 0 < near.depth_m.max() <= 25 * STEREO.baseline_m  # stereo: 25 baselines by default
     assert depth_image_blob(config, "rgbd", STEREO, gray, depth, registered=False) == b""
     off = DenseDepthConfig(width_px=0)
     assert depth_image_blob(off, "rgbd", STEREO, gray, depth, registered=True) == b""
