@@ -170,7 +170,7 @@ def synthesized_streams(
     finally:
         cv2.setNumThreads(threads)
     # Stable: a robot's messages of one frame stay in their sending order.
-    arrivals.sort(key=lambda a: (a.t_s, a.robot_id, a.sequence))
+    arrivals.sort(key=lambda a: (a.t_s, a.robot_id, a.msg.sequence))
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path + ".tmp", "wb") as fh:
         pickle.dump(arrivals, fh, protocol=pickle.HIGHEST_PROTOCOL)
