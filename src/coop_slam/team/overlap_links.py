@@ -63,9 +63,10 @@ class OverlapLinkConfig:
     # Keyframes on each side of a merge's matched pair (their covisible neighbours, most covisible
     # first) registered against the other side right after the merge; 0 = no welding.
     weld_window: int = 3
-    # Links a merge also looks for across the whole overlap of the two sides (see sweep);
-    # 0 = none.
-    sweep_pairs: int = 8
+    # Links a merge also looks for across the whole overlap of the two sides, per pair of maps
+    # (see sweep); 0 = none. A late merge of maps whose views ORB rarely matches has only these
+    # to be held by (issue #48's note).
+    sweep_pairs: int = 16
     # A guided registration further than this from the prediction is refused [m], [deg].
     gate_trans_m: float = 0.15
     gate_rot_deg: float = 5.0
