@@ -8,14 +8,14 @@ import os
 
 import numpy as np
 
-from .occupancy import FREE, OCCUPIED, OccupancyGrid
+from .occupancy import FREE, OCCUPIED, UNKNOWN, OccupancyGrid
 
-_PIXEL = {OCCUPIED: 0, FREE: 254, -1: 205}  # map_server's trinary convention
+_PIXEL = {OCCUPIED: 0, FREE: 254, UNKNOWN: 205}  # map_server's trinary convention
 
 
 def grid_image(grid: OccupancyGrid) -> np.ndarray:
     """The grid as a uint8 image, top row = largest y (as an image viewer shows a map)."""
-    image = np.full(grid.cells.shape, _PIXEL[-1], np.uint8)
+    image = np.full(grid.cells.shape, _PIXEL[UNKNOWN], np.uint8)
     image[grid.cells == OCCUPIED] = _PIXEL[OCCUPIED]
     image[grid.cells == FREE] = _PIXEL[FREE]
     return image[::-1]

@@ -31,12 +31,5 @@ def points_grid(image: DepthImage, camera: CameraModel, min_m: float, max_m: flo
 def points_cam(image: DepthImage, camera: CameraModel, min_m: float, max_m: float) -> np.ndarray:
     """(N, 3) float32 points of the pixels with a depth in [min_m, max_m]; ``camera`` is the
     full-resolution model the image was decimated from."""
-    small = image.camera(camera)
-    depth = image.depth_m
-    if depth.shape != (small.height, small.width):
-        raise DepthImageError(f"depth image {depth.shape} does not match its camera model")
-    v, u = np.nonzero((depth >= min_m) & (depth <= max_m))
-    z = depth[v, u].astype(np.float32)
-    x = (u.astype(np.float32) - np.float32(small.cx)) * z / np.float32(small.fx)
-    y = (v.astype(np.float32) - np.float32(small.cy)) * z / np.float32(small.fy)
-    return np.stack([x, y, z], axis=1)
+    grid = points_grid(image, camera, min_m, max_m)
+    return grid[np.isfinite(grid[..., 2])]

@@ -52,10 +52,11 @@ def dense_truth(world: dict | None, T_frame_world: np.ndarray) -> DenseTruth | N
 
 def _picture(grid: OccupancyGrid, truth_occupied: np.ndarray | None, path: str) -> None:
     """The grid as seen in RViz (occupied dark, free light, unknown grey), true obstacles red."""
-    image = cv2.cvtColor(grid_image(grid), cv2.COLOR_GRAY2BGR)
+    grey = grid_image(grid)
+    image = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
     if truth_occupied is not None:
         image[truth_occupied[::-1]] = (40, 40, 220)
-        image[(grid_image(grid) == 0) & truth_occupied[::-1]] = (0, 0, 0)
+        image[(grey == 0) & truth_occupied[::-1]] = (0, 0, 0)
     k = max(1, min(_PICTURE_PX_PER_CELL, 2400 // max(image.shape)))
     cv2.imwrite(path, cv2.resize(image, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST))
 

@@ -28,10 +28,6 @@ from ..geometry import se3
 log = logging.getLogger(__name__)
 
 
-class DenseMapError(CoopSlamError):
-    """A keyframe's depth image the dense map cannot use (named by robot and keyframe)."""
-
-
 @dataclass
 class DenseMapConfig:
     """Section ``server.dense``: the dense team map and its occupancy grid."""
@@ -130,8 +126,10 @@ class DenseMapBuilder:
         self._decoded[kf.key] = _Decoded(kf.blob, pts)
         return pts
 
-    def _without_teammates(self, kf: DenseKeyframe, pts: np.ndarray, bodies) -> np.ndarray:
+    def _placed(self, kf: DenseKeyframe, pts: np.ndarray, bodies) -> tuple[np.ndarray, np.ndarray]:
+        """(points_cam, points_view) of a keyframe, without those in a teammate's body."""
         cfg = self.config
+        placed = place([(kf.T_view_cam, pts)])
         boxes = [
             body.box_at(
                 kf.stamp_s, cfg.teammate_max_gap_s, cfg.teammate_margin_m, cfg.teammate_reach_m
@@ -141,8 +139,9 @@ class DenseMapBuilder:
         ]
         boxes = [box for box in boxes if box is not None]
         if not boxes or not len(pts):
-            return pts
-        return pts[outside_bodies(place([(kf.T_view_cam, pts)]), boxes)]
+            return pts, placed
+        keep = outside_bodies(placed, boxes)
+        return pts[keep], placed[keep]
 
     def build(
         self,
@@ -158,13 +157,13 @@ class DenseMapBuilder:
             views = [(kf, self._points(kf)) for kf in snapshot]
             for key in set(self._decoded) - {kf.key for kf in snapshot}:
                 del self._decoded[key]  # removed keyframes
-        views = [(kf, self._without_teammates(kf, pts, bodies)) for kf, pts in views]
-        placed = place((kf.T_view_cam, pts) for kf, pts in views)
+        kept = [(kf, *self._placed(kf, pts, bodies)) for kf, pts in views]
+        placed = np.concatenate([p for *_, p in kept] or [np.zeros((0, 3), np.float32)])
         robots = np.concatenate(
-            [np.full(len(pts), kf.robot_id, np.int64) for kf, pts in views] or [np.zeros(0, int)]
+            [np.full(len(p), kf.robot_id, np.int64) for kf, _, p in kept] or [np.zeros(0, int)]
         )
         centroids, first, _ = voxel_centroids(placed, cfg.voxel_m)
-        world = [(kf.T_view_cam, pts) for kf, pts in views if kf.in_world]
+        world = [(kf.T_view_cam, pts) for kf, pts, _ in kept if kf.in_world]
         grid, robot_grids = None, {}
         if world:
             grid = occupancy_grid(world, cfg.grid, se3(t=[0.0, 0.0, -cfg.floor_z_m]))
