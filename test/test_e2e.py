@@ -372,34 +372,43 @@ def test_results_table_gives_a_monocular_robots_sim3_ate_and_scale_errors():
 
 
 class _FakeClock:
-    """time.monotonic / time.sleep of the demo on a virtual clock, with the server's stats as a
-    function of it."""
+    """time.monotonic / time.sleep of the demo on a virtual clock, with the server's stats and
+    robot 1's unacknowledged messages as functions of it."""
 
-    def __init__(self, stats_at):
-        self.now, self.stats_at = 0.0, stats_at
-        self.run = SimpleNamespace(server_stats=stats_at(0.0))
+    def __init__(self, stats_at, unacked_at=lambda t: 0):
+        self.now, self.stats_at, self.unacked_at = 0.0, stats_at, unacked_at
+        self.run = SimpleNamespace(server_stats=stats_at(0.0), robots={})
+        self._update()
+
+    def _update(self):
+        self.run.server_stats = self.stats_at(self.now)
+        self.run.robots = {1: SimpleNamespace(unacked=self.unacked_at(self.now))}
 
     def monotonic(self):
         return self.now
 
     def sleep(self, s):
         self.now += s
-        self.run.server_stats = self.stats_at(self.now)
+        self._update()
 
 
 @pytest.mark.parametrize(
-    "stats_at, ends_at",
+    "stats_at, unacked_at, ends_at",
     [
-        (lambda t: {"keyframes": 40, "idle": t >= 3.0}, 4.0),  # idle at 3 s, for 1 s
-        (lambda t: {"keyframes": 40, "idle": True}, 2.0),  # idle all along: the minimum wait
-        (lambda t: {"keyframes": min(40, int(t))}, 45.0),  # no idle said: 5 s without a change
-        (lambda t: {"keyframes": int(t)}, 180.0),  # busy without end: the cap
+        (lambda t: {"keyframes": 40, "idle": t >= 3.0}, lambda t: 0, 4.0),  # idle at 3 s, for 1 s
+        (lambda t: {"keyframes": 40, "idle": True}, lambda t: 0, 2.0),  # idle: the minimum wait
+        (lambda t: {"keyframes": min(40, int(t))}, lambda t: 0, 45.0),  # 5 s without a change
+        (lambda t: {"keyframes": int(t)}, lambda t: 0, 180.0),  # busy without end: the cap
+        # A client's messages sent again, stored at 12 s (its stats say so at once).
+        (lambda t: {"keyframes": 40, "idle": True}, lambda t: 2 if t < 12.0 else 0, 12.0),
+        # A client that never hears back (killed for good): at most SETTLE_UNACKED_S more.
+        (lambda t: {"keyframes": 40, "idle": True}, lambda t: 2, 42.0),
     ],
 )
-def test_demo_settles_when_the_server_says_idle(monkeypatch, stats_at, ends_at):
+def test_demo_settles_when_the_server_says_idle(monkeypatch, stats_at, unacked_at, ends_at):
     from coop_slam.tools import demo
 
-    clock = _FakeClock(stats_at)
+    clock = _FakeClock(stats_at, unacked_at)
     # The demo module's own name for time, not the time module everyone shares.
     monkeypatch.setattr(demo, "time", SimpleNamespace(monotonic=clock.monotonic, sleep=clock.sleep))
     demo._settle(clock, 2.0, lambda *_: None)

@@ -67,6 +67,7 @@ class ClientNode:
         self.mapping_backlog_warn = p.mapping_backlog_warn
         self.vo: VisualOdometry | None = None
         self.frames = 0
+        self._counters_said = (0, 0, 0)  # keyframes sent, held back, unacked: last published
         self.lock = threading.Lock()  # the odometry and what is made of it: one thread at a time
         self.rejects = RejectCounter(f"client {name}")
         self._FrameStats = FrameStats
@@ -192,11 +193,13 @@ class ClientNode:
                 self.cues.maybe_ask(self.vo)
                 self._publish_events(stamp.to_sec())
                 self.pose.frame(stamp, res, self.vo, self.uplink.engine.kf_id_base)
-                self._counters(stats)
                 self.cues.sightings(self.frames, stamp, image, res, self.vo, self.camera.camera.K)
         except CoopSlamError as exc:
             self.rejects.reject(self.camera.topics["image"], str(exc))
         finally:
+            # Counters on every frame's stats, a rejected one's too: the recorder takes a drop in
+            # keyframes_sent for a restarted client.
+            self._counters(stats)
             self.pub_stats.publish(stats)
 
     def _after_mapping(self, stats) -> None:
@@ -236,18 +239,22 @@ class ClientNode:
         stats.keyframes_sent = self.uplink.engine.keyframes_sent
         stats.keyframes_held_back = self.uplink.engine.keyframes_held_back
         stats.unacked = self.uplink.engine.unacked
+        self._counters_said = (stats.keyframes_sent, stats.keyframes_held_back, stats.unacked)
 
     def _flush_uplink(self, blocking: bool = True) -> None:
-        """Send whatever the uplink holds, and say how many new keyframes went in all (no frame
-        will). Not ``blocking``: nothing when a frame is being tracked (the resend thread must
-        not wait for one)."""
+        """Send whatever the uplink holds, and say the delivery counters when they changed since
+        the last frame's (no frame will: the demo waits for the unacknowledged to be stored). Not
+        ``blocking``: nothing when a frame is being tracked (the resend thread must not wait for
+        one)."""
         if not self.lock.acquire(blocking=blocking):
             return
         try:
             if self.uplink.engine.held:
                 self.uplink.send(self.uplink.engine.flush())
-                stats = self._FrameStats(robot_id=self.robot_id, tracking_ok=True)  # stamp 0
-                self._counters(stats)
+            said = self._counters_said
+            stats = self._FrameStats(robot_id=self.robot_id, tracking_ok=True)  # stamp 0
+            self._counters(stats)
+            if self._counters_said != said:
                 self.pub_stats.publish(stats)
         finally:
             self.lock.release()

@@ -258,10 +258,10 @@ class UplinkBridge:
     def _resend(self) -> None:
         # No frame for a while: the camera stopped, what is held goes now (not in lock-step
         # playback: it goes when the player is done, so the messages stay the same however
-        # loaded the machine is).
+        # loaded the machine is), and the counters follow the acknowledgements.
         idle = time.monotonic() - self.last_frame_wall > self.engine.planner.idle_flush_s
         playing = self.hold_for_player and self.sub_done.get_num_connections()
-        if self.engine.held and idle and not playing and self.flush_now is not None:
+        if idle and not playing and self.flush_now is not None:
             self.flush_now(blocking=False)
         due = self.engine.due_again()
         if due and self.pub.get_num_connections() > 0:

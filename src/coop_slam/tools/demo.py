@@ -49,6 +49,9 @@ from .progress import throttled
 SETTLE_IDLE_S = 1.0
 SETTLE_QUIET_S = 5.0
 SETTLE_MAX_S = 180.0
+# Messages a client sends again go at most max_resend_after_s (30 s) apart: wait that long and a
+# little for them to be stored [s].
+SETTLE_UNACKED_S = 40.0
 # In the results folder: what the system published (evaluated), and the team map's file.
 RUN_BAG = "run.bag"
 TEAM_MAP = "team_map.db"
@@ -519,10 +522,13 @@ def _follow_progress(
 def _settle(monitor, settle_s: float, say, sending=None) -> None:
     """After the last frame: wait ``settle_s`` for the last keyframes and merges, and longer (at
     most ``SETTLE_MAX_S``) while the server is still working off keyframes it received (until its
-    stats say idle, or stop changing): a team of eight on two cores leaves it a backlog; and while
-    ``sending()`` (a slow radio still carries what the robots sent)."""
+    stats say idle, or stop changing): a team of eight on two cores leaves it a backlog; while
+    ``sending()`` (a slow radio still carries what the robots sent); and (at most
+    ``SETTLE_UNACKED_S``) while a client waits for the server to store messages it sent again (a
+    lossy radio, a restarted server)."""
     t_end = time.monotonic() + settle_s
     t_cap = time.monotonic() + max(settle_s, SETTLE_MAX_S)
+    t_unacked = t_end + SETTLE_UNACKED_S
     last, changed = None, time.monotonic()
     said = False
     while time.monotonic() < t_cap:
@@ -532,7 +538,15 @@ def _settle(monitor, settle_s: float, say, sending=None) -> None:
             last, changed = stats, now
         idle = bool((monitor.run.server_stats or {}).get("idle"))
         quiet = now - changed >= (SETTLE_IDLE_S if idle else SETTLE_QUIET_S)
-        if now >= t_end and quiet and not (sending is not None and sending()):
+        unacked = {r: run.unacked for r, run in list(monitor.run.robots.items()) if run.unacked}
+        if unacked and now >= t_unacked:
+            say(
+                "      after %.0f s robots still wait for the server to store keyframe messages "
+                "(%s): evaluating"
+                % (SETTLE_UNACKED_S, ", ".join(f"robot_{r}: {n}" for r, n in unacked.items()))
+            )
+            t_unacked, unacked = t_cap, {}
+        if now >= t_end and quiet and not unacked and not (sending is not None and sending()):
             return
         if now >= t_end and not said:
             say("      the server is still working off its queue: waiting for it")
