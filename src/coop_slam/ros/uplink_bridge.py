@@ -112,6 +112,7 @@ class UplinkBridge:
 
         self.name, self.rejects, self.odometry = name, rejects, odometry
         self.hold_for_player = hold_for_player
+        self.player_done = False  # lock-step playback: the player said it played every frame
         serializer = RosSerializer()
         self.clock_offset_s = clock_offset_s  # rehearsed: this robot's clock runs ahead
         self.engine = ClientUplink(
@@ -244,6 +245,7 @@ class UplinkBridge:
         self.send(sent or [])
 
     def _on_player_done(self, msg) -> None:
+        self.player_done = bool(msg.data)
         if msg.data and self.flush_now is not None:
             self.flush_now()
 
@@ -260,7 +262,9 @@ class UplinkBridge:
         # playback: it goes when the player is done, so the messages stay the same however
         # loaded the machine is), and the counters follow the acknowledgements.
         idle = time.monotonic() - self.last_frame_wall > self.engine.planner.idle_flush_s
-        playing = self.hold_for_player and self.sub_done.get_num_connections()
+        playing = (
+            self.hold_for_player and not self.player_done and self.sub_done.get_num_connections()
+        )
         if idle and not playing and self.flush_now is not None:
             self.flush_now(blocking=False)
         due = self.engine.due_again()
