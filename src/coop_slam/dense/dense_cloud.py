@@ -33,7 +33,8 @@ def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """One int64 key per point naming its voxel of edge ``voxel_m``."""
     if not (np.isfinite(voxel_m) and voxel_m > 0):
         raise DenseCloudError(f"voxel size must be > 0 m, got {voxel_m}")
-    idx = np.floor(np.asarray(points, np.float64) / voxel_m).astype(np.int64) + _OFFSET
+    # float32 as the points are: its step at 1 km is 0.06 mm, far inside a voxel.
+    idx = np.floor(np.asarray(points, np.float32) / np.float32(voxel_m)).astype(np.int64) + _OFFSET
     if len(idx) and (idx.min() < 0 or idx.max() >= (1 << _BITS)):
         raise DenseCloudError(
             f"points span more than {(1 << _BITS) * voxel_m:.0f} m at {voxel_m} m voxels"
@@ -44,19 +45,19 @@ def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
 def voxel_centroids(
     points: np.ndarray, voxel_m: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(centroids (M, 3) float32, index of each voxel's first point (M,), point counts (M,))."""
+    """(centroids (M, 3) float32, the index of one point of each voxel (M,), point counts (M,)),
+    voxels in the order of their keys."""
     points = np.asarray(points, np.float32)
     if len(points) == 0:
         return np.zeros((0, 3), np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64)
     keys = voxel_keys(points, voxel_m)
-    _, first, inverse, counts = np.unique(
-        keys, return_index=True, return_inverse=True, return_counts=True
-    )
-    sums = np.stack(
-        [np.bincount(inverse, weights=points[:, a], minlength=len(counts)) for a in range(3)],
-        axis=1,
-    )
-    return (sums / counts[:, None]).astype(np.float32), first, counts
+    # One unstable sort (np.unique's return_index would sort stably: half again the time).
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    starts = np.flatnonzero(np.concatenate([[True], sorted_keys[1:] != sorted_keys[:-1]]))
+    counts = np.diff(np.append(starts, len(keys)))
+    sums = np.add.reduceat(points[order], starts, axis=0, dtype=np.float64)
+    return (sums / counts[:, None]).astype(np.float32), order[starts], counts
 
 
 def voxel_filter(points: np.ndarray, voxel_m: float, min_points: int = 1) -> np.ndarray:

@@ -71,48 +71,40 @@ class OccupancyGrid:
 
 
 @dataclass
-class _View:
-    centre_xy: np.ndarray  # (2,)
-    band_xy: np.ndarray  # (N, 2) points in the band
-    floor_xy: np.ndarray  # (M, 2) points below it
+class PlacedViews:
+    """Keyframes' points placed in one frame: camera centres (K, 3), points (N, 3) float32 and
+    each point's keyframe (N,) (an index into the centres)."""
+
+    centres: np.ndarray
+    points: np.ndarray
+    keyframe_of: np.ndarray
+
+    def moved(self, T_new_frame: np.ndarray) -> PlacedViews:
+        """The same views in another frame."""
+        T = np.asarray(T_new_frame, np.float64)
+        R, t = T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32)
+        return PlacedViews(
+            self.centres @ T[:3, :3].T + T[:3, 3], self.points @ R.T + t, self.keyframe_of
+        )
 
 
-def _views(views, config: OccupancyConfig, T_floor_frame) -> list[_View]:
-    out = []
-    for T_frame_cam, pts_cam in views:
+def place_views(
+    views: Iterable[tuple[np.ndarray, np.ndarray]], T_floor_frame: np.ndarray | None = None
+) -> PlacedViews:
+    """(T_frame_cam, points_cam) pairs placed in the floor's frame (``T_floor_frame``: from the
+    poses' frame; None: the same)."""
+    centres, points, keyframe_of = [], [], []
+    for k, (T_frame_cam, pts_cam) in enumerate(views):
         T = np.asarray(T_frame_cam, np.float64)
         if T_floor_frame is not None:
             T = np.asarray(T_floor_frame, np.float64) @ T
-        pts = np.asarray(pts_cam, np.float32)
-        keep = np.linalg.norm(pts, axis=1) <= config.max_range_m
-        pts = pts[keep] @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)
-        z = pts[:, 2]
-        band = (z >= config.band_min_m) & (z <= config.band_max_m)
-        out.append(_View(T[:2, 3].copy(), pts[band, :2], pts[z < config.band_min_m, :2]))
-    return out
-
-
-def _fan(view: _View, config: OccupancyConfig) -> np.ndarray | None:
-    """The vertices (K, 2) [m] of the keyframe's free-space fan, or None if it sees nothing."""
-    n_bins = int(round(360.0 / config.angle_step_deg))
-    r_band = np.full(n_bins, np.inf)
-    r_floor = np.zeros(n_bins)
-    for xy, reduce_at, out in (
-        (view.band_xy, np.minimum.at, r_band),
-        (view.floor_xy, np.maximum.at, r_floor),
-    ):
-        if len(xy) == 0:
-            continue
-        d = xy - view.centre_xy
-        b = (np.floor((np.arctan2(d[:, 1], d[:, 0]) + math.pi) / (2 * math.pi) * n_bins)).astype(
-            np.int64
-        ) % n_bins
-        reduce_at(out, b, np.hypot(d[:, 0], d[:, 1]))
-    r = np.where(np.isfinite(r_band), np.maximum(r_band - config.cell_m / 2, 0.0), r_floor)
-    if not np.any(r > config.cell_m / 2):
-        return None
-    a = (np.arange(n_bins) + 0.5) / n_bins * 2 * math.pi - math.pi
-    return view.centre_xy + r[:, None] * np.stack([np.cos(a), np.sin(a)], axis=1)
+        pts = np.asarray(pts_cam, np.float32).reshape(-1, 3)
+        centres.append(T[:3, 3])
+        points.append(pts @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32))
+        keyframe_of.append(np.full(len(pts), k, np.int64))
+    if not centres:
+        return PlacedViews(np.zeros((0, 3)), np.zeros((0, 3), np.float32), np.zeros(0, np.int64))
+    return PlacedViews(np.array(centres), np.concatenate(points), np.concatenate(keyframe_of))
 
 
 def occupancy_grid(
@@ -121,28 +113,39 @@ def occupancy_grid(
     T_floor_frame: np.ndarray | None = None,
 ) -> OccupancyGrid:
     """The grid from (T_frame_cam, points_cam) pairs (see the module's docstring)."""
+    return grid_of_placed(place_views(views, T_floor_frame), config)
+
+
+def grid_of_placed(
+    placed: PlacedViews, config: OccupancyConfig | None = None, floor_z_m: float = 0.0
+) -> OccupancyGrid:
+    """The grid of views already placed in a frame whose z axis is up and whose floor is at
+    ``floor_z_m``. All keyframes at once: the per-keyframe work is array indexing, but for one
+    polygon fill each."""
     config = config or OccupancyConfig()
-    placed = _views(views, config, T_floor_frame)
-    every = [v.centre_xy[None] for v in placed] + [v.band_xy for v in placed]
-    every += [v.floor_xy for v in placed]
-    every_xy = np.concatenate(every) if every else np.zeros((0, 2))
     cell = config.cell_m
-    if len(every_xy) == 0:
+    centres, points, kf = placed.centres, placed.points, placed.keyframe_of
+    rel = points - centres[kf].astype(np.float32)
+    near = np.einsum("ij,ij->i", rel, rel) <= config.max_range_m**2
+    z = points[:, 2] - np.float32(floor_z_m)
+    band = near & (z >= config.band_min_m) & (z <= config.band_max_m)
+    low = near & (z < config.band_min_m)
+    seen_xy = points[band | low, :2]
+    if len(centres) == 0:
         return OccupancyGrid(np.full((1, 1), UNKNOWN, np.int8), cell, (0.0, 0.0))
-    origin = np.floor(every_xy.min(axis=0) / cell) * cell - 2 * cell
-    cols, rows = (np.ceil((every_xy.max(axis=0) - origin) / cell).astype(int) + 3).tolist()
+    lo_xy = np.minimum(centres[:, :2].min(axis=0), seen_xy.min(axis=0, initial=np.inf))
+    hi_xy = np.maximum(centres[:, :2].max(axis=0), seen_xy.max(axis=0, initial=-np.inf))
+    origin = np.floor(lo_xy / cell) * cell - 2 * cell
+    cols, rows = (np.ceil((hi_xy - origin) / cell).astype(int) + 3).tolist()
     grid = OccupancyGrid(
         np.zeros((rows, cols), np.int8), cell, (float(origin[0]), float(origin[1]))
     )
-    occupied = np.zeros(rows * cols, np.int32)
+    # Occupied: the keyframes that have a point of the band in a cell, each counted once.
+    ij = grid.cell_of(points[band, :2])
+    seen = np.unique(kf[band] * (rows * cols) + ij[:, 0] * cols + ij[:, 1])
+    occupied = np.bincount(seen % (rows * cols), minlength=rows * cols).reshape(rows, cols)
     free = np.zeros((rows, cols), np.int32)
-    for view in placed:
-        if len(view.band_xy):
-            ij = grid.cell_of(view.band_xy)
-            occupied[np.unique(ij[:, 0] * cols + ij[:, 1])] += 1
-        fan = _fan(view, config)
-        if fan is None:
-            continue
+    for fan in _fans(rel, kf, band, low, len(centres), centres[:, :2], config):
         px = (fan - origin) / cell  # (x, y) in cells
         lo = np.maximum(np.floor(px.min(axis=0)).astype(int), 0)
         hi = np.minimum(np.ceil(px.max(axis=0)).astype(int) + 1, [cols, rows])
@@ -152,9 +155,27 @@ def occupancy_grid(
         vertices = np.rint((px - lo - 0.5) * (1 << _SHIFT)).astype(np.int32)
         cv2.fillPoly(canvas, [vertices], 1, lineType=cv2.LINE_8, shift=_SHIFT)
         free[lo[1] : hi[1], lo[0] : hi[0]] += canvas
-    occupied = occupied.reshape(rows, cols)
     is_occupied = (occupied >= config.min_keyframes) & (
         occupied >= config.occupied_ratio * np.maximum(occupied, free)
     )
     grid.cells[:] = np.where(is_occupied, OCCUPIED, np.where(free > 0, FREE, UNKNOWN))
     return grid
+
+
+def _fans(rel, kf, band, low, n_views: int, centres_xy, config: OccupancyConfig):
+    """The vertices (B, 2) [m] of the free-space fan of each keyframe that sees something: per
+    bin of each keyframe, the range to its nearest band point, else to its farthest floor
+    point."""
+    n_bins = int(round(360.0 / config.angle_step_deg))
+    r_band = np.full(n_views * n_bins, np.inf)
+    r_floor = np.zeros(n_views * n_bins)
+    for mask, reduce_at, out in ((band, np.minimum.at, r_band), (low, np.maximum.at, r_floor)):
+        d = rel[mask, :2].astype(np.float64)
+        b = np.floor((np.arctan2(d[:, 1], d[:, 0]) + math.pi) / (2 * math.pi) * n_bins)
+        reduce_at(out, kf[mask] * n_bins + b.astype(np.int64) % n_bins, np.hypot(d[:, 0], d[:, 1]))
+    r = np.where(np.isfinite(r_band), np.maximum(r_band - config.cell_m / 2, 0.0), r_floor)
+    r = r.reshape(n_views, n_bins)
+    a = (np.arange(n_bins) + 0.5) / n_bins * 2 * math.pi - math.pi
+    unit = np.stack([np.cos(a), np.sin(a)], axis=1)
+    for k in np.nonzero(np.any(r > config.cell_m / 2, axis=1))[0]:
+        yield centres_xy[k] + r[k, :, None] * unit

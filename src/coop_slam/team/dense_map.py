@@ -20,10 +20,9 @@ from ..config import require
 from ..dense import depth_image
 from ..dense.dense_cloud import place, voxel_centroids, voxel_filter
 from ..dense.keyframe_points import points_cam
-from ..dense.occupancy import OccupancyConfig, OccupancyGrid, occupancy_grid
+from ..dense.occupancy import OccupancyConfig, OccupancyGrid, PlacedViews, grid_of_placed
 from ..dense.teammates import BodyTrack, outside_bodies
 from ..errors import CoopSlamError
-from ..geometry import se3
 
 log = logging.getLogger(__name__)
 
@@ -163,12 +162,19 @@ class DenseMapBuilder:
             [np.full(len(p), kf.robot_id, np.int64) for kf, _, p in kept] or [np.zeros(0, int)]
         )
         centroids, first, _ = voxel_centroids(placed, cfg.voxel_m)
-        world = [(kf.T_view_cam, pts) for kf, pts, _ in kept if kf.in_world]
+        world = [(kf, p) for kf, _, p in kept if kf.in_world]
         grid, robot_grids = None, {}
         if world:
-            grid = occupancy_grid(world, cfg.grid, se3(t=[0.0, 0.0, -cfg.floor_z_m]))
+            # The grid takes the points as placed here: in the world group's frame.
+            placed_world = PlacedViews(
+                np.array([kf.T_view_cam[:3, 3] for kf, _ in world]),
+                np.concatenate([p for _, p in world]),
+                np.concatenate([np.full(len(p), k, np.int64) for k, (_, p) in enumerate(world)]),
+            )
+            grid = grid_of_placed(placed_world, cfg.grid, cfg.floor_z_m)
             for robot_id, T_world_map in (T_world_maps or {}).items():
-                robot_grids[robot_id] = occupancy_grid(world, cfg.grid, np.linalg.inv(T_world_map))
+                in_map = placed_world.moved(np.linalg.inv(T_world_map))
+                robot_grids[robot_id] = grid_of_placed(in_map, cfg.grid)
         return DenseMap(centroids, robots[first], grid, cfg.floor_z_m, len(views), robot_grids)
 
 
