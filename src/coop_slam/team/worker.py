@@ -619,15 +619,21 @@ class ServerWorker:
             return
         bodies = {r: (d.T_base_cam, d.body_size_m) for r, d in self.sightings.descriptions.items()}
         cloud, dense = self.server.team_cloud_job(), self.server.dense_map_job(bodies)
-        self.map_builder.submit(lambda: (cloud(), _dense_or_none(dense)), stamp_s)
+
+        def build():
+            # The dense map and grid first, out as soon as built: a planner waits for the grid,
+            # and fusing the sparse cloud of a large team takes longer than they do.
+            dense_map = _dense_or_none(dense)
+            if dense_map is not None:
+                self.out.dense_map(dense_map, stamp_s)
+            return cloud()
+
+        self.map_builder.submit(build, stamp_s)
         self.out.team_map(self._team_map_view(), stamp_s)
 
-    def _built(self, built: tuple, stamp_s: float) -> None:
-        """In the map builder's thread: the stitched cloud and the dense map go out."""
-        cloud, dense = built
+    def _built(self, cloud: tuple, stamp_s: float) -> None:
+        """In the map builder's thread: the stitched cloud goes out."""
         self.out.cloud(cloud, stamp_s)
-        if dense is not None:
-            self.out.dense_map(dense, stamp_s)
 
     def _team_map_view(self) -> TeamMapView:
         server = self.server

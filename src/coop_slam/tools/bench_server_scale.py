@@ -220,6 +220,12 @@ class BenchOutputs(ServerOutputs):
 
     wants_team_map = True
 
+    def __init__(self):
+        self.dense_out_s: list[float] = []  # perf_counter times the dense map and grid went out
+
+    def dense_map(self, dense, stamp_s: float) -> None:
+        self.dense_out_s.append(time.perf_counter())
+
 
 def bench_worker(cfg, vocab, map_path: str | None) -> ServerWorker:
     """The server node's worker, as the node makes it (a map file, global BA when idle)."""
@@ -256,6 +262,8 @@ class ScaleRun:
     stream_s: float  # first to last arrival on the stream's clock
     rate: float
     rejected: int
+    # per merge: from its decision to the first dense map and grid out after it [wall s]
+    merge_to_grid_s: list[float] = dataclasses.field(default_factory=list)
 
     @property
     def robots(self) -> int:
@@ -318,6 +326,9 @@ def replay_at_rate(
             merge_times.append(decided - t0)
         messages.append(Processed(a.robot_id, message_kind(a.msg), arrive, start, end, len(merges)))
     feeder.join()
+    worker.map_builder.wait_idle(30.0)
+    out_s = np.sort(np.array(getattr(worker.out, "dense_out_s", []), float)) - t0
+    k = np.searchsorted(out_s, merge_times)
     return ScaleRun(
         messages,
         latencies,
@@ -327,6 +338,7 @@ def replay_at_rate(
         (arrivals[-1].t_s - first_s) if arrivals else 0.0,
         rate,
         worker.rejected,
+        [float(out_s[i] - t) for i, t in zip(k, merge_times) if i < len(out_s)],
     )
 
 
@@ -407,6 +419,12 @@ def scale_figures(run: ScaleRun) -> Iterator[Figure]:
         own = np.array(run.merge_own_s)  # the rest of the latency is queueing
         yield ("server_scale_merge_own_time_mean", float(np.mean(own)), "s")
         yield ("server_scale_merge_own_time_max", float(np.max(own)), "s")
+    if run.merge_to_grid_s:
+        # A merge shown: the dense map and grid out after it (the builder may be busy with the
+        # map of the state before it, and the next build waits for the worker's next pass).
+        grid = np.array(run.merge_to_grid_s)
+        yield ("server_scale_merge_to_grid_mean", float(np.mean(grid)), "s")
+        yield ("server_scale_merge_to_grid_max", float(np.max(grid)), "s")
 
 
 def plot_run(run: ScaleRun, path: str, title: str) -> str:
