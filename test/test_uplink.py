@@ -297,6 +297,10 @@ def test_a_radio_budget_spreads_what_goes_and_keeps_the_rest_on_the_robot():
         def loads(self, payload):
             raise AssertionError("not used")
 
+    class SizedBoth:  # a whole keyframe 10 kB, a signature 1 kB
+        def dumps(self, msg):
+            return b"x" * (1000 if msg.signature else 10_000)
+
     config = UplinkConfig(mode="pull", pull_budget_kBps=25.0)
     uplink = ClientUplink(2, config, T_base_cam=np.eye(4), serializer=Sized())
     rec = make_keyframe(n=20, keyframe_id=1)
@@ -322,7 +326,8 @@ def test_a_radio_budget_spreads_what_goes_and_keeps_the_rest_on_the_robot():
     # spread evenly: no second carries more than the budget and a burst
     per_s = np.bincount([int(t) for t, _ in sent_bytes], weights=[n for _, n in sent_bytes])
     assert per_s.max() <= 50_000
-    # full mode without the server's vocabulary: every keyframe whole, charged to the budget
+    # full mode without the server's vocabulary: every keyframe whole, not charged (no debt that
+    # would silence the robot once the vocabulary came); the budget applies from then on
     unsigned = ClientUplink(
         2, UplinkConfig(hold_new_s=0.0), T_base_cam=np.eye(4), serializer=Sized()
     )
@@ -330,7 +335,15 @@ def test_a_radio_budget_spreads_what_goes_and_keeps_the_rest_on_the_robot():
     for k in range(1, 11):
         kf = map_keyframe(dataclasses.replace(rec, keyframe_id=k))
         assert len(unsigned.events([VoEvent(EVENT_KEYFRAME_NEW, 0, k, kf)], 0.1 * k).messages) == 1
-    assert unsigned.keyframes_sent == 10 and unsigned.planner.gate.budget.tokens < 0
+    assert unsigned.keyframes_sent == 10 and unsigned.planner.gate.budget.tokens == 0.0
+    unsigned.vocabulary = team_vocabulary([rec])
+    unsigned.serializer = SizedBoth()
+    whole = 0
+    for k in range(11, 61):  # 5 s more at 10 keyframes/s against 50 kB/s: 10 kB of signatures
+        kf = map_keyframe(dataclasses.replace(rec, keyframe_id=k))
+        step = unsigned.events([VoEvent(EVENT_KEYFRAME_NEW, 0, k, kf)], 0.1 * k)
+        whole += sum(not m.signature for m in step.messages)
+    assert 12 <= whole <= 24  # 40 kB/s of 10 kB keyframes: the budget, from the vocabulary on
     # no budget: everything goes
     free = RadioBudget(0.0)
     assert free.take("whole", 0.0) == 0.0 and not free.limited
@@ -542,3 +555,41 @@ def test_a_keyframes_depth_image_goes_whole_in_full_mode_and_in_pull_mode_only_i
     assert (len(note.record.depth_image) > 0) == carried
     answered = uplink.answer(KeyframeRequest(robot_id=4, request=1, keyframe_ids=[2]), {2: kf}.get)
     assert all(bool(m.keyframe[0].depth_image) == carried for m in answered if m.keyframe)
+
+
+def test_with_delta_updates_off_the_uplink_still_knows_what_the_server_holds():
+    """Every update goes whole; the keyframe stays one the server holds (its corrections apply,
+    the budget sends its updates as updates)."""
+    planner = Planner(UplinkConfig(hold_new_s=0.0, coalesce_updates_s=0.0, delta_updates=False))
+    rec = make_keyframe(n=20, keyframe_id=4)
+    how = planner.prepare(rec)
+    assert not how.delta and planner.holds(4)
+    how = planner.prepare(_moved(rec, ACTION_UPDATE, 0.01))
+    assert not how.delta and planner.holds(4)
+    planner.prepare(_moved(rec, ACTION_REMOVE, 0.0))
+    assert not planner.holds(4)
+
+
+def test_a_new_keyframe_that_finds_no_room_counts_as_held_back():
+    """The outbox is full (the server does not acknowledge): a new keyframe's message is
+    refused; it is neither sent nor lost from the counts, and goes whole with its next update once
+    there is room."""
+    from coop_slam.uplink.engine import ClientUplink
+    from coop_slam.vo.types import EVENT_KEYFRAME_NEW, EVENT_KEYFRAME_UPDATE, VoEvent
+    from coop_slam.wire.messages import KeyframeAck
+
+    config = UplinkConfig(hold_new_s=0.0, coalesce_updates_s=0.0, budget_kBps=0.0)
+    uplink = ClientUplink(2, config, T_base_cam=np.eye(4))
+    uplink.outbox.max_unacked = 2
+    recs = [make_keyframe(n=20, robot_id=2, keyframe_id=k, seed=k) for k in (1, 2, 3)]
+    uplink.camera = recs[0].camera
+    events = [VoEvent(EVENT_KEYFRAME_NEW, 0, r.keyframe_id, map_keyframe(r)) for r in recs]
+    sent = uplink.events(events, 1.0).messages
+    assert [m.keyframe_id for m in sent] == [1, 2] and uplink.refused_full == 1
+    assert uplink.keyframes_sent == 2 and uplink.keyframes_held_back == 1
+    uplink.acknowledged(KeyframeAck(robot_id=2, session=sent[-1].session, sequence=2))
+    update = VoEvent(
+        EVENT_KEYFRAME_UPDATE, 0, 3, map_keyframe(_moved(recs[2], ACTION_UPDATE, 0.01))
+    )
+    (again,) = uplink.events([update], 2.0).messages
+    assert again.keyframe_id == 3 and not again.delta

@@ -247,5 +247,10 @@ class BudgetGate:
 
     def sent(self, keyframe_id: int, kind: str, nbytes: int) -> None:
         """A message went: what it cost (a message the budget did not let through -- one the
-        server asked for, a signature -- is charged now)."""
+        server asked for, a signature -- is charged now). Not in full mode before the server's
+        vocabulary came: nothing was budgeted then, and a debt run up while a client waits for
+        its server (unbounded: every keyframe goes whole) would silence it for as long once the
+        budget applies."""
+        if self.new_kind == "whole" and not self.sign:
+            return
         self.budget.settle(kind, self._taken.pop(keyframe_id, 0.0), nbytes)

@@ -120,6 +120,8 @@ class ClientUplink:
         # signatures only (pull mode, or a radio budget's; until the server asks for them)
         self._whole: set[int] = set()
         self._signature_only: set[int] = set()
+        # New keyframes whose message found no room or could not travel (unless they went later)
+        self._dropped_new: set[int] = set()
         self.refused_full = 0  # messages refused: the outbox or the spool was full
         self.resent_from_spool = 0  # messages a spool kept from before, sent by this run
         self._full_since = -1  # refused_full when it became full (-1: not full)
@@ -167,7 +169,8 @@ class ClientUplink:
     def keyframes_held_back(self) -> int:
         """New keyframes not sent whole: as place signatures only, or (a radio budget's) not at
         all."""
-        return len(self._signature_only) + self.planner.gate.held_back
+        dropped = self._dropped_new - self._whole - self._signature_only
+        return len(self._signature_only) + self.planner.gate.held_back + len(dropped)
 
     @property
     def held(self) -> int:
@@ -397,10 +400,10 @@ class ClientUplink:
                 msg, payload = self._encoded(rec, how)
             except CoopSlamError as exc:  # one record that cannot go must not stop the rest
                 log.error("keyframe %d not sent: %s", rec.keyframe_id, exc)
-                self.planner.forget([rec.keyframe_id])
+                self._dropped(rec)
                 continue
             if not self._room(len(payload)):
-                self.planner.forget([rec.keyframe_id])
+                self._dropped(rec)
                 continue
             try:
                 msg.session, msg.sequence = self.outbox.session, self.outbox.sequence + 1
@@ -408,7 +411,7 @@ class ClientUplink:
                     self.spool.append(self._spooled(msg, payload))
             except SpoolError as exc:
                 log.error("keyframe %d not sent: %s", rec.keyframe_id, exc)
-                self.planner.forget([rec.keyframe_id])
+                self._dropped(rec)
                 continue
             self.outbox.add(msg, nbytes=len(payload))
             self.planner.gate.sent(rec.keyframe_id, self.planner.kind_of(how), len(payload))
@@ -421,6 +424,13 @@ class ClientUplink:
             if not self.waiting_for_server:
                 out.append(msg)
         return out
+
+    def _dropped(self, rec: KeyframeRecord) -> None:
+        """``rec``'s message did not go: the planner forgets it (its next update goes whole); a
+        new keyframe's counts as held back until something of it goes."""
+        self.planner.forget([rec.keyframe_id])
+        if rec.action == ACTION_NEW:
+            self._dropped_new.add(rec.keyframe_id)
 
     def _encoded(self, rec: KeyframeRecord, how: Outgoing) -> tuple[KeyframeMessage, bytes]:
         """``rec``'s message, checked as the server checks it, and its bytes as published

@@ -146,8 +146,11 @@ class Planner:
         held = self._held.get(rec.keyframe_id)
         if self.pull and rec.action == ACTION_UPDATE and held is None:
             return Outgoing(False, skip=True)
-        if rec.action != ACTION_UPDATE or not self.enabled or held is None:
+        if rec.action != ACTION_UPDATE or held is None:  # a removal, or it goes whole
             self._held.pop(rec.keyframe_id, None)
+            return Outgoing(False)
+        if not self.enabled:  # every update whole: the server holds it as it goes
+            self._hold(rec.keyframe_id, rec.static_digest(), rec)
             return Outgoing(False)
         digest = rec.static_digest()
         if held.digest != digest:  # what the keyframe saw changed: it goes in full
