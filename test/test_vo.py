@@ -86,6 +86,74 @@ def test_pose_optimization_recovers_pose_and_rejects_outliers():
     assert not inlier[:40].any() and inlier[40:].mean() > 0.9
 
 
+def _search_reference(proj, point_desc, frame, radius_px, scales, max_distance, ratio, exclude,
+                      chi2):  # fmt: skip
+    """The projection search's rules, one pair at a time (see search_by_projection)."""
+    choice = {}
+    for m in range(len(proj.index)):
+        o = proj.pred_octave[m]
+        cands = []
+        for k in range(len(frame)):
+            d2 = float(((frame.uv_px[k] - proj.uv_px[m]) ** 2).sum())
+            ko = int(frame.octaves[k])
+            if d2 > (radius_px * scales[o]) ** 2 or abs(ko - o) > 1 or exclude[k]:
+                continue
+            if chi2 is not None:
+                stereo = np.isfinite(frame.u_right_px[k])
+                if stereo:
+                    d2 += (proj.u_right_px[m] - frame.u_right_px[k]) ** 2
+                if d2 / scales[ko] ** 2 > (chi2 * 7.815 / 5.991 if stereo else chi2):
+                    continue
+            bits = np.unpackbits(point_desc[proj.index[m]] ^ frame.descriptors[k]).sum()
+            cands.append((int(bits), k))
+        cands.sort()
+        if not cands or cands[0][0] > max_distance:
+            continue
+        (d, k), second = cands[0], cands[1] if len(cands) > 1 else None
+        if second and frame.octaves[second[1]] == frame.octaves[k] and d > ratio * second[0]:
+            continue
+        if k not in choice or d < choice[k][0]:
+            choice[k] = (d, m)
+    return sorted((m, k, d) for k, (d, m) in choice.items())
+
+
+@pytest.mark.parametrize("chi2", [None, 5.991])
+def test_projection_search_follows_its_rules_pair_by_pair(chi2):
+    """The compiled search against its rules spelled out pair by pair: candidates within the
+    octave-scaled radius at a neighbouring octave, the nearest descriptor (ties to the lower
+    keypoint), the ratio test at one level, one point per keypoint; the depth gate when given."""
+    from coop_slam.vo.features import FrameFeatures
+    from coop_slam.vo.matching import Projection, search_by_projection
+
+    rng = np.random.default_rng(3)
+    n_kp, n_pt = 300, 250
+    scales = 1.2 ** np.arange(8)
+    kp_desc = rng.integers(0, 256, (n_kp, 32), dtype=np.uint8)
+    kp_uv = rng.uniform(0, [640, 480], (n_kp, 2))
+    kp_ur = np.where(rng.random(n_kp) < 0.5, kp_uv[:, 0] - rng.uniform(5, 40, n_kp), np.nan)
+    octaves = rng.integers(0, 8, n_kp).astype(np.uint8)
+    frame = FrameFeatures(
+        kp_uv, np.ones(n_kp, np.float32), np.full(n_kp, -1, np.float32), octaves, kp_desc,
+        np.ones(n_kp, np.float32), np.zeros((n_kp, 3)), kp_ur,
+    )  # fmt: skip
+    # Points near keypoints, their descriptors a few bits off (many exact ties in distance).
+    near = rng.integers(0, n_kp, n_pt)
+    uv = kp_uv[near] + rng.normal(0, 4, (n_pt, 2))
+    desc = kp_desc[near].copy()
+    flips = rng.integers(0, 32, (n_pt, 3))
+    for m in range(n_pt):
+        desc[m, flips[m]] ^= np.uint8(1)
+    proj = Projection(
+        np.arange(n_pt), uv, uv[:, 0] - rng.uniform(5, 40, n_pt), np.ones(n_pt),
+        np.clip(octaves[near].astype(int) + rng.integers(-1, 2, n_pt), 0, 7),
+    )  # fmt: skip
+    exclude = rng.random(n_kp) < 0.1
+    got = search_by_projection(proj, desc, frame, 6.0, scales, 50, 0.9, exclude, chi2_gate=chi2)
+    want = _search_reference(proj, desc, frame, 6.0, scales, 50, 0.9, exclude, chi2)
+    assert len(want) > 30
+    assert sorted(zip(*(a.tolist() for a in got))) == want
+
+
 def _ba_scene(rng, n_kf=5, n_pts=300):
     points = rng.uniform([-2, -1.5, 3], [2, 1.5, 5], (n_pts, 3))
     poses = [

@@ -1,10 +1,9 @@
-"""Vectorized projection matching of map points to keypoints, and the pose-independent helpers it
-needs.
+"""Projection matching of map points to keypoints, and the pose-independent helpers it needs.
 
-All candidate (point, keypoint) pairs within the search radius come from one KD-tree query
-(``sparse_distance_matrix``); the gates (radius scaled by the predicted octave, octave window,
-Hamming distance, ratio test, depth consistency, one point per keypoint, rotation histogram) are
-numpy array operations on those pairs, so there is no per-point Python loop.
+The search (:func:`search_by_projection`) is one compiled loop over the projected points that
+visits a grid of the keypoints within each point's radius and applies the gates (radius scaled by
+the predicted octave, octave window, Hamming distance, ratio test, depth consistency, one point per
+keypoint) as it goes; the rotation histogram is numpy on the matches.
 """
 
 from __future__ import annotations
@@ -12,9 +11,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
+from numba import njit
 
-from ..descriptors import hamming_rows
+from ..descriptors import as_descriptors
 from ..geometry import transform_points
 from .features import FrameFeatures
 
@@ -100,68 +99,137 @@ def search_by_projection(
 
     ``point_desc`` (P, 32) and ``point_angle_deg`` (P,) are indexed like the projected points (use
     ``proj.index``). Returns (proj_idx, kp_idx, hamming) with proj_idx indexing ``proj`` rows, each
-    keypoint used at most once. ``exclude_kp`` marks keypoints that must not be matched;
-    ``chi2_gate`` rejects pairs whose (u, v[, u_right]) reprojection error, weighted by the
-    keypoint's octave, exceeds it (a depth-consistency test used when fusing points).
+    keypoint used at most once (in keypoint order). ``exclude_kp`` marks keypoints that must not
+    be matched; ``chi2_gate`` rejects pairs whose (u, v[, u_right]) reprojection error, weighted by
+    the keypoint's octave, exceeds it (a depth-consistency test used when fusing points).
+
+    A point's candidates are the keypoints within ``radius_px`` times its predicted octave's
+    scale, at that octave or one next to it; the nearest descriptor wins (ties: the lower
+    keypoint index) if within ``max_distance`` and, against the second nearest at the same
+    level, the ratio test; of the points that chose one keypoint, the nearest descriptor (ties:
+    the lower point). Compiled (:func:`_search`): a loop over the points and a grid of the
+    keypoints, where numpy's candidate pairs and sorts cost 2 ms a call (issue #50).
     """
     empty = (np.zeros(0, int), np.zeros(0, int), np.zeros(0, np.int32))
-    m = len(proj.index)
-    if m == 0 or len(frame) == 0:
+    if len(proj.index) == 0 or len(frame) == 0:
         return empty
-    radius = radius_px * scales[proj.pred_octave]
-    pairs = cKDTree(proj.uv_px).sparse_distance_matrix(
-        frame.tree(), float(radius.max()), output_type="ndarray"
+    chi2 = -1.0 if chi2_gate is None else float(chi2_gate)
+    pi, kj, dist = _search(
+        np.ascontiguousarray(proj.uv_px, dtype=float),
+        np.ascontiguousarray(proj.u_right_px, dtype=float),
+        np.ascontiguousarray(proj.pred_octave, dtype=np.int64),
+        as_descriptors(point_desc[proj.index], "points").view(np.uint64),
+        np.ascontiguousarray(frame.uv_px, dtype=float),
+        np.ascontiguousarray(frame.u_right_px, dtype=float),
+        np.ascontiguousarray(frame.octaves, dtype=np.int64),
+        as_descriptors(frame.descriptors, "keypoints").view(np.uint64),
+        np.zeros(len(frame), np.bool_) if exclude_kp is None else np.asarray(exclude_kp, bool),
+        float(radius_px),
+        np.ascontiguousarray(scales, dtype=float),
+        int(max_distance),
+        float(ratio),
+        chi2,
     )
-    if len(pairs) == 0:
-        return empty
-    pi = pairs["i"].astype(int)
-    kj = pairs["j"].astype(int)
-    keep = pairs["v"] <= radius[pi]
-    kp_oct = frame.octaves[kj].astype(int)
-    keep &= (kp_oct >= proj.pred_octave[pi] - 1) & (kp_oct <= proj.pred_octave[pi] + 1)
-    if exclude_kp is not None:
-        keep &= ~exclude_kp[kj]
-    pi, kj = pi[keep], kj[keep]
-    if chi2_gate is not None and len(pi):
-        inv_s2 = 1.0 / scales[frame.octaves[kj].astype(int)] ** 2
-        err2 = ((proj.uv_px[pi] - frame.uv_px[kj]) ** 2).sum(1)
-        ur_kp = frame.u_right_px[kj]
-        stereo = np.isfinite(ur_kp)
-        err2 = err2 + np.where(stereo, (proj.u_right_px[pi] - np.nan_to_num(ur_kp)) ** 2, 0.0)
-        gate = np.where(stereo, chi2_gate * 7.815 / 5.991, chi2_gate)
-        ok = err2 * inv_s2 <= gate
-        pi, kj = pi[ok], kj[ok]
-    if len(pi) == 0:
-        return empty
-    dist = hamming_rows(point_desc[proj.index[pi]], frame.descriptors[kj])
-    # Best and second best keypoint of each point: pairs by point, then distance (a stable sort of
-    # one integer key: the same order as lexsort((dist, pi)), twice as fast).
-    order = np.argsort(pi * 1024 + dist, kind="stable")
-    pi, kj, dist = pi[order], kj[order], dist[order]
-    first = np.r_[True, pi[1:] != pi[:-1]]
-    has_second = np.r_[~first[1:], False]  # the next pair belongs to the same point
-    best = np.flatnonzero(first)
-    second_dist = np.where(has_second[best], dist[np.minimum(best + 1, len(dist) - 1)], 10**6)
-    second_oct = np.where(
-        has_second[best], frame.octaves[kj[np.minimum(best + 1, len(kj) - 1)]], 255
-    )
-    best_oct = frame.octaves[kj[best]]
-    ok = dist[best] <= max_distance
-    # Ratio test only between keypoints of the same level, as ORB-SLAM (other levels are other
-    # scales).
-    ok &= ~((second_oct == best_oct) & (dist[best] > ratio * second_dist))
-    best = best[ok]
-    if len(best) == 0:
-        return empty
-    pi, kj, dist = pi[best], kj[best], dist[best]
-    # One point per keypoint: the closest descriptor wins.
-    order = np.lexsort((dist, kj))
-    pi, kj, dist = pi[order], kj[order], dist[order]
-    first = np.r_[True, kj[1:] != kj[:-1]]
-    pi, kj, dist = pi[first], kj[first], dist[first]
     if check_orientation and point_angle_deg is not None and len(pi) > 10:
         keep = rotation_consistent(point_angle_deg[proj.index[pi]], frame.angle_deg[kj])
         pi, kj, dist = pi[keep], kj[keep], dist[keep]
+    return pi, kj, dist
+
+
+_M1, _M2 = np.uint64(0x5555555555555555), np.uint64(0x3333333333333333)
+_M4, _H01 = np.uint64(0x0F0F0F0F0F0F0F0F), np.uint64(0x0101010101010101)
+_GRID_PX = 16.0  # cell of the keypoint grid the search visits [px]
+
+
+@njit(cache=True, nogil=True)
+def _hamming(a, b) -> int:
+    """Bits differing between two descriptors as four uint64 words."""
+    total = 0
+    for w in range(4):
+        x = a[w] ^ b[w]
+        x = x - ((x >> np.uint64(1)) & _M1)
+        x = (x & _M2) + ((x >> np.uint64(2)) & _M2)
+        x = (x + (x >> np.uint64(4))) & _M4
+        total += int((x * _H01) >> np.uint64(56))
+    return total
+
+
+@njit(cache=True, nogil=True)
+def _search(
+    uv, u_right, octave, desc, kp_uv, kp_u_right, kp_octave, kp_desc, exclude, radius_px,
+    scales, max_distance, ratio, chi2,
+):  # fmt: skip
+    """:func:`search_by_projection`'s matches (chi2 < 0: no reprojection gate)."""
+    n_kp = kp_uv.shape[0]
+    # The keypoints by grid cell (a counting sort): cell c holds order[start[c]:start[c + 1]].
+    cols = int(kp_uv[:, 0].max() / _GRID_PX) + 1
+    rows = int(kp_uv[:, 1].max() / _GRID_PX) + 1
+    cell = np.empty(n_kp, np.int64)
+    start = np.zeros(rows * cols + 1, np.int64)
+    for k in range(n_kp):
+        cu = min(max(int(kp_uv[k, 0] / _GRID_PX), 0), cols - 1)
+        cv = min(max(int(kp_uv[k, 1] / _GRID_PX), 0), rows - 1)
+        cell[k] = cv * cols + cu
+        start[cell[k] + 1] += 1
+    for c in range(rows * cols):
+        start[c + 1] += start[c]
+    order = np.empty(n_kp, np.int64)
+    fill = start[:-1].copy()
+    for k in range(n_kp):
+        order[fill[cell[k]]] = k
+        fill[cell[k]] += 1
+    big = 1 << 30
+    owner = np.full(n_kp, -1, np.int64)  # the point each keypoint went to, and its distance
+    owner_d = np.full(n_kp, big, np.int64)
+    for m in range(uv.shape[0]):
+        o = octave[m]
+        r = radius_px * scales[o]
+        u, v = uv[m, 0], uv[m, 1]
+        best_d, best_k, second_d, second_k = big, -1, big, -1
+        for cv in range(
+            max(int((v - r) / _GRID_PX), 0), min(int((v + r) / _GRID_PX), rows - 1) + 1
+        ):
+            for cu in range(
+                max(int((u - r) / _GRID_PX), 0), min(int((u + r) / _GRID_PX), cols - 1) + 1
+            ):
+                for idx in range(start[cv * cols + cu], start[cv * cols + cu + 1]):
+                    k = order[idx]
+                    du, dv = kp_uv[k, 0] - u, kp_uv[k, 1] - v
+                    d2 = du * du + dv * dv
+                    if d2 > r * r or kp_octave[k] < o - 1 or kp_octave[k] > o + 1 or exclude[k]:
+                        continue
+                    if chi2 >= 0.0:
+                        gate = chi2
+                        if np.isfinite(kp_u_right[k]):
+                            dr = u_right[m] - kp_u_right[k]
+                            d2 += dr * dr
+                            gate = chi2 * 7.815 / 5.991
+                        if d2 / scales[kp_octave[k]] ** 2 > gate:
+                            continue
+                    d = _hamming(desc[m], kp_desc[k])
+                    if d < best_d or (d == best_d and k < best_k):
+                        second_d, second_k = best_d, best_k
+                        best_d, best_k = d, k
+                    elif d < second_d or (d == second_d and k < second_k):
+                        second_d, second_k = d, k
+        if best_k < 0 or best_d > max_distance:
+            continue
+        # Ratio test only against a keypoint of the same level, as ORB-SLAM (other levels are
+        # other scales).
+        if second_k >= 0 and kp_octave[second_k] == kp_octave[best_k] and best_d > ratio * second_d:
+            continue
+        if best_d < owner_d[best_k]:  # one point per keypoint: the nearest descriptor
+            owner[best_k], owner_d[best_k] = m, best_d
+    count = 0
+    for k in range(n_kp):
+        count += owner[k] >= 0
+    pi, kj = np.empty(count, np.int64), np.empty(count, np.int64)
+    dist = np.empty(count, np.int32)
+    count = 0
+    for k in range(n_kp):
+        if owner[k] >= 0:
+            pi[count], kj[count], dist[count] = owner[k], k, owner_d[k]
+            count += 1
     return pi, kj, dist
 
 

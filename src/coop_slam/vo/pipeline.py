@@ -55,6 +55,7 @@ from .initialization import (
     match_for_initialization,
     scale_to_median_depth,
 )
+from .kernels import warm_up
 from .keyframes import KeyframePolicy, add_keyframe
 from .local_mapping import LocalMapper
 from .map import Map, MapKeyframe
@@ -84,6 +85,7 @@ class VisualOdometry:
             raise VoError("VisualOdometry needs the camera model (intrinsics and image size)")
         config = config or VoConfig()
         config.validate()
+        warm_up()  # the compiled kernels, before the first frame
         # This camera kind's values (a monocular camera's keyframe rule, its wider local BA, ...)
         self.config = config.for_sensor(camera.sensor)
         # The colour camera the keypoints come from (keyframe messages carry this one).

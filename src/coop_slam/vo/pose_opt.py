@@ -1,106 +1,185 @@
-"""Motion-only pose optimization (ORB-SLAM's ``PoseOptimization``) in numpy.
+"""Motion-only pose optimization (ORB-SLAM's ``PoseOptimization``), compiled with numba.
 
 Residuals are (u, v) for keypoints without depth and (u, v, u_right) for keypoints with depth, where
 ``u_right = u - bf / z`` is the column in a virtual right camera (``bf`` = fx * virtual baseline),
 so depth enters as a pixel-like residual with the same octave-dependent weight. A Huber kernel in
 the first rounds, then outliers are classified by a chi-square gate after each round and left out of
-the next one (they can come back). Each round is :func:`coop_slam.optim.lm.least_squares` in its
-Gauss-Newton configuration (every step taken, no cost evaluated). Tracking calls it twice per
-frame, so the linearization is built for the interpreter's sake: all residual rows (u of every
-keypoint, v of every keypoint, u_right of those with depth) in one array, the Jacobian rows filled
-in place into one preallocated matrix, and the normal equations from one weighted product.
+the next one (they can come back). Each round is Gauss-Newton with the fixed damping of
+:data:`coop_slam.optim.lm.GAUSS_NEWTON` (every step taken, no cost evaluated, stop on a step below
+its ``min_step``); a step xi = (rho, phi) moves (R, t) of ``T_cam_map`` as T <- Exp(xi) T.
+
+Tracking calls it twice per frame: one loop over the keypoints per iteration, compiled (and
+cached on disk by numba), instead of the dozen numpy calls on a few thousand rows each whose call
+overhead dominated (issue #50: 4 ms of a RedKitchen frame's 21).
 """
 
 from __future__ import annotations
 
-import dataclasses
+import math
 
-import cv2
 import numpy as np
+from numba import njit
 
-from ..optim.lm import GAUSS_NEWTON, damp, least_squares
+from ..optim.lm import DAMPING_FLOOR, GAUSS_NEWTON
 
 
-class _PoseProblem:
-    """The reprojection residuals of one frame's matches as a problem for ``least_squares``; the
-    state is (R, t) of ``T_cam_map``, a step xi = (rho, phi) moves it as T <- Exp(xi) T."""
-
-    def __init__(self, points_map, uv, u_right, info, K, bf, chi2):
-        n = len(points_map)
-        self.n, self.P, self.info, self.bf = n, points_map, info, bf
-        self.st = st = np.flatnonzero(np.isfinite(u_right))  # keypoints with depth: a third row
-        self.measured = np.concatenate([uv[:, 0], uv[:, 1], u_right[st]])
-        self.delta = np.sqrt(chi2)
-        self.fx, self.fy, self.cx, self.cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-        rows = 2 * n + len(st)
-        self.J = np.zeros((rows, 6))  # d(u; v; u_right) / d xi
-        self.predicted = np.empty(rows)
-        self.w_rows = np.empty(rows)
-        # set per round by optimize_pose: which keypoints count, and whether under Huber
-        self.inlier = np.ones(n, bool)
-        self.robust = True
-
-    def residuals(self, R, t):
-        """(x/z, y/z, 1/z, residual rows, info-weighted squared error per keypoint, in front)."""
-        n, st, predicted = self.n, self.st, self.predicted
-        pc = self.P @ R.T
-        pc += t
-        front = pc[:, 2] > 1e-6
-        iz = 1.0 / np.where(front, pc[:, 2], 1e-6)
-        xn, yn = pc[:, 0] * iz, pc[:, 1] * iz
-        np.multiply(xn, self.fx, out=predicted[:n])
-        predicted[:n] += self.cx
-        np.multiply(yn, self.fy, out=predicted[n : 2 * n])
-        predicted[n : 2 * n] += self.cy
-        predicted[2 * n :] = predicted[st] - self.bf * iz[st]
-        r = predicted - self.measured
-        e2 = r[:n] ** 2 + r[n : 2 * n] ** 2
-        e2[st] += r[2 * n :] ** 2
-        e2 *= self.info
-        return xn, yn, iz, r, e2, front
-
-    def linearize(self, state):
-        """(H, g) of the weighted normal equations at ``state``."""
-        n, st, fx, fy, J, w_rows = self.n, self.st, self.fx, self.fy, self.J, self.w_rows
-        xn, yn, iz, r, e2, front = self.residuals(*state)
-        w = self.info * (self.inlier & front)
-        if self.robust:  # Huber
-            w *= np.minimum(1.0, self.delta / np.sqrt(np.maximum(e2, 1e-12)))
-        Ju, Jv, Jr = J[:n], J[n : 2 * n], J[2 * n :]
+@njit(cache=True, nogil=True)
+def _normal_equations(R, t, P, uv, u_right, info, inlier, robust, delta, K, bf, H, g):
+    """(H, g) of the weighted normal equations at (R, t), in place."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    H[:] = 0.0
+    g[:] = 0.0
+    ju = np.empty(6)
+    jv = np.empty(6)
+    jr = np.empty(6)
+    for i in range(P.shape[0]):
+        if not inlier[i]:
+            continue
+        x = R[0, 0] * P[i, 0] + R[0, 1] * P[i, 1] + R[0, 2] * P[i, 2] + t[0]
+        y = R[1, 0] * P[i, 0] + R[1, 1] * P[i, 1] + R[1, 2] * P[i, 2] + t[1]
+        z = R[2, 0] * P[i, 0] + R[2, 1] * P[i, 1] + R[2, 2] * P[i, 2] + t[2]
+        if not z > 1e-6:
+            continue
+        iz = 1.0 / z
+        xn, yn = x * iz, y * iz
+        ru = fx * xn + cx - uv[i, 0]
+        rv = fy * yn + cy - uv[i, 1]
+        stereo = math.isfinite(u_right[i])
+        rr = fx * xn + cx - bf * iz - u_right[i] if stereo else 0.0
+        w = info[i]
+        if robust:  # Huber
+            e = math.sqrt(max((ru * ru + rv * rv + rr * rr) * info[i], 1e-12))
+            w *= min(1.0, delta[i] / e)
         xy = xn * yn
-        Ju[:, 0] = fx * iz
-        Ju[:, 2] = -fx * xn * iz
-        Ju[:, 3] = -fx * xy
-        Ju[:, 4] = fx + fx * xn * xn
-        Ju[:, 5] = -fx * yn
-        Jv[:, 1] = fy * iz
-        Jv[:, 2] = -fy * yn * iz
-        Jv[:, 3] = -fy - fy * yn * yn
-        Jv[:, 4] = fy * xy
-        Jv[:, 5] = fy * xn
-        w_rows[:n] = w
-        w_rows[n : 2 * n] = w
-        if len(st):
-            # u_right = u - bf / z: the u row plus bf / z^2 times dz / d xi.
-            bz = self.bf * iz[st]
-            Jr[:] = Ju[st]
-            Jr[:, 2] += bz * iz[st]
-            Jr[:, 3] += bz * yn[st]
-            Jr[:, 4] -= bz * xn[st]
-            w_rows[2 * n :] = w[st]
-        Jw = J.T * w_rows
-        return Jw @ J, Jw @ r
+        ju[0], ju[1], ju[2] = fx * iz, 0.0, -fx * xn * iz
+        ju[3], ju[4], ju[5] = -fx * xy, fx + fx * xn * xn, -fx * yn
+        jv[0], jv[1], jv[2] = 0.0, fy * iz, -fy * yn * iz
+        jv[3], jv[4], jv[5] = -fy - fy * yn * yn, fy * xy, fy * xn
+        for a in range(6):
+            g[a] += w * (ju[a] * ru + jv[a] * rv)
+            for b in range(a, 6):
+                H[a, b] += w * (ju[a] * ju[b] + jv[a] * jv[b])
+        if stereo:  # u_right = u - bf / z: the u row plus bf / z^2 times dz / d xi
+            bz = bf * iz
+            for a in range(6):
+                jr[a] = ju[a]
+            jr[2] += bz * iz
+            jr[3] += bz * yn
+            jr[4] -= bz * xn
+            for a in range(6):
+                g[a] += w * jr[a] * rr
+                for b in range(a, 6):
+                    H[a, b] += w * jr[a] * jr[b]
+    for a in range(6):
+        for b in range(a):
+            H[a, b] = H[b, a]
 
-    @staticmethod
-    def solve(linearization, lam):
-        H, g = linearization  # fresh each linearization: damped in place
-        return -np.linalg.solve(damp(H, lam, in_place=True), g)
 
-    @staticmethod
-    def retract(state, step):
-        R, t = state
-        dR = cv2.Rodrigues(step[3:])[0]
-        return dR @ R, dR @ t + step[:3]
+@njit(cache=True, nogil=True)
+def _solve_spd(H, g, step) -> bool:
+    """step = -H^-1 g by Cholesky (H symmetric, damped); False when H is not positive definite."""
+    L = np.zeros((6, 6))
+    for i in range(6):
+        for j in range(i + 1):
+            s = H[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            if i == j:
+                if not s > 0.0:
+                    return False
+                L[i, i] = math.sqrt(s)
+            else:
+                L[i, j] = s / L[j, j]
+    y = np.empty(6)
+    for i in range(6):
+        s = -g[i]
+        for k in range(i):
+            s -= L[i, k] * y[k]
+        y[i] = s / L[i, i]
+    for i in range(5, -1, -1):
+        s = y[i]
+        for k in range(i + 1, 6):
+            s -= L[k, i] * step[k]
+        step[i] = s / L[i, i]
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _exp_so3(w):
+    """The rotation of rotation vector ``w`` (as cv2.Rodrigues)."""
+    theta = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    R = np.eye(3)
+    if theta < 2.220446049250313e-16:
+        return R
+    c, s = math.cos(theta), math.sin(theta)
+    c1 = 1.0 - c
+    x, y, z = w[0] / theta, w[1] / theta, w[2] / theta
+    R[0, 0], R[0, 1], R[0, 2] = c + c1 * x * x, c1 * x * y - s * z, c1 * x * z + s * y
+    R[1, 0], R[1, 1], R[1, 2] = c1 * x * y + s * z, c + c1 * y * y, c1 * y * z - s * x
+    R[2, 0], R[2, 1], R[2, 2] = c1 * x * z - s * y, c1 * y * z + s * x, c + c1 * z * z
+    return R
+
+
+@njit(cache=True, nogil=True)
+def _errors(R, t, P, uv, u_right, info, K, bf, e2, front):
+    """Info-weighted squared reprojection error per keypoint and whether it is in front."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    for i in range(P.shape[0]):
+        x = R[0, 0] * P[i, 0] + R[0, 1] * P[i, 1] + R[0, 2] * P[i, 2] + t[0]
+        y = R[1, 0] * P[i, 0] + R[1, 1] * P[i, 1] + R[1, 2] * P[i, 2] + t[1]
+        z = R[2, 0] * P[i, 0] + R[2, 1] * P[i, 1] + R[2, 2] * P[i, 2] + t[2]
+        front[i] = z > 1e-6
+        iz = 1.0 / (z if front[i] else 1e-6)
+        ru = fx * x * iz + cx - uv[i, 0]
+        rv = fy * y * iz + cy - uv[i, 1]
+        e = ru * ru + rv * rv
+        if math.isfinite(u_right[i]):
+            rr = fx * x * iz + cx - bf * iz - u_right[i]
+            e += rr * rr
+        e2[i] = e * info[i]
+
+
+@njit(cache=True, nogil=True)
+def _optimize(R, t, P, uv, u_right, info, K, bf, chi2, rounds, iterations, lam, floor, min_step):
+    """The rounds of :func:`optimize_pose` on (R, t) in place; returns the inlier mask."""
+    n = P.shape[0]
+    delta = np.sqrt(chi2)
+    inlier = np.ones(n, np.bool_)
+    solved = np.zeros(n, np.bool_)  # the inliers the last round solved with
+    e2, front = np.empty(n), np.empty(n, np.bool_)
+    H, g, step = np.empty((6, 6)), np.empty(6), np.empty(6)
+    last_robust = True
+    for rnd in range(rounds):
+        robust = rnd < 2
+        if rnd > 0 and robust == last_robust and np.array_equal(solved, inlier):
+            continue  # the same problem from its own solution: it would not move
+        last_robust = robust
+        for _ in range(iterations):
+            _normal_equations(R, t, P, uv, u_right, info, inlier, robust, delta, K, bf, H, g)
+            for a in range(6):
+                H[a, a] += floor + lam * H[a, a]
+            if not _solve_spd(H, g, step):
+                break
+            finite, largest = True, 0.0
+            for a in range(6):
+                finite = finite and math.isfinite(step[a])
+                largest = max(largest, abs(step[a]))
+            if not finite:
+                break
+            dR = _exp_so3(step[3:])
+            R[:] = dR @ R
+            t[:] = dR @ t + step[:3]
+            if largest < min_step:
+                break
+        _errors(R, t, P, uv, u_right, info, K, bf, e2, front)
+        solved[:] = inlier
+        count = 0
+        for i in range(n):
+            inlier[i] = e2[i] <= chi2[i] and front[i]
+            count += inlier[i]
+        if count < 3:
+            break
+    return inlier
 
 
 def optimize_pose(
@@ -125,43 +204,27 @@ def optimize_pose(
     T = np.array(T_cam_map, dtype=float)
     if n < 3:
         return T, np.zeros(n, bool)
-    u_right = np.asarray(u_right_px, dtype=float)
-    chi2 = np.full(n, chi2_mono)
-    chi2[np.isfinite(u_right)] = chi2_stereo
-    problem = _PoseProblem(
-        np.asarray(points_map, dtype=float),
-        np.asarray(uv_px, dtype=float),
+    u_right = np.ascontiguousarray(u_right_px, dtype=float)
+    chi2 = np.where(np.isfinite(u_right), float(chi2_stereo), float(chi2_mono))
+    R, t = np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3])
+    inlier = _optimize(
+        R,
+        t,
+        np.ascontiguousarray(points_map, dtype=float),
+        np.ascontiguousarray(uv_px, dtype=float),
         u_right,
-        np.asarray(info, dtype=float),
-        K,
-        bf,
+        np.ascontiguousarray(info, dtype=float),
+        np.ascontiguousarray(K, dtype=float),
+        float(bf),
         chi2,
+        int(rounds),
+        int(iterations),
+        GAUSS_NEWTON.lambda_initial,
+        DAMPING_FLOOR,
+        GAUSS_NEWTON.min_step,
     )
-    rules = GAUSS_NEWTON
-    if iterations != rules.max_iterations:
-        rules = dataclasses.replace(rules, max_iterations=iterations)
-    state = (T[:3, :3].copy(), T[:3, 3].copy())
-    inlier = None  # the inliers the last round solved with
-    for rnd in range(rounds):
-        robust = rnd < 2
-        if (
-            robust == problem.robust
-            and inlier is not None
-            and np.array_equal(inlier, problem.inlier)
-        ):
-            # The same problem from its own solution: the round would not move (8 % of
-            # tracking's rounds on RedKitchen).
-            continue
-        problem.robust = robust
-        state = least_squares(problem, state, rules).state
-        *_, e2, front = problem.residuals(*state)
-        inlier = problem.inlier
-        problem.inlier = (e2 <= chi2) & front
-        if problem.inlier.sum() < 3:
-            break
     # Re-orthonormalize against round-off accumulated over the updates.
-    R, t = state
     U, _, Vt = np.linalg.svd(R)
     T[:3, :3] = U @ Vt
     T[:3, 3] = t
-    return T, problem.inlier
+    return T, inlier

@@ -1,0 +1,33 @@
+"""The odometry's compiled kernels (numba: the pose optimization and the projection search),
+compiled before the first frame rather than on it.
+
+numba compiles a kernel on its first call (about 5 s for both here) and keeps the machine code in
+its cache beside the sources, so later starts load it (a tenth of a second). ``scripts/setup``
+fills the cache; :class:`coop_slam.vo.VisualOdometry` warms up when it is made, so no frame
+waits for the compiler."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .features import FrameFeatures
+from .matching import Projection, search_by_projection
+from .pose_opt import optimize_pose
+
+
+def warm_up() -> None:
+    """Call each kernel once on a tiny problem (compiles it, or loads it from the cache)."""
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    points = np.array([[0.0, 0.0, 2.0], [0.5, 0.0, 2.0], [0.0, 0.5, 2.5], [0.5, 0.5, 3.0]])
+    uv = points[:, :2] / points[:, 2:] * 500.0 + [320.0, 240.0]
+    optimize_pose(np.eye(4), points, uv, uv[:, 0] - 20.0, np.ones(4), K, 40.0)
+    n = len(uv)
+    desc = np.zeros((n, 32), np.uint8)
+    frame = FrameFeatures(
+        uv, np.ones(n, np.float32), np.full(n, -1, np.float32), np.zeros(n, np.uint8), desc,
+        np.ones(n, np.float32), points, uv[:, 0] - 20.0,
+    )  # fmt: skip
+    proj = Projection(np.arange(n), uv, uv[:, 0] - 20.0, points[:, 2], np.zeros(n, int))
+    scales = 1.2 ** np.arange(8)
+    for chi2 in (None, 5.991):
+        search_by_projection(proj, desc, frame, 4.0, scales, 50, 0.9, chi2_gate=chi2)
