@@ -6,6 +6,7 @@ Descriptors are ``(N, 32) uint8`` arrays (256 bits each); distances are Hamming 
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from .errors import CoopSlamError
 
@@ -114,6 +115,24 @@ def popcount_u64_sum(x: np.ndarray) -> np.ndarray:
     s *= _H0001
     s >>= _S48
     return s
+
+
+_M1, _M2 = np.uint64(0x5555555555555555), np.uint64(0x3333333333333333)
+_M4, _H01 = np.uint64(0x0F0F0F0F0F0F0F0F), np.uint64(0x0101010101010101)
+
+
+@njit(cache=True, nogil=True)
+def hamming(a, b) -> int:
+    """Bits differing between two descriptors given as four uint64 words each (a compiled
+    kernel's view of a (N, 32) uint8 array: ``desc.view(np.uint64)``)."""
+    total = 0
+    for w in range(4):
+        x = a[w] ^ b[w]
+        x = x - ((x >> np.uint64(1)) & _M1)
+        x = (x & _M2) + ((x >> np.uint64(2)) & _M2)
+        x = (x + (x >> np.uint64(4))) & _M4
+        total += int((x * _H01) >> np.uint64(56))
+    return total
 
 
 def hamming_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:

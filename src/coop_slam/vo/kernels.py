@@ -1,5 +1,5 @@
-"""The odometry's compiled kernels (numba: the pose optimization and the projection search),
-compiled before the first frame rather than on it.
+"""The odometry's compiled kernels (numba: the pose optimization, the projection search and the
+stereo matching), compiled before the first frame rather than on it.
 
 numba compiles a kernel on its first call (about 5 s for both here) and keeps the machine code in
 its cache beside the sources, so later starts load it (a tenth of a second). ``scripts/setup``
@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .features import FrameFeatures
+from .config import VoConfig
+from .features import FrameFeatures, OrbKeypoints
 from .matching import Projection, search_by_projection
 from .pose_opt import optimize_pose
+from .stereo_matching import level_images, match_stereo
 
 
 def warm_up() -> None:
@@ -31,3 +33,8 @@ def warm_up() -> None:
     scales = 1.2 ** np.arange(8)
     for chi2 in (None, 5.991):
         search_by_projection(proj, desc, frame, 4.0, scales, 50, 0.9, chi2_gate=chi2)
+    image = np.zeros((64, 96), np.uint8)
+    kps = OrbKeypoints(uv + [-300.0, -200.0], np.ones(n, np.float32), np.zeros(n, np.float32),
+                       np.zeros(n, np.uint8), desc)  # fmt: skip
+    levels = level_images(image, scales)
+    match_stereo(kps, kps, levels, levels, scales, 500.0, VoConfig())

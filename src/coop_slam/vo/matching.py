@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from ..descriptors import as_descriptors
+from ..descriptors import as_descriptors, hamming
 from ..geometry import transform_points
 from .features import FrameFeatures
 
@@ -136,22 +136,7 @@ def search_by_projection(
     return pi, kj, dist
 
 
-_M1, _M2 = np.uint64(0x5555555555555555), np.uint64(0x3333333333333333)
-_M4, _H01 = np.uint64(0x0F0F0F0F0F0F0F0F), np.uint64(0x0101010101010101)
 _GRID_PX = 16.0  # cell of the keypoint grid the search visits [px]
-
-
-@njit(cache=True, nogil=True)
-def _hamming(a, b) -> int:
-    """Bits differing between two descriptors as four uint64 words."""
-    total = 0
-    for w in range(4):
-        x = a[w] ^ b[w]
-        x = x - ((x >> np.uint64(1)) & _M1)
-        x = (x & _M2) + ((x >> np.uint64(2)) & _M2)
-        x = (x + (x >> np.uint64(4))) & _M4
-        total += int((x * _H01) >> np.uint64(56))
-    return total
 
 
 @njit(cache=True, nogil=True)
@@ -206,7 +191,7 @@ def _search(
                             gate = chi2 * 7.815 / 5.991
                         if d2 / scales[kp_octave[k]] ** 2 > gate:
                             continue
-                    d = _hamming(desc[m], kp_desc[k])
+                    d = hamming(desc[m], kp_desc[k])
                     if d < best_d or (d == best_d and k < best_k):
                         second_d, second_k = best_d, best_k
                         best_d, best_k = d, k

@@ -15,15 +15,16 @@
 Vectorised: step 1 lists, per left pyramid level, the candidate pairs from the right keypoints of
 the neighbouring levels sorted by row (a few dozen per left keypoint rather than all of them) and
 takes descriptor distances of those pairs only;
-step 2 gathers every patch of one pyramid level at once.
+step 2 is a compiled loop over the pairs (:func:`_slide_patches`).
 """
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
+from numba import njit
 
-from ..descriptors import hamming_rows
+from ..descriptors import as_descriptors, hamming
 from .config import VoConfig
 from .features import OrbKeypoints
 
@@ -74,48 +75,51 @@ def _candidate_matches(
     left: OrbKeypoints, right: OrbKeypoints, scales: np.ndarray, fx: float, config: VoConfig
 ) -> np.ndarray:
     """(K, 2) (left, right) index pairs: each left keypoint with its best right candidate (step 1
-    of the module docstring)."""
-    uR, vR, oR = right.uv_px[:, 0], right.uv_px[:, 1], right.octaves.astype(int)
-    oL = left.octaves.astype(int)
-    li_parts, ri_parts = [], []
-    # Per left level, the right keypoints of its neighbouring levels only, in a band as wide as
-    # the widest of them allows: a fraction of all row-band pairs.
-    for level in np.unique(oL):
-        lefts = np.flatnonzero(oL == level)
-        rights = np.flatnonzero(np.abs(oR - level) <= 1)
-        if len(rights) == 0:
-            continue
-        order = rights[np.argsort(vR[rights], kind="stable")]
-        v_sorted = vR[order]
-        band = config.stereo.row_tolerance_px * scales[min(level + 1, len(scales) - 1)]
-        lo = np.searchsorted(v_sorted, left.uv_px[lefts, 1] - band, side="left")
-        hi = np.searchsorted(v_sorted, left.uv_px[lefts, 1] + band, side="right")
-        counts = hi - lo
-        total = int(counts.sum())
-        if total == 0:
-            continue
-        li_parts.append(np.repeat(lefts, counts))
-        starts = np.repeat(lo - np.r_[0, np.cumsum(counts)[:-1]], counts)
-        ri_parts.append(order[np.arange(total) + starts])
-    if not li_parts:
-        return np.zeros((0, 2), np.int64)
-    li, ri = np.concatenate(li_parts), np.concatenate(ri_parts)
-    disparity = left.uv_px[li, 0] - uR[ri]
-    ok = (
-        (np.abs(left.uv_px[li, 1] - vR[ri]) <= config.stereo.row_tolerance_px * scales[oR[ri]])
-        & (disparity >= 0)
-        & (disparity < fx)
+    of the module docstring; ties: the right keypoint higher in the image)."""
+    by_row = np.argsort(right.uv_px[:, 1], kind="stable")
+    li, ri = _best_in_band(
+        np.ascontiguousarray(left.uv_px, dtype=float),
+        np.ascontiguousarray(left.octaves, dtype=np.int64),
+        as_descriptors(left.descriptors, "left").view(np.uint64),
+        np.ascontiguousarray(right.uv_px[by_row], dtype=float),
+        np.ascontiguousarray(right.octaves[by_row], dtype=np.int64),
+        as_descriptors(right.descriptors[by_row], "right").view(np.uint64),
+        np.ascontiguousarray(scales, dtype=float),
+        float(fx),
+        float(config.stereo.row_tolerance_px),
+        int(config.stereo.max_descriptor_distance),
     )
-    li, ri = li[ok], ri[ok]
-    if len(li) == 0:
-        return np.zeros((0, 2), np.int64)
-    dist = hamming_rows(left.descriptors[li], right.descriptors[ri])
-    # The best candidate of each left keypoint (ties: the first right keypoint by row).
-    best = np.lexsort((dist, li))
-    first = np.r_[True, li[best][1:] != li[best][:-1]]
-    best = best[first]
-    keep = dist[best] < config.stereo.max_descriptor_distance
-    return np.column_stack([li[best][keep], ri[best][keep]]).astype(np.int64)
+    return np.column_stack([li, by_row[ri]]).astype(np.int64)
+
+
+@njit(cache=True, nogil=True)
+def _best_in_band(uv_l, oct_l, desc_l, uv_r, oct_r, desc_r, scales, fx, row_tol, max_distance):
+    """Per left keypoint, the right keypoint (they are sorted by row) of a neighbouring level in
+    its row band with a disparity in [0, fx) and the least descriptor distance, if below
+    ``max_distance``: (left indices, right indices)."""
+    n_levels = len(scales)
+    li = np.empty(len(uv_l), np.int64)
+    ri = np.empty(len(uv_l), np.int64)
+    count = 0
+    for i in range(len(uv_l)):
+        o = oct_l[i]
+        band = row_tol * scales[min(o + 1, n_levels - 1)]
+        lo = np.searchsorted(uv_r[:, 1], uv_l[i, 1] - band, side="left")
+        hi = np.searchsorted(uv_r[:, 1], uv_l[i, 1] + band, side="right")
+        best_d, best_j = max_distance, -1
+        for j in range(lo, hi):
+            if abs(oct_r[j] - o) > 1 or abs(uv_l[i, 1] - uv_r[j, 1]) > row_tol * scales[oct_r[j]]:
+                continue
+            disparity = uv_l[i, 0] - uv_r[j, 0]
+            if disparity < 0 or disparity >= fx:
+                continue
+            d = hamming(desc_l[i], desc_r[j])
+            if d < best_d:
+                best_d, best_j = d, j
+        if best_j >= 0:
+            li[count], ri[count] = i, best_j
+            count += 1
+    return li[:count], ri[:count]
 
 
 def _refine(pairs, left, right, left_levels, right_levels, scales, config):
@@ -124,8 +128,6 @@ def _refine(pairs, left, right, left_levels, right_levels, scales, config):
     refined = np.full(len(pairs), np.nan)
     cost = np.full(len(pairs), np.inf)
     octave = left.octaves[pairs[:, 0]].astype(int)
-    offsets = np.arange(-r, r + 1)
-    shifts = np.arange(-search, search + 1)
     for level in np.unique(octave):
         sel = np.flatnonzero(octave == level)
         s = scales[level]
@@ -146,22 +148,50 @@ def _refine(pairs, left, right, left_levels, right_levels, scales, config):
         sel, ul, vl, ur0 = sel[inside], ul[inside], vl[inside], ur0[inside]
         if len(sel) == 0:
             continue
-        rows = vl[:, None, None] + offsets[None, :, None]  # (n, P, 1)
-        patch_l = img_l[rows, ul[:, None, None] + offsets[None, None, :]].astype(np.float32)
-        patch_l -= patch_l.mean(axis=(1, 2), keepdims=True)
-        cols = ur0[:, None, None, None] + shifts[None, :, None, None] + offsets[None, None, None, :]
-        patch_r = img_r[rows[:, None, :, :], cols].astype(np.float32)  # (n, S, P, P)
-        patch_r -= patch_r.mean(axis=(2, 3), keepdims=True)
-        costs = ((patch_r - patch_l[:, None]) ** 2).sum(axis=(2, 3), dtype=np.float64)  # (n, S)
-        best = np.argmin(costs, axis=1)
-        interior = (best > 0) & (best < len(shifts) - 1)
-        k = np.flatnonzero(interior)
-        d1, d2, d3 = costs[k, best[k] - 1], costs[k, best[k]], costs[k, best[k] + 1]
-        denom = 2.0 * (d1 + d3 - 2.0 * d2)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            delta = np.where(denom != 0, (d1 - d3) / denom, 0.0)
-        fine = np.abs(delta) <= 1.0
-        k = k[fine]
-        refined[sel[k]] = (ur0[k] + shifts[best[k]] + delta[fine] + 0.5) * s - 0.5
-        cost[sel[k]] = np.sqrt(costs[k, best[k]])  # an RMS-like difference, as ORB-SLAM2's SAD
+        at, best_cost = _slide_patches(img_l, img_r, ul, vl, ur0, r, search)
+        ok = np.isfinite(at)
+        refined[sel[ok]] = (at[ok] + 0.5) * s - 0.5
+        cost[sel[ok]] = best_cost[ok]
     return refined, cost
+
+
+@njit(cache=True, nogil=True)
+def _slide_patches(img_l, img_r, ul, vl, ur0, r, search):
+    """Per pair (left pixel (ul, vl), right column ur0 on one level; all patches inside): the
+    subpixel right column where the zero-mean patch difference is least (NaN: at the end of the
+    search, or the parabola moves it by more than a pixel) and that least cost's square root."""
+    n, side = len(ul), 2 * r + 1
+    at = np.full(n, np.nan)
+    best_cost = np.full(n, np.inf)
+    costs = np.empty(2 * search + 1)
+    patch = np.empty((side, side))
+    for i in range(n):
+        mean = 0.0
+        for a in range(side):
+            for b in range(side):
+                patch[a, b] = img_l[vl[i] - r + a, ul[i] - r + b]
+                mean += patch[a, b]
+        patch -= mean / (side * side)
+        for k in range(2 * search + 1):
+            c0 = ur0[i] - search + k - r
+            mean_r = 0.0
+            for a in range(side):
+                for b in range(side):
+                    mean_r += img_r[vl[i] - r + a, c0 + b]
+            mean_r /= side * side
+            ssd = 0.0
+            for a in range(side):
+                for b in range(side):
+                    e = img_r[vl[i] - r + a, c0 + b] - mean_r - patch[a, b]
+                    ssd += e * e
+            costs[k] = ssd
+        best = np.argmin(costs)
+        if best == 0 or best == 2 * search:
+            continue
+        d1, d2, d3 = costs[best - 1], costs[best], costs[best + 1]
+        denom = 2.0 * (d1 + d3 - 2.0 * d2)
+        delta = (d1 - d3) / denom if denom != 0 else 0.0
+        if abs(delta) <= 1.0:
+            at[i] = ur0[i] + best - search + delta
+            best_cost[i] = np.sqrt(d2)  # an RMS-like difference, as ORB-SLAM2's SAD
+    return at, best_cost
