@@ -29,6 +29,7 @@ from ..playback import PLAYABLE_SENSORS
 from ..robot_description import describe
 from ..uplink.config import UplinkConfig
 from ..vo.config import VoConfig
+from ..vo.kernels import warm_up
 from ..vo.pipeline import VisualOdometry
 from ..vo.types import STATE_INITIALIZING
 from .camera_input import CameraInput
@@ -124,6 +125,7 @@ class ClientNode:
             self._camera_changed,
             self._frame_not_tracked,
         )
+        warm_up()  # the odometry's compiled kernels, before the camera's first frame
         threading.Thread(target=self._track_frames, daemon=True).start()
         self.sub_corr = rospy.Subscriber(
             f"/{name}/correction", MapCorrection, self._on_correction, queue_size=5
