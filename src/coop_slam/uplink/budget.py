@@ -55,15 +55,21 @@ class RadioBudget:
         if self._t is None or now_s > self._t:
             self._t = now_s
 
+    def affords(self, kind: str, now_s: float) -> bool:
+        """Whether a message of ``kind`` fits the budget at data time ``now_s`` (nothing taken)."""
+        if not self.limited:
+            return True
+        self._refill(now_s)
+        return self.tokens >= self._cost[kind] + self.held_in_hand
+
     def take(self, kind: str, now_s: float) -> float | None:
         """When a message of ``kind`` fits the budget at data time ``now_s``: what it is charged
         (what one cost lately, taken now); else None."""
         if not self.limited:
             return 0.0
-        self._refill(now_s)
-        charge = self._cost[kind]
-        if self.tokens < charge + self.held_in_hand:
+        if not self.affords(kind, now_s):
             return None
+        charge = self._cost[kind]
         self.tokens -= charge
         return charge
 
@@ -115,6 +121,7 @@ class BudgetGate:
         # Map point ids of each keyframe the server has a view of (whole in full mode, its
         # signature in pull mode), as it went: what a candidate's novelty is measured against.
         self._views: dict[int, np.ndarray] = {}
+        self._seen: np.ndarray | None = None  # the map point ids of all views, sorted (None: stale)
 
     @property
     def waiting(self) -> int:
@@ -128,14 +135,17 @@ class BudgetGate:
         return self._given_up_count + self.waiting
 
     def novelty(self, rec: KeyframeRecord) -> float:
-        """The share of ``rec``'s map points that none of its covisible keyframes the server has
-        a view of observes (1: a new view of the scene; 0: nothing the server has not seen)."""
+        """The share of ``rec``'s map points that no keyframe the server has a view of observes
+        (1: a new view of the scene; 0: nothing the server has not seen)."""
         ids = np.asarray(rec.map_point_ids)
         ids = ids[ids != 0]
-        seen = [self._views[int(c)] for c in rec.covisible_ids if int(c) in self._views]
-        if len(ids) == 0 or not seen:
+        if self._seen is None:  # (rebuilt after a view went; kept sorted for the lookups)
+            views = list(self._views.values())
+            self._seen = np.unique(np.concatenate(views)) if views else np.zeros(0, np.uint32)
+        if len(ids) == 0 or len(self._seen) == 0:
             return 1.0
-        return 1.0 - float(np.isin(ids, np.concatenate(seen)).mean())
+        at = np.minimum(np.searchsorted(self._seen, ids), len(self._seen) - 1)
+        return 1.0 - float(np.mean(self._seen[at] == ids))
 
     def admit(
         self,
@@ -192,9 +202,17 @@ class BudgetGate:
 
     def _release(self, now_s: float, flush: bool) -> list[KeyframeRecord]:
         out = []
-        # (once per call: a few candidates, against the views as they are before any goes)
-        novelty = {k: self.novelty(rec) for k, (_, rec) in self._candidates.items()}
+        # Ranked by novelty (once per call, against the views as they are before any goes): all
+        # candidates when one can go whole, else those whose signature goes now (a candidate's
+        # novelty costs a lookup of its map points: every candidate on every frame was most of a
+        # hand-held camera's frame time)
+        if self.budget.affords(self.new_kind, now_s):
+            rank = list(self._candidates)
+        else:
+            rank = [k for k in self._candidates if self.sign and k not in self.signed]
+        novelty = {k: self.novelty(self._candidates[k][1]) for k in rank}
         ranked = sorted(novelty, key=lambda k: -novelty[k])
+        ranked += [k for k in self._candidates if k not in novelty]
         affords = True
         for k in ranked:
             since, rec = self._candidates[k]
@@ -223,11 +241,13 @@ class BudgetGate:
     def _add_view(self, rec: KeyframeRecord) -> None:
         ids = np.asarray(rec.map_point_ids)
         self._views[rec.keyframe_id] = ids[ids != 0]
+        self._seen = None
 
     def _forget(self, keyframe_id: int) -> None:
         """A keyframe removed: the server no longer has it."""
         self.signed.discard(keyframe_id)
-        self._views.pop(keyframe_id, None)
+        if self._views.pop(keyframe_id, None) is not None:
+            self._seen = None
 
     def answered(self, rec: KeyframeRecord) -> None:
         """The server asked for this keyframe and it went whole: its updates go from now on."""
