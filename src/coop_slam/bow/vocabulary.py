@@ -21,9 +21,10 @@ from dataclasses import dataclass
 from typing import Callable, Iterator, Sequence
 
 import numpy as np
+from numba import njit
 
 from ..config import require
-from ..descriptors import DESCRIPTOR_BYTES, as_descriptors, popcount_u64_sum
+from ..descriptors import DESCRIPTOR_BYTES, as_descriptors, hamming
 from ..errors import CoopSlamError
 from .clustering import k_majority
 
@@ -35,7 +36,6 @@ DEFAULT_K = 10
 DEFAULT_LEVELS = 5
 DEFAULT_LEVELS_UP = 4  # ORB-SLAM's direct-index level (levels above the leaves)
 _TEXT_FIELDS = 2 + DESCRIPTOR_BYTES + 1  # parent is_leaf d0..d31 weight
-_CHUNK = 16384  # descriptors per descent step: bounds the (chunk, k, 4) temporaries to a few MB
 
 ProgressCallback = Callable[[str, int, int], None]  # (stage, done, total)
 
@@ -245,29 +245,13 @@ class Vocabulary:
 
     # --- transform ----------------------------------------------------------------------------
     def _descend(self, q: np.ndarray, record_depth: int) -> tuple[np.ndarray, np.ndarray]:
-        """Leaf node of each descriptor and its node at ``record_depth`` (the leaf if shallower)."""
-        q64 = q.view(np.uint64)
-        m = len(q)
-        node = np.zeros(m, dtype=np.int32)
-        recorded = node
-        for depth in range(1, self.levels + 1):
-            ch = np.take(self.children, node, axis=0)  # (m, k)
-            x = np.take(self._desc64, ch, axis=0)  # (m, k, 4)
-            x ^= q64[:, None, :]
-            best = popcount_u64_sum(x).argmin(axis=1)
-            node = np.take_along_axis(ch, best[:, None], axis=1)[:, 0]
-            if depth == record_depth:
-                recorded = node
-        return node, recorded
+        """Leaf node of each descriptor and its node at ``record_depth`` (0 when that is 0)."""
+        return _descend(q.view(np.uint64), self.children, self._desc64, self.levels, record_depth)
 
     def words_of(self, descriptors: np.ndarray) -> np.ndarray:
         """Word id of every descriptor (no weighting, no stop-word removal)."""
-        q = as_descriptors(descriptors)
-        out = np.empty(len(q), dtype=np.int32)
-        for s in range(0, len(q), _CHUNK):
-            leaf, _ = self._descend(q[s : s + _CHUNK], 0)
-            out[s : s + _CHUNK] = self.node_word[leaf]
-        return out
+        leaf, _ = self._descend(as_descriptors(descriptors), 0)
+        return self.node_word[leaf]
 
     def transform(
         self, descriptors: np.ndarray, levels_up: int = DEFAULT_LEVELS_UP
@@ -278,14 +262,7 @@ class Vocabulary:
         """
         q = as_descriptors(descriptors)
         record_depth = max(self.levels - int(levels_up), 0)
-        if len(q) > _CHUNK:
-            parts = [
-                self._descend(q[s : s + _CHUNK], record_depth) for s in range(0, len(q), _CHUNK)
-            ]
-            leaf = np.concatenate([p[0] for p in parts])
-            rec = np.concatenate([p[1] for p in parts])
-        else:
-            leaf, rec = self._descend(q, record_depth)
+        leaf, rec = self._descend(q, record_depth)
         w = self.weights[leaf]
         keep = np.flatnonzero(w > 0)
         words = self.node_word[leaf[keep]]
@@ -641,3 +618,33 @@ __all__ = [
     "l1_score",
     "train",
 ]
+
+
+@njit(cache=True, nogil=True)
+def _descend(q64, children, desc64, levels, record_depth):
+    """Per descriptor (four uint64 words): down the tree to the nearest child at each level (ties:
+    the first child) -> (leaf nodes, nodes at ``record_depth``; 0 when that is 0). Compiled: one
+    loop where numpy built a (descriptors, k, 4) array per level."""
+    m, k = q64.shape[0], children.shape[1]
+    leaf = np.empty(m, np.int32)
+    recorded = np.zeros(m, np.int32)
+    for i in range(m):
+        node = 0
+        for depth in range(1, levels + 1):
+            best, best_d = children[node, 0], 1 << 30
+            for c in range(k):
+                d = hamming(q64[i], desc64[children[node, c]])
+                if d < best_d:
+                    best, best_d = children[node, c], d
+            node = best
+            if depth == record_depth:
+                recorded[i] = node
+        leaf[i] = node
+    return leaf, recorded
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the descent on a one-node tree."""
+    _descend(
+        np.zeros((1, 4), np.uint64), np.zeros((1, 1), np.int32), np.zeros((1, 4), np.uint64), 1, 0
+    )

@@ -1,5 +1,6 @@
-"""The odometry's compiled kernels (numba: the pose optimization, the projection search and the
-stereo matching), compiled before the first frame rather than on it.
+"""The odometry's compiled kernels (numba: the pose optimization, the projection search, the
+stereo matching and the vocabulary's descent for place signatures), compiled before the first
+frame rather than on it.
 
 numba compiles a kernel on its first call (about 5 s for both here) and keeps the machine code in
 its cache beside the sources, so later starts load it (a tenth of a second). ``scripts/setup``
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..bow import vocabulary
 from .config import VoConfig
 from .features import FrameFeatures, OrbKeypoints
 from .matching import Projection, search_by_projection
@@ -19,6 +21,7 @@ from .stereo_matching import level_images, match_stereo
 
 def warm_up() -> None:
     """Call each kernel once on a tiny problem (compiles it, or loads it from the cache)."""
+    vocabulary.warm_up()
     K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
     points = np.array([[0.0, 0.0, 2.0], [0.5, 0.0, 2.0], [0.0, 0.5, 2.5], [0.5, 0.5, 3.0]])
     uv = points[:, :2] / points[:, 2:] * 500.0 + [320.0, 240.0]
