@@ -1,9 +1,10 @@
 """Projection matching of map points to keypoints, and the pose-independent helpers it needs.
 
-The search (:func:`search_by_projection`) is one compiled loop over the projected points that
-visits a grid of the keypoints within each point's radius and applies the gates (radius scaled by
-the predicted octave, octave window, Hamming distance, ratio test, depth consistency, one point per
-keypoint) as it goes; the rotation histogram is numpy on the matches.
+The search (:func:`search_by_projection`): the candidate (point, keypoint) pairs within the
+search radius from one KD-tree query (``sparse_distance_matrix``); the gates (radius scaled by
+the predicted octave, octave window, Hamming distance, ratio test, depth consistency, one point
+per keypoint) in one compiled loop over those pairs; the rotation histogram in numpy on the
+matches.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
+from scipy.spatial import cKDTree
 
 from ..descriptors import as_descriptors, hamming
 from ..geometry import transform_points
@@ -104,17 +106,27 @@ def search_by_projection(
     the keypoint's octave, exceeds it (a depth-consistency test used when fusing points).
 
     A point's candidates are the keypoints within ``radius_px`` times its predicted octave's
-    scale, at that octave or one next to it; the nearest descriptor wins (ties: the lower
-    keypoint index) if within ``max_distance`` and, against the second nearest at the same
-    level, the ratio test; of the points that chose one keypoint, the nearest descriptor (ties:
-    the lower point). Compiled (:func:`_search`): a loop over the points and a grid of the
-    keypoints, where numpy's candidate pairs and sorts cost 2 ms a call (issue #50).
+    scale (one KD-tree search), at that octave or one next to it; the nearest descriptor wins
+    (ties: the first candidate in the tree's order) if within ``max_distance`` and, against the
+    second nearest at the same level, the ratio test; of the points that chose one keypoint, the
+    nearest descriptor (ties: the lower point). The gates are compiled (:func:`_gated_best`),
+    where numpy's sorts and masks cost 1 ms a call (issue #50).
     """
     empty = (np.zeros(0, int), np.zeros(0, int), np.zeros(0, np.int32))
     if len(proj.index) == 0 or len(frame) == 0:
         return empty
+    radius = radius_px * scales[proj.pred_octave]
+    pairs = cKDTree(proj.uv_px).sparse_distance_matrix(
+        frame.tree(), float(radius.max()), output_type="ndarray"
+    )
+    if len(pairs) == 0:
+        return empty
     chi2 = -1.0 if chi2_gate is None else float(chi2_gate)
-    pi, kj, dist = _search(
+    pi, kj, dist = _gated_best(
+        pairs["i"].astype(np.int64),
+        pairs["j"].astype(np.int64),
+        pairs["v"],
+        radius,
         np.ascontiguousarray(proj.uv_px, dtype=float),
         np.ascontiguousarray(proj.u_right_px, dtype=float),
         np.ascontiguousarray(proj.pred_octave, dtype=np.int64),
@@ -124,7 +136,6 @@ def search_by_projection(
         np.ascontiguousarray(frame.octaves, dtype=np.int64),
         as_descriptors(frame.descriptors, "keypoints").view(np.uint64),
         np.zeros(len(frame), np.bool_) if exclude_kp is None else np.asarray(exclude_kp, bool),
-        float(radius_px),
         np.ascontiguousarray(scales, dtype=float),
         int(max_distance),
         float(ratio),
@@ -136,75 +147,55 @@ def search_by_projection(
     return pi, kj, dist
 
 
-_GRID_PX = 16.0  # cell of the keypoint grid the search visits [px]
-
-
 @njit(cache=True, nogil=True)
-def _search(
-    uv, u_right, octave, desc, kp_uv, kp_u_right, kp_octave, kp_desc, exclude, radius_px,
-    scales, max_distance, ratio, chi2,
+def _gated_best(
+    pair_i, pair_k, pair_px, radius, uv, u_right, octave, desc, kp_uv, kp_u_right, kp_octave,
+    kp_desc, exclude, scales, max_distance, ratio, chi2,
 ):  # fmt: skip
-    """:func:`search_by_projection`'s matches (chi2 < 0: no reprojection gate)."""
-    n_kp = kp_uv.shape[0]
-    # The keypoints by grid cell (a counting sort): cell c holds order[start[c]:start[c + 1]].
-    cols = int(kp_uv[:, 0].max() / _GRID_PX) + 1
-    rows = int(kp_uv[:, 1].max() / _GRID_PX) + 1
-    cell = np.empty(n_kp, np.int64)
-    start = np.zeros(rows * cols + 1, np.int64)
-    for k in range(n_kp):
-        cu = min(max(int(kp_uv[k, 0] / _GRID_PX), 0), cols - 1)
-        cv = min(max(int(kp_uv[k, 1] / _GRID_PX), 0), rows - 1)
-        cell[k] = cv * cols + cu
-        start[cell[k] + 1] += 1
-    for c in range(rows * cols):
-        start[c + 1] += start[c]
-    order = np.empty(n_kp, np.int64)
-    fill = start[:-1].copy()
-    for k in range(n_kp):
-        order[fill[cell[k]]] = k
-        fill[cell[k]] += 1
+    """:func:`search_by_projection`'s matches from the KD tree's candidate pairs (point, keypoint,
+    image distance), taken in the tree's order: a point's best and second best are the first
+    pairs of least descriptor distance, as numpy's stable sort kept them (on rendered worlds many
+    keypoints tie, and which of them a monocular map takes changed its scale by 5 %). chi2 < 0:
+    no reprojection gate."""
+    n_pt, n_kp = uv.shape[0], kp_uv.shape[0]
     big = 1 << 30
+    best_d = np.full(n_pt, big, np.int64)
+    best_k = np.full(n_pt, -1, np.int64)
+    second_d = np.full(n_pt, big, np.int64)
+    second_k = np.full(n_pt, -1, np.int64)
+    for q in range(len(pair_i)):
+        m, k = pair_i[q], pair_k[q]
+        o = octave[m]
+        if pair_px[q] > radius[m] or kp_octave[k] < o - 1 or kp_octave[k] > o + 1 or exclude[k]:
+            continue
+        if chi2 >= 0.0:
+            du, dv = uv[m, 0] - kp_uv[k, 0], uv[m, 1] - kp_uv[k, 1]
+            err2, gate = du * du + dv * dv, chi2
+            if np.isfinite(kp_u_right[k]):
+                dr = u_right[m] - kp_u_right[k]
+                err2 += dr * dr
+                gate = chi2 * 7.815 / 5.991
+            if err2 / scales[kp_octave[k]] ** 2 > gate:
+                continue
+        d = hamming(desc[m], kp_desc[k])
+        if d < best_d[m]:
+            second_d[m], second_k[m] = best_d[m], best_k[m]
+            best_d[m], best_k[m] = d, k
+        elif d < second_d[m]:
+            second_d[m], second_k[m] = d, k
     owner = np.full(n_kp, -1, np.int64)  # the point each keypoint went to, and its distance
     owner_d = np.full(n_kp, big, np.int64)
-    for m in range(uv.shape[0]):
-        o = octave[m]
-        r = radius_px * scales[o]
-        u, v = uv[m, 0], uv[m, 1]
-        best_d, best_k, second_d, second_k = big, -1, big, -1
-        for cv in range(
-            max(int((v - r) / _GRID_PX), 0), min(int((v + r) / _GRID_PX), rows - 1) + 1
-        ):
-            for cu in range(
-                max(int((u - r) / _GRID_PX), 0), min(int((u + r) / _GRID_PX), cols - 1) + 1
-            ):
-                for idx in range(start[cv * cols + cu], start[cv * cols + cu + 1]):
-                    k = order[idx]
-                    du, dv = kp_uv[k, 0] - u, kp_uv[k, 1] - v
-                    d2 = du * du + dv * dv
-                    if d2 > r * r or kp_octave[k] < o - 1 or kp_octave[k] > o + 1 or exclude[k]:
-                        continue
-                    if chi2 >= 0.0:
-                        gate = chi2
-                        if np.isfinite(kp_u_right[k]):
-                            dr = u_right[m] - kp_u_right[k]
-                            d2 += dr * dr
-                            gate = chi2 * 7.815 / 5.991
-                        if d2 / scales[kp_octave[k]] ** 2 > gate:
-                            continue
-                    d = hamming(desc[m], kp_desc[k])
-                    if d < best_d or (d == best_d and k < best_k):
-                        second_d, second_k = best_d, best_k
-                        best_d, best_k = d, k
-                    elif d < second_d or (d == second_d and k < second_k):
-                        second_d, second_k = d, k
-        if best_k < 0 or best_d > max_distance:
+    for m in range(n_pt):
+        k = best_k[m]
+        if k < 0 or best_d[m] > max_distance:
             continue
         # Ratio test only against a keypoint of the same level, as ORB-SLAM (other levels are
         # other scales).
-        if second_k >= 0 and kp_octave[second_k] == kp_octave[best_k] and best_d > ratio * second_d:
+        s = second_k[m]
+        if s >= 0 and kp_octave[s] == kp_octave[k] and best_d[m] > ratio * second_d[m]:
             continue
-        if best_d < owner_d[best_k]:  # one point per keypoint: the nearest descriptor
-            owner[best_k], owner_d[best_k] = m, best_d
+        if best_d[m] < owner_d[k]:  # one point per keypoint: the nearest descriptor
+            owner[k], owner_d[k] = m, best_d[m]
     count = 0
     for k in range(n_kp):
         count += owner[k] >= 0
