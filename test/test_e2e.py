@@ -403,6 +403,8 @@ class _FakeClock:
         (lambda t: {"keyframes": 40, "idle": True}, lambda t: 2 if t < 12.0 else 0, 12.0),
         # A client that never hears back (killed for good): at most SETTLE_UNACKED_S more.
         (lambda t: {"keyframes": 40, "idle": True}, lambda t: 2, 42.0),
+        # ... while the server still works then: when it is quiet after that.
+        (lambda t: {"keyframes": min(int(t), 50), "idle": t >= 50}, lambda t: 2, 51.0),
     ],
 )
 def test_demo_settles_when_the_server_says_idle(monkeypatch, stats_at, unacked_at, ends_at):

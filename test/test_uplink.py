@@ -593,3 +593,4 @@ def test_a_new_keyframe_that_finds_no_room_counts_as_held_back():
     )
     (again,) = uplink.events([update], 2.0).messages
     assert again.keyframe_id == 3 and not again.delta
+    assert uplink.keyframes_sent == 3 and uplink.keyframes_held_back == 0  # whole: new to it

@@ -200,8 +200,10 @@ class ClientNode:
             self.rejects.reject(self.camera.topics["image"], str(exc))
         finally:
             # Counters on every frame's stats, a rejected one's too: the recorder takes a drop in
-            # keyframes_sent for a restarted client.
-            self._counters(stats)
+            # keyframes_sent for a restarted client (read under the lock the uplink's other
+            # threads change them under).
+            with self.lock:
+                self._counters(stats)
             self.pub_stats.publish(stats)
 
     def _after_mapping(self, stats) -> None:

@@ -625,7 +625,10 @@ class ServerWorker:
             # and fusing the sparse cloud of a large team takes longer than they do.
             dense_map = _dense_or_none(dense)
             if dense_map is not None:
-                self.out.dense_map(dense_map, stamp_s)
+                try:
+                    self.out.dense_map(dense_map, stamp_s)
+                except Exception as exc:  # noqa: BLE001 -- the sparse cloud must still go out
+                    log.error("team map: publishing the dense map failed (%s)", exc)
             return cloud()
 
         self.map_builder.submit(build, stamp_s)

@@ -528,7 +528,7 @@ def _settle(monitor, settle_s: float, say, sending=None) -> None:
     lossy radio, a restarted server)."""
     t_end = time.monotonic() + settle_s
     t_cap = time.monotonic() + max(settle_s, SETTLE_MAX_S)
-    t_unacked = t_end + SETTLE_UNACKED_S
+    t_unacked, gave_up = t_end + SETTLE_UNACKED_S, False
     last, changed = None, time.monotonic()
     said = False
     while time.monotonic() < t_cap:
@@ -539,13 +539,15 @@ def _settle(monitor, settle_s: float, say, sending=None) -> None:
         idle = bool((monitor.run.server_stats or {}).get("idle"))
         quiet = now - changed >= (SETTLE_IDLE_S if idle else SETTLE_QUIET_S)
         unacked = {r: run.unacked for r, run in list(monitor.run.robots.items()) if run.unacked}
-        if unacked and now >= t_unacked:
+        if unacked and now >= t_unacked and not gave_up:
             say(
                 "      after %.0f s robots still wait for the server to store keyframe messages "
                 "(%s): evaluating"
                 % (SETTLE_UNACKED_S, ", ".join(f"robot_{r}: {n}" for r, n in unacked.items()))
             )
-            t_unacked, unacked = t_cap, {}
+            gave_up = True
+        if gave_up:
+            unacked = {}
         if now >= t_end and quiet and not unacked and not (sending is not None and sending()):
             return
         if now >= t_end and not said:

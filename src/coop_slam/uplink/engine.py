@@ -421,6 +421,10 @@ class ClientUplink:
                 else:
                     self._signature_only.discard(rec.keyframe_id)
                     self._whole.add(rec.keyframe_id)
+            elif rec.keyframe_id in self._dropped_new and not (how.delta or how.signature):
+                # its first message dropped, this update goes whole: the server takes it as new
+                self._dropped_new.discard(rec.keyframe_id)
+                self._whole.add(rec.keyframe_id)
             if not self.waiting_for_server:
                 out.append(msg)
         return out

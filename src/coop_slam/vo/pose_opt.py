@@ -148,12 +148,12 @@ def _optimize(R, t, P, uv, u_right, info, K, bf, chi2, rounds, iterations, lam, 
     solved = np.zeros(n, np.bool_)  # the inliers the last round solved with
     e2, front = np.empty(n), np.empty(n, np.bool_)
     H, g, step = np.empty((6, 6)), np.empty(6), np.empty(6)
-    last_robust = True
+    last_robust, converged = True, False
     for rnd in range(rounds):
         robust = rnd < 2
-        if rnd > 0 and robust == last_robust and np.array_equal(solved, inlier):
-            continue  # the same problem from its own solution: it would not move
-        last_robust = robust
+        if rnd > 0 and converged and robust == last_robust and np.array_equal(solved, inlier):
+            continue  # the same problem from its own (converged) solution: it would not move
+        last_robust, converged = robust, False
         for _ in range(iterations):
             _normal_equations(R, t, P, uv, u_right, info, inlier, robust, delta, K, bf, H, g)
             for a in range(6):
@@ -170,6 +170,7 @@ def _optimize(R, t, P, uv, u_right, info, K, bf, chi2, rounds, iterations, lam, 
             R[:] = dR @ R
             t[:] = dR @ t + step[:3]
             if largest < min_step:
+                converged = True
                 break
         _errors(R, t, P, uv, u_right, info, K, bf, e2, front)
         solved[:] = inlier
