@@ -16,7 +16,7 @@ _M2 = np.uint64(0x3333333333333333)
 _M4 = np.uint64(0x0F0F0F0F0F0F0F0F)
 _M8 = np.uint64(0x00FF00FF00FF00FF)
 _H0001 = np.uint64(0x0001000100010001)
-_S1, _S2, _S4, _S8, _S48 = (np.uint64(s) for s in (1, 2, 4, 8, 48))
+_S1, _S2, _S4, _S8, _S48, _S56 = (np.uint64(s) for s in (1, 2, 4, 8, 48, 56))
 
 
 class DescriptorError(CoopSlamError):
@@ -117,8 +117,7 @@ def popcount_u64_sum(x: np.ndarray) -> np.ndarray:
     return s
 
 
-_M1, _M2 = np.uint64(0x5555555555555555), np.uint64(0x3333333333333333)
-_M4, _H01 = np.uint64(0x0F0F0F0F0F0F0F0F), np.uint64(0x0101010101010101)
+_H01 = np.uint64(0x0101010101010101)
 
 
 @njit(cache=True, nogil=True)
@@ -128,10 +127,10 @@ def hamming(a, b) -> int:
     total = 0
     for w in range(4):
         x = a[w] ^ b[w]
-        x = x - ((x >> np.uint64(1)) & _M1)
-        x = (x & _M2) + ((x >> np.uint64(2)) & _M2)
-        x = (x + (x >> np.uint64(4))) & _M4
-        total += int((x * _H01) >> np.uint64(56))
+        x = x - ((x >> _S1) & _M1)
+        x = (x & _M2) + ((x >> _S2) & _M2)
+        x = (x + (x >> _S4)) & _M4
+        total += int((x * _H01) >> _S56)
     return total
 
 

@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 
 from ..config import require
+from .dense_cloud import place
 
 OCCUPIED = 100  # nav_msgs/OccupancyGrid values
 FREE = 0
@@ -79,6 +80,18 @@ class PlacedViews:
     points: np.ndarray
     keyframe_of: np.ndarray
 
+    @classmethod
+    def of(cls, centres, points_per_view: list[np.ndarray]) -> PlacedViews:
+        """From each view's camera centre (3,) and its points, placed already."""
+        if not len(points_per_view):
+            return cls(np.zeros((0, 3)), np.zeros((0, 3), np.float32), np.zeros(0, np.int64))
+        keyframe_of = [np.full(len(p), k, np.int64) for k, p in enumerate(points_per_view)]
+        return cls(
+            np.asarray(centres, np.float64).reshape(-1, 3),
+            np.concatenate(points_per_view).astype(np.float32, copy=False),
+            np.concatenate(keyframe_of),
+        )
+
     def moved(self, T_new_frame: np.ndarray) -> PlacedViews:
         """The same views in another frame."""
         T = np.asarray(T_new_frame, np.float64)
@@ -93,18 +106,12 @@ def place_views(
 ) -> PlacedViews:
     """(T_frame_cam, points_cam) pairs placed in the floor's frame (``T_floor_frame``: from the
     poses' frame; None: the same)."""
-    centres, points, keyframe_of = [], [], []
-    for k, (T_frame_cam, pts_cam) in enumerate(views):
-        T = np.asarray(T_frame_cam, np.float64)
-        if T_floor_frame is not None:
-            T = np.asarray(T_floor_frame, np.float64) @ T
-        pts = np.asarray(pts_cam, np.float32).reshape(-1, 3)
-        centres.append(T[:3, 3])
-        points.append(pts @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32))
-        keyframe_of.append(np.full(len(pts), k, np.int64))
-    if not centres:
-        return PlacedViews(np.zeros((0, 3)), np.zeros((0, 3), np.float32), np.zeros(0, np.int64))
-    return PlacedViews(np.array(centres), np.concatenate(points), np.concatenate(keyframe_of))
+    T_floor = np.eye(4) if T_floor_frame is None else np.asarray(T_floor_frame, np.float64)
+    poses = [T_floor @ np.asarray(T, np.float64) for T, _ in views]
+    points = [
+        place([(T, np.asarray(p, np.float32).reshape(-1, 3))]) for T, (_, p) in zip(poses, views)
+    ]
+    return PlacedViews.of([T[:3, 3] for T in poses], points)
 
 
 def occupancy_grid(
@@ -124,6 +131,8 @@ def grid_of_placed(
     polygon fill each."""
     config = config or OccupancyConfig()
     cell = config.cell_m
+    if len(placed.centres) == 0:
+        return OccupancyGrid(np.full((1, 1), UNKNOWN, np.int8), cell, (0.0, 0.0))
     centres, points, kf = placed.centres, placed.points, placed.keyframe_of
     rel = points - centres[kf].astype(np.float32)
     near = np.einsum("ij,ij->i", rel, rel) <= config.max_range_m**2
@@ -131,8 +140,6 @@ def grid_of_placed(
     band = near & (z >= config.band_min_m) & (z <= config.band_max_m)
     low = near & (z < config.band_min_m)
     seen_xy = points[band | low, :2]
-    if len(centres) == 0:
-        return OccupancyGrid(np.full((1, 1), UNKNOWN, np.int8), cell, (0.0, 0.0))
     lo_xy = np.minimum(centres[:, :2].min(axis=0), seen_xy.min(axis=0, initial=np.inf))
     hi_xy = np.maximum(centres[:, :2].max(axis=0), seen_xy.max(axis=0, initial=-np.inf))
     origin = np.floor(lo_xy / cell) * cell - 2 * cell

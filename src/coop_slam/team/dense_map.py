@@ -125,8 +125,8 @@ class DenseMapBuilder:
         self._decoded[kf.key] = _Decoded(kf.blob, pts)
         return pts
 
-    def _placed(self, kf: DenseKeyframe, pts: np.ndarray, bodies) -> tuple[np.ndarray, np.ndarray]:
-        """(points_cam, points_view) of a keyframe, without those in a teammate's body."""
+    def _placed(self, kf: DenseKeyframe, pts: np.ndarray, bodies) -> np.ndarray:
+        """A keyframe's points in the view frame, without those in a teammate's body."""
         cfg = self.config
         placed = place([(kf.T_view_cam, pts)])
         boxes = [
@@ -138,9 +138,8 @@ class DenseMapBuilder:
         ]
         boxes = [box for box in boxes if box is not None]
         if not boxes or not len(pts):
-            return pts, placed
-        keep = outside_bodies(placed, boxes)
-        return pts[keep], placed[keep]
+            return placed
+        return placed[outside_bodies(placed, boxes)]
 
     def build(
         self,
@@ -156,20 +155,18 @@ class DenseMapBuilder:
             views = [(kf, self._points(kf)) for kf in snapshot]
             for key in set(self._decoded) - {kf.key for kf in snapshot}:
                 del self._decoded[key]  # removed keyframes
-        kept = [(kf, *self._placed(kf, pts, bodies)) for kf, pts in views]
-        placed = np.concatenate([p for *_, p in kept] or [np.zeros((0, 3), np.float32)])
+        kept = [(kf, self._placed(kf, pts, bodies)) for kf, pts in views]
+        placed = np.concatenate([p for _, p in kept] or [np.zeros((0, 3), np.float32)])
         robots = np.concatenate(
-            [np.full(len(p), kf.robot_id, np.int64) for kf, _, p in kept] or [np.zeros(0, int)]
+            [np.full(len(p), kf.robot_id, np.int64) for kf, p in kept] or [np.zeros(0, int)]
         )
         centroids, first, _ = voxel_centroids(placed, cfg.voxel_m)
-        world = [(kf, p) for kf, _, p in kept if kf.in_world]
+        world = [(kf, p) for kf, p in kept if kf.in_world]
         grid, robot_grids = None, {}
         if world:
             # The grid takes the points as placed here: in the world group's frame.
-            placed_world = PlacedViews(
-                np.array([kf.T_view_cam[:3, 3] for kf, _ in world]),
-                np.concatenate([p for _, p in world]),
-                np.concatenate([np.full(len(p), k, np.int64) for k, (_, p) in enumerate(world)]),
+            placed_world = PlacedViews.of(
+                [kf.T_view_cam[:3, 3] for kf, _ in world], [p for _, p in world]
             )
             grid = grid_of_placed(placed_world, cfg.grid, cfg.floor_z_m)
             for robot_id, T_world_map in (T_world_maps or {}).items():

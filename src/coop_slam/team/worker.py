@@ -138,16 +138,6 @@ class ServerOutputs:
         """The robots the server knows (a loaded map may add some)."""
 
 
-def _dense_or_none(job) -> DenseMap | None:
-    """The dense map of ``job`` (None: none); a build that fails is said and costs the team its
-    dense map this time, not its stitched cloud."""
-    try:
-        return job() if job is not None else None
-    except Exception as exc:  # noqa: BLE001 -- the sparse cloud must still go out
-        log.error("team map: building the dense map failed (%s: %s)", type(exc).__name__, exc)
-        return None
-
-
 def default_map_path() -> str:
     """A new map file per run in ``$ROS_HOME/coop_slam`` (``~/.ros`` by default)."""
     home = os.environ.get("ROS_HOME") or os.path.join(os.path.expanduser("~"), ".ros")
@@ -623,16 +613,22 @@ class ServerWorker:
         def build():
             # The dense map and grid first, out as soon as built: a planner waits for the grid,
             # and fusing the sparse cloud of a large team takes longer than they do.
-            dense_map = _dense_or_none(dense)
-            if dense_map is not None:
-                try:
-                    self.out.dense_map(dense_map, stamp_s)
-                except Exception as exc:  # noqa: BLE001 -- the sparse cloud must still go out
-                    log.error("team map: publishing the dense map failed (%s)", exc)
+            self._dense_out(dense, stamp_s)
             return cloud()
 
         self.map_builder.submit(build, stamp_s)
         self.out.team_map(self._team_map_view(), stamp_s)
+
+    def _dense_out(self, job, stamp_s: float) -> None:
+        """In the map builder's thread: the dense map and grid of ``job`` (None: none) go out; a
+        build or publish that fails is said and costs the team its dense map this time, not its
+        stitched cloud."""
+        if job is None:
+            return
+        try:
+            self.out.dense_map(job(), stamp_s)
+        except Exception as exc:  # noqa: BLE001 -- the sparse cloud must still go out
+            log.error("team map: the dense map failed (%s: %s)", type(exc).__name__, exc)
 
     def _built(self, cloud: tuple, stamp_s: float) -> None:
         """In the map builder's thread: the stitched cloud goes out."""

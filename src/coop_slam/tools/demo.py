@@ -538,16 +538,15 @@ def _settle(monitor, settle_s: float, say, sending=None) -> None:
             last, changed = stats, now
         idle = bool((monitor.run.server_stats or {}).get("idle"))
         quiet = now - changed >= (SETTLE_IDLE_S if idle else SETTLE_QUIET_S)
-        unacked = {r: run.unacked for r, run in list(monitor.run.robots.items()) if run.unacked}
-        if unacked and now >= t_unacked and not gave_up:
+        robots = list(monitor.run.robots.items())
+        unacked = {} if gave_up else {r: run.unacked for r, run in robots if run.unacked}
+        if unacked and now >= t_unacked:
             say(
                 "      after %.0f s robots still wait for the server to store keyframe messages "
                 "(%s): evaluating"
                 % (SETTLE_UNACKED_S, ", ".join(f"robot_{r}: {n}" for r, n in unacked.items()))
             )
-            gave_up = True
-        if gave_up:
-            unacked = {}
+            gave_up, unacked = True, {}
         if now >= t_end and quiet and not unacked and not (sending is not None and sending()):
             return
         if now >= t_end and not said:

@@ -120,7 +120,7 @@ class ClientUplink:
         # signatures only (pull mode, or a radio budget's; until the server asks for them)
         self._whole: set[int] = set()
         self._signature_only: set[int] = set()
-        # New keyframes whose message found no room or could not travel (unless they went later)
+        # New keyframes whose message found no room or could not travel, until one of theirs goes
         self._dropped_new: set[int] = set()
         self.refused_full = 0  # messages refused: the outbox or the spool was full
         self.resent_from_spool = 0  # messages a spool kept from before, sent by this run
@@ -169,8 +169,7 @@ class ClientUplink:
     def keyframes_held_back(self) -> int:
         """New keyframes not sent whole: as place signatures only, or (a radio budget's) not at
         all."""
-        dropped = self._dropped_new - self._whole - self._signature_only
-        return len(self._signature_only) + self.planner.gate.held_back + len(dropped)
+        return len(self._signature_only) + self.planner.gate.held_back + len(self._dropped_new)
 
     @property
     def held(self) -> int:
@@ -415,16 +414,15 @@ class ClientUplink:
                 continue
             self.outbox.add(msg, nbytes=len(payload))
             self.planner.gate.sent(rec.keyframe_id, self.planner.kind_of(how), len(payload))
-            if rec.action == ACTION_NEW:
+            # (a keyframe whose first message was dropped: its update goes whole, and the
+            # server takes it as new)
+            if rec.action == ACTION_NEW or rec.keyframe_id in self._dropped_new:
+                self._dropped_new.discard(rec.keyframe_id)
                 if how.signature:
                     self._signature_only.add(rec.keyframe_id)
                 else:
                     self._signature_only.discard(rec.keyframe_id)
                     self._whole.add(rec.keyframe_id)
-            elif rec.keyframe_id in self._dropped_new and not (how.delta or how.signature):
-                # its first message dropped, this update goes whole: the server takes it as new
-                self._dropped_new.discard(rec.keyframe_id)
-                self._whole.add(rec.keyframe_id)
             if not self.waiting_for_server:
                 out.append(msg)
         return out

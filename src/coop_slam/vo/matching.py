@@ -196,17 +196,8 @@ def _gated_best(
             continue
         if best_d[m] < owner_d[k]:  # one point per keypoint: the nearest descriptor
             owner[k], owner_d[k] = m, best_d[m]
-    count = 0
-    for k in range(n_kp):
-        count += owner[k] >= 0
-    pi, kj = np.empty(count, np.int64), np.empty(count, np.int64)
-    dist = np.empty(count, np.int32)
-    count = 0
-    for k in range(n_kp):
-        if owner[k] >= 0:
-            pi[count], kj[count], dist[count] = owner[k], k, owner_d[k]
-            count += 1
-    return pi, kj, dist
+    kj = np.flatnonzero(owner >= 0)
+    return owner[kj], kj, owner_d[kj].astype(np.int32)
 
 
 def rotation_consistent(

@@ -24,9 +24,27 @@ from ..optim.lm import DAMPING_FLOOR, GAUSS_NEWTON
 
 
 @njit(cache=True, nogil=True)
+def _residuals(R, t, P, uv, u_right, K, bf, i):
+    """Keypoint i: (in front, x/z, y/z, 1/z, u, v and u_right residuals [px], has u_right); the
+    residuals of a point not in front are not computed."""
+    x = R[0, 0] * P[i, 0] + R[0, 1] * P[i, 1] + R[0, 2] * P[i, 2] + t[0]
+    y = R[1, 0] * P[i, 0] + R[1, 1] * P[i, 1] + R[1, 2] * P[i, 2] + t[1]
+    z = R[2, 0] * P[i, 0] + R[2, 1] * P[i, 1] + R[2, 2] * P[i, 2] + t[2]
+    if not z > 1e-6:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, False
+    iz = 1.0 / z
+    xn, yn = x * iz, y * iz
+    ru = K[0, 0] * xn + K[0, 2] - uv[i, 0]
+    rv = K[1, 1] * yn + K[1, 2] - uv[i, 1]
+    stereo = math.isfinite(u_right[i])
+    rr = K[0, 0] * xn + K[0, 2] - bf * iz - u_right[i] if stereo else 0.0
+    return True, xn, yn, iz, ru, rv, rr, stereo
+
+
+@njit(cache=True, nogil=True)
 def _normal_equations(R, t, P, uv, u_right, info, inlier, robust, delta, K, bf, H, g):
     """(H, g) of the weighted normal equations at (R, t), in place."""
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    fx, fy = K[0, 0], K[1, 1]
     H[:] = 0.0
     g[:] = 0.0
     ju = np.empty(6)
@@ -35,17 +53,9 @@ def _normal_equations(R, t, P, uv, u_right, info, inlier, robust, delta, K, bf, 
     for i in range(P.shape[0]):
         if not inlier[i]:
             continue
-        x = R[0, 0] * P[i, 0] + R[0, 1] * P[i, 1] + R[0, 2] * P[i, 2] + t[0]
-        y = R[1, 0] * P[i, 0] + R[1, 1] * P[i, 1] + R[1, 2] * P[i, 2] + t[1]
-        z = R[2, 0] * P[i, 0] + R[2, 1] * P[i, 1] + R[2, 2] * P[i, 2] + t[2]
-        if not z > 1e-6:
+        front, xn, yn, iz, ru, rv, rr, stereo = _residuals(R, t, P, uv, u_right, K, bf, i)
+        if not front:
             continue
-        iz = 1.0 / z
-        xn, yn = x * iz, y * iz
-        ru = fx * xn + cx - uv[i, 0]
-        rv = fy * yn + cy - uv[i, 1]
-        stereo = math.isfinite(u_right[i])
-        rr = fx * xn + cx - bf * iz - u_right[i] if stereo else 0.0
         w = info[i]
         if robust:  # Huber
             e = math.sqrt(max((ru * ru + rv * rv + rr * rr) * info[i], 1e-12))
@@ -121,22 +131,11 @@ def _exp_so3(w):
 
 
 @njit(cache=True, nogil=True)
-def _errors(R, t, P, uv, u_right, info, K, bf, e2, front):
-    """Info-weighted squared reprojection error per keypoint and whether it is in front."""
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+def _errors(R, t, P, uv, u_right, info, K, bf, e2):
+    """Info-weighted squared reprojection error per keypoint (inf behind the camera)."""
     for i in range(P.shape[0]):
-        x = R[0, 0] * P[i, 0] + R[0, 1] * P[i, 1] + R[0, 2] * P[i, 2] + t[0]
-        y = R[1, 0] * P[i, 0] + R[1, 1] * P[i, 1] + R[1, 2] * P[i, 2] + t[1]
-        z = R[2, 0] * P[i, 0] + R[2, 1] * P[i, 1] + R[2, 2] * P[i, 2] + t[2]
-        front[i] = z > 1e-6
-        iz = 1.0 / (z if front[i] else 1e-6)
-        ru = fx * x * iz + cx - uv[i, 0]
-        rv = fy * y * iz + cy - uv[i, 1]
-        e = ru * ru + rv * rv
-        if math.isfinite(u_right[i]):
-            rr = fx * x * iz + cx - bf * iz - u_right[i]
-            e += rr * rr
-        e2[i] = e * info[i]
+        front, _, _, _, ru, rv, rr, _ = _residuals(R, t, P, uv, u_right, K, bf, i)
+        e2[i] = (ru * ru + rv * rv + rr * rr) * info[i] if front else np.inf
 
 
 @njit(cache=True, nogil=True)
@@ -146,7 +145,7 @@ def _optimize(R, t, P, uv, u_right, info, K, bf, chi2, rounds, iterations, lam, 
     delta = np.sqrt(chi2)
     inlier = np.ones(n, np.bool_)
     solved = np.zeros(n, np.bool_)  # the inliers the last round solved with
-    e2, front = np.empty(n), np.empty(n, np.bool_)
+    e2 = np.empty(n)
     H, g, step = np.empty((6, 6)), np.empty(6), np.empty(6)
     last_robust, converged = True, False
     for rnd in range(rounds):
@@ -172,11 +171,11 @@ def _optimize(R, t, P, uv, u_right, info, K, bf, chi2, rounds, iterations, lam, 
             if largest < min_step:
                 converged = True
                 break
-        _errors(R, t, P, uv, u_right, info, K, bf, e2, front)
+        _errors(R, t, P, uv, u_right, info, K, bf, e2)
         solved[:] = inlier
         count = 0
         for i in range(n):
-            inlier[i] = e2[i] <= chi2[i] and front[i]
+            inlier[i] = e2[i] <= chi2[i]
             count += inlier[i]
         if count < 3:
             break

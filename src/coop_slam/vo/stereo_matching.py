@@ -12,10 +12,8 @@
    with known disparity that doubled the median error;
 3. matches whose best patch cost exceeds 1.5 x 1.4 x the median cost are outliers.
 
-Vectorised: step 1 lists, per left pyramid level, the candidate pairs from the right keypoints of
-the neighbouring levels sorted by row (a few dozen per left keypoint rather than all of them) and
-takes descriptor distances of those pairs only;
-step 2 is a compiled loop over the pairs (:func:`_slide_patches`).
+Steps 1 and 2 are compiled loops (:func:`_best_in_band`: each left keypoint against the right
+keypoints in its row band, sorted by row; :func:`_slide_patches`: each pair's patches).
 """
 
 from __future__ import annotations
