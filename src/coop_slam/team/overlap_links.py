@@ -165,14 +165,12 @@ class OverlapLinks:
         scored = []
         for key_a in candidates:
             T_g_a = self._T_group_cam(key_a)
+            rec_a = self.store.record(key_a)
             # Optical axes apart by more than the angle: no descriptor would match anyway.
             cos = float(T_g_a[:3, 2] @ T_g_b[:3, 2])
-            if cos < cos_max and not (
-                cos >= cos_depth and depth_b and len(self.store.record(key_a).depth_image)
-            ):
+            if cos < cos_max and not (cos >= cos_depth and depth_b and len(rec_a.depth_image)):
                 continue
             T_a_b = invert(T_g_a) @ T_g_b
-            rec_a = self.store.record(key_a)
             points_a = self._points(key_a)
             if len(points_a) == 0:
                 continue
