@@ -14,7 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import helpers_vo
-from coop_slam.config import load_config, merge_overrides
+from coop_slam.config import load_config, merge_overrides, with_values
 from coop_slam.errors import ConfigError
 from coop_slam.evaluation.vo_run import ate_rmse, keyframe_ate, run_sequence
 from coop_slam.geometry import invert, se3, transform_error, transform_points
@@ -34,7 +34,7 @@ from coop_slam.vo import (
     VoConfig,
     VoError,
 )
-from coop_slam.vo.features import OrbExtractor
+from coop_slam.vo.features import OrbExtractor, orb_level0_uv
 from coop_slam.vo.pose_opt import optimize_pose
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -648,3 +648,38 @@ def test_orb_keypoints_sit_where_the_pyramid_found_them():
         assert np.all(dist < 1e-3), (level, float(dist.max()))
         checked += len(uv) if level >= 3 else 0
     assert checked > 50  # the coarse levels, where pt was off most, were exercised
+
+
+@pytest.mark.parametrize("n_detect", [2500, 9])
+def test_orb_levels_extracted_in_two_threads_are_opencvs_whole_pyramid_orb(n_detect):
+    """Each level detected and described by its own one-level ORB (half of them in a worker
+    thread) finds exactly the keypoints and descriptors one OpenCV ORB over the pyramid finds,
+    then bucketed as before: positions, sizes, angles, levels, bits, in OpenCV's order."""
+    import cv2
+
+    rng = np.random.default_rng(1)
+    gray = cv2.GaussianBlur((rng.random((480, 640)) * 255).astype(np.uint8), (0, 0), 1.2)
+    cfg = with_values(
+        VoConfig(), {"features": {"n_detect": n_detect, "n_features": min(n_detect, 1000)}}
+    )
+    f = cfg.features
+    extractor = OrbExtractor(cfg, helpers_vo.CAMERA)
+    whole = cv2.ORB_create(
+        nfeatures=n_detect, scaleFactor=f.scale_factor, nlevels=f.n_levels,
+        edgeThreshold=f.edge_threshold_px, patchSize=31, fastThreshold=f.fast_threshold,
+    )  # fmt: skip
+    found = whole.detect(gray, None)
+    table = np.array([(*k.pt, k.response, k.octave) for k in found])
+    chosen = [found[i] for i in extractor._bucket(table)]
+    kps, desc = whole.compute(gray, chosen)
+    got = extractor.extract(gray)
+    assert len(got) == len(kps) > 0
+    pt = np.array([k.pt for k in kps])
+    octaves = np.array([k.octave for k in kps])
+    assert np.array_equal(got.uv_px, orb_level0_uv(pt, octaves, f.scale_factor))
+    assert np.array_equal(got.size_px, np.array([k.size for k in kps], np.float32))
+    assert np.array_equal(got.angle_deg, np.array([k.angle for k in kps], np.float32))
+    assert np.array_equal(got.octaves, octaves)
+    assert np.array_equal(got.descriptors, desc)
+    if n_detect == 2500:
+        assert set(octaves) == set(range(f.n_levels))

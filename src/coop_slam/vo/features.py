@@ -13,6 +13,7 @@ pass costs a full detection: measured 6 ms). Descriptors are computed for the ke
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -20,6 +21,8 @@ import numpy as np
 
 from ..camera import CameraModel
 from .config import VoConfig
+
+_PATCH_PX = 31  # ORB's descriptor patch
 
 
 @dataclass
@@ -105,6 +108,16 @@ def inv_sigma2(config: VoConfig, octaves: np.ndarray) -> np.ndarray:
     return 1.0 / level_scales(config)[np.asarray(octaves, dtype=int)] ** 2
 
 
+def level_images(gray: np.ndarray, scales: np.ndarray) -> list[np.ndarray]:
+    """The image at each pyramid level (level 0 = gray), resized as OpenCV's ORB does."""
+    h, w = gray.shape
+    levels = [gray]
+    for s in scales[1:]:
+        size = (max(1, round(w / s)), max(1, round(h / s)))
+        levels.append(cv2.resize(levels[-1], size, interpolation=cv2.INTER_LINEAR_EXACT))
+    return levels
+
+
 def _keypoint_table(kps, *names: str) -> np.ndarray:
     """(N, 2 + len(names)): each cv2.KeyPoint's u, v, then the named attributes. One attribute
     per comprehension: reading k.pt builds a tuple per keypoint (3.5x slower)."""
@@ -115,42 +128,135 @@ def _keypoint_table(kps, *names: str) -> np.ndarray:
     return table
 
 
+def _orb_level_split(n_detect: int, scale_factor: float, n_levels: int):
+    """OpenCV's ORB: keypoints wanted per level (a geometric series, in float as OpenCV computes
+    it) and each level's scale as OpenCV reports positions with (float32)."""
+    factor = np.float32(1.0 / scale_factor)
+    wanted = np.float32(n_detect) * (np.float32(1) - factor)
+    wanted /= np.float32(1) - np.float32(float(factor) ** n_levels)
+    per_level = []
+    for _ in range(n_levels - 1):
+        per_level.append(int(np.rint(wanted)))
+        wanted = np.float32(wanted * factor)
+    per_level.append(max(n_detect - sum(per_level), 0))
+    scales32 = np.float32(float(np.float32(scale_factor)) ** np.arange(n_levels))
+    return per_level, scales32
+
+
+def _two_groups(scales: np.ndarray) -> tuple[list[int], list[int]]:
+    """The pyramid levels in two groups of about equal area (largest first, each to the lighter)."""
+    groups, area = ([], []), [0.0, 0.0]
+    for level in np.argsort(-(1.0 / scales**2), kind="stable"):
+        lighter = int(area[1] < area[0])
+        groups[lighter].append(int(level))
+        area[lighter] += 1.0 / scales[level] ** 2
+    return sorted(groups[0]), sorted(groups[1])
+
+
+# One worker per process takes half of every image's levels while the caller does the other half
+# (OpenCV runs without Python's lock); shared by all extractors, made on first use.
+_LEVEL_WORKER: list = []
+
+
+def _level_worker() -> ThreadPoolExecutor:
+    if not _LEVEL_WORKER:
+        _LEVEL_WORKER.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="orb_levels"))
+    return _LEVEL_WORKER[0]
+
+
 class OrbExtractor:
-    """Grid-bucketed ORB extraction (see module docstring)."""
+    """Grid-bucketed ORB extraction (see module docstring). Each pyramid level is detected and
+    described by its own one-level OpenCV ORB, half of the levels in a worker thread: the same
+    keypoints and descriptors as one OpenCV ORB over the whole pyramid, in about 60 % of the time
+    on two cores."""
 
     def __init__(self, config: VoConfig, camera: CameraModel):
         self.config = config
         self.camera = camera
-        common = {
-            "scaleFactor": config.features.scale_factor,
-            "nlevels": config.features.n_levels,
-            "edgeThreshold": config.features.edge_threshold_px,
-            "patchSize": 31,
-        }
-        self._orb = cv2.ORB_create(
-            nfeatures=config.features.n_detect,
-            fastThreshold=config.features.fast_threshold,
-            **common,
+        feats = config.features
+        per_level, self._scales32 = _orb_level_split(
+            feats.n_detect, feats.scale_factor, feats.n_levels
         )
+        self._orbs = [
+            cv2.ORB_create(
+                nfeatures=max(n, 1),
+                scaleFactor=feats.scale_factor,
+                nlevels=1,
+                edgeThreshold=feats.edge_threshold_px,
+                patchSize=_PATCH_PX,
+                fastThreshold=feats.fast_threshold,
+            )
+            for n in per_level
+        ]
+        self._wanted = per_level
         self._scales = level_scales(config)
+        self._groups = _two_groups(self._scales)
 
     def extract(self, gray: np.ndarray) -> OrbKeypoints:
-        kps = self._orb.detect(gray, None)
-        if not kps:
-            return self._empty()
-        keep = self._bucket(_keypoint_table(kps, "response", "octave"))
-        kps, desc = self._orb.compute(gray, [kps[i] for i in keep])
-        if desc is None or not kps:
-            return self._empty()
-        attrs = _keypoint_table(kps, "size", "angle", "octave")
-        attrs[:, :2] = orb_level0_uv(attrs[:, :2], attrs[:, 4], self.config.features.scale_factor)
-        return OrbKeypoints(
+        return self.extract_with_levels(gray)[0]
+
+    def extract_with_levels(self, gray: np.ndarray) -> tuple[OrbKeypoints, list[np.ndarray]]:
+        """The image's keypoints and its pyramid (level images, as :func:`level_images`)."""
+        levels = level_images(gray, self._scales)
+        found = self._on_levels(self._detect, levels)
+        tables = [self._level_table(found[lv], lv, "response") for lv in range(len(levels))]
+        table = np.vstack(tables)
+        if len(table) == 0:
+            return self._empty(), levels
+        keep = self._bucket(table)
+        first = np.cumsum([0] + [len(t) for t in tables])
+        chosen = {
+            lv: [
+                found[lv][i] for i in keep[(keep >= first[lv]) & (keep < first[lv + 1])] - first[lv]
+            ]
+            for lv in range(len(levels))
+        }
+        described = self._on_levels(self._describe, levels, chosen)
+        kept = [(lv, *described[lv]) for lv in range(len(levels)) if described[lv][0]]
+        if not kept:
+            return self._empty(), levels
+        attrs = np.vstack([self._level_table(kps, lv, "angle") for lv, kps, _ in kept])
+        octaves = attrs[:, 3]
+        attrs[:, :2] = orb_level0_uv(attrs[:, :2], octaves, self.config.features.scale_factor)
+        keypoints = OrbKeypoints(
             uv_px=attrs[:, :2],
-            size_px=attrs[:, 2].astype(np.float32),
-            angle_deg=attrs[:, 3].astype(np.float32),
-            octaves=np.clip(attrs[:, 4], 0, self.config.features.n_levels - 1).astype(np.uint8),
-            descriptors=np.ascontiguousarray(desc, dtype=np.uint8),
+            size_px=np.float32(_PATCH_PX) * self._scales32[octaves.astype(int)],
+            angle_deg=attrs[:, 2].astype(np.float32),
+            octaves=octaves.astype(np.uint8),
+            descriptors=np.ascontiguousarray(np.vstack([d for _, _, d in kept]), dtype=np.uint8),
         )
+        return keypoints, levels
+
+    def _on_levels(self, work, levels, *args) -> dict:
+        """work(levels, group, *args) for both groups of levels, one in the worker thread."""
+        other = _level_worker().submit(work, levels, self._groups[1], *args)
+        done = work(levels, self._groups[0], *args)
+        done.update(other.result())
+        return done
+
+    def _detect(self, levels, group) -> dict:
+        return {
+            lv: self._orbs[lv].detect(levels[lv], None) if self._wanted[lv] else () for lv in group
+        }
+
+    def _describe(self, levels, group, chosen) -> dict:
+        out = {}
+        for lv in group:
+            if not chosen[lv]:
+                out[lv] = ((), None)
+                continue
+            kps, desc = self._orbs[lv].compute(levels[lv], chosen[lv])
+            out[lv] = (kps, desc) if desc is not None and kps else ((), None)
+        return out
+
+    def _level_table(self, kps, level: int, name: str) -> np.ndarray:
+        """(N, 4): u, v (level 0, as OpenCV's ORB reports them), the named attribute, level."""
+        table = np.empty((len(kps), 4))
+        if len(kps):
+            table[:, :3] = _keypoint_table(kps, name)
+            table[:, :2] = np.float32(table[:, :2]) * self._scales32[level]
+        table[:, 3] = level
+        return table
 
     def _bucket(self, attrs: np.ndarray) -> np.ndarray:
         """Indices of up to n_features keypoints: best per (level, cell) first, then

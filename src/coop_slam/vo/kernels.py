@@ -13,10 +13,10 @@ import numpy as np
 
 from ..bow import vocabulary
 from .config import VoConfig
-from .features import FrameFeatures, OrbKeypoints
+from .features import FrameFeatures, OrbKeypoints, level_images
 from .matching import Projection, search_by_projection
 from .pose_opt import optimize_pose
-from .stereo_matching import level_images, match_stereo
+from .stereo_matching import match_stereo
 
 
 def warm_up() -> None:

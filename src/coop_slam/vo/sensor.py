@@ -19,8 +19,8 @@ import numpy as np
 
 from ..camera import CameraModel
 from .config import VoConfig
-from .features import FrameFeatures, OrbExtractor, OrbKeypoints, level_scales
-from .stereo_matching import level_images, match_stereo
+from .features import FrameFeatures, OrbExtractor, OrbKeypoints, level_images, level_scales
+from .stereo_matching import match_stereo
 from .types import VoError
 
 
@@ -238,7 +238,7 @@ class StereoSensor(Sensor):
         self._right_worker.shutdown(wait=False, cancel_futures=True)
 
     def _right_features(self, right: np.ndarray):
-        return self._right_extractor.extract(right), level_images(right, self._scales)
+        return self._right_extractor.extract_with_levels(right)
 
     def check_input(self, image, right) -> tuple[np.ndarray, np.ndarray]:
         """(left grey, right grey) uint8 of one pair; raises VoError naming what is wrong."""

@@ -18,23 +18,12 @@ keypoints in its row band, sorted by row; :func:`_slide_patches`: each pair's pa
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 from numba import njit
 
 from ..descriptors import as_descriptors, hamming
 from .config import VoConfig
 from .features import OrbKeypoints
-
-
-def level_images(gray: np.ndarray, scales: np.ndarray) -> list[np.ndarray]:
-    """The image at each pyramid level (level 0 = gray), resized as OpenCV's ORB does."""
-    h, w = gray.shape
-    levels = [gray]
-    for s in scales[1:]:
-        size = (max(1, round(w / s)), max(1, round(h / s)))
-        levels.append(cv2.resize(levels[-1], size, interpolation=cv2.INTER_LINEAR_EXACT))
-    return levels
 
 
 def match_stereo(
