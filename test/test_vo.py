@@ -650,8 +650,8 @@ def test_orb_keypoints_sit_where_the_pyramid_found_them():
     assert checked > 50  # the coarse levels, where pt was off most, were exercised
 
 
-@pytest.mark.parametrize("n_detect", [2500, 9])
-def test_orb_levels_extracted_in_two_threads_are_opencvs_whole_pyramid_orb(n_detect):
+@pytest.mark.parametrize("n_detect,split_levels", [(2500, True), (9, True), (2500, False)])
+def test_orb_levels_extracted_in_two_threads_are_opencvs_whole_pyramid_orb(n_detect, split_levels):
     """Each level detected and described by its own one-level ORB (half of them in a worker
     thread) finds exactly the keypoints and descriptors one OpenCV ORB over the pyramid finds,
     then bucketed as before: positions, sizes, angles, levels, bits, in OpenCV's order."""
@@ -663,7 +663,7 @@ def test_orb_levels_extracted_in_two_threads_are_opencvs_whole_pyramid_orb(n_det
         VoConfig(), {"features": {"n_detect": n_detect, "n_features": min(n_detect, 1000)}}
     )
     f = cfg.features
-    extractor = OrbExtractor(cfg, helpers_vo.CAMERA)
+    extractor = OrbExtractor(cfg, helpers_vo.CAMERA, split_levels)
     whole = cv2.ORB_create(
         nfeatures=n_detect, scaleFactor=f.scale_factor, nlevels=f.n_levels,
         edgeThreshold=f.edge_threshold_px, patchSize=31, fastThreshold=f.fast_threshold,

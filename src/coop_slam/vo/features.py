@@ -168,9 +168,10 @@ class OrbExtractor:
     """Grid-bucketed ORB extraction (see module docstring). Each pyramid level is detected and
     described by its own one-level OpenCV ORB, half of the levels in a worker thread: the same
     keypoints and descriptors as one OpenCV ORB over the whole pyramid, in about 60 % of the time
-    on two cores."""
+    on two cores. ``split_levels=False``: all levels in the caller's thread.
+    """
 
-    def __init__(self, config: VoConfig, camera: CameraModel):
+    def __init__(self, config: VoConfig, camera: CameraModel, split_levels: bool = True):
         self.config = config
         self.camera = camera
         feats = config.features
@@ -191,6 +192,7 @@ class OrbExtractor:
         self._wanted = per_level
         self._scales = level_scales(config)
         self._groups = _two_groups(self._scales)
+        self._split_levels = split_levels
 
     def extract(self, gray: np.ndarray) -> OrbKeypoints:
         return self.extract_with_levels(gray)[0]
@@ -229,6 +231,8 @@ class OrbExtractor:
 
     def _on_levels(self, work, levels, *args) -> dict:
         """work(levels, group, *args) for both groups of levels, one in the worker thread."""
+        if not self._split_levels:
+            return work(levels, sorted(self._groups[0] + self._groups[1]), *args)
         other = _level_worker().submit(work, levels, self._groups[1], *args)
         done = work(levels, self._groups[0], *args)
         done.update(other.result())

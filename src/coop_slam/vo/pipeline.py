@@ -92,8 +92,11 @@ class VisualOdometry:
         self.camera = camera = self.config.calibration.color_camera(camera)
         self.K = camera.K
         self.scales = level_scales(self.config)
-        self._extractor = OrbExtractor(self.config, camera)
         self._sensor = make_sensor(self.config, camera)
+        # A stereo pair's two images are extracted side by side already (see StereoSensor).
+        self._extractor = OrbExtractor(
+            self.config, camera, split_levels=self._sensor.kind != "stereo"
+        )
         self._frame_images = (None, None)  # the current frame's (grey, depth or right image)
         self._tracker = LocalMapTracker(self.config, self._sensor, self.scales)
         self._relocalizer = Relocalizer(self.config, self._sensor, self._tracker)

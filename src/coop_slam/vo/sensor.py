@@ -223,7 +223,7 @@ class StereoSensor(Sensor):
         close_m = config.stereo.close_baselines * camera.baseline_m
         super().__init__(config, camera, camera.baseline_m, close_m)
         self._scales = level_scales(config)
-        self._right_extractor = OrbExtractor(config, camera)
+        self._right_extractor = OrbExtractor(config, camera, split_levels=False)
         self._frames_since_check = None  # frames since the last rectification check
         # The right image's features are made in this thread while the left image's are made
         # in the caller's (OpenCV's extraction runs without Python's lock): see begin().
