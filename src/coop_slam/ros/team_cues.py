@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
 import numpy as np
@@ -51,17 +52,34 @@ class TeamCues:
         self._described: dict = {}  # robot id -> its RobotDescription (subscribed when sighted)
         self._description_subs: dict = {}
         self._busy, self._last_s = False, 0.0
+        # Marker detection (5-13 ms a VGA image) runs beside tracking, without Python's lock; its
+        # sightings go out with the next frame: (detection, stamp, the frame's result, segment).
+        self._detecting = None
+        self._detector = ThreadPoolExecutor(max_workers=1, thread_name_prefix="markers")
 
     # --- markers ----------------------------------------------------------------------------------
     def sightings(self, frames: int, stamp, image, res, vo, K: np.ndarray) -> None:
-        """Every ``marker_every`` frames: other robots' markers in the image."""
-        if not self.marker_every or frames % self.marker_every:
+        """Every ``marker_every`` frames: other robots' markers in the image, looked for in a
+        worker thread (a frame that comes while it is busy is not looked at); what it saw is
+        said on the first frame after it finished."""
+        if self._detecting is not None and self._detecting[0].done():
+            (detection, seen_stamp, seen_res, tracked_in), self._detecting = self._detecting, None
+            self._say(detection.result(), seen_stamp, seen_res, vo, tracked_in)
+        if not self.marker_every or frames % self.marker_every or self._detecting is not None:
             return
+        detection = self._detector.submit(self.markers.detect, image, K)
+        self._detecting = (detection, stamp, res, (vo, None if vo is None else vo.map_segment))
+
+    def _say(self, seen, stamp, res, vo, tracked_in) -> None:
+        """Publish the sightings of one frame; mask the sighted bodies in the odometry's map when
+        it is still the map that frame was tracked in (``tracked_in``: odometry, map segment)."""
         cfg = self.markers.config
-        for s in self.markers.detect(image, K):
+        same_map = vo is not None and tracked_in == (vo, vo.map_segment)
+        masking = res.ok and cfg.mask_s > 0 and same_map
+        for s in seen:
             if s.marker_id == self.robot_id or s.marker_id < 1:
                 continue  # our own body, or not a robot id
-            if res.ok and cfg.mask_s > 0:  # a robot is a moving object, not a landmark
+            if masking:  # a robot is a moving object, not a landmark
                 box_cfg, T_cam_body = self._body_of(s, cfg)
                 corners_map = transform_points(res.T_map_cam, body_box_cam(box_cfg, T_cam_body))
                 vo.ignore_region(corners_map, stamp.to_sec() + cfg.mask_s)
