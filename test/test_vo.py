@@ -338,6 +338,12 @@ def test_keyframe_culling_keeps_map_consistent(room_sequence):
         assert np.isin(referenced[referenced > 0], ids).all()
         for kf in vo.keyframes():
             assert set(kf.covisible_ids.tolist()).isdisjoint(removed)
+        # Each point's reference keyframe: the oldest of its observers that culling left.
+        xyz, ref = vo.map_points_with_reference()
+        alive = vmap.points.alive_ids()
+        oldest = [min(vmap.points.obs[int(p)], default=0) for p in alive]
+        assert np.array_equal(ref, oldest) and np.array_equal(xyz, vmap.points.xyz[alive])
+        assert (ref > 0).any() and not set(ref.tolist()) & removed
     assert all(r.ok for r in results)
 
 

@@ -266,12 +266,14 @@ class VisualOdometry:
         with self._map.lock:
             pts = self._map.points
             ids = pts.alive_ids()
-            ref = np.fromiter(
-                (min(pts.obs.get(int(p), ()), default=0) for p in ids),
-                dtype=np.int64,
-                count=len(ids),
-            )
-            return pts.xyz[ids].copy(), ref
+            # From the keyframes' side (their map_point_ids mirror the points' observations): the
+            # newest first, so each point keeps the oldest keyframe that observes it.
+            oldest = np.zeros(pts.next_id, np.int64)
+            for kf_id in sorted(self._map.keyframes, reverse=True):
+                seen = self._map.keyframes[kf_id].map_point_ids
+                oldest[seen[seen > 0]] = kf_id
+            oldest[0] = 0
+            return pts.xyz[ids].copy(), oldest[ids]
 
     def drain_events(self) -> list[VoEvent]:
         """Keyframe and segment events since the last call, oldest first."""
