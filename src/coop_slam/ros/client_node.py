@@ -14,6 +14,7 @@ its keyframes say so by their camera's sensor type, and only the server can give
 
 from __future__ import annotations
 
+import queue
 import threading
 import time
 
@@ -126,6 +127,13 @@ class ClientNode:
             self._frame_not_tracked,
         )
         warm_up()  # the odometry's compiled kernels, before the camera's first frame
+        # The uplink's work on a frame's odometry events (records, budget, encoding, spool,
+        # publishing: up to ~90 ms on a keyframe frame) runs in its own thread, beside tracking;
+        # what it notes for the path reaches the tracking thread with the next frame.
+        self._uplink_jobs: queue.Queue = queue.Queue()
+        self._uplink_notes: list = []
+        self._notes_lock = threading.Lock()
+        threading.Thread(target=self._uplink_loop, daemon=True).start()
         threading.Thread(target=self._track_frames, daemon=True).start()
         self.sub_corr = rospy.Subscriber(
             f"/{name}/correction", MapCorrection, self._on_correction, queue_size=5
@@ -156,7 +164,9 @@ class ClientNode:
         )
         if self.vo is not None:
             self.vo.reset()
-            self._publish_events(None)
+            self._uplink_jobs.join()  # what the old odometry's frames made goes first
+            self._take_notes()
+            self.pose.note(self._uplink_step(self.vo.drain_events(), None))
             self.uplink.engine.odometry_replaced(self.vo.keyframes_made, self.vo.map_segment)
             self.vo.close()
             self.vo = None
@@ -193,7 +203,7 @@ class ClientNode:
                     rospy.loginfo("client %s: %s", self.name, res.message)
                 stats.track_ms, stats.tracking_ok = res.track_ms, bool(res.ok)
                 self.cues.maybe_ask(self.vo)
-                self._publish_events(stamp.to_sec())
+                self._hand_to_uplink(stamp.to_sec())
                 self.pose.frame(stamp, res, self.vo, self.uplink.engine.kf_id_base)
                 self.cues.sightings(self.frames, stamp, image, res, self.vo, self.camera.camera.K)
         except CoopSlamError as exc:
@@ -219,10 +229,40 @@ class ClientNode:
                 stats.mapping_backlog,
             )
 
-    def _publish_events(self, now_s: float | None) -> None:
-        """The odometry's events at data time ``now_s`` to the uplink (None: the odometry is
-        closing, everything it holds goes), and what they say to the console and the path."""
-        step = self.uplink.engine.events(self.vo.drain_events(), now_s)
+    def _hand_to_uplink(self, now_s: float) -> None:
+        """The odometry's events of this frame to the uplink's thread (lock-step playback: done
+        before the frame ends, so the messages are the same however loaded the machine is)."""
+        self._take_notes()
+        self.uplink.last_frame_wall = time.monotonic()
+        self._uplink_jobs.put((self.vo.drain_events(), now_s))
+        if self.wait_for_mapping:
+            self._uplink_jobs.join()
+            self._take_notes()
+
+    def _uplink_loop(self) -> None:
+        while True:
+            events, now_s = self._uplink_jobs.get()
+            try:
+                notes = self._uplink_step(events, now_s)
+                with self._notes_lock:
+                    self._uplink_notes.extend(notes)
+            except Exception as exc:  # this thread is what sends: it must not end
+                rospy.logerr("client %s: uplink: %s: %s", self.name, type(exc).__name__, exc)
+            finally:
+                self._uplink_jobs.task_done()
+
+    def _take_notes(self) -> None:
+        """What the uplink's thread noted (keyframes, segments) to the path (the tracker's lock
+        held)."""
+        with self._notes_lock:
+            notes, self._uplink_notes = self._uplink_notes, []
+        if notes:
+            self.pose.note(notes)
+
+    def _uplink_step(self, events, now_s: float | None) -> list:
+        """``events`` at data time ``now_s`` through the uplink (None: the odometry is closing,
+        everything it holds goes); says what they say on the console and returns the notes."""
+        step = self.uplink.engine.events(events, now_s)
         for note in step.notes:
             if note.kind == "warning":
                 rospy.logwarn("client %s: %s", self.name, note.text)
@@ -233,10 +273,8 @@ class ClientNode:
                     note.segment,
                     note.text,
                 )
-        self.pose.note(step.notes)
-        if now_s is not None:
-            self.uplink.last_frame_wall = time.monotonic()
         self.uplink.send(step.messages)
+        return step.notes
 
     def _counters(self, stats) -> None:
         stats.keyframes = len(self.pose.kf_poses)
@@ -253,6 +291,8 @@ class ClientNode:
         if not self.lock.acquire(blocking=blocking):
             return
         try:
+            self._uplink_jobs.join()  # the frames' events first (no new ones: the lock is held)
+            self._take_notes()
             if self.uplink.engine.held:
                 self.uplink.send(self.uplink.engine.flush())
             said = self._counters_said
@@ -271,6 +311,7 @@ class ClientNode:
         self.camera.slot.close()
         with self.lock:
             if self.vo is not None:
+                self._uplink_jobs.join()
                 self.uplink.send(self.uplink.engine.flush())  # best effort: going down
                 self.vo.close()
             self.uplink.close()
