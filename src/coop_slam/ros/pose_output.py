@@ -79,6 +79,8 @@ class PoseOutput:
         self.kf_poses: dict[int, tuple[float, np.ndarray]] = {}  # id -> (stamp, T_map_cam)
         self.segment_starts = False  # a new map segment begins with the next new keyframe
         self.path_due = False  # keyframes changed since the path last went out
+        self.corrected_due = False  # a correction's path and cloud have not gone yet
+        self._corrected_stamp = None
         self.last_cloud_s = self.last_path_s = -1e9
         self.corrections_applied = 0
         self.T_world_map = None
@@ -104,6 +106,9 @@ class PoseOutput:
     def frame(self, stamp, res, vo, kf_id_base: int) -> None:
         """After a tracked frame: the pose and TF, the path and the cloud when due."""
         t_s = stamp.to_sec()
+        if self.corrected_due:
+            self.publish_correction(vo, kf_id_base)
+            self.last_path_s = self.last_cloud_s = t_s
         if self.path_due and t_s - self.last_path_s >= self.path_period_s:
             self.last_path_s = t_s
             self.publish_path(vo, kf_id_base)
@@ -114,8 +119,10 @@ class PoseOutput:
             self.publish_cloud(stamp, vo, kf_id_base)
 
     # --- the team map's correction ----------------------------------------------------------------
-    def correction(self, msg, vo, kf_id_base: int) -> None:
-        """The server's correction of this robot (with the tracker's lock held)."""
+    def correction(self, msg, vo, kf_id_base: int, publish_now: bool = True) -> None:
+        """The server's correction of this robot (with the tracker's lock held). Its path and
+        cloud go now, or (``publish_now`` False: frames are coming) with the next frame, so that
+        the tracker does not wait for them."""
         if msg.robot_id != self.robot_id:
             self.rejects.reject(
                 "correction", f"correction for robot {msg.robot_id} on robot_{self.robot_id}'s"
@@ -134,9 +141,19 @@ class PoseOutput:
         odom = self._odom_poses(vo, kf_id_base)
         if self.shared.receive(dict(zip(msg.keyframe_ids, poses)), odom):
             self.corrections_applied += 1
-            self.publish_path(vo, kf_id_base)
-            if vo is not None:
-                self.publish_cloud(msg.header.stamp, vo, kf_id_base)
+            self.corrected_due, self._corrected_stamp = True, msg.header.stamp
+            if publish_now:
+                self.publish_correction(vo, kf_id_base)
+
+    def publish_correction(self, vo, kf_id_base: int) -> None:
+        """The path and cloud as the newest correction placed them, if they have not gone yet
+        (the tracker's lock held)."""
+        if not self.corrected_due:
+            return
+        self.corrected_due = False
+        self.publish_path(vo, kf_id_base)
+        if vo is not None:
+            self.publish_cloud(self._corrected_stamp, vo, kf_id_base)
 
     # --- publishing -------------------------------------------------------------------------------
     def publish_pose(self, stamp, T_odom_cam: np.ndarray) -> None:
