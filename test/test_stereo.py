@@ -13,10 +13,11 @@ from coop_slam.camera import CameraError
 from coop_slam.evaluation.vo_run import ate_rmse, frame_ate, run_sequence
 from coop_slam.geometry import path_length, se3
 from coop_slam.vo.config import VoConfig
+from coop_slam.vo.dense_depth import depth_image_blob
 from coop_slam.vo.features import OrbExtractor
 from coop_slam.vo.pipeline import VisualOdometry
 from coop_slam.vo.sensor import StereoSensor
-from coop_slam.vo.types import VoError
+from coop_slam.vo.types import EVENT_KEYFRAME_NEW, VoError
 from helpers import REPO
 
 SHARED = os.path.normpath(os.path.join(REPO, "..", "shared", "data"))
@@ -80,13 +81,21 @@ def test_stereo_odometry_tracks_a_rendered_sequence():
     planes = helpers_vo.room(np.random.default_rng(0))
     gt = helpers_vo.trajectory(40)
     cfg = VoConfig(threaded=False)
-    poses = []
+    poses, pairs = [], {}
     with VisualOdometry(cfg, STEREO) as vo:
         for k, T in enumerate(gt):
             left, right, _ = _pair(planes, T)
+            pairs[100.0 + k / 30.0] = vo._sensor.check_input(left, right)
             res = vo.track(100.0 + k / 30.0, left, right)
             assert res.ok, (k, res.message)
             poses.append(res.T_map_cam)
+        new = [e.keyframe for e in vo.drain_events() if e.kind == EVENT_KEYFRAME_NEW]
+        dense, registered = vo.config.dense, vo.config.calibration.depth_registered
+        # The keyframes' depth images, matched in a worker thread: those of their frames' pairs.
+        assert len(new) >= 3
+        for kf in new:
+            expected = depth_image_blob(dense, "stereo", vo.camera, *pairs[kf.stamp_s], registered)
+            assert kf.depth_image == expected and len(expected) > 100
     ate = ate_rmse(np.arange(len(gt)), np.array(poses), gt)
     assert ate < 0.005, f"stereo ATE {100 * ate:.2f} cm on a 40-frame room sequence"
 

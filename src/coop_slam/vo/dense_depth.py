@@ -2,10 +2,17 @@
 became the keyframe while it is still at hand (in the tracking thread): an RGB-D camera's depth
 image, or a stereo pair's disparity (semi-global matching at about 320 px wide, ~10 ms per
 keyframe, then decimated), decimated and compressed by
-:mod:`coop_slam.dense.depth_image`. A monocular camera measures no depth and sends none."""
+:mod:`coop_slam.dense.depth_image`. A monocular camera measures no depth and sends none.
+
+A stereo pair is matched in a worker thread (:class:`KeyframeDepthImages`; OpenCV runs without
+Python's lock), so tracking does not wait for it: the keyframe holds the pending image until it is
+first handed out (:func:`resolved`, by the map's snapshot).
+"""
 
 from __future__ import annotations
 
+import logging
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -14,6 +21,8 @@ import numpy as np
 from ..camera import CameraModel
 from ..config import require
 from ..dense import depth_image
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -94,3 +103,40 @@ def depth_image_blob(
         max_m = min(max_m, config.stereo_max_baselines * camera.baseline_m)
     depth = np.where(small.depth_m <= max_m, small.depth_m, 0.0)
     return depth_image.encode(depth_image.DepthImage(depth, factor), config.step_m)
+
+
+class KeyframeDepthImages:
+    """Keyframes' depth images of one camera: a stereo pair's made in a worker thread (see the
+    module), an RGB-D camera's (a decimation) at once."""
+
+    def __init__(
+        self, config: DenseDepthConfig, sensor: str, camera: CameraModel, registered: bool
+    ):
+        self._args = (config, sensor, camera)
+        self._registered = registered
+        self._worker = None
+        if sensor == "stereo" and config.width_px > 0:
+            self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="kf_depth")
+
+    def make(self, gray, second) -> bytes | Future:
+        """The depth image of the frame (``gray``, its depth or right image), or its pending
+        making."""
+        if self._worker is None or second is None:
+            return depth_image_blob(*self._args, gray, second, self._registered)
+        return self._worker.submit(depth_image_blob, *self._args, gray, second, self._registered)
+
+    def close(self) -> None:
+        if self._worker is not None:
+            self._worker.shutdown(wait=False, cancel_futures=True)
+
+
+def resolved(image: bytes | Future) -> bytes:
+    """A keyframe's depth image as bytes: a pending one waited for; one whose making failed is
+    none (said in the log: the keyframe goes without it)."""
+    if not isinstance(image, Future):
+        return image
+    try:
+        return image.result()
+    except Exception as exc:  # the keyframe is worth more than its depth image
+        log.warning("a keyframe's depth image could not be made: %s: %s", type(exc).__name__, exc)
+        return b""

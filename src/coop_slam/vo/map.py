@@ -19,6 +19,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..descriptors import hamming_rows
+from .dense_depth import resolved
 
 
 @dataclass
@@ -43,7 +44,9 @@ class MapKeyframe:
     # (M, 3) float32 positions of the observed map points in the map frame, in the order of the
     # non-zero map_point_ids. Filled in the snapshots handed out in events; empty in the live map.
     map_points_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
-    depth_image: bytes = b""  # the frame's depth image for the dense map (vo.dense_depth)
+    # The frame's depth image for the dense map (vo.dense_depth); pending (a Future) in the live
+    # map until the first snapshot
+    depth_image: object = b""
     # Internal: the keypoints as FrameFeatures (KD-tree for projection search); not in snapshots.
     features: object = field(default=None, repr=False, compare=False)
 
@@ -338,6 +341,7 @@ class Map:
         kf = self.keyframes[kf_id]
         ids = kf.map_point_ids
         nz = ids[ids > 0].astype(np.int64)
+        kf.depth_image = resolved(kf.depth_image)
         return replace(
             kf,
             T_map_cam=kf.T_map_cam.copy(),

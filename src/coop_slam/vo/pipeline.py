@@ -45,7 +45,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..geometry import invert, rotation_angle_deg, transform_points
 from .config import VoConfig
-from .dense_depth import depth_image_blob
+from .dense_depth import KeyframeDepthImages
 from .features import FrameFeatures, OrbExtractor, level_scales
 from .initialization import (
     MODEL_HOMOGRAPHY,
@@ -98,6 +98,12 @@ class VisualOdometry:
             self.config, camera, split_levels=self._sensor.kind != "stereo"
         )
         self._frame_images = (None, None)  # the current frame's (grey, depth or right image)
+        self._depth_images = KeyframeDepthImages(
+            self.config.dense,
+            self._sensor.kind,
+            self.camera,
+            self.config.calibration.depth_registered,
+        )
         self._tracker = LocalMapTracker(self.config, self._sensor, self.scales)
         self._relocalizer = Relocalizer(self.config, self._sensor, self._tracker)
         self._keyframe_policy = KeyframePolicy(
@@ -317,6 +323,7 @@ class VisualOdometry:
         """Stop the local-mapping thread and worker process (and the sensor's helper thread)."""
         self._mapper.close()
         self._sensor.close()
+        self._depth_images.close()
 
     def __enter__(self) -> Self:
         return self
@@ -646,13 +653,7 @@ class VisualOdometry:
             point_ids,
             self.config,
             self.scales,
-            depth_image_blob(
-                self.config.dense,
-                self._sensor.kind,
-                self.camera,
-                *self._frame_images,
-                self.config.calibration.depth_registered,
-            ),
+            self._depth_images.make(*self._frame_images),
         )
         self._ref_kf_id = kf_id
         self._frames_since_kf = 0
