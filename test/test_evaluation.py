@@ -149,7 +149,7 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
     from geometry_msgs.msg import PoseStamped
     from nav_msgs.msg import Path
 
-    from coop_slam.evaluation.run_report import _local_merge_error
+    from coop_slam.evaluation.merge_accuracy import local_merge_error
     from coop_slam.msg import FrameStats, MergeEvent
     from coop_slam.ros.convert import pose_to_msg, transform_to_msg
     from coop_slam.ros.run_recorder import run_data_from_bag
@@ -213,11 +213,11 @@ def test_bag_of_a_run_gives_keyframes_merges_team_paths_and_topic_sizes(tmp_path
         bag.write("/robot_2/keyframes", keyframe_to_msg(moved, "robot_2/map"), rospy.Time(1.6))
     run = run_data_from_bag(bag_path, [1, 2])
     gts = {1: (stamps, gt), 2: (stamps, gt)}
-    dt, dr = _local_merge_error(run.merges[0], run, gts)
+    dt, dr = local_merge_error(run.merges[0], run, gts)
     assert dt < 1e-6 and dr < 1e-4
     assert 3 not in run.robots[1].keyframes  # culled before the merge event came
     del gts[1]
-    assert _local_merge_error(run.merges[0], run, gts) is None  # no truth for robot 1
+    assert local_merge_error(run.merges[0], run, gts) is None  # no truth for robot 1
     r = run.robots[2]
     assert sorted(r.keyframes) == [1, 2, 3, 4, 5] and len(r.kf_bytes) == 6  # with the update
     assert list(r.kf_kinds) == ["whole"] and r.kf_kinds["whole"][0] == 6
@@ -504,7 +504,7 @@ def test_rotation_gain_finds_rotations_scaled_about_the_image_axes():
 def test_a_robots_new_map_segment_merging_with_its_old_one_is_judged_at_both_keyframes():
     """A merge of a robot with itself (a restarted client's new map segment with its old one):
     each side's keyframe stamp is its own."""
-    from coop_slam.evaluation.run_report import _local_merge_error
+    from coop_slam.evaluation.merge_accuracy import local_merge_error
 
     stamps = np.arange(0.0, 10.0, 0.5)
     gt = (stamps, np.array([se3_from_quat([0.3 * t, 0.0, 0.0], [0, 0, 0, 1]) for t in stamps]))
@@ -517,7 +517,7 @@ def test_a_robots_new_map_segment_merging_with_its_old_one_is_judged_at_both_key
         "keyframe_stamps": {"a": 1.0, "b": 7.0},
         "T_camA_camB": true,
     }
-    t_err, r_err = _local_merge_error(m, None, {2: gt})
+    t_err, r_err = local_merge_error(m, None, {2: gt})
     assert t_err < 1e-9 and r_err < 1e-6
 
 
@@ -614,6 +614,59 @@ def test_a_similarity_merge_is_judged_against_the_maps_scale_around_its_keyframe
     run.merges[0]["scale"] *= 1.04
     merge = evaluate_run(run, gts)["merges"][0]
     assert merge["local_scale_err"] == pytest.approx(0.04, abs=0.01)
+
+
+def test_a_link_of_monocular_maps_is_judged_in_metres():
+    """Two monocular maps in their own units (robot 1's unit is 2 m, robot 2's 1.6 m), merged: the
+    second map is in the first's units, and so is a link between them. A link that is exact in
+    those units has no error in metres (it had the unit's share of its length before: issue
+    #47), and one off by 1 cm in metres is seen as such."""
+    pytest.importorskip("rosbag")
+    from coop_slam.evaluation.run_data import RobotRun, RunData
+    from coop_slam.evaluation.run_report import evaluate_run
+
+    stamps, gt = _circle(40)
+    metres_per_unit = {1: 2.0, 2: 1.6}
+    run, gts = RunData(), {}
+    for rid, unit in metres_per_unit.items():
+        est = gt.copy()
+        est[:, :3, 3] /= unit
+        kfs = {k: (stamps[k], est[k]) for k in range(40)}
+        run.robots[rid] = RobotRun(
+            frames=40, keyframes=kfs, keyframe_stamps=dict(enumerate(stamps)), sensor="mono"
+        )
+        gts[rid] = (stamps, gt)
+    run.merges.append(
+        {
+            "type": "place_recognition",
+            "robot_a": 1,
+            "robot_b": 2,
+            "keyframe_a": 5,
+            "keyframe_b": 30,
+            "keyframe_stamps": {"a": stamps[5], "b": stamps[30]},
+            "stamp_s": stamps[30],
+            "T_mapA_mapB": np.eye(4),
+            "T_camA_camB": np.eye(4),
+            "scale": metres_per_unit[2] / metres_per_unit[1],
+        }
+    )
+    run.server_stats["groups"] = [[1, 2]]
+    T_camA_camB = invert(gt[8]) @ gt[9]
+    T_camA_camB[:3, 3] /= metres_per_unit[1]  # in the group's units: robot 1's
+    run.links.append(
+        {
+            "type": "link",
+            "robots": [1, 2],
+            "keyframe_stamps": [stamps[8], stamps[9]],
+            "stamp_s": stamps[35],
+            "T_camA_camB": T_camA_camB,
+        }
+    )
+    link = evaluate_run(run, gts)["links"][0]
+    assert link["count"] == 1 and link["trans_err_m"] < 1e-3, link
+    run.links[0]["T_camA_camB"] = T_camA_camB @ se3(np.eye(3), [0.01 / metres_per_unit[1], 0, 0])
+    link = evaluate_run(run, gts)["links"][0]
+    assert link["trans_err_m"] == pytest.approx(0.01, abs=1e-3), link
 
 
 def test_plots_align_a_monocular_map_with_its_scale():

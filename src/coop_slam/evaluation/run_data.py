@@ -55,6 +55,14 @@ class RobotRun:
     def first_segment_ids(self) -> list:
         return sorted(k for k in self.keyframes if self.in_first_segment(k))
 
+    def keyframe_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps (K,), T_map_cam (K, 4, 4)) of the first map segment's keyframes, by id."""
+        ids = self.first_segment_ids()
+        return (
+            np.array([self.keyframes[k][0] for k in ids]),
+            np.array([self.keyframes[k][1] for k in ids]).reshape(-1, 4, 4),
+        )
+
 
 @dataclass
 class RunData:

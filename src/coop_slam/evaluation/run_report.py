@@ -19,11 +19,11 @@ from ..playback import build_schedule
 from ..registration.camera import RegistrationError
 from ..registration.umeyama import umeyama
 from ..team.map_scale import scale_translation
-from ..team.results import TYPE_LINK
 from .agreement import KeyframeCloud, team_agreement
 from .bandwidth import bandwidth, downlink_kBps, topic_bandwidth, uplink_by_kind, uplink_kBps
 from .map_results import DenseTruth, map_results, world_of
-from .metrics import EvaluationError, ate, merge_error, relative_pose_error, rpe_rmse, team_ate
+from .merge_accuracy import link_errors, local_merge_error, map_units, merge_scale_errors
+from .metrics import EvaluationError, ate, merge_error, rpe_rmse, team_ate
 from .overlap_view import plot_overlap
 from .plots import plot_path_errors, plot_team, plot_trajectories
 from .report import count_wrong_merges, new_report, write_report
@@ -53,14 +53,6 @@ def run_input_of(source, keep_timing: bool = False) -> RunInput:
     )
 
 
-def _kf_arrays(run: RobotRun):
-    ids = run.first_segment_ids()
-    return (
-        np.array([run.keyframes[k][0] for k in ids]),
-        np.array([run.keyframes[k][1] for k in ids]).reshape(-1, 4, 4),
-    )
-
-
 def _sim3_scale(points_src: np.ndarray, points_dst: np.ndarray) -> float | None:
     """Scale of the least-squares similarity of two matched point sets (None when degenerate)."""
     if len(points_src) < 3:
@@ -75,7 +67,7 @@ def _robot_accuracy(entry: dict, r: RobotRun, rid: int, gts: dict, world_metric:
     """A robot's own ATE (Sim(3) for a monocular map), into ``entry``; returns the ATE result used
     for its map's ground-truth placement (None for a monocular map: its map transform has a
     scale) and the result for pooling."""
-    stamps, poses = _kf_arrays(r)
+    stamps, poses = r.keyframe_arrays()
     stamps_gt, poses_gt = gts[rid]
     try:
         res = ate(stamps, poses, stamps_gt, poses_gt, correct_scale=entry["sensor"] == "mono")
@@ -134,76 +126,6 @@ def _client_path_accuracy(
     if gaps:
         entry["path_team_gap_m"] = float(np.median(gaps))
     return first
-
-
-def _merge_units(run: RunData, sensors: dict) -> list[tuple]:
-    """Per merge (in order), the true length (metres) of one unit of its ``T_camA_camB`` and of
-    each side's map just before it, as ``1.0`` (metres) or ``("unit", robot)`` (that monocular
-    robot's own units, whose length its Sim(3) ATE gives): a group with a robot with depth is
-    metric (the server rescales a monocular side into metres), a group of monocular maps keeps
-    the units of the first side's group. Rescales by marker sightings are not followed."""
-
-    def own(robot):
-        return 1.0 if sensors.get(robot) != "mono" else ("unit", robot)
-
-    units = {r: own(r) for r in run.robots}
-    group = {r: {r} for r in run.robots}
-    out = []
-    for m in run.merges:
-        a, b = m["robot_a"], m["robot_b"]
-        ga, gb = group.get(a, {a}), group.get(b, {b})
-        unit_a, unit_b = units.get(a, own(a)), units.get(b, own(b))
-        after = 1.0 if 1.0 in (unit_a, unit_b) else unit_a
-        out.append((after, unit_a, unit_b))
-        merged = ga | gb
-        for x in merged:
-            group[x] = merged
-            units[x] = after
-    return out
-
-
-def _merge_scale_errors(m: dict, unit_a, unit_b, run: RunData, gts: dict, true_scale: dict):
-    """A similarity merge's scale (b's lengths into a's) against the true ratio of the two maps'
-    units (see :func:`_merge_units`): their whole paths' (scale drift inside a map enters) and
-    around the matched keyframes; each None when unknown."""
-
-    def length(unit, side: str, local: bool) -> float | None:
-        if unit == 1.0:
-            return 1.0
-        robot = m[f"robot_{side}"]
-        if not local:
-            return true_scale.get(unit[1])
-        if unit[1] != robot or robot not in gts:
-            return None  # the units are another robot's: no local truth at this keyframe
-        r = run.robots.get(robot, RobotRun())
-        return _local_scale(r, gts[robot], m[f"keyframe_{side}"], MERGE_SCALE_HALF_WINDOW)
-
-    out = []
-    for local in (False, True):
-        la, lb = length(unit_a, "a", local), length(unit_b, "b", local)
-        out.append(m["scale"] * la / lb - 1.0 if la and lb else None)
-    return tuple(out)
-
-
-# Keyframes each side of a merge's matched keyframe whose alignment gives the map's true local scale
-MERGE_SCALE_HALF_WINDOW = 7
-
-
-def _local_scale(r: RobotRun, gt: tuple, keyframe_id: int, half_window: int) -> float | None:
-    """True metres per unit of a monocular map around one of its keyframes: the Sim(3) alignment
-    of its ``2 half_window + 1`` keyframes nearest in time to ground truth. A merge's similarity
-    comes from the map points around its matched keyframes, so scale drift elsewhere in the map
-    does not enter its error."""
-    stamp = r.keyframe_stamps.get(keyframe_id)
-    if stamp is None or not r.keyframes:
-        return None
-    stamps, poses = _kf_arrays(r)
-    i = int(np.searchsorted(stamps, stamp))
-    lo, hi = max(0, i - half_window), min(len(stamps), i + half_window + 1)
-    try:
-        return ate(stamps[lo:hi], poses[lo:hi], *gt, correct_scale=True).scale
-    except EvaluationError:
-        return None
 
 
 @dataclass
@@ -273,7 +195,8 @@ def evaluate_run(
     report["groups"] = run.server_stats.get("groups") or [[rid] for rid in robot_ids]
     est_world = _team_accuracy(report, results, robot_ids, world_metric, out_dir)
     _server_figures(report, run, robot_ids)
-    report["links"] = _links(run, gts, report["groups"])
+    link_units = map_units(run, sensors)[1]
+    report["links"] = link_errors(run, gts, report["groups"], link_units, results.true_scale)
     report["overlap_agreement"] = _overlap_agreement(run, out_dir)
     report["bandwidth"] = bandwidth(run)
     report["topics"] = topic_bandwidth(run)
@@ -349,7 +272,7 @@ def _keyframe_accuracy(
     """A robot's own ATE and RPE, its published path's and its keyframes' as the team placed
     them, into ``entry`` and ``results``."""
     stamps_gt, poses_gt = gts[rid]
-    stamps, poses = _kf_arrays(r)
+    stamps, poses = r.keyframe_arrays()
     placed, res = _robot_accuracy(entry, r, rid, gts, world_metric)
     if placed is not None:
         results.T_world_map_gt[rid] = placed.T_gt_est
@@ -447,14 +370,14 @@ def _merge_entries(
 ) -> list[dict]:
     """The report's merges: transform error against ground truth and latency from the first
     moment ground truth allowed a merge of that kind."""
-    units = _merge_units(run, sensors)
+    units = map_units(run, sensors)[0]
     return [_merge_entry(m, unit, run, gts, overlap, results) for m, unit in zip(run.merges, units)]
 
 
 def _merge_entry(
     m: dict, units: tuple, run: RunData, gts: dict, overlap: dict | None, results: _RobotResults
 ) -> dict:
-    """One merge's entry (``units``: its item of :func:`_merge_units`)."""
+    """One merge's entry (``units``: its item of :func:`.merge_accuracy.map_units`)."""
     a, b = m["robot_a"], m["robot_b"]
     entry = {
         "type": m["type"],
@@ -480,14 +403,14 @@ def _merge_entry(
         )
     unit, unit_a, unit_b = units
     if m.get("scale") is not None and (unit_a != 1.0 or unit_b != 1.0):
-        entry["scale_err"], entry["local_scale_err"] = _merge_scale_errors(
+        entry["scale_err"], entry["local_scale_err"] = merge_scale_errors(
             m, unit_a, unit_b, run, gts, true_scale
         )
     metric = m
     if unit != 1.0:  # between monocular maps only: in the first side's units
         unit = true_scale.get(unit[1])
         metric = dict(m, T_camA_camB=scale_translation(m["T_camA_camB"], unit)) if unit else None
-    local = _local_merge_error(metric, run, gts) if metric is not None else None
+    local = local_merge_error(metric, run, gts) if metric is not None else None
     entry["local_trans_err_m"], entry["local_rot_err_deg"] = local if local else (None, None)
     evidence = _first_evidence(overlap, m["type"], a, b)
     if evidence is not None:
@@ -568,7 +491,7 @@ def _plot_robot_paths(
     mono = {rid for rid in robot_ids if sensors[rid] == "mono"}
     plot_trajectories(
         out_dir,
-        {rid: _kf_arrays(r) for rid, r in run.robots.items() if r.keyframes},
+        {rid: r.keyframe_arrays() for rid, r in run.robots.items() if r.keyframes},
         gts,
         mono=mono,
     )
@@ -576,59 +499,11 @@ def _plot_robot_paths(
         series = {}
         for rid, path in published.items():
             r = run.robots[rid]
-            series[rid] = [("odometry (as sent)", *_kf_arrays(r))]
+            series[rid] = [("odometry (as sent)", *r.keyframe_arrays())]
             if r.team_keyframes:
                 series[rid].append(("team map (server)", *est_world[rid]))
             series[rid].append(("published path (client)", *path))
         plot_path_errors(out_dir, series, gts, mono=mono)
-
-
-def _local_merge_error(m: dict, run: RunData, gts: dict) -> tuple[float, float] | None:
-    """Error of the merge's registration against the truth: the verified relative pose of the
-    matched keyframes' cameras against their true relative pose. Odometry drift does not enter,
-    nor do later local-BA moves of the keyframes (which the map transform was chained through)."""
-    stamps = []
-    for side in "ab":
-        robot, kf = m[f"robot_{side}"], m.get(f"keyframe_{side}")
-        stamp = (m.get("keyframe_stamps") or {}).get(side)
-        if stamp is None and robot in run.robots:
-            stamp = run.robots[robot].keyframe_stamps.get(kf)
-        if stamp is None or robot not in gts:
-            return None
-        stamps.append(stamp)
-    a, b = m["robot_a"], m["robot_b"]
-    return relative_pose_error(m["T_camA_camB"], stamps[0], stamps[1], gts[a], gts[b])
-
-
-def _links(run: RunData, gts: dict, groups: list) -> list[dict]:
-    """Per robot pair of one group: the links between them (see :class:`RunData`) and their
-    median registration error at the keyframes (None without ground truth)."""
-    out = []
-    for group in groups:
-        for i, a in enumerate(sorted(group)):
-            for b in sorted(group)[i + 1 :]:
-                errs = []
-                count = 0
-                for k in run.links:
-                    if k["type"] != TYPE_LINK or sorted(k["robots"]) != [a, b]:
-                        continue
-                    count += 1
-                    (ra, rb), (sa, sb) = k["robots"], k["keyframe_stamps"]
-                    if sa is None or sb is None or ra not in gts or rb not in gts:
-                        continue
-                    err = relative_pose_error(k["T_camA_camB"], sa, sb, gts[ra], gts[rb])
-                    if err is not None:
-                        errs.append(err)
-                errs = np.array(errs).reshape(-1, 2)
-                out.append(
-                    {
-                        "robots": [a, b],
-                        "count": count,
-                        "trans_err_m": float(np.median(errs[:, 0])) if len(errs) else None,
-                        "rot_err_deg": float(np.median(errs[:, 1])) if len(errs) else None,
-                    }
-                )
-    return out
 
 
 def _overlap_agreement(run: RunData, out_dir: str | None) -> list[dict]:

@@ -170,10 +170,19 @@ def judge(server, stamps: dict, gts: dict) -> dict:
     """The replayed decisions against ground truth ``gts`` (robot -> (stamps, T_world_cam) on the
     playback timeline): each merge's and inter-robot constraint's registration error at its
     keyframes, the team ATE of the world group's optimized keyframes and the pooled ATE of the
-    robots' own keyframe poses (as in the demo's report, there from the published poses)."""
+    robots' own keyframe poses (as in the demo's report, there from the published poses). A
+    registration between monocular maps is in its a-side map's stored units: judged in metres by
+    that map's Sim(3) scale against ground truth."""
     from ..evaluation.metrics import EvaluationError, ate, relative_pose_error, team_ate
+    from ..team.map_scale import scale_translation
+
+    metres_per_unit: dict = {}  # map id -> true metres per stored unit (a monocular group's)
 
     def error(key_a, key_b, T_camA_camB):
+        unit = 1.0 if server.is_metric(key_a[0]) else metres_per_unit.get(key_a[0])
+        if unit is None:
+            return None
+        T_camA_camB = scale_translation(T_camA_camB, unit)
         # Map ids to robots (a later map segment is its robot's); stamps are by robot.
         key_a = (server.robot_of(key_a[0]), key_a[1])
         key_b = (server.robot_of(key_b[0]), key_b[1])
@@ -185,12 +194,6 @@ def judge(server, stamps: dict, gts: dict) -> dict:
         return None if err is None else [round(err[0] * 100, 2), round(err[1], 2)]
 
     out = {"merge_errors_cm_deg": [], "link_errors_cm_deg": [], "loop_errors_cm_deg": []}
-    for m in server.merges:
-        key_a, key_b = (m.map_a, m.keyframe_a), (m.map_b, m.keyframe_b)
-        out["merge_errors_cm_deg"].append(error(key_a, key_b, m.T_camA_camB))
-    for c in server.constraints:
-        kind = "loop" if c.key_a[0] == c.key_b[0] else "link"
-        out[f"{kind}_errors_cm_deg"].append(error(c.key_a, c.key_b, c.T_camA_camB))
     own, est = [], {}
     metric = False  # a world of monocular maps only has no metric scale (aligned with Sim(3))
     for mid in server.store.maps():  # map ids: a robot's map segments apart
@@ -205,6 +208,8 @@ def judge(server, stamps: dict, gts: dict) -> dict:
             poses = [server.store.record((mid, k)).T_map_cam for k in keys]
             res = ate(t, poses, *gts[robot], correct_scale=mono)
             own.append((res.rmse_m, res.count))
+            if mono and not server.is_metric(mid):
+                metres_per_unit[mid] = res.scale
         except EvaluationError:
             pass
         if server.in_world(mid):
@@ -216,6 +221,12 @@ def judge(server, stamps: dict, gts: dict) -> dict:
                 order = np.argsort(t, kind="stable")
                 t, poses = t[order], poses[order]
             est[robot] = (t, poses)
+    for m in server.merges:
+        key_a, key_b = (m.map_a, m.keyframe_a), (m.map_b, m.keyframe_b)
+        out["merge_errors_cm_deg"].append(error(key_a, key_b, m.T_camA_camB))
+    for c in server.constraints:
+        kind = "loop" if c.key_a[0] == c.key_b[0] else "link"
+        out[f"{kind}_errors_cm_deg"].append(error(c.key_a, c.key_b, c.T_camA_camB))
     out["overlap_agreement_mm"] = agreement(server)
     n = sum(c for _, c in own)
     out["single_ate_pooled_cm"] = (
