@@ -656,15 +656,27 @@ def test_orb_keypoints_sit_where_the_pyramid_found_them():
     assert checked > 50  # the coarse levels, where pt was off most, were exercised
 
 
-@pytest.mark.parametrize("n_detect,split_levels", [(2500, True), (9, True), (2500, False)])
-def test_orb_levels_extracted_in_two_threads_are_opencvs_whole_pyramid_orb(n_detect, split_levels):
+@pytest.mark.parametrize(
+    "n_detect,split_levels,shape",
+    [
+        (2500, True, (480, 640)),
+        (9, True, (480, 640)),
+        (2500, False, (480, 640)),
+        (2500, True, (540, 960)),  # 540 / 1.2**3 = 312.5: OpenCV rounds it in float32
+        (2500, True, (342, 630)),
+        (2500, False, (483, 641)),
+    ],
+)
+def test_orb_levels_extracted_in_two_threads_are_opencvs_whole_pyramid_orb(
+    n_detect, split_levels, shape
+):
     """Each level detected and described by its own one-level ORB (half of them in a worker
     thread) finds exactly the keypoints and descriptors one OpenCV ORB over the pyramid finds,
     then bucketed as before: positions, sizes, angles, levels, bits, in OpenCV's order."""
     import cv2
 
     rng = np.random.default_rng(1)
-    gray = cv2.GaussianBlur((rng.random((480, 640)) * 255).astype(np.uint8), (0, 0), 1.2)
+    gray = cv2.GaussianBlur((rng.random(shape) * 255).astype(np.uint8), (0, 0), 1.2)
     cfg = with_values(
         VoConfig(), {"features": {"n_detect": n_detect, "n_features": min(n_detect, 1000)}}
     )

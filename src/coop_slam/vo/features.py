@@ -108,12 +108,21 @@ def inv_sigma2(config: VoConfig, octaves: np.ndarray) -> np.ndarray:
     return 1.0 / level_scales(config)[np.asarray(octaves, dtype=int)] ** 2
 
 
-def level_images(gray: np.ndarray, scales: np.ndarray) -> list[np.ndarray]:
-    """The image at each pyramid level (level 0 = gray), resized as OpenCV's ORB does."""
+def orb_level_scales32(scale_factor: float, n_levels: int) -> np.ndarray:
+    """Each pyramid level's scale as OpenCV's ORB has it (float32, from its float32 scale factor):
+    it reports positions and sizes its levels with these."""
+    return np.float32(float(np.float32(scale_factor)) ** np.arange(n_levels))
+
+
+def level_images(gray: np.ndarray, scales32: np.ndarray) -> list[np.ndarray]:
+    """The image at each pyramid level (level 0 = gray), sized (in float32: at .5 the rounding
+    differs from double's, e.g. 540 / 1.2**3) and resized as OpenCV's ORB does; ``scales32``:
+    :func:`orb_level_scales32`."""
     h, w = gray.shape
     levels = [gray]
-    for s in scales[1:]:
-        size = (max(1, round(w / s)), max(1, round(h / s)))
+    for s in scales32[1:]:
+        f = np.float32(1) / np.float32(s)
+        size = (max(1, int(np.rint(np.float32(w) * f))), max(1, int(np.rint(np.float32(h) * f))))
         levels.append(cv2.resize(levels[-1], size, interpolation=cv2.INTER_LINEAR_EXACT))
     return levels
 
@@ -128,9 +137,9 @@ def _keypoint_table(kps, *names: str) -> np.ndarray:
     return table
 
 
-def _orb_level_split(n_detect: int, scale_factor: float, n_levels: int):
+def _orb_level_split(n_detect: int, scale_factor: float, n_levels: int) -> list[int]:
     """OpenCV's ORB: keypoints wanted per level (a geometric series, in float as OpenCV computes
-    it) and each level's scale as OpenCV reports positions with (float32)."""
+    it)."""
     factor = np.float32(1.0 / scale_factor)
     wanted = np.float32(n_detect) * (np.float32(1) - factor)
     wanted /= np.float32(1) - np.float32(float(factor) ** n_levels)
@@ -139,8 +148,7 @@ def _orb_level_split(n_detect: int, scale_factor: float, n_levels: int):
         per_level.append(int(np.rint(wanted)))
         wanted = np.float32(wanted * factor)
     per_level.append(max(n_detect - sum(per_level), 0))
-    scales32 = np.float32(float(np.float32(scale_factor)) ** np.arange(n_levels))
-    return per_level, scales32
+    return per_level
 
 
 def _two_groups(scales: np.ndarray) -> tuple[list[int], list[int]]:
@@ -175,9 +183,8 @@ class OrbExtractor:
         self.config = config
         self.camera = camera
         feats = config.features
-        per_level, self._scales32 = _orb_level_split(
-            feats.n_detect, feats.scale_factor, feats.n_levels
-        )
+        per_level = _orb_level_split(feats.n_detect, feats.scale_factor, feats.n_levels)
+        self._scales32 = orb_level_scales32(feats.scale_factor, feats.n_levels)
         self._orbs = [
             cv2.ORB_create(
                 nfeatures=max(n, 1),
@@ -199,7 +206,7 @@ class OrbExtractor:
 
     def extract_with_levels(self, gray: np.ndarray) -> tuple[OrbKeypoints, list[np.ndarray]]:
         """The image's keypoints and its pyramid (level images, as :func:`level_images`)."""
-        levels = level_images(gray, self._scales)
+        levels = level_images(gray, self._scales32)
         found = self._on_levels(self._detect, levels)
         tables = [self._level_table(found[lv], lv, "response") for lv in range(len(levels))]
         table = np.vstack(tables)

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..bow import vocabulary
 from .config import VoConfig
-from .features import FrameFeatures, OrbKeypoints, level_images
+from .features import FrameFeatures, OrbKeypoints, level_images, orb_level_scales32
 from .matching import Projection, search_by_projection
 from .pose_opt import optimize_pose
 from .stereo_matching import match_stereo
@@ -39,5 +39,5 @@ def warm_up() -> None:
     image = np.zeros((64, 96), np.uint8)
     kps = OrbKeypoints(uv + [-300.0, -200.0], np.ones(n, np.float32), np.zeros(n, np.float32),
                        np.zeros(n, np.uint8), desc)  # fmt: skip
-    levels = level_images(image, scales)
+    levels = level_images(image, orb_level_scales32(1.2, 8))
     match_stereo(kps, kps, levels, levels, scales, 500.0, VoConfig())

@@ -19,7 +19,14 @@ import numpy as np
 
 from ..camera import CameraModel
 from .config import VoConfig
-from .features import FrameFeatures, OrbExtractor, OrbKeypoints, level_images, level_scales
+from .features import (
+    FrameFeatures,
+    OrbExtractor,
+    OrbKeypoints,
+    level_images,
+    level_scales,
+    orb_level_scales32,
+)
 from .stereo_matching import match_stereo
 from .types import VoError
 
@@ -223,6 +230,7 @@ class StereoSensor(Sensor):
         close_m = config.stereo.close_baselines * camera.baseline_m
         super().__init__(config, camera, camera.baseline_m, close_m)
         self._scales = level_scales(config)
+        self._scales32 = orb_level_scales32(config.features.scale_factor, config.features.n_levels)
         self._right_extractor = OrbExtractor(config, camera, split_levels=False)
         self._frames_since_check = None  # frames since the last rectification check
         # The right image's features are made in this thread while the left image's are made
@@ -258,7 +266,7 @@ class StereoSensor(Sensor):
         u_right = match_stereo(
             kps,
             right_kps,
-            level_images(gray, self._scales),
+            level_images(gray, self._scales32),
             right_levels,
             self._scales,
             self.camera.fx,
