@@ -42,7 +42,7 @@ from .team_cues import TeamCues
 from .uplink_bridge import UplinkBridge, server_vocabulary
 from .validation import RejectCounter
 
-FRAMES_COMING_S = 0.5  # a frame within this long [s, wall]: the camera is running
+FRAMES_COMING_S = 0.2  # a frame within this long [s, wall]: the camera is running
 
 
 class ClientNode:
@@ -84,6 +84,13 @@ class ClientNode:
             self.rejects,
             p.frame_config,
         )
+        # The uplink's work on a frame's odometry events (records, budget, encoding, spool,
+        # publishing: up to ~90 ms on a keyframe frame) runs in its own thread, beside tracking;
+        # what it notes for the path is taken by the tracker's lock holders (the next frame, a
+        # correction, the idle flush). Made before the bridge, whose resend thread may flush.
+        self._uplink_jobs: queue.Queue = queue.Queue()
+        self._uplink_notes: list = []
+        self._notes_lock = threading.Lock()
         self.uplink = UplinkBridge(
             name,
             load_yaml_config(UplinkConfig, p.config, "uplink", layered(preset, "uplink", p.uplink)),
@@ -117,6 +124,7 @@ class ClientNode:
             self._vocabulary,
             lambda: self.uplink.engine.segment_base,
             self.pose.cam_frame,
+            detect_beside=not self.wait_for_mapping,  # lock-step: the same sightings every run
         )
         self.camera = CameraInput(
             name,
@@ -129,12 +137,6 @@ class ClientNode:
             self._frame_not_tracked,
         )
         warm_up()  # the odometry's compiled kernels, before the camera's first frame
-        # The uplink's work on a frame's odometry events (records, budget, encoding, spool,
-        # publishing: up to ~90 ms on a keyframe frame) runs in its own thread, beside tracking;
-        # what it notes for the path reaches the tracking thread with the next frame.
-        self._uplink_jobs: queue.Queue = queue.Queue()
-        self._uplink_notes: list = []
-        self._notes_lock = threading.Lock()
         threading.Thread(target=self._uplink_loop, daemon=True).start()
         threading.Thread(target=self._track_frames, daemon=True).start()
         self.sub_corr = rospy.Subscriber(
@@ -168,7 +170,9 @@ class ClientNode:
             self.vo.reset()
             self._uplink_jobs.join()  # what the old odometry's frames made goes first
             self._take_notes()
-            self.pose.note(self._uplink_step(self.vo.drain_events(), None))
+            messages, notes = self._uplink_step(self.vo.drain_events(), None)
+            self.pose.note(notes)
+            self.uplink.send(messages)
             self.uplink.engine.odometry_replaced(self.vo.keyframes_made, self.vo.map_segment)
             self.vo.close()
             self.vo = None
@@ -212,8 +216,8 @@ class ClientNode:
             self.rejects.reject(self.camera.topics["image"], str(exc))
         finally:
             # Counters on every frame's stats, a rejected one's too: the recorder takes a drop in
-            # keyframes_sent for a restarted client (read under the lock the uplink's other
-            # threads change them under).
+            # keyframes_sent for a restarted client. Live, the uplink's thread may still be on
+            # this frame's events: the counters can be a frame behind (they only grow).
             with self.lock:
                 self._counters(stats)
             self.pub_stats.publish(stats)
@@ -242,12 +246,15 @@ class ClientNode:
             self._take_notes()
 
     def _uplink_loop(self) -> None:
+        # Never takes self.lock: its holders wait for this thread (join) with it held.
         while True:
             events, now_s = self._uplink_jobs.get()
             try:
-                notes = self._uplink_step(events, now_s)
+                messages, notes = self._uplink_step(events, now_s)
+                # Noted before they go: a correction that answers them finds their keyframes.
                 with self._notes_lock:
                     self._uplink_notes.extend(notes)
+                self.uplink.send(messages)
             except Exception as exc:  # this thread is what sends: it must not end
                 rospy.logerr("client %s: uplink: %s: %s", self.name, type(exc).__name__, exc)
             finally:
@@ -261,9 +268,10 @@ class ClientNode:
         if notes:
             self.pose.note(notes)
 
-    def _uplink_step(self, events, now_s: float | None) -> list:
+    def _uplink_step(self, events, now_s: float | None) -> tuple[list, list]:
         """``events`` at data time ``now_s`` through the uplink (None: the odometry is closing,
-        everything it holds goes); says what they say on the console and returns the notes."""
+        everything it holds goes); says what they say on the console and returns the messages
+        to send and the notes."""
         step = self.uplink.engine.events(events, now_s)
         for note in step.notes:
             if note.kind == "warning":
@@ -275,8 +283,7 @@ class ClientNode:
                     note.segment,
                     note.text,
                 )
-        self.uplink.send(step.messages)
-        return step.notes
+        return step.messages, step.notes
 
     def _counters(self, stats) -> None:
         stats.keyframes = len(self.pose.kf_poses)
@@ -296,6 +303,7 @@ class ClientNode:
             self._uplink_jobs.join()  # the frames' events first (no new ones: the lock is held)
             self._take_notes()
             self.pose.publish_correction(self.vo, self.uplink.engine.kf_id_base)
+            self.cues.finish(self.vo)
             if self.uplink.engine.held:
                 self.uplink.send(self.uplink.engine.flush())
             said = self._counters_said
@@ -307,10 +315,11 @@ class ClientNode:
             self.lock.release()
 
     def _on_correction(self, msg) -> None:
-        # While frames come, the corrected path and cloud go with the next one (publishing them
-        # here, with the tracker's lock held, stalled the camera by 20-50 ms).
+        # While frames come, the corrected path and cloud go after the next frame's pose (here,
+        # with the tracker's lock held, they held up the next frame by 20-50 ms).
         frames_coming = time.monotonic() - self.uplink.last_frame_wall < FRAMES_COMING_S
         with self.lock:
+            self._take_notes()  # the keyframes it places
             self.pose.correction(
                 msg, self.vo, self.uplink.engine.kf_id_base, publish_now=not frames_coming
             )

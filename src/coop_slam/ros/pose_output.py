@@ -106,14 +106,14 @@ class PoseOutput:
     def frame(self, stamp, res, vo, kf_id_base: int) -> None:
         """After a tracked frame: the pose and TF, the path and the cloud when due."""
         t_s = stamp.to_sec()
+        if res.ok:  # first: the pose is what the robot's other nodes wait for
+            self.publish_pose(stamp, self.T_base_cam @ res.T_map_cam)
         if self.corrected_due:
             self.publish_correction(vo, kf_id_base)
             self.last_path_s = self.last_cloud_s = t_s
         if self.path_due and t_s - self.last_path_s >= self.path_period_s:
             self.last_path_s = t_s
             self.publish_path(vo, kf_id_base)
-        if res.ok:
-            self.publish_pose(stamp, self.T_base_cam @ res.T_map_cam)
         if t_s - self.last_cloud_s >= self.cloud_period_s:
             self.last_cloud_s = t_s
             self.publish_cloud(stamp, vo, kf_id_base)

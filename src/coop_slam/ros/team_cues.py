@@ -39,6 +39,7 @@ class TeamCues:
         vocabulary: Callable[[], object],
         segment_base: Callable[[], int],
         cam_frame: str = "",
+        detect_beside: bool = True,
     ):
         from coop_slam.msg import RobotSighting
 
@@ -54,8 +55,12 @@ class TeamCues:
         self._busy, self._last_s = False, 0.0
         # Marker detection (5-13 ms a VGA image) runs beside tracking, without Python's lock; its
         # sightings go out with the next frame: (detection, stamp, the frame's result, segment).
+        # Not ``detect_beside`` (lock-step playback): in the frame, as the results must not
+        # depend on the machine's load.
         self._detecting = None
-        self._detector = ThreadPoolExecutor(max_workers=1, thread_name_prefix="markers")
+        self._detector = None
+        if detect_beside:
+            self._detector = ThreadPoolExecutor(max_workers=1, thread_name_prefix="markers")
 
     # --- markers ----------------------------------------------------------------------------------
     def sightings(self, frames: int, stamp, image, res, vo, K: np.ndarray) -> None:
@@ -63,12 +68,23 @@ class TeamCues:
         worker thread (a frame that comes while it is busy is not looked at); what it saw is
         said on the first frame after it finished."""
         if self._detecting is not None and self._detecting[0].done():
-            (detection, seen_stamp, seen_res, tracked_in), self._detecting = self._detecting, None
-            self._say(detection.result(), seen_stamp, seen_res, vo, tracked_in)
+            self.finish(vo)
         if not self.marker_every or frames % self.marker_every or self._detecting is not None:
             return
+        tracked_in = (vo, None if vo is None else vo.map_segment)
+        if self._detector is None:
+            self._say(self.markers.detect(image, K), stamp, res, vo, tracked_in)
+            return
         detection = self._detector.submit(self.markers.detect, image, K)
-        self._detecting = (detection, stamp, res, (vo, None if vo is None else vo.map_segment))
+        self._detecting = (detection, stamp, res, tracked_in)
+
+    def finish(self, vo) -> None:
+        """Say what the detection under way saw, once it is done (the camera stopped: nothing
+        would say it)."""
+        if self._detecting is None:
+            return
+        (detection, stamp, res, tracked_in), self._detecting = self._detecting, None
+        self._say(detection.result(), stamp, res, vo, tracked_in)
 
     def _say(self, seen, stamp, res, vo, tracked_in) -> None:
         """Publish the sightings of one frame; mask the sighted bodies in the odometry's map when

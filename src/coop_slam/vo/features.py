@@ -13,6 +13,7 @@ pass costs a full detection: measured 6 ms). Descriptors are computed for the ke
 
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -164,12 +165,14 @@ def _two_groups(scales: np.ndarray) -> tuple[list[int], list[int]]:
 # One worker per process takes half of every image's levels while the caller does the other half
 # (OpenCV runs without Python's lock); shared by all extractors, made on first use.
 _LEVEL_WORKER: list = []
+_LEVEL_WORKER_LOCK = threading.Lock()
 
 
 def _level_worker() -> ThreadPoolExecutor:
-    if not _LEVEL_WORKER:
-        _LEVEL_WORKER.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="orb_levels"))
-    return _LEVEL_WORKER[0]
+    with _LEVEL_WORKER_LOCK:
+        if not _LEVEL_WORKER:
+            _LEVEL_WORKER.append(ThreadPoolExecutor(1, thread_name_prefix="orb_levels"))
+        return _LEVEL_WORKER[0]
 
 
 class OrbExtractor:

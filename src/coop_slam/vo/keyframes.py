@@ -5,6 +5,8 @@ matched none (a monocular keyframe has no depth: local mapping triangulates its 
 
 from __future__ import annotations
 
+from concurrent.futures import Future
+
 import numpy as np
 
 from ..geometry import transform_points
@@ -109,7 +111,7 @@ def add_keyframe(
     point_ids,
     config: VoConfig,
     scales: np.ndarray,
-    depth_image: bytes = b"",
+    depth_image: bytes | Future = b"",
 ) -> MapKeyframe:
     """Create keyframe ``kf_id`` from the frame in ``vmap``: its tracked map points (``kp_idx``
     -> ``point_ids``) and new map points from depth for unmatched keypoints, closest first."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import itertools
 import threading
+from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -44,9 +45,9 @@ class MapKeyframe:
     # (M, 3) float32 positions of the observed map points in the map frame, in the order of the
     # non-zero map_point_ids. Filled in the snapshots handed out in events; empty in the live map.
     map_points_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
-    # The frame's depth image for the dense map (vo.dense_depth); pending (a Future) in the live
-    # map until the first snapshot
-    depth_image: object = b""
+    # The frame's depth image for the dense map (vo.dense_depth); pending in the live map until
+    # the first snapshot
+    depth_image: bytes | Future = b""
     # Internal: the keypoints as FrameFeatures (KD-tree for projection search); not in snapshots.
     features: object = field(default=None, repr=False, compare=False)
 
