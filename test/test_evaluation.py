@@ -669,6 +669,44 @@ def test_a_link_of_monocular_maps_is_judged_in_metres():
     assert link["trans_err_m"] == pytest.approx(0.01, abs=1e-3), link
 
 
+def test_a_link_is_judged_in_the_units_of_its_time():
+    """Robots 1 and 2 (monocular) merge at 5 s, a link between them at 10 s is in robot 1's
+    units; an RGB-D robot joins at 15 s and the group is metric from then on. The link is judged
+    in the units it was made in (read in metres, an exact link was 0.16 m off), and a link made
+    after 15 s in metres."""
+    from coop_slam.evaluation.merge_accuracy import link_errors, map_units
+    from coop_slam.evaluation.run_data import RobotRun, RunData
+    from coop_slam.team.map_scale import scale_translation
+
+    stamps = np.arange(40) * 0.5
+    gt = np.array([se3(np.eye(3), [0.3 * k, 0.1 * k, 0.0]) for k in range(40)])
+    sensors = {1: "mono", 2: "mono", 3: "rgbd"}
+    run = RunData()
+    for rid, sensor in sensors.items():
+        run.robots[rid] = RobotRun(frames=40, sensor=sensor)
+    run.merges += [
+        {"robot_a": 1, "robot_b": 2, "stamp_s": 5.0},
+        {"robot_a": 1, "robot_b": 3, "stamp_s": 15.0},
+    ]
+    metres_per_unit = 2.0  # robot 1's
+    T_camA_camB = invert(gt[8]) @ gt[9]
+    in_units = scale_translation(T_camA_camB, 1.0 / metres_per_unit)
+    for made_s, T in ((10.0, in_units), (16.0, T_camA_camB)):
+        run.links = [
+            {
+                "type": "link",
+                "robots": [1, 2],
+                "keyframe_stamps": [stamps[8], stamps[9]],
+                "stamp_s": made_s,
+                "T_camA_camB": T,
+            }
+        ]
+        gts = {r: (stamps, gt) for r in sensors}
+        timeline = map_units(run, sensors)[1]
+        pair = link_errors(run, gts, [[1, 2, 3]], timeline, {1: metres_per_unit, 2: 1.6})[0]
+        assert pair["count"] == 1 and pair["trans_err_m"] < 1e-6, (made_s, pair)
+
+
 def test_plots_align_a_monocular_map_with_its_scale():
     """A map in its own units (here 0.4 of a metre) aligned by a similarity, as its ATE is: the
     drawn keyframes lie on the ground truth (drawn without the scale they did not)."""

@@ -12,20 +12,21 @@ from .metrics import EvaluationError, ate, relative_pose_error
 from .run_data import RobotRun, RunData
 
 
-def map_units(run: RunData, sensors: dict) -> tuple[list[tuple], dict]:
+def map_units(run: RunData, sensors: dict) -> tuple[list[tuple], list[tuple]]:
     """Per merge (in order), the true length (metres) of one unit of its ``T_camA_camB`` and of
     each side's map just before it, as ``1.0`` (metres) or ``("unit", robot)`` (that monocular
     robot's own units, whose length its Sim(3) ATE gives): a group with a robot with depth is
     metric (the server rescales a monocular side into metres), a group of monocular maps keeps
-    the units of the first side's group; and each robot's units after the last merge (those of
-    the links between merged robots). Rescales by marker sightings are not followed."""
+    the units of the first side's group; and the timeline of every robot's units: ``(stamp_s,
+    {robot: unit})`` from the start and after each merge (a link between merged robots is in
+    the units of its time). Rescales by marker sightings are not followed."""
 
     def own(robot):
         return 1.0 if sensors.get(robot) != "mono" else ("unit", robot)
 
     units = {r: own(r) for r in run.robots}
     group = {r: {r} for r in run.robots}
-    out = []
+    out, timeline = [], [(-np.inf, dict(units))]
     for m in run.merges:
         a, b = m["robot_a"], m["robot_b"]
         ga, gb = group.get(a, {a}), group.get(b, {b})
@@ -36,7 +37,8 @@ def map_units(run: RunData, sensors: dict) -> tuple[list[tuple], dict]:
         for x in merged:
             group[x] = merged
             units[x] = after
-    return out, units
+        timeline.append((m["stamp_s"], dict(units)))
+    return out, timeline
 
 
 def merge_scale_errors(m: dict, unit_a, unit_b, run: RunData, gts: dict, true_scale: dict):
@@ -74,7 +76,7 @@ def local_scale(r: RobotRun, gt: tuple, keyframe_id: int, half_window: int) -> f
     stamp = r.keyframe_stamps.get(keyframe_id)
     if stamp is None or not r.keyframes:
         return None
-    stamps, poses = r.keyframe_arrays()
+    stamps, poses = r.first_segment_arrays()
     i = int(np.searchsorted(stamps, stamp))
     lo, hi = max(0, i - half_window), min(len(stamps), i + half_window + 1)
     try:
@@ -100,20 +102,20 @@ def local_merge_error(m: dict, run: RunData, gts: dict) -> tuple[float, float] |
     return relative_pose_error(m["T_camA_camB"], stamps[0], stamps[1], gts[a], gts[b])
 
 
-def link_errors(run: RunData, gts: dict, groups: list, units: dict, true_scale: dict) -> list[dict]:
+def link_errors(
+    run: RunData, gts: dict, groups: list, unit_timeline: list, true_scale: dict
+) -> list[dict]:
     """Per robot pair of one group: the links between them (see :class:`RunData`) and their
     median registration error at the keyframes (None without ground truth). A link's
-    ``T_camA_camB`` is in its group's length unit (``units``: robot -> 1.0 for metres or
-    ``("unit", robot)``, see :func:`map_units`), a monocular map's true metres per unit being
-    ``true_scale``'s (None without it)."""
+    ``T_camA_camB`` is in its group's length unit when it was made (``unit_timeline``, see
+    :func:`map_units`: 1.0 for metres or ``("unit", robot)``), a monocular map's true metres
+    per unit being ``true_scale``'s (None without it)."""
     out = []
     for group in groups:
         for i, a in enumerate(sorted(group)):
             for b in sorted(group)[i + 1 :]:
                 errs = []
                 count = 0
-                unit = units.get(a, 1.0)
-                metres_per_unit = 1.0 if unit == 1.0 else true_scale.get(unit[1])
                 for k in run.links:
                     if k["type"] != TYPE_LINK or sorted(k["robots"]) != [a, b]:
                         continue
@@ -121,6 +123,8 @@ def link_errors(run: RunData, gts: dict, groups: list, units: dict, true_scale: 
                     (ra, rb), (sa, sb) = k["robots"], k["keyframe_stamps"]
                     if sa is None or sb is None or ra not in gts or rb not in gts:
                         continue
+                    unit = _units_at(unit_timeline, k.get("stamp_s", np.inf)).get(a, 1.0)
+                    metres_per_unit = 1.0 if unit == 1.0 else true_scale.get(unit[1])
                     if metres_per_unit is None:
                         continue
                     T_camA_camB = scale_translation(k["T_camA_camB"], metres_per_unit)
@@ -137,3 +141,13 @@ def link_errors(run: RunData, gts: dict, groups: list, units: dict, true_scale: 
                     }
                 )
     return out
+
+
+def _units_at(unit_timeline: list, stamp_s: float) -> dict:
+    """The robots' units at ``stamp_s`` (after the merges decided by then)."""
+    units = unit_timeline[0][1]
+    for merged_s, after in unit_timeline[1:]:
+        if merged_s > stamp_s:
+            break
+        units = after
+    return units

@@ -55,7 +55,7 @@ class RobotRun:
     def first_segment_ids(self) -> list:
         return sorted(k for k in self.keyframes if self.in_first_segment(k))
 
-    def keyframe_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+    def first_segment_arrays(self) -> tuple[np.ndarray, np.ndarray]:
         """(stamps (K,), T_map_cam (K, 4, 4)) of the first map segment's keyframes, by id."""
         ids = self.first_segment_ids()
         return (

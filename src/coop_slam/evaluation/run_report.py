@@ -67,7 +67,7 @@ def _robot_accuracy(entry: dict, r: RobotRun, rid: int, gts: dict, world_metric:
     """A robot's own ATE (Sim(3) for a monocular map), into ``entry``; returns the ATE result used
     for its map's ground-truth placement (None for a monocular map: its map transform has a
     scale) and the result for pooling."""
-    stamps, poses = r.keyframe_arrays()
+    stamps, poses = r.first_segment_arrays()
     stamps_gt, poses_gt = gts[rid]
     try:
         res = ate(stamps, poses, stamps_gt, poses_gt, correct_scale=entry["sensor"] == "mono")
@@ -183,7 +183,8 @@ def evaluate_run(
             out_dir,
             T_base_cam,
         )
-    report["merges"].extend(_merge_entries(run, gts, overlap, sensors, results))
+    merge_units, unit_timeline = map_units(run, sensors)
+    report["merges"].extend(_merge_entries(run, gts, overlap, merge_units, results))
     # A wrong merge is a wrong registration: judged at the matched keyframes, where odometry drift
     # (which only the team optimization can remove) does not enter.
     report["wrong_merges"] = count_wrong_merges(
@@ -195,8 +196,7 @@ def evaluate_run(
     report["groups"] = run.server_stats.get("groups") or [[rid] for rid in robot_ids]
     est_world = _team_accuracy(report, results, robot_ids, world_metric, out_dir)
     _server_figures(report, run, robot_ids)
-    link_units = map_units(run, sensors)[1]
-    report["links"] = link_errors(run, gts, report["groups"], link_units, results.true_scale)
+    report["links"] = link_errors(run, gts, report["groups"], unit_timeline, results.true_scale)
     report["overlap_agreement"] = _overlap_agreement(run, out_dir)
     report["bandwidth"] = bandwidth(run)
     report["topics"] = topic_bandwidth(run)
@@ -272,7 +272,7 @@ def _keyframe_accuracy(
     """A robot's own ATE and RPE, its published path's and its keyframes' as the team placed
     them, into ``entry`` and ``results``."""
     stamps_gt, poses_gt = gts[rid]
-    stamps, poses = r.keyframe_arrays()
+    stamps, poses = r.first_segment_arrays()
     placed, res = _robot_accuracy(entry, r, rid, gts, world_metric)
     if placed is not None:
         results.T_world_map_gt[rid] = placed.T_gt_est
@@ -366,11 +366,11 @@ def _with_signature_only_placed(server: tuple, r: RobotRun, optimized: set) -> t
 
 
 def _merge_entries(
-    run: RunData, gts: dict, overlap: dict | None, sensors: dict, results: _RobotResults
+    run: RunData, gts: dict, overlap: dict | None, units: list, results: _RobotResults
 ) -> list[dict]:
     """The report's merges: transform error against ground truth and latency from the first
-    moment ground truth allowed a merge of that kind."""
-    units = map_units(run, sensors)[0]
+    moment ground truth allowed a merge of that kind (``units``: per merge, as
+    :func:`.merge_accuracy.map_units` gives them)."""
     return [_merge_entry(m, unit, run, gts, overlap, results) for m, unit in zip(run.merges, units)]
 
 
@@ -491,7 +491,7 @@ def _plot_robot_paths(
     mono = {rid for rid in robot_ids if sensors[rid] == "mono"}
     plot_trajectories(
         out_dir,
-        {rid: r.keyframe_arrays() for rid, r in run.robots.items() if r.keyframes},
+        {rid: r.first_segment_arrays() for rid, r in run.robots.items() if r.keyframes},
         gts,
         mono=mono,
     )
@@ -499,7 +499,7 @@ def _plot_robot_paths(
         series = {}
         for rid, path in published.items():
             r = run.robots[rid]
-            series[rid] = [("odometry (as sent)", *r.keyframe_arrays())]
+            series[rid] = [("odometry (as sent)", *r.first_segment_arrays())]
             if r.team_keyframes:
                 series[rid].append(("team map (server)", *est_world[rid]))
             series[rid].append(("published path (client)", *path))
