@@ -240,12 +240,14 @@ class OrbExtractor:
         return keypoints, levels
 
     def _on_levels(self, work, levels, *args) -> dict:
-        """work(levels, group, *args) for both groups of levels, one in the worker thread."""
+        """work(levels, group, *args) for both groups of levels, one in the worker thread -- unless
+        the worker has not started on it when the caller's group is done (the other core busy,
+        e.g. with local mapping): then the caller does it too, rather than wait."""
         if not self._split_levels:
             return work(levels, sorted(self._groups[0] + self._groups[1]), *args)
         other = _level_worker().submit(work, levels, self._groups[1], *args)
         done = work(levels, self._groups[0], *args)
-        done.update(other.result())
+        done.update(work(levels, self._groups[1], *args) if other.cancel() else other.result())
         return done
 
     def _detect(self, levels, group) -> dict:
