@@ -177,7 +177,8 @@ class VisualOdometry:
         self._last_stamp = stamp_s
         self.frames_processed += 1
         self._sensor.begin(second)  # stereo: the right image's features meanwhile
-        feats = self._sensor.features(self._extractor.extract(gray), gray, second)
+        kps, levels = self._extractor.extract_with_levels(gray)
+        feats = self._sensor.features(kps, gray, second, levels)
         if self._sensor.warning:
             self._emit(VoEvent(EVENT_WARNING, self.map_segment, message=self._sensor.warning))
             self._sensor.warning = None

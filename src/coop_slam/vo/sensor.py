@@ -149,9 +149,10 @@ class RgbdSensor(Sensor):
         return np.ascontiguousarray(gray), depth
 
     # --- measurements -----------------------------------------------------------------------------
-    def features(self, kps: OrbKeypoints, gray: np.ndarray, depth_m) -> FrameFeatures:
+    def features(self, kps: OrbKeypoints, gray: np.ndarray, depth_m, levels=None) -> FrameFeatures:
         """The frame's keypoints with their depth (outside [min_depth_m, max_depth_m]: none),
-        3D point and right-image coordinate."""
+        3D point and right-image coordinate. ``levels``: the image's pyramid, when the
+        extraction made it (stereo matching uses it)."""
         cfg = self.config
         uv = kps.uv_px
         n = len(uv)
@@ -255,7 +256,9 @@ class StereoSensor(Sensor):
             raise VoError("no right image: stereo odometry needs the rectified right image")
         return left, np.ascontiguousarray(gray_image(right, self.camera, "right image"))
 
-    def features(self, kps: OrbKeypoints, gray: np.ndarray, right: np.ndarray) -> FrameFeatures:
+    def features(
+        self, kps: OrbKeypoints, gray: np.ndarray, right: np.ndarray, levels=None
+    ) -> FrameFeatures:
         """The left keypoints with their measured right-image coordinate and depth (none beyond
         ``close_depth_m``, nor without a match)."""
         pending, self._right_pending = self._right_pending, None
@@ -266,7 +269,7 @@ class StereoSensor(Sensor):
         u_right = match_stereo(
             kps,
             right_kps,
-            level_images(gray, self._scales32),
+            levels if levels is not None else level_images(gray, self._scales32),
             right_levels,
             self._scales,
             self.camera.fx,
@@ -335,7 +338,9 @@ class MonoSensor(Sensor):
         with the image."""
         return np.ascontiguousarray(gray_image(image, self.camera)), None
 
-    def features(self, kps: OrbKeypoints, gray: np.ndarray, second=None) -> FrameFeatures:
+    def features(
+        self, kps: OrbKeypoints, gray: np.ndarray, second=None, levels=None
+    ) -> FrameFeatures:
         """The frame's keypoints without depth (depth 0, u_right and 3D point NaN)."""
         n = len(kps)
         return _frame_features(kps, np.zeros(n, np.float32), np.full(n, np.nan), self.camera)
