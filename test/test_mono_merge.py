@@ -70,6 +70,37 @@ def test_monocular_robot_merges_with_a_metric_one_by_a_similarity(world):
         assert dt < 0.03 and dr < 0.5, (kf.keyframe_id, dt, dr)
 
 
+def test_global_ba_that_bends_a_monocular_map_leaves_it_as_the_pose_graph_had_it(world):
+    """A global BA result that moves a monocular map's keyframes by a similarity is taken; one
+    that bends them (here by 5 % of their spread) is not for that map -- it keeps its pose-graph
+    poses -- while the metric map's refined poses are taken either way."""
+    from coop_slam.team.global_ba import GlobalBaResult
+
+    points, desc, kfs_a, vocab = world
+    server = TeamServer(_config(), vocab)
+    for kf in kfs_a + _mono_b(points, desc, np.linspace(2.0, 3.0, 8)):
+        server.add_keyframe(kf)
+    assert server.groups.groups() == [[1, 2]]
+    before = {k: server.T_group_cam(*k) for k in sorted(server.store.keys())}
+    mono = [k for k in before if k[0] == 2]
+    assert len(mono) >= 3
+
+    def ba_result(move):
+        poses = {k: T.copy() for k, T in before.items()}
+        for i, k in enumerate(mono):
+            poses[k][:3, 3] = move(i, poses[k][:3, 3])
+        return GlobalBaResult(poses, len(poses), 0, 0, 0, 0.0, 0.0, 0.0, 0.0, {k: 0 for k in poses})
+
+    xyz = np.array([before[k][:3, 3] for k in mono])
+    spread = np.sqrt(np.mean(np.sum((xyz - xyz.mean(axis=0)) ** 2, axis=1)))
+    similar = server._unbent_mono(ba_result(lambda i, t: 1.03 * t + [0.1, 0, 0]), before, {1, 2})
+    assert set(similar.poses) == set(before)
+    bend = np.where(np.arange(len(mono)) % 2, 1.0, -1.0) * 0.05 * spread
+    bent = server._unbent_mono(ba_result(lambda i, t: t + [0, bend[i], 0]), before, {1, 2})
+    assert set(bent.poses) == {k for k in before if k[0] == 1}
+    assert set(bent.components) == set(bent.poses)
+
+
 @pytest.mark.parametrize("similarity_inliers", [40, 10_000])
 def test_a_merge_by_a_similarity_has_its_own_inlier_count(world, similarity_inliers):
     """Place recognition holds a similarity (a monocular side: 3D-3D inliers on the points its
