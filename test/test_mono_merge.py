@@ -74,7 +74,7 @@ def test_global_ba_that_bends_a_monocular_map_leaves_it_as_the_pose_graph_had_it
     """A global BA result that moves a monocular map's keyframes by a similarity is taken; one
     that bends them (here by 5 % of their spread) is not for that map -- it keeps its pose-graph
     poses -- while the metric map's refined poses are taken either way."""
-    from coop_slam.team.global_ba import GlobalBaResult
+    from coop_slam.team.global_ba import GlobalBaResult, unbent_mono
 
     points, desc, kfs_a, vocab = world
     server = TeamServer(_config(), vocab)
@@ -93,10 +93,11 @@ def test_global_ba_that_bends_a_monocular_map_leaves_it_as_the_pose_graph_had_it
 
     xyz = np.array([before[k][:3, 3] for k in mono])
     spread = np.sqrt(np.mean(np.sum((xyz - xyz.mean(axis=0)) ** 2, axis=1)))
-    similar = server._unbent_mono(ba_result(lambda i, t: 1.03 * t + [0.1, 0, 0]), before, {1, 2})
+    share = server.config.global_ba.mono_max_bend
+    similar = unbent_mono(ba_result(lambda i, t: 1.03 * t + [0.1, 0, 0]), before, {2}, share)
     assert set(similar.poses) == set(before)
     bend = np.where(np.arange(len(mono)) % 2, 1.0, -1.0) * 0.05 * spread
-    bent = server._unbent_mono(ba_result(lambda i, t: t + [0, bend[i], 0]), before, {1, 2})
+    bent = unbent_mono(ba_result(lambda i, t: t + [0, bend[i], 0]), before, {2}, share)
     assert set(bent.poses) == {k for k in before if k[0] == 1}
     assert set(bent.components) == set(bent.poses)
 

@@ -41,17 +41,21 @@ def map_units(run: RunData, sensors: dict) -> tuple[list[tuple], list[tuple]]:
     return out, timeline
 
 
+def metres_per_unit(unit, true_scale: dict) -> float | None:
+    """The true length of one ``unit`` (as :func:`map_units` gives them) [m]; None when that
+    monocular map's true scale is unknown."""
+    return 1.0 if unit == 1.0 else true_scale.get(unit[1])
+
+
 def merge_scale_errors(m: dict, unit_a, unit_b, run: RunData, gts: dict, true_scale: dict):
     """A similarity merge's scale (b's lengths into a's) against the true ratio of the two maps'
     units (see :func:`map_units`): their whole paths' (scale drift inside a map enters) and
     around the matched keyframes; each None when unknown."""
 
     def length(unit, side: str, local: bool) -> float | None:
-        if unit == 1.0:
-            return 1.0
+        if unit == 1.0 or not local:
+            return metres_per_unit(unit, true_scale)
         robot = m[f"robot_{side}"]
-        if not local:
-            return true_scale.get(unit[1])
         if unit[1] != robot or robot not in gts:
             return None  # the units are another robot's: no local truth at this keyframe
         r = run.robots.get(robot, RobotRun())
@@ -124,10 +128,10 @@ def link_errors(
                     if sa is None or sb is None or ra not in gts or rb not in gts:
                         continue
                     unit = _units_at(unit_timeline, k.get("stamp_s", np.inf)).get(a, 1.0)
-                    metres_per_unit = 1.0 if unit == 1.0 else true_scale.get(unit[1])
-                    if metres_per_unit is None:
+                    length = metres_per_unit(unit, true_scale)
+                    if length is None:
                         continue
-                    T_camA_camB = scale_translation(k["T_camA_camB"], metres_per_unit)
+                    T_camA_camB = scale_translation(k["T_camA_camB"], length)
                     err = relative_pose_error(T_camA_camB, sa, sb, gts[ra], gts[rb])
                     if err is not None:
                         errs.append(err)

@@ -22,7 +22,13 @@ from ..team.map_scale import scale_translation
 from .agreement import KeyframeCloud, team_agreement
 from .bandwidth import bandwidth, downlink_kBps, topic_bandwidth, uplink_by_kind, uplink_kBps
 from .map_results import DenseTruth, map_results, world_of
-from .merge_accuracy import link_errors, local_merge_error, map_units, merge_scale_errors
+from .merge_accuracy import (
+    link_errors,
+    local_merge_error,
+    map_units,
+    merge_scale_errors,
+    metres_per_unit,
+)
 from .metrics import EvaluationError, ate, merge_error, rpe_rmse, team_ate
 from .overlap_view import plot_overlap
 from .plots import plot_path_errors, plot_team, plot_trajectories
@@ -406,10 +412,8 @@ def _merge_entry(
         entry["scale_err"], entry["local_scale_err"] = merge_scale_errors(
             m, unit_a, unit_b, run, gts, true_scale
         )
-    metric = m
-    if unit != 1.0:  # between monocular maps only: in the first side's units
-        unit = true_scale.get(unit[1])
-        metric = dict(m, T_camA_camB=scale_translation(m["T_camA_camB"], unit)) if unit else None
+    length = metres_per_unit(unit, true_scale)  # between monocular maps: the first side's units
+    metric = dict(m, T_camA_camB=scale_translation(m["T_camA_camB"], length)) if length else None
     local = local_merge_error(metric, run, gts) if metric is not None else None
     entry["local_trans_err_m"], entry["local_rot_err_deg"] = local if local else (None, None)
     evidence = _first_evidence(overlap, m["type"], a, b)

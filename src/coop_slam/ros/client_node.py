@@ -168,11 +168,7 @@ class ClientNode:
         )
         if self.vo is not None:
             self.vo.reset()
-            self._uplink_jobs.join()  # what the old odometry's frames made goes first
-            self._take_notes()
-            messages, notes = self._uplink_step(self.vo.drain_events(), None)
-            self.pose.note(notes)
-            self.uplink.send(messages)
+            self._hand_to_uplink(None)  # after what its frames made; everything it holds goes
             self.uplink.engine.odometry_replaced(self.vo.keyframes_made, self.vo.map_segment)
             self.vo.close()
             self.vo = None
@@ -235,13 +231,15 @@ class ClientNode:
                 stats.mapping_backlog,
             )
 
-    def _hand_to_uplink(self, now_s: float) -> None:
-        """The odometry's events of this frame to the uplink's thread (lock-step playback: done
-        before the frame ends, so the messages are the same however loaded the machine is)."""
+    def _hand_to_uplink(self, now_s: float | None) -> None:
+        """The odometry's events at data time ``now_s`` to the uplink's thread (None: the
+        odometry is closing, everything it holds goes). Done before returning in lock-step
+        playback, so the messages are the same however loaded the machine is, and at closing."""
         self._take_notes()
-        self.uplink.last_frame_wall = time.monotonic()
+        if now_s is not None:
+            self.uplink.last_frame_wall = time.monotonic()
         self._uplink_jobs.put((self.vo.drain_events(), now_s))
-        if self.wait_for_mapping:
+        if self.wait_for_mapping or now_s is None:
             self._uplink_jobs.join()
             self._take_notes()
 

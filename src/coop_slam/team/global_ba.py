@@ -17,6 +17,7 @@ within one component are refined against each other (``GlobalBaResult.components
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -25,6 +26,11 @@ from ..config import require
 from ..errors import CoopSlamError
 from ..geometry import invert, se3, transform_points
 from ..optim.bundle import BaProblem, run_local_ba
+from ..registration.camera import RegistrationError
+from ..registration.umeyama import umeyama
+from .keyframe_store import is_mono
+
+log = logging.getLogger(__name__)
 
 Landmark = tuple[int, int]  # (robot_id, map_point_id)
 
@@ -358,7 +364,7 @@ def global_bundle_adjustment(
             if not res.ok:
                 raise GlobalBaError(res.message)
             time_ms += res.time_ms
-    return GlobalBaResult(
+    result = GlobalBaResult(
         poses={k: T for k, T in zip(keys, res.T_map_cam)},
         keyframes=len(keys),
         points=n_points,
@@ -370,3 +376,40 @@ def global_bundle_adjustment(
         time_ms=time_ms,
         components={k: int(c) for k, c in zip(keys, components)},
     )
+    mono_maps = {rec.map_id for rec in records if is_mono(rec)}
+    return unbent_mono(result, T_group_cam, mono_maps, config.mono_max_bend)
+
+
+def unbent_mono(
+    result: GlobalBaResult, T_group_cam: dict, mono_maps: set, share: float
+) -> GlobalBaResult:
+    """``result`` without the keyframes of a monocular map the BA bent: its refined positions
+    fit its poses before the BA (``T_group_cam``) by a similarity no closer than ``share`` of
+    their spread (RMS); such a map keeps its poses from before (the pose graph's, the client's
+    odometry)."""
+    poses, components = dict(result.poses), dict(result.components)
+    for m in sorted(mono_maps):
+        keys = [k for k in poses if k[0] == m]
+        if len(keys) < 3:
+            continue
+        src = np.array([T_group_cam[k][:3, 3] for k in keys])
+        dst = np.array([poses[k][:3, 3] for k in keys])
+        try:
+            T, s = umeyama(src, dst, with_scale=True)
+        except RegistrationError:
+            continue
+        fitted = s * src @ T[:3, :3].T + T[:3, 3]
+        bend = float(np.sqrt(np.mean(np.sum((fitted - dst) ** 2, axis=1))))
+        spread = float(np.sqrt(np.mean(np.sum((dst - dst.mean(axis=0)) ** 2, axis=1))))
+        if bend > share * spread:
+            log.warning(
+                "global BA bent map %s's keyframes by %.1f %% of their spread (> %.1f %%): it "
+                "keeps its pose-graph poses",
+                m,
+                100 * bend / spread,
+                100 * share,
+            )
+            for k in keys:
+                poses.pop(k)
+                components.pop(k, None)
+    return replace(result, poses=poses, components=components)

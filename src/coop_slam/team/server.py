@@ -22,7 +22,6 @@ smallest robot; the group holding the team's smallest robot id is the one publis
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import logging
 import time
@@ -34,8 +33,6 @@ from ..bow import Vocabulary
 from ..errors import CoopSlamError
 from ..geometry import invert
 from ..ids import MapId, RobotId
-from ..registration.camera import RegistrationError
-from ..registration.umeyama import umeyama
 from ..wire.record import ACTION_NEW, ACTION_REMOVE, ACTION_UPDATE, KeyframeRecord
 from .config import ServerConfig
 from .dense_map import DenseKeyframe, DenseMap, DenseMapBuilder, body_tracks
@@ -480,7 +477,6 @@ class TeamServer:
         root = min(members)
         fixed = {min(k for k in keys if k[0] == root)} if any(k[0] == root for k in keys) else None
         result = global_bundle_adjustment(records, poses, links, fixed, self.config.global_ba)
-        result = self._unbent_mono(result, poses, members)
         graph_call(self.graph.adopt_estimates, result.poses, result.components)
         self.optimize(full=True)
         self.global_ba_runs.append(result)
@@ -498,40 +494,6 @@ class TeamServer:
             result.time_ms,
         )
         return result
-
-    def _unbent_mono(self, result: GlobalBaResult, before: dict, members) -> GlobalBaResult:
-        """``result`` without the keyframes of a monocular map the BA bent: its refined positions
-        fit its poses before the BA by a similarity no closer than ``global_ba.mono_max_bend`` of
-        their spread (RMS); such a map keeps its pose-graph poses (the client's odometry)."""
-        share = self.config.global_ba.mono_max_bend
-        poses, components = dict(result.poses), dict(result.components)
-        for m in sorted(members):
-            if not self.scales.is_mono(m):
-                continue
-            keys = [k for k in poses if k[0] == m]
-            if len(keys) < 3:
-                continue
-            src = np.array([before[k][:3, 3] for k in keys])
-            dst = np.array([poses[k][:3, 3] for k in keys])
-            try:
-                T, s = umeyama(src, dst, with_scale=True)
-            except RegistrationError:
-                continue
-            fitted = s * src @ T[:3, :3].T + T[:3, 3]
-            bend = float(np.sqrt(np.mean(np.sum((fitted - dst) ** 2, axis=1))))
-            spread = float(np.sqrt(np.mean(np.sum((dst - dst.mean(axis=0)) ** 2, axis=1))))
-            if bend > share * spread:
-                log.warning(
-                    "global BA bent %s's keyframes by %.1f %% of their spread (> %.1f %%): it "
-                    "keeps its pose-graph poses",
-                    self.map_name(m),
-                    100 * bend / spread,
-                    100 * share,
-                )
-                for k in keys:
-                    poses.pop(k)
-                    components.pop(k, None)
-        return dataclasses.replace(result, poses=poses, components=components)
 
     # --- the team map -----------------------------------------------------------------------------
     def T_group_map(self, map_id: MapId) -> np.ndarray:

@@ -12,7 +12,7 @@ first handed out (:func:`resolved`, by the map's snapshot).
 from __future__ import annotations
 
 import logging
-from concurrent.futures import Future, ThreadPoolExecutor, wait
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -128,12 +128,6 @@ class KeyframeDepthImages:
     def close(self) -> None:
         if self._worker is not None:
             self._worker.shutdown(wait=False, cancel_futures=True)
-
-
-def wait_made(image: bytes | Future) -> None:
-    """Wait until a keyframe's pending depth image is made (bytes: at once)."""
-    if isinstance(image, Future):
-        wait([image])
 
 
 def resolved(image: bytes | Future) -> bytes:

@@ -31,7 +31,7 @@ import numpy as np
 from ..geometry import transform_error
 from ..optim.bundle import BaProblem, BaResult, BaWorker, run_local_ba
 from .config import VoConfig
-from .dense_depth import wait_made
+from .dense_depth import resolved
 from .features import FrameFeatures, level_scales
 from .map import Map, MapKeyframe
 from .matching import project_points, search_by_projection
@@ -204,7 +204,7 @@ class LocalMapper:
         self._process_new_keyframe(vmap, kf_id)
         kf = vmap.keyframes.get(kf_id)
         if kf is not None:  # a stereo keyframe's depth image: waited for without the map lock
-            wait_made(kf.depth_image)
+            kf.depth_image = resolved(kf.depth_image)
         with self._step(vmap):
             self._cull_points(vmap)
             if kf_id not in vmap.keyframes:

@@ -279,7 +279,6 @@ class VisualOdometry:
             for kf_id in sorted(self._map.keyframes, reverse=True):
                 seen = self._map.keyframes[kf_id].map_point_ids
                 oldest[seen[seen > 0]] = kf_id
-            oldest[0] = 0
             return pts.xyz[ids].copy(), oldest[ids]
 
     def drain_events(self) -> list[VoEvent]:
