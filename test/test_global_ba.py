@@ -181,3 +181,67 @@ def test_components_need_enough_shared_points_and_a_component_without_depth_hold
     )
     assert fixed.tolist() == [True, False, True, True, False]
     assert components.tolist() == [0, 0, 1, 1, 1]
+
+
+def _hinged_map(hinge_points: int = 16):
+    """One robot's 12 keyframes turning on the spot, in two blocks (1-6, 7-12) that share only
+    ``hinge_points`` map points between keyframes 6 and 7 (the others are numbered apart): a
+    budgeted robot's keyframes held whole, with a gap between them."""
+    import dataclasses
+
+    points, desc = cylinder_world(seed=3)
+    yaws = np.linspace(0, 3.0, 12)
+    truth = {(1, k + 1): looking_out_pose(yaw) for k, yaw in enumerate(yaws)}
+    raw = [observe(points, desc, truth[(1, k)], np.eye(4), 1, k, seed=k) for k in range(1, 13)]
+    shared = sorted(set(raw[5].map_point_ids.tolist()) & set(raw[6].map_point_ids.tolist()) - {0})
+    hinge = np.random.default_rng(0).choice(shared, hinge_points, replace=False)
+    records = []
+    for r in raw:
+        if r.keyframe_id > 6:
+            ids = r.map_point_ids.astype(np.int64)
+            ids = np.where((ids != 0) & ~np.isin(ids, hinge), ids + 100_000, ids)
+            r = dataclasses.replace(r, map_point_ids=ids.astype(np.uint32))
+        records.append(stored_keyframe(r, 1))
+    return records, truth
+
+
+def test_odometry_priors_hold_a_block_of_keyframes_tied_by_few_points():
+    """Keyframes 7-12 hang on 16 points: without the robot's odometry between neighbouring
+    keyframes the BA, started at the truth, carries them centimetres off (the images hardly
+    measure where they are); the odometry prior holds them to its sigma."""
+    records, truth = _hinged_map()
+    tight = dict(odometry_rot_sigma_rad=0.001, odometry_trans_sigma_m=0.001)
+    tight.update(odometry_rot_sigma_per_m=0.0, odometry_trans_sigma_per_m=0.0)
+    errors = {}
+    for name, priors in (("none", dict(odometry_rot_sigma_rad=0.0)), ("tight", tight)):
+        config = GlobalBaConfig(iterations=20, disparity_sigma_px=0.05, **priors)
+        res = global_bundle_adjustment(records, dict(truth), [], {(1, 1)}, config)
+        assert set(res.components.values()) == {0}  # one component: the hinge ties the blocks
+        errors[name] = max(transform_error(res.poses[(1, k)], truth[(1, k)])[0] for k in (7, 12))
+    assert errors["none"] > 0.03 and errors["tight"] < 0.005, errors
+
+
+def test_odometry_priors_join_neighbouring_keyframes_of_each_metric_map_segment():
+    """Consecutive keyframes of one map segment, metric maps only (a monocular map's poses are
+    in its own unit); the prior's sigmas grow with the distance between the keyframes."""
+    import dataclasses
+
+    from coop_slam.team.global_ba import build_problem, odometry_pairs
+    from helpers import as_monocular
+
+    records, truth, _ = _team()
+    records = list(records)
+    for k in range(3, 12):  # robot 1 re-initialized at its 4th keyframe
+        records[k] = dataclasses.replace(records[k], map_segment=1)
+    for k in range(12, 24):
+        records[k] = as_monocular(records[k], 1.0)
+    pairs = odometry_pairs(records)
+    assert pairs == [(0, 1), (1, 2)] + [(k, k + 1) for k in range(3, 11)]
+    problem, *_ = build_problem(records[:12], truth, [], {(1, 1)}, GlobalBaConfig())
+    assert problem.between_pairs.tolist() == [list(p) for p in pairs]
+    dist = np.linalg.norm(problem.between_T[:, :3, 3], axis=1)
+    config = GlobalBaConfig()
+    assert np.allclose(
+        problem.between_sigmas[:, 1],
+        config.odometry_trans_sigma_m + config.odometry_trans_sigma_per_m * dist,
+    )

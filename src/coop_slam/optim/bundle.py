@@ -73,6 +73,12 @@ class BaProblem:
     # scale is a gauge freedom, and LM's small damping lets it wander (docs/tuning.md). None: no
     # such factor.
     scale_anchor: tuple[int, int] | None = None
+    # Relative-pose priors between keyframes (a robot's own odometry, which the server's global
+    # BA keeps a thinned map's shape by): index pairs (B, 2), measured T_i_j (B, 4, 4) and their
+    # (rotation [rad], translation [m]) sigmas (B, 2). None: none.
+    between_pairs: np.ndarray | None = None
+    between_T: np.ndarray | None = None
+    between_sigmas: np.ndarray | None = None
 
 
 def _level_frame(up_cam: np.ndarray) -> np.ndarray:
@@ -210,7 +216,7 @@ def run_local_ba(problem: BaProblem) -> BaResult:
 
 def _add_keyframes(graph, values, p: BaProblem) -> None:
     """Keyframe poses X(k) and their priors: stiff ones on the fixed keyframes, a ground robot's
-    planar priors on the others, a monocular map's scale anchor."""
+    planar priors on the others, a monocular map's scale anchor, relative-pose priors."""
     import gtsam
     from gtsam.symbol_shorthand import X
 
@@ -235,6 +241,10 @@ def _add_keyframes(graph, values, p: BaProblem) -> None:
         dist = float(np.linalg.norm(p.T_map_cam[k][:3, 3] - p.T_map_cam[f][:3, 3]))
         noise = gtsam.noiseModel.Isotropic.Sigma(1, 1e-4 * dist)
         graph.add(gtsam.RangeFactorPose3(X(f), X(k), dist, noise))
+    if p.between_pairs is not None:
+        for (i, j), T_i_j, (rot, trans) in zip(p.between_pairs, p.between_T, p.between_sigmas):
+            noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([rot] * 3 + [trans] * 3, float))
+            graph.add(gtsam.BetweenFactorPose3(X(int(i)), X(int(j)), gtsam.Pose3(T_i_j), noise))
 
 
 def _noise_models(p: BaProblem) -> tuple[list, list]:

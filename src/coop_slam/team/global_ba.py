@@ -12,7 +12,9 @@ Keyframes that share no map points with the fixed one (``component_min_shared``)
 through others (a low-bandwidth robot's keyframes pulled far apart), form a component whose pose
 the images do not tie to the rest: each such component keeps its pose-graph placement (its first
 keyframe is held too; without depth also the one farthest from it, for its scale), and only poses
-within one component are refined against each other (``GlobalBaResult.components``).
+within one component are refined against each other (``GlobalBaResult.components``). Within a
+component, neighbouring keyframes of a metric map are also tied by the robot's own odometry
+(weakly): what the shared points hardly measure keeps the shape the robot gave it.
 """
 
 from __future__ import annotations
@@ -78,6 +80,16 @@ class GlobalBaConfig:
     # the client's odometry holds it. Measured: 0.150 m on a ~12 m path bent by the BA; a share
     # keeps a group of monocular maps (in its own unit) judged alike.
     mono_max_bend: float = 0.01
+    # Each metric map keeps the shape its robot's odometry gave it: consecutive keyframes of a map
+    # segment are tied by their relative pose in the robot's map, with these sigmas plus the
+    # per-metre ones times their distance (rotation [rad], translation [m]). A budgeted robot's
+    # keyframes held whole can share few points across a gap, and without this the BA swung the
+    # keyframes before such a gap as a block, which the images hardly measure; weak (4x the pose
+    # graph's odometry sigmas), so that what the images do measure still moves them. 0: none.
+    odometry_rot_sigma_rad: float = 0.02
+    odometry_trans_sigma_m: float = 0.04
+    odometry_rot_sigma_per_m: float = 0.02
+    odometry_trans_sigma_per_m: float = 0.08
     auto_max_observations: int = 40000  # ... i.e. its keyframes hold at most this many map-point
     # observations (a few seconds on this machine)
 
@@ -99,6 +111,10 @@ class GlobalBaConfig:
         require(self.n_levels >= 1, "global_ba.n_levels must be >= 1")
         require(self.component_min_shared >= 1, "global_ba.component_min_shared must be >= 1")
         require(self.auto_max_observations >= 0, "global_ba.auto_max_observations must be >= 0")
+        for name in ("rot_sigma_rad", "trans_sigma_m", "rot_sigma_per_m", "trans_sigma_per_m"):
+            require(
+                getattr(self, f"odometry_{name}") >= 0, f"global_ba.odometry_{name} must be >= 0"
+            )
         require(
             self.planar_sigma_height_m > 0 and self.planar_sigma_tilt_deg > 0,
             "global_ba: planar_sigma_height_m and planar_sigma_tilt_deg must be > 0",
@@ -299,6 +315,20 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
         iterations=config.iterations,
         disparity_sigma_px=config.disparity_sigma_px or config.max_disparity_sigma_px,
     )
+    if config.odometry_rot_sigma_rad > 0 and config.odometry_trans_sigma_m > 0:
+        pairs = odometry_pairs(records)
+        if pairs:
+            problem.between_pairs = np.array(pairs, int)
+            problem.between_T = np.array(
+                [invert(records[i].T_map_cam) @ records[j].T_map_cam for i, j in pairs]
+            )
+            dist_m = np.linalg.norm(problem.between_T[:, :3, 3], axis=1)
+            problem.between_sigmas = np.column_stack(
+                [
+                    config.odometry_rot_sigma_rad + config.odometry_rot_sigma_per_m * dist_m,
+                    config.odometry_trans_sigma_m + config.odometry_trans_sigma_per_m * dist_m,
+                ]
+            )
     if config.planar_motion:
         problem.planar_up_cam, problem.planar_T_map_plane = _planes(records, T_group_cam, keys)
         problem.planar_sigmas = (
@@ -306,6 +336,22 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
             config.planar_sigma_height_m,
         )
     return problem, keys, len(kept), components
+
+
+def odometry_pairs(records) -> list[tuple[int, int]]:
+    """Indices (i, j) of consecutive keyframes of one metric map segment (records in keyframe
+    order per map), which its robot's odometry relates. A monocular map's poses are in its own
+    unit, not the group's: it has none (its scale drifts; see unbent_mono)."""
+    last: dict[tuple[int, int], int] = {}
+    pairs = []
+    for j, rec in enumerate(records):
+        if is_mono(rec):
+            continue
+        seg = (rec.map_id, int(rec.map_segment))
+        if seg in last:
+            pairs.append((last[seg], j))
+        last[seg] = j
+    return pairs
 
 
 def _planes(records, T_group_cam: dict, keys) -> tuple[np.ndarray, np.ndarray]:
