@@ -94,6 +94,15 @@ def test_straight_line_falls_back_to_origin_alignment():
     line = np.array([se3(t=[0.5 * k, 0, 0]) for k in range(5)])
     moved = np.array([se3_from_quat([1, 2, 3], [0, 0, 0.3, 1]) @ p for p in line])
     assert ate(stamps, moved, stamps, line).rmse_m < 1e-6
+    # ... and a monocular map of a straight drive: its scale and error are the line's (evo's
+    # Umeyama refuses the degenerate covariance).
+    scaled = line.copy()
+    scaled[:, :3, 3] *= 0.25
+    scaled[2, 1, 3] += 0.01  # 4 cm in metres
+    res = ate(stamps, scaled, stamps, line, correct_scale=True)
+    assert res.scale == pytest.approx(4.0, rel=0.01) and 0.01 < res.rmse_m < 0.04
+    with pytest.raises(EvaluationError, match="stands still"):
+        ate(stamps, np.array([np.eye(4)] * 5), stamps, line, correct_scale=True)
 
 
 def test_a_run_recorded_before_packed_messages_still_reads(tmp_path):
@@ -335,6 +344,33 @@ def test_low_bandwidth_team_ate_is_over_the_same_keyframes_as_the_robots_own():
     assert report["team_ate_rmse_m"] > 0.5 * report["single_ate_pooled_m"]
     run.server_stats = {}  # the default mode: the server's poses alone
     assert evaluate_run(run, gts)["team_ate_rmse_m"] < 1e-6
+
+
+def test_keyframes_of_a_map_segment_the_team_map_does_not_hold_are_not_placed_in_world():
+    """A robot lost tracking and started a new map segment, which merged: the team map holds
+    that segment's keyframes (some of them whole); the lost segment's keyframes, in a map frame
+    of their own, are not placed in world by the new segment's (they were, 1.3 m off)."""
+    pytest.importorskip("rosbag")
+    from coop_slam.evaluation.run_data import RobotRun, RunData
+    from coop_slam.evaluation.run_report import evaluate_run
+
+    stamps, gt = _circle(40)
+    run, gts = RunData(server_stats={"pull": {"held": {"1": 40, "2": 4}}}), {}
+    T_map1_map0 = se3_from_quat([3.0, -2.0, 0.0], [0, 0, 0.6, 0.8])  # the lost map's frame
+    for rid in (1, 2):
+        kfs = {k: (stamps[k], gt[k]) for k in range(40)}
+        team = dict(kfs)
+        if rid == 2:
+            kfs = {k: (t, T_map1_map0 @ T if k < 20 else T) for k, (t, T) in kfs.items()}
+            team = {k: kfs[k] for k in (22, 28, 34, 39)}
+            run.robots[rid] = RobotRun(frames=40, keyframes=kfs, team_keyframes=team)
+            run.robots[rid].keyframe_segments = {k: int(k >= 20) for k in kfs}
+        else:
+            run.robots[rid] = RobotRun(frames=40, keyframes=kfs, team_keyframes=team)
+        run.robots[rid].T_world_map = np.eye(4)
+        gts[rid] = (stamps, gt)
+    report = evaluate_run(run, gts)
+    assert report["team_ate_rmse_m"] < 1e-6
 
 
 def test_report_judges_the_clients_published_path_against_the_truth_and_the_team_map(tmp_path):

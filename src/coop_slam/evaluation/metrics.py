@@ -92,10 +92,16 @@ def ate(
             T[:3, :3], T[:3, 3] = r, t
         except GeometryException:
             if correct_scale:
-                raise EvaluationError("cannot align the trajectories with scale") from None
-            # Positions on a line (or a point) leave Umeyama's rotation undetermined: align the
-            # first poses instead, which uses their orientations too.
-            T = est.align_origin(ref)
+                # Positions on a line (a robot driving straight): the rotation about the line is
+                # undetermined, but any one of them fits the positions alike, and the scale and
+                # error are the line's.
+                T, scale = _sim3_on_a_line(est.positions_xyz, ref.positions_xyz)
+                est.scale(scale)
+                est.transform(T)
+            else:
+                # Positions on a line (or a point) leave Umeyama's rotation undetermined: align
+                # the first poses instead, which uses their orientations too.
+                T = est.align_origin(ref)
             if T is None or not np.all(np.isfinite(T)):
                 raise EvaluationError("cannot align the trajectories") from None
     ape = metrics.APE(metrics.PoseRelation.translation_part)
@@ -111,6 +117,17 @@ def ate(
         stamps_s=stamps,
         errors_m=np.asarray(ape.error, float),
     )
+
+
+def _sim3_on_a_line(points_est: np.ndarray, points_gt: np.ndarray) -> tuple[np.ndarray, float]:
+    """(T_gt_est, scale) of the least-squares similarity of positions on a line; raises
+    EvaluationError when the estimate does not move (no scale to take)."""
+    from ..registration.umeyama import umeyama_batch
+
+    if np.ptp(points_est, axis=0).max() <= 1e-9:
+        raise EvaluationError("cannot align the trajectories with scale: the estimate stands still")
+    T, scale = umeyama_batch(points_est[None], points_gt[None], with_scale=True)
+    return T[0], float(scale[0])
 
 
 def team_ate(

@@ -352,21 +352,35 @@ def _world_estimate(
 
 def _with_signature_only_placed(server: tuple, r: RobotRun, optimized: set) -> tuple:
     """``server`` (stamps, poses in world of the keyframes the server optimized) and the robot's
-    other keyframes, each placed as the team map places its nearest optimized keyframe (by
-    time; a monocular map's offsets scaled by the team's scale of it), in time order."""
+    other keyframes of the same map segments, each placed as the team map places its nearest
+    optimized keyframe of its segment (by time; a monocular map's offsets scaled by the team's
+    scale of that segment), in time order. A segment the team map does not hold (one lost
+    before and not merged back) has no place in world."""
+    segment = lambda k: r.keyframe_segments.get(k, 0)  # noqa: E731
     held = sorted(k for k in optimized if k in r.keyframes)
-    rest = sorted(k for k in r.keyframes if k not in optimized)
-    if not held or not rest:
-        return server
-    held_s = np.array([r.keyframes[k][0] for k in held])
     stamps, poses = list(server[0]), list(server[1])
-    for k in rest:
-        stamp, T_map_cam = r.keyframes[k]
-        near = held[int(np.argmin(np.abs(held_s - stamp)))]
-        T_near_cam = np.linalg.inv(r.keyframes[near][1]) @ T_map_cam
-        T_near_cam[:3, 3] *= r.map_scale  # a monocular map's lengths in the team's units
-        stamps.append(stamp)
-        poses.append(r.team_keyframes[near][1] @ T_near_cam)
+    current = max(r.keyframe_segments.values(), default=0)
+    for seg in sorted({segment(k) for k in held}):
+        held_seg = [k for k in held if segment(k) == seg]
+        rest = sorted(k for k in r.keyframes if k not in optimized and segment(k) == seg)
+        scale = 1.0
+        if r.sensor == "mono":  # the team's lengths per length of the segment's map
+            scale = r.map_scale if seg == current else None
+            if scale is None:
+                scale = _sim3_scale(
+                    np.array([r.keyframes[k][1][:3, 3] for k in held_seg]).reshape(-1, 3),
+                    np.array([r.team_keyframes[k][1][:3, 3] for k in held_seg]).reshape(-1, 3),
+                )
+        if not rest or scale is None:
+            continue
+        held_s = np.array([r.keyframes[k][0] for k in held_seg])
+        for k in rest:
+            stamp, T_map_cam = r.keyframes[k]
+            near = held_seg[int(np.argmin(np.abs(held_s - stamp)))]
+            T_near_cam = np.linalg.inv(r.keyframes[near][1]) @ T_map_cam
+            T_near_cam[:3, 3] *= scale
+            stamps.append(stamp)
+            poses.append(r.team_keyframes[near][1] @ T_near_cam)
     order = np.argsort(stamps, kind="stable")
     return np.asarray(stamps)[order], np.asarray(poses).reshape(-1, 4, 4)[order]
 
