@@ -101,8 +101,9 @@ def test_straight_line_falls_back_to_origin_alignment():
     scaled[2, 1, 3] += 0.01  # 4 cm in metres
     res = ate(stamps, scaled, stamps, line, correct_scale=True)
     assert res.scale == pytest.approx(4.0, rel=0.01) and 0.01 < res.rmse_m < 0.04
-    with pytest.raises(EvaluationError, match="stands still"):
-        ate(stamps, np.array([np.eye(4)] * 5), stamps, line, correct_scale=True)
+    for still in ((np.array([np.eye(4)] * 5), line), (line, np.array([np.eye(4)] * 5))):
+        with pytest.raises(EvaluationError, match="stands still"):
+            ate(stamps, still[0], stamps, still[1], correct_scale=True)
 
 
 def test_a_run_recorded_before_packed_messages_still_reads(tmp_path):
@@ -346,10 +347,15 @@ def test_low_bandwidth_team_ate_is_over_the_same_keyframes_as_the_robots_own():
     assert evaluate_run(run, gts)["team_ate_rmse_m"] < 1e-6
 
 
-def test_keyframes_of_a_map_segment_the_team_map_does_not_hold_are_not_placed_in_world():
+@pytest.mark.parametrize("units_per_m", [None, 2.5])
+def test_keyframes_of_a_map_segment_the_team_map_does_not_hold_are_not_placed_in_world(
+    units_per_m,
+):
     """A robot lost tracking and started a new map segment, which merged: the team map holds
     that segment's keyframes (some of them whole); the lost segment's keyframes, in a map frame
-    of their own, are not placed in world by the new segment's (they were, 1.3 m off)."""
+    of their own, are not placed in world by the new segment's (they were, 1.3 m off); the
+    others are, a monocular map's offsets (``units_per_m``) in the team's metres (the sensor as
+    the run says it, not as the recording did)."""
     pytest.importorskip("rosbag")
     from coop_slam.evaluation.run_data import RobotRun, RunData
     from coop_slam.evaluation.run_report import evaluate_run
@@ -363,14 +369,24 @@ def test_keyframes_of_a_map_segment_the_team_map_does_not_hold_are_not_placed_in
         if rid == 2:
             kfs = {k: (t, T_map1_map0 @ T if k < 20 else T) for k, (t, T) in kfs.items()}
             team = {k: kfs[k] for k in (22, 28, 34, 39)}
+            if units_per_m:
+                kfs = {k: (t, _scaled(T, units_per_m)) for k, (t, T) in kfs.items()}
             run.robots[rid] = RobotRun(frames=40, keyframes=kfs, team_keyframes=team)
             run.robots[rid].keyframe_segments = {k: int(k >= 20) for k in kfs}
+            run.robots[rid].map_scale = 1.0 / units_per_m if units_per_m else 1.0
         else:
             run.robots[rid] = RobotRun(frames=40, keyframes=kfs, team_keyframes=team)
         run.robots[rid].T_world_map = np.eye(4)
         gts[rid] = (stamps, gt)
-    report = evaluate_run(run, gts)
+    sensors = {1: "rgbd", 2: "mono" if units_per_m else "rgbd"}
+    report = evaluate_run(run, gts, sensors=sensors)
     assert report["team_ate_rmse_m"] < 1e-6
+
+
+def _scaled(T: np.ndarray, units_per_m: float) -> np.ndarray:
+    out = T.copy()
+    out[:3, 3] *= units_per_m
+    return out
 
 
 def test_report_judges_the_clients_published_path_against_the_truth_and_the_team_map(tmp_path):

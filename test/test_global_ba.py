@@ -245,3 +245,18 @@ def test_odometry_priors_join_neighbouring_keyframes_of_each_metric_map_segment(
         problem.between_sigmas[:, 1],
         config.odometry_trans_sigma_m + config.odometry_trans_sigma_per_m * dist,
     )
+
+
+def test_odometry_priors_do_not_tie_components_the_images_keep_apart():
+    """Keyframes 7-12 share only 5 points with 1-6 (fewer than component_min_shared): their
+    component keeps its pose-graph placement (here 20 cm off the robot's odometry), and keyframe
+    6 is not pulled towards it by the prior to keyframe 7."""
+    records, truth = _hinged_map(hinge_points=5)
+    off = se3(np.eye(3), [0.2, 0.0, 0.0])
+    start = {k: (off @ T if k[1] > 6 else T) for k, T in truth.items()}
+    tight = dict(odometry_rot_sigma_rad=0.001, odometry_trans_sigma_m=0.001)
+    config = GlobalBaConfig(iterations=20, disparity_sigma_px=0.05, **tight)
+    res = global_bundle_adjustment(records, start, [], {(1, 1)}, config)
+    assert len(set(res.components.values())) == 2
+    assert transform_error(res.poses[(1, 6)], truth[(1, 6)])[0] < 0.01
+    assert transform_error(res.poses[(1, 7)], start[(1, 7)])[0] < 1e-6  # held where it was

@@ -124,8 +124,8 @@ def _sim3_on_a_line(points_est: np.ndarray, points_gt: np.ndarray) -> tuple[np.n
     EvaluationError when the estimate does not move (no scale to take)."""
     from ..registration.umeyama import umeyama_batch
 
-    if np.ptp(points_est, axis=0).max() <= 1e-9:
-        raise EvaluationError("cannot align the trajectories with scale: the estimate stands still")
+    if min(np.ptp(points_est, axis=0).max(), np.ptp(points_gt, axis=0).max()) <= 1e-9:
+        raise EvaluationError("cannot align the trajectories with scale: a camera stands still")
     T, scale = umeyama_batch(points_est[None], points_gt[None], with_scale=True)
     return T[0], float(scale[0])
 

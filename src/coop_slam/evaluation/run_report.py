@@ -338,7 +338,9 @@ def _world_estimate(
         if results.signatures_only:
             # The team ATE is compared with the robots' own, over all their keyframes: those the
             # server holds only as signatures are placed as it places their neighbours.
-            est_world[rid] = _with_signature_only_placed(est_world[rid], r, set(ids))
+            est_world[rid] = _with_signature_only_placed(
+                est_world[rid], r, set(ids), sensor == "mono"
+            )
     elif r.T_world_map is not None:  # client poses moved by the latest correction
         est_world[rid] = (stamps, np.einsum("ij,njk->nik", r.T_world_map, poses))
     if rid in est_world and len(stamps_gt):
@@ -350,13 +352,14 @@ def _world_estimate(
             )
 
 
-def _with_signature_only_placed(server: tuple, r: RobotRun, optimized: set) -> tuple:
+def _with_signature_only_placed(server: tuple, r: RobotRun, optimized: set, mono: bool) -> tuple:
     """``server`` (stamps, poses in world of the keyframes the server optimized) and the robot's
     other keyframes of the same map segments, each placed as the team map places its nearest
     optimized keyframe of its segment (by time; a monocular map's offsets scaled by the team's
     scale of that segment), in time order. A segment the team map does not hold (one lost
     before and not merged back) has no place in world."""
-    segment = lambda k: r.keyframe_segments.get(k, 0)  # noqa: E731
+    first = min(r.keyframe_segments.values(), default=0)
+    segment = lambda k: r.keyframe_segments.get(k, first)  # noqa: E731
     held = sorted(k for k in optimized if k in r.keyframes)
     stamps, poses = list(server[0]), list(server[1])
     current = max(r.keyframe_segments.values(), default=0)
@@ -364,7 +367,7 @@ def _with_signature_only_placed(server: tuple, r: RobotRun, optimized: set) -> t
         held_seg = [k for k in held if segment(k) == seg]
         rest = sorted(k for k in r.keyframes if k not in optimized and segment(k) == seg)
         scale = 1.0
-        if r.sensor == "mono":  # the team's lengths per length of the segment's map
+        if mono:  # the team's lengths per length of the segment's map
             scale = r.map_scale if seg == current else None
             if scale is None:
                 scale = _sim3_scale(

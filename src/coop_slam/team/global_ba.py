@@ -85,7 +85,8 @@ class GlobalBaConfig:
     # per-metre ones times their distance (rotation [rad], translation [m]). A budgeted robot's
     # keyframes held whole can share few points across a gap, and without this the BA swung the
     # keyframes before such a gap as a block, which the images hardly measure; weak (4x the pose
-    # graph's odometry sigmas), so that what the images do measure still moves them. 0: none.
+    # graph's odometry sigmas), so that what the images do measure still moves them.
+    # odometry_rot_sigma_rad or odometry_trans_sigma_m 0: no such prior.
     odometry_rot_sigma_rad: float = 0.02
     odometry_trans_sigma_m: float = 0.04
     odometry_rot_sigma_per_m: float = 0.02
@@ -316,7 +317,9 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
         disparity_sigma_px=config.disparity_sigma_px or config.max_disparity_sigma_px,
     )
     if config.odometry_rot_sigma_rad > 0 and config.odometry_trans_sigma_m > 0:
-        pairs = odometry_pairs(records)
+        # Within a component only: one the images do not tie to the rest keeps its pose-graph
+        # placement, which a prior across would pull on.
+        pairs = [(i, j) for i, j in odometry_pairs(records) if components[i] == components[j]]
         if pairs:
             problem.between_pairs = np.array(pairs, int)
             problem.between_T = np.array(
@@ -339,12 +342,14 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
 
 
 def odometry_pairs(records) -> list[tuple[int, int]]:
-    """Indices (i, j) of consecutive keyframes of one metric map segment (records in keyframe
-    order per map), which its robot's odometry relates. A monocular map's poses are in its own
-    unit, not the group's: it has none (its scale drifts; see unbent_mono)."""
+    """Indices (i, j) of consecutive keyframes (by id) of one metric map segment, which its
+    robot's odometry relates. A monocular map's poses are in its own unit, not the group's: it
+    has none (its scale drifts; see unbent_mono)."""
     last: dict[tuple[int, int], int] = {}
     pairs = []
-    for j, rec in enumerate(records):
+    by_id = sorted(range(len(records)), key=lambda i: (records[i].map_id, records[i].keyframe_id))
+    for j in by_id:
+        rec = records[j]
         if is_mono(rec):
             continue
         seg = (rec.map_id, int(rec.map_segment))
