@@ -316,22 +316,7 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
         iterations=config.iterations,
         disparity_sigma_px=config.disparity_sigma_px or config.max_disparity_sigma_px,
     )
-    if config.odometry_rot_sigma_rad > 0 and config.odometry_trans_sigma_m > 0:
-        # Within a component only: one the images do not tie to the rest keeps its pose-graph
-        # placement, which a prior across would pull on.
-        pairs = [(i, j) for i, j in odometry_pairs(records) if components[i] == components[j]]
-        if pairs:
-            problem.between_pairs = np.array(pairs, int)
-            problem.between_T = np.array(
-                [invert(records[i].T_map_cam) @ records[j].T_map_cam for i, j in pairs]
-            )
-            dist_m = np.linalg.norm(problem.between_T[:, :3, 3], axis=1)
-            problem.between_sigmas = np.column_stack(
-                [
-                    config.odometry_rot_sigma_rad + config.odometry_rot_sigma_per_m * dist_m,
-                    config.odometry_trans_sigma_m + config.odometry_trans_sigma_per_m * dist_m,
-                ]
-            )
+    _add_odometry_priors(problem, records, components, config)
     if config.planar_motion:
         problem.planar_up_cam, problem.planar_T_map_plane = _planes(records, T_group_cam, keys)
         problem.planar_sigmas = (
@@ -339,6 +324,28 @@ def build_problem(records, T_group_cam: dict, links, fixed: set, config: GlobalB
             config.planar_sigma_height_m,
         )
     return problem, keys, len(kept), components
+
+
+def _add_odometry_priors(problem: BaProblem, records, components, config: GlobalBaConfig):
+    """The robots' own relative poses between neighbouring keyframes of a metric map segment,
+    as weak priors (``odometry_*``), within a component only: one the images do not tie to the
+    rest keeps its pose-graph placement, which a prior across would pull on."""
+    if config.odometry_rot_sigma_rad <= 0 or config.odometry_trans_sigma_m <= 0:
+        return
+    pairs = [(i, j) for i, j in odometry_pairs(records) if components[i] == components[j]]
+    if not pairs:
+        return
+    problem.between_pairs = np.array(pairs, int)
+    problem.between_T = np.array(
+        [invert(records[i].T_map_cam) @ records[j].T_map_cam for i, j in pairs]
+    )
+    dist_m = np.linalg.norm(problem.between_T[:, :3, 3], axis=1)
+    problem.between_sigmas = np.column_stack(
+        [
+            config.odometry_rot_sigma_rad + config.odometry_rot_sigma_per_m * dist_m,
+            config.odometry_trans_sigma_m + config.odometry_trans_sigma_per_m * dist_m,
+        ]
+    )
 
 
 def odometry_pairs(records) -> list[tuple[int, int]]:
