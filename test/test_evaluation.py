@@ -359,6 +359,7 @@ def test_keyframes_of_a_map_segment_the_team_map_does_not_hold_are_not_placed_in
     pytest.importorskip("rosbag")
     from coop_slam.evaluation.run_data import RobotRun, RunData
     from coop_slam.evaluation.run_report import evaluate_run
+    from coop_slam.team.map_scale import scale_translation
 
     stamps, gt = _circle(40)
     run, gts = RunData(server_stats={"pull": {"held": {"1": 40, "2": 4}}}), {}
@@ -370,7 +371,7 @@ def test_keyframes_of_a_map_segment_the_team_map_does_not_hold_are_not_placed_in
             kfs = {k: (t, T_map1_map0 @ T if k < 20 else T) for k, (t, T) in kfs.items()}
             team = {k: kfs[k] for k in (22, 28, 34, 39)}
             if units_per_m:
-                kfs = {k: (t, _scaled(T, units_per_m)) for k, (t, T) in kfs.items()}
+                kfs = {k: (t, scale_translation(T, units_per_m)) for k, (t, T) in kfs.items()}
             run.robots[rid] = RobotRun(frames=40, keyframes=kfs, team_keyframes=team)
             run.robots[rid].keyframe_segments = {k: int(k >= 20) for k in kfs}
             run.robots[rid].map_scale = 1.0 / units_per_m if units_per_m else 1.0
@@ -381,12 +382,6 @@ def test_keyframes_of_a_map_segment_the_team_map_does_not_hold_are_not_placed_in
     sensors = {1: "rgbd", 2: "mono" if units_per_m else "rgbd"}
     report = evaluate_run(run, gts, sensors=sensors)
     assert report["team_ate_rmse_m"] < 1e-6
-
-
-def _scaled(T: np.ndarray, units_per_m: float) -> np.ndarray:
-    out = T.copy()
-    out[:3, 3] *= units_per_m
-    return out
 
 
 def test_report_judges_the_clients_published_path_against_the_truth_and_the_team_map(tmp_path):

@@ -380,8 +380,7 @@ def _with_signature_only_placed(server: tuple, r: RobotRun, optimized: set, mono
         for k in rest:
             stamp, T_map_cam = r.keyframes[k]
             near = held_seg[int(np.argmin(np.abs(held_s - stamp)))]
-            T_near_cam = np.linalg.inv(r.keyframes[near][1]) @ T_map_cam
-            T_near_cam[:3, 3] *= scale
+            T_near_cam = scale_translation(np.linalg.inv(r.keyframes[near][1]) @ T_map_cam, scale)
             stamps.append(stamp)
             poses.append(r.team_keyframes[near][1] @ T_near_cam)
     order = np.argsort(stamps, kind="stable")
