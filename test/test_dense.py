@@ -181,6 +181,38 @@ def test_rgbd_and_stereo_keyframes_bring_the_depth_they_saw_and_monocular_ones_n
     assert depth_image_blob(off, "rgbd", STEREO, gray, depth, registered=True) == b""
 
 
+def test_keyframe_depth_images_are_made_beside_tracking_for_rgbd_and_stereo():
+    """The depth image is made in a worker thread (issue #50: ~7 ms of an RGB-D keyframe's
+    tracking); what the worker makes is what the frame's depth gives, a monocular camera none."""
+    from concurrent.futures import Future
+
+    from test_stereo import STEREO, _pair
+
+    import helpers_vo
+    from coop_slam.geometry import se3
+    from coop_slam.vo.dense_depth import (
+        DenseDepthConfig,
+        KeyframeDepthImages,
+        depth_image_blob,
+        resolved,
+    )
+
+    config = DenseDepthConfig(stereo_max_baselines=40.0)
+    left, right, depth = _pair(helpers_vo.room(np.random.default_rng(0)), se3(t=[0.1, 0, 0.3]))
+    gray = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY)
+    right = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY)
+    for sensor, second in (("rgbd", depth), ("stereo", right)):
+        images = KeyframeDepthImages(config, sensor, STEREO, registered=True)
+        try:
+            pending = images.make(gray, second)
+            assert isinstance(pending, Future), sensor
+            expected = depth_image_blob(config, sensor, STEREO, gray, second, True)
+            assert resolved(pending) == expected and len(expected) > 100, sensor
+        finally:
+            images.close()
+    assert KeyframeDepthImages(config, "mono", STEREO, True).make(gray, None) == b""
+
+
 def test_the_servers_dense_map_places_each_keyframes_depth_by_its_current_pose():
     """A robot's keyframes with room depth images: the server's dense map lies on the room's
     walls and its grid shows them; moved by the graph, the map moves with the keyframes."""

@@ -156,6 +156,37 @@ def test_projection_search_follows_its_rules_pair_by_pair(chi2):
     assert sorted(zip(*(a.tolist() for a in got))) == want
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_projection_candidates_come_in_the_kd_trees_order(seed):
+    """The grid's candidate keypoints of each point are the KD tree's pair search's, in its order
+    (the order the search breaks descriptor ties by): per-point radii from 1 to 60 px, clustered
+    keypoints, duplicates and points off the image."""
+    from scipy.spatial import cKDTree
+
+    from coop_slam.vo.features import FrameFeatures
+    from coop_slam.vo.matching import candidate_pairs
+
+    rng = np.random.default_rng(seed)
+    n_kp, n_pt = 700, 500
+    kp_uv = np.vstack([rng.uniform(0, [640, 480], (n_kp - 200, 2)), rng.normal(300, 8, (200, 2))])
+    kp_uv[:20] = kp_uv[20:40]  # keypoints at one position
+    uv = np.vstack([rng.uniform(-20, [660, 500], (n_pt - 50, 2)), kp_uv[:50]])
+    radius = rng.uniform(1.0, 60.0, n_pt)
+    frame = FrameFeatures(
+        kp_uv, np.ones(n_kp, np.float32), np.full(n_kp, -1, np.float32),
+        np.zeros(n_kp, np.uint8), np.zeros((n_kp, 32), np.uint8), np.ones(n_kp, np.float32),
+        np.zeros((n_kp, 3)), np.full(n_kp, np.nan),
+    )  # fmt: skip
+    got = candidate_pairs(uv, radius, frame)
+    pairs = cKDTree(uv).sparse_distance_matrix(frame.tree(), radius.max(), output_type="ndarray")
+    pairs = pairs[pairs["v"] <= radius[pairs["i"]]]
+    pairs = pairs[np.argsort(pairs["i"], kind="stable")]  # by point, each in the tree's order
+    assert len(pairs) > 3000
+    np.testing.assert_array_equal(got[0], pairs["i"])
+    np.testing.assert_array_equal(got[1], pairs["j"])
+    np.testing.assert_allclose(got[2], pairs["v"], atol=1e-9)
+
+
 def _ba_scene(rng, n_kf=5, n_pts=300):
     points = rng.uniform([-2, -1.5, 3], [2, 1.5, 5], (n_pts, 3))
     poses = [

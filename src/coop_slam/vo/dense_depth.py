@@ -4,9 +4,11 @@ image, or a stereo pair's disparity (semi-global matching at about 320 px wide, 
 keyframe, then decimated), decimated and compressed by
 :mod:`coop_slam.dense.depth_image`. A monocular camera measures no depth and sends none.
 
-A stereo pair is matched in a worker thread (:class:`KeyframeDepthImages`; OpenCV runs without
-Python's lock), so tracking does not wait for it: the keyframe holds the pending image until it is
-first handed out (:func:`resolved`, by the map's snapshot).
+The image is made in a worker thread (:class:`KeyframeDepthImages`; OpenCV and numpy's sorts run
+without Python's lock), so tracking does not wait for it -- a stereo pair's matching or an RGB-D
+image's decimation and compression (~7 ms a RedKitchen keyframe, a twentieth of its tracking's
+time, issue #50): the keyframe holds the pending image until it is first handed out
+(:func:`resolved`, by the map's snapshot).
 """
 
 from __future__ import annotations
@@ -106,8 +108,7 @@ def depth_image_blob(
 
 
 class KeyframeDepthImages:
-    """Keyframes' depth images of one camera: a stereo pair's made in a worker thread (see the
-    module), an RGB-D camera's (a decimation) at once."""
+    """Keyframes' depth images of one camera, made in a worker thread (see the module)."""
 
     def __init__(
         self, config: DenseDepthConfig, sensor: str, camera: CameraModel, registered: bool
@@ -115,7 +116,7 @@ class KeyframeDepthImages:
         self._args = (config, sensor, camera)
         self._registered = registered
         self._worker = None
-        if sensor == "stereo" and config.width_px > 0:
+        if sensor != "mono" and config.width_px > 0:
             self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="kf_depth")
 
     def make(self, gray, second) -> bytes | Future:

@@ -1,10 +1,10 @@
 """Projection matching of map points to keypoints, and the pose-independent helpers it needs.
 
-The search (:func:`search_by_projection`): the candidate (point, keypoint) pairs within the
-search radius from one KD-tree query (``sparse_distance_matrix``); the gates (radius scaled by
-the predicted octave, octave window, Hamming distance, ratio test, depth consistency, one point
-per keypoint) in one compiled loop over those pairs; the rotation histogram in numpy on the
-matches.
+The search (:func:`search_by_projection`): the candidate (point, keypoint) pairs within each
+point's search radius from a compiled grid of the keypoints (:func:`candidate_pairs`, in the
+frame's KD-tree order); the gates (octave window, Hamming distance, ratio test, depth consistency,
+one point per keypoint) in one compiled loop over those pairs; the rotation histogram in numpy on
+the matches.
 """
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.spatial import cKDTree
 
 from ..descriptors import as_descriptors, hamming
 from ..geometry import transform_points
@@ -116,16 +115,14 @@ def search_by_projection(
     if len(proj.index) == 0 or len(frame) == 0:
         return empty
     radius = radius_px * scales[proj.pred_octave]
-    pairs = cKDTree(proj.uv_px).sparse_distance_matrix(
-        frame.tree(), float(radius.max()), output_type="ndarray"
-    )
-    if len(pairs) == 0:
+    pair_i, pair_k, pair_px = candidate_pairs(proj.uv_px, radius, frame)
+    if len(pair_i) == 0:
         return empty
     chi2 = -1.0 if chi2_gate is None else float(chi2_gate)
     pi, kj, dist = _gated_best(
-        pairs["i"].astype(np.int64),
-        pairs["j"].astype(np.int64),
-        pairs["v"],
+        pair_i,
+        pair_k,
+        pair_px,
         radius,
         np.ascontiguousarray(proj.uv_px, dtype=float),
         np.ascontiguousarray(proj.u_right_px, dtype=float),
@@ -145,6 +142,97 @@ def search_by_projection(
         keep = rotation_consistent(point_angle_deg[proj.index[pi]], frame.angle_deg[kj])
         pi, kj, dist = pi[keep], kj[keep], dist[keep]
     return pi, kj, dist
+
+
+def candidate_pairs(
+    uv_px: np.ndarray, radius_px: np.ndarray, frame: FrameFeatures
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(point, keypoint, image distance) for every keypoint within each point's own radius: a
+    point's keypoints in the order of the frame's KD tree (``frame.tree().indices``), which is
+    the order a KD-tree pair search (``sparse_distance_matrix`` against that tree) gives them and
+    the order :func:`_gated_best` breaks descriptor ties by. From a grid of the keypoints,
+    compiled: the tree search ran at the largest radius of all (a top-octave point's, ~5x a
+    level-0 point's) and took a sixth of a frame's tracking (issue #50)."""
+    n_kp = len(frame)
+    rank = np.empty(n_kp, np.int64)
+    rank[frame.tree().indices] = np.arange(n_kp)
+    return _grid_pairs(
+        np.ascontiguousarray(uv_px, dtype=float),
+        np.ascontiguousarray(radius_px, dtype=float),
+        np.ascontiguousarray(frame.uv_px, dtype=float),
+        rank,
+    )
+
+
+@njit(cache=True, nogil=True)
+def _grid_pairs(uv, radius, kp_uv, kp_rank):  # fmt: skip
+    """:func:`candidate_pairs`' pairs: keypoints bucketed on a square grid (cells of the median
+    radius), each point's cells scanned, its keypoints ordered by ``kp_rank``."""
+    n_pt, n_kp = uv.shape[0], kp_uv.shape[0]
+    if n_pt == 0 or n_kp == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    cell = max(np.median(radius), 1.0)
+    u0, v0 = kp_uv[:, 0].min(), kp_uv[:, 1].min()
+    nu = int((kp_uv[:, 0].max() - u0) / cell) + 1
+    nv = int((kp_uv[:, 1].max() - v0) / cell) + 1
+    cell_of = np.empty(n_kp, np.int64)
+    for k in range(n_kp):
+        cell_of[k] = int((kp_uv[k, 1] - v0) / cell) * nu + int((kp_uv[k, 0] - u0) / cell)
+    start = np.zeros(nu * nv + 1, np.int64)
+    for k in range(n_kp):
+        start[cell_of[k] + 1] += 1
+    for c in range(nu * nv):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    items = np.empty(n_kp, np.int64)
+    for k in range(n_kp):
+        items[fill[cell_of[k]]] = k
+        fill[cell_of[k]] += 1
+    cap = 4 * n_kp + 64
+    out_i = np.empty(cap, np.int64)
+    out_k = np.empty(cap, np.int64)
+    out_d = np.empty(cap)
+    n = 0
+    found_k = np.empty(n_kp, np.int64)
+    found_d = np.empty(n_kp)
+    for m in range(n_pt):
+        r = radius[m]
+        cu0 = max(int(np.floor((uv[m, 0] - r - u0) / cell)), 0)
+        cu1 = min(int(np.floor((uv[m, 0] + r - u0) / cell)), nu - 1)
+        cv0 = max(int(np.floor((uv[m, 1] - r - v0) / cell)), 0)
+        cv1 = min(int(np.floor((uv[m, 1] + r - v0) / cell)), nv - 1)
+        f = 0
+        for cv in range(cv0, cv1 + 1):
+            for cu in range(cu0, cu1 + 1):
+                c = cv * nu + cu
+                for q in range(start[c], start[c + 1]):
+                    k = items[q]
+                    du, dv = uv[m, 0] - kp_uv[k, 0], uv[m, 1] - kp_uv[k, 1]
+                    d = np.sqrt(du * du + dv * dv)
+                    if d <= r:
+                        # insertion by rank: a point has a few to a few dozen keypoints
+                        j = f
+                        while j > 0 and kp_rank[found_k[j - 1]] > kp_rank[k]:
+                            found_k[j], found_d[j] = found_k[j - 1], found_d[j - 1]
+                            j -= 1
+                        found_k[j], found_d[j] = k, d
+                        f += 1
+        if n + f > cap:
+            cap = 2 * (n + f)
+            out_i = _grown(out_i, cap)
+            out_k = _grown(out_k, cap)
+            out_d = _grown(out_d, cap)
+        for j in range(f):
+            out_i[n], out_k[n], out_d[n] = m, found_k[j], found_d[j]
+            n += 1
+    return out_i[:n], out_k[:n], out_d[:n]
+
+
+@njit(cache=True, nogil=True)
+def _grown(a, cap):
+    b = np.empty(cap, a.dtype)
+    b[: len(a)] = a
+    return b
 
 
 @njit(cache=True, nogil=True)
