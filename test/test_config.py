@@ -89,3 +89,19 @@ def test_bad_files_and_keys_are_named(tmp_path):
     typo.write_text("server:\n  rendezvous:\n    window: 1.0\n")
     with pytest.raises(ConfigError, match="rendezvous.window"):
         load_yaml_config(ServerConfig, str(typo), "server")
+
+
+@pytest.mark.parametrize(
+    "text, named",
+    [
+        ("vo:\n  tracking: {search_radius_px: .inf}\n", "search radii must be finite"),
+        ("vo:\n  mapping: {fuse_radius_px: .inf}\n", "fuse_radius_px must be finite"),
+        ("vo:\n  mapping: {fuse_radius_px: 0.0}\n", "fuse_radius_px must be finite and > 0"),
+    ],
+)
+def test_projection_search_radii_must_be_finite(tmp_path, text, named):
+    """An infinite radius would find no candidate (the search's grid cannot span it)."""
+    path = tmp_path / "vo.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=named):
+        load_yaml_config(VoConfig, str(path), "vo")

@@ -36,7 +36,8 @@ class PlayerConfig:
     wait_for_node: str = ""
     depth_encoding: str = "32FC1"  # 32FC1 (metres) or 16UC1 (millimetres), as in REP-118
     # Live playback (not lock-step) decodes frames ahead of time, up to this much image data [MiB]
-    # (RedKitchen: ~2.1 MiB a frame with 32FC1 depth); 0 = decode each frame when it is due.
+    # (RedKitchen: ~2.1 MiB a frame with 32FC1 depth); lock-step decodes the next frames while
+    # the clients work, up to 64 MiB of it; 0 = decode each frame when it is due.
     preload_mb: float = 2048.0
     progress_period_s: float = 5.0  # wall time between progress log lines [s]
     # all: play every robot and drive /clock; conductor: drive /clock and step the cameras (the

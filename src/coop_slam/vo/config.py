@@ -156,8 +156,8 @@ class TrackingConfig:
 
     def validate(self) -> None:
         require(
-            self.search_radius_px > 0 and self.search_radius_refine_px > 0,
-            "vo.tracking search radii must be > 0",
+            0 < self.search_radius_px < np.inf and 0 < self.search_radius_refine_px < np.inf,
+            "vo.tracking search radii must be finite and > 0 [px]",
         )
         require(
             0 < self.max_descriptor_distance <= 256,
@@ -236,6 +236,9 @@ class MappingConfig:
 
     def validate(self) -> None:
         require(self.yield_max_s >= 0, "vo.mapping.yield_max_s must be >= 0 [s]")
+        require(
+            0 < self.fuse_radius_px < np.inf, "vo.mapping.fuse_radius_px must be finite and > 0"
+        )
         require(self.cull_min_observations >= 2, "vo.mapping.cull_min_observations must be >= 2")
         require(
             self.update_min_trans_m >= 0 and self.update_min_rot_deg >= 0,

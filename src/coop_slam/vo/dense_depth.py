@@ -116,7 +116,7 @@ class KeyframeDepthImages:
         self._args = (config, sensor, camera)
         self._registered = registered
         self._worker = None
-        if sensor != "mono" and config.width_px > 0:
+        if config.width_px > 0 and (sensor == "stereo" or (sensor == "rgbd" and registered)):
             self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="kf_depth")
 
     def make(self, gray, second) -> bytes | Future:

@@ -105,7 +105,7 @@ def search_by_projection(
     the keypoint's octave, exceeds it (a depth-consistency test used when fusing points).
 
     A point's candidates are the keypoints within ``radius_px`` times its predicted octave's
-    scale (one KD-tree search), at that octave or one next to it; the nearest descriptor wins
+    scale (:func:`candidate_pairs`), at that octave or one next to it; the nearest descriptor wins
     (ties: the first candidate in the tree's order) if within ``max_distance`` and, against the
     second nearest at the same level, the ratio test; of the points that chose one keypoint, the
     nearest descriptor (ties: the lower point). The gates are compiled (:func:`_gated_best`),
@@ -171,8 +171,10 @@ def _grid_pairs(uv, radius, kp_uv, kp_rank):  # fmt: skip
     n_pt, n_kp = uv.shape[0], kp_uv.shape[0]
     if n_pt == 0 or n_kp == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-    cell = max(np.median(radius), 1.0)
     u0, v0 = kp_uv[:, 0].min(), kp_uv[:, 1].min()
+    # Cells of the median radius, but never more cells than ~4 per keypoint (tiny radii).
+    area = (kp_uv[:, 0].max() - u0 + 1.0) * (kp_uv[:, 1].max() - v0 + 1.0)
+    cell = max(np.median(radius), 1.0, np.sqrt(area / (4.0 * n_kp)))
     nu = int((kp_uv[:, 0].max() - u0) / cell) + 1
     nv = int((kp_uv[:, 1].max() - v0) / cell) + 1
     cell_of = np.empty(n_kp, np.int64)
@@ -240,7 +242,7 @@ def _gated_best(
     pair_i, pair_k, pair_px, radius, uv, u_right, octave, desc, kp_uv, kp_u_right, kp_octave,
     kp_desc, exclude, scales, max_distance, ratio, chi2,
 ):  # fmt: skip
-    """:func:`search_by_projection`'s matches from the KD tree's candidate pairs (point, keypoint,
+    """:func:`search_by_projection`'s matches from the candidate pairs (point, keypoint,
     image distance), taken in the tree's order: a point's best and second best are the first
     pairs of least descriptor distance, as numpy's stable sort kept them (on rendered worlds many
     keypoints tie, and which of them a monocular map takes changed its scale by 5 %). chi2 < 0:

@@ -132,7 +132,9 @@ class VisualOdometry:
         self, stamp_s: float, image: np.ndarray, second: np.ndarray | None = None
     ) -> TrackResult:
         """Track one frame (``second``: depth or right image, None for a monocular camera). Raises
-        VoError on malformed input; a frame it cannot use is a lost result."""
+        VoError on malformed input; a frame it cannot use is a lost result. The images are read
+        after the call returns (a keyframe's depth image is made beside tracking): pass arrays
+        the caller does not change afterwards."""
         with self.frame_in_progress():
             return self._track(stamp_s, image, second)
 
