@@ -174,13 +174,10 @@ class PlayerNode:
         was spent decoding while the clients waited for it), starting at once."""
         if self.cfg.preload_mb <= 0:
             return None
-        budget_mb = min(self.cfg.preload_mb, LOCKSTEP_AHEAD_MB) if self.cfg.lockstep else None
-        prefetch = Prefetcher(
-            groups,
-            self._group_messages,
-            messages_bytes,
-            int((budget_mb or self.cfg.preload_mb) * 2**20),
-        )
+        budget_mb = self.cfg.preload_mb
+        if self.cfg.lockstep:
+            budget_mb = min(budget_mb, LOCKSTEP_AHEAD_MB)
+        prefetch = Prefetcher(groups, self._group_messages, messages_bytes, int(budget_mb * 2**20))
         rospy.on_shutdown(prefetch.close)  # Ctrl-C while decoding ahead stops at once
         if self.cfg.lockstep:
             return prefetch

@@ -115,15 +115,13 @@ def search_by_projection(
     if len(proj.index) == 0 or len(frame) == 0:
         return empty
     radius = radius_px * scales[proj.pred_octave]
-    pair_i, pair_k, pair_px = candidate_pairs(proj.uv_px, radius, frame)
+    pair_i, pair_k, _ = candidate_pairs(proj.uv_px, radius, frame)
     if len(pair_i) == 0:
         return empty
     chi2 = -1.0 if chi2_gate is None else float(chi2_gate)
     pi, kj, dist = _gated_best(
         pair_i,
         pair_k,
-        pair_px,
-        radius,
         np.ascontiguousarray(proj.uv_px, dtype=float),
         np.ascontiguousarray(proj.u_right_px, dtype=float),
         np.ascontiguousarray(proj.pred_octave, dtype=np.int64),
@@ -172,11 +170,11 @@ def _grid_pairs(uv, radius, kp_uv, kp_rank):  # fmt: skip
     if n_pt == 0 or n_kp == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     u0, v0 = kp_uv[:, 0].min(), kp_uv[:, 1].min()
+    span_u, span_v = kp_uv[:, 0].max() - u0, kp_uv[:, 1].max() - v0
     # Cells of the median radius, but never more cells than ~4 per keypoint (tiny radii).
-    area = (kp_uv[:, 0].max() - u0 + 1.0) * (kp_uv[:, 1].max() - v0 + 1.0)
-    cell = max(np.median(radius), 1.0, np.sqrt(area / (4.0 * n_kp)))
-    nu = int((kp_uv[:, 0].max() - u0) / cell) + 1
-    nv = int((kp_uv[:, 1].max() - v0) / cell) + 1
+    cell = max(np.median(radius), 1.0, np.sqrt((span_u + 1.0) * (span_v + 1.0) / (4.0 * n_kp)))
+    nu = int(span_u / cell) + 1
+    nv = int(span_v / cell) + 1
     cell_of = np.empty(n_kp, np.int64)
     for k in range(n_kp):
         cell_of[k] = int((kp_uv[k, 1] - v0) / cell) * nu + int((kp_uv[k, 0] - u0) / cell)
@@ -239,14 +237,14 @@ def _grown(a, cap):
 
 @njit(cache=True, nogil=True)
 def _gated_best(
-    pair_i, pair_k, pair_px, radius, uv, u_right, octave, desc, kp_uv, kp_u_right, kp_octave,
-    kp_desc, exclude, scales, max_distance, ratio, chi2,
+    pair_i, pair_k, uv, u_right, octave, desc, kp_uv, kp_u_right, kp_octave, kp_desc, exclude,
+    scales, max_distance, ratio, chi2,
 ):  # fmt: skip
-    """:func:`search_by_projection`'s matches from the candidate pairs (point, keypoint,
-    image distance), taken in the tree's order: a point's best and second best are the first
-    pairs of least descriptor distance, as numpy's stable sort kept them (on rendered worlds many
-    keypoints tie, and which of them a monocular map takes changed its scale by 5 %). chi2 < 0:
-    no reprojection gate."""
+    """:func:`search_by_projection`'s matches from the candidate pairs (point, keypoint; each
+    within the point's radius), taken in the tree's order: a point's best and second best are
+    the first pairs of least descriptor distance, as numpy's stable sort kept them (on rendered
+    worlds many keypoints tie, and which of them a monocular map takes changed its scale by
+    5 %). chi2 < 0: no reprojection gate."""
     n_pt, n_kp = uv.shape[0], kp_uv.shape[0]
     big = 1 << 30
     best_d = np.full(n_pt, big, np.int64)
@@ -256,7 +254,7 @@ def _gated_best(
     for q in range(len(pair_i)):
         m, k = pair_i[q], pair_k[q]
         o = octave[m]
-        if pair_px[q] > radius[m] or kp_octave[k] < o - 1 or kp_octave[k] > o + 1 or exclude[k]:
+        if kp_octave[k] < o - 1 or kp_octave[k] > o + 1 or exclude[k]:
             continue
         if chi2 >= 0.0:
             du, dv = uv[m, 0] - kp_uv[k, 0], uv[m, 1] - kp_uv[k, 1]
