@@ -12,6 +12,7 @@ import helpers_vo
 from coop_slam.camera import CameraError
 from coop_slam.evaluation.vo_run import ate_rmse, frame_ate, run_sequence
 from coop_slam.geometry import path_length, se3
+from coop_slam.vo import stereo_matching
 from coop_slam.vo.config import VoConfig
 from coop_slam.vo.dense_depth import depth_image_blob
 from coop_slam.vo.features import OrbExtractor
@@ -54,6 +55,40 @@ def test_stereo_matching_finds_the_rendered_disparity():
     np.testing.assert_allclose(
         feats.u_right_px[has], feats.uv_px[has, 0] - STEREO.fx * BASELINE_M / feats.depths_m[has]
     )
+
+
+def _zero_mean_ssd(img_l, img_r, u, v, u_right, r):
+    """The refinement's cost at one right column as written: sum (R - mean R - (L - mean L))^2."""
+    left = img_l[v - r : v + r + 1, u - r : u + r + 1].astype(float)
+    right = img_r[v - r : v + r + 1, u_right - r : u_right + r + 1].astype(float)
+    return (((right - right.mean()) - (left - left.mean())) ** 2).sum()
+
+
+@pytest.mark.parametrize("r, search", [(5, 5), (2, 7), (32, 3)])
+def test_the_subpixel_refinement_takes_the_least_zero_mean_patch_difference(r, search):
+    """The compiled refinement sums integer patch moments; its costs must be the written
+    formula's, also at the largest radius with saturated pixels (32-bit products)."""
+    rng = np.random.default_rng(r)
+    h, w = 2 * r + 9, 2 * (r + search) + 40
+    img_l = rng.integers(0, 256, (h, w), dtype=np.uint8)
+    img_l[:, ::3] = 255  # saturated columns: the largest products
+    shift = rng.integers(-search + 1, search, 12)
+    u = np.full(12, w // 2)
+    v = rng.integers(r, h - r, 12)
+    img_r = np.roll(img_l, -3, axis=1)  # the left patch at u sits at u - 3 on the right
+    ur0 = u - 3 + shift
+    at, cost = stereo_matching._slide_patches(img_l, img_r, u, v, ur0, r, search)
+    for i in range(12):
+        costs = [
+            _zero_mean_ssd(img_l, img_r, u[i], v[i], ur0[i] - search + k, r)
+            for k in range(2 * search + 1)
+        ]
+        best = int(np.argmin(costs))
+        assert ur0[i] - search + best == u[i] - 3, "the shifted patch is the least different"
+        d1, d2, d3 = costs[best - 1 : best + 2]
+        expected = ur0[i] - search + best + (d1 - d3) / (2.0 * (d1 + d3 - 2.0 * d2))
+        assert abs(at[i] - expected) < 1e-9, (at[i], expected)
+        assert abs(cost[i] ** 2 - d2) < 1e-6
 
 
 def test_a_pairs_disparity_offset_is_added_to_every_measured_disparity():

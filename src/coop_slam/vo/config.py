@@ -84,7 +84,8 @@ class StereoConfig:
             "vo.stereo.max_descriptor_distance must be in 1..256",
         )
         require(self.row_tolerance_px > 0, "vo.stereo.row_tolerance_px must be > 0")
-        require(self.patch_radius_px >= 1, "vo.stereo.patch_radius_px must be >= 1")
+        # (at most 32: the refinement sums a patch's pixel products in 32-bit integers)
+        require(1 <= self.patch_radius_px <= 32, "vo.stereo.patch_radius_px must be in 1..32")
         require(self.search_px >= 1, "vo.stereo.search_px must be >= 1")
         require(self.close_baselines > 0, "vo.stereo.close_baselines must be > 0")
 

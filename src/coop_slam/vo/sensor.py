@@ -295,19 +295,19 @@ class StereoSensor(Sensor):
         if len(left) < 50 or len(right) < 50:
             return
         self._frames_since_check = 0
-        pairs = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(
-            left.descriptors, right.descriptors
-        )
         # Sure matches of precise (level 0) keypoints; repeated texture still leaves a few wrong.
-        good = [
-            m
-            for m in pairs
-            if m.distance < 30 and left.octaves[m.queryIdx] == 0 and right.octaves[m.trainIdx] == 0
-        ]
+        # Only level 0 is matched: all levels against all cost ~90 ms on a KITTI pair.
+        li, ri = np.flatnonzero(left.octaves == 0), np.flatnonzero(right.octaves == 0)
+        if len(li) < 20 or len(ri) < 20:
+            return
+        pairs = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(
+            left.descriptors[li], right.descriptors[ri]
+        )
+        good = np.array([(li[m.queryIdx], ri[m.trainIdx]) for m in pairs if m.distance < 30])
         if len(good) < 20:
             return
-        dv = np.array([left.uv_px[m.queryIdx, 1] - right.uv_px[m.trainIdx, 1] for m in good])
-        du = np.array([left.uv_px[m.queryIdx, 0] - right.uv_px[m.trainIdx, 0] for m in good])
+        dv = left.uv_px[good[:, 0], 1] - right.uv_px[good[:, 1], 1]
+        du = left.uv_px[good[:, 0], 0] - right.uv_px[good[:, 1], 0]
         if np.median(np.abs(dv)) > 1.0:
             self.warning = (
                 f"only {100 * matched:.0f} % of the left keypoints found a stereo match: the "

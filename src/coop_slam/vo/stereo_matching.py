@@ -146,32 +146,58 @@ def _refine(pairs, left, right, left_levels, right_levels, scales, config):
 def _slide_patches(img_l, img_r, ul, vl, ur0, r, search):
     """Per pair (left pixel (ul, vl), right column ur0 on one level; all patches inside): the
     subpixel right column where the zero-mean patch difference is least (NaN: at the end of the
-    search, or the parabola moves it by more than a pixel) and that least cost's square root."""
+    search, or the parabola moves it by more than a pixel) and that least cost's square root.
+
+    With n pixels a patch, left patch L and right patch R, the zero-mean SSD is
+    (n SR2 - SR^2 - 2 (n SLR - SL SR) + n SL2 - SL^2) / n (S: sums over the patch): integer sums,
+    exact. The right band's column sums give SR and SR2 of every position at once; only SLR is
+    per position."""
     n, side = len(ul), 2 * r + 1
+    n_px = side * side
+    width = side + 2 * search
     at = np.full(n, np.nan)
     best_cost = np.full(n, np.inf)
     costs = np.empty(2 * search + 1)
-    patch = np.empty((side, side))
+    col_sum = np.empty(width, np.int64)
+    col_sq = np.empty(width, np.int64)
+    # int32 products vectorise better; a patch's sum of products fits while n_px < 33,000.
+    patch = np.empty((side, side), np.int32)
+    band = np.empty((side, width), np.int32)
     for i in range(n):
-        mean = 0.0
+        sl = 0
+        sl2 = 0
         for a in range(side):
             for b in range(side):
-                patch[a, b] = img_l[vl[i] - r + a, ul[i] - r + b]
-                mean += patch[a, b]
-        patch -= mean / (side * side)
+                v = np.int64(img_l[vl[i] - r + a, ul[i] - r + b])
+                patch[a, b] = v
+                sl += v
+                sl2 += v * v
+        c_first = ur0[i] - search - r
+        for c in range(width):
+            col_sum[c] = 0
+            col_sq[c] = 0
+        for a in range(side):
+            for c in range(width):
+                v = np.int64(img_r[vl[i] - r + a, c_first + c])
+                band[a, c] = v
+                col_sum[c] += v
+                col_sq[c] += v * v
+        sr = 0
+        sr2 = 0
+        for c in range(side):
+            sr += col_sum[c]
+            sr2 += col_sq[c]
+        left_term = n_px * sl2 - sl * sl
         for k in range(2 * search + 1):
-            c0 = ur0[i] - search + k - r
-            mean_r = 0.0
+            if k > 0:
+                sr += col_sum[k + side - 1] - col_sum[k - 1]
+                sr2 += col_sq[k + side - 1] - col_sq[k - 1]
+            slr32 = np.int32(0)
             for a in range(side):
                 for b in range(side):
-                    mean_r += img_r[vl[i] - r + a, c0 + b]
-            mean_r /= side * side
-            ssd = 0.0
-            for a in range(side):
-                for b in range(side):
-                    e = img_r[vl[i] - r + a, c0 + b] - mean_r - patch[a, b]
-                    ssd += e * e
-            costs[k] = ssd
+                    slr32 += patch[a, b] * band[a, k + b]
+            slr = np.int64(slr32)
+            costs[k] = (n_px * sr2 - sr * sr - 2 * (n_px * slr - sl * sr) + left_term) / n_px
         best = np.argmin(costs)
         if best == 0 or best == 2 * search:
             continue
