@@ -34,7 +34,7 @@ from coop_slam.vo import (
     VoConfig,
     VoError,
 )
-from coop_slam.vo.features import OrbExtractor, orb_level0_uv
+from coop_slam.vo.features import OrbExtractor, level_images, orb_level0_uv
 from coop_slam.vo.pose_opt import optimize_pose
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -708,9 +708,8 @@ def test_orb_levels_extracted_in_two_threads_are_opencvs_whole_pyramid_orb(
 
     rng = np.random.default_rng(1)
     gray = cv2.GaussianBlur((rng.random(shape) * 255).astype(np.uint8), (0, 0), 1.2)
-    cfg = with_values(
-        VoConfig(), {"features": {"n_detect": n_detect, "n_features": min(n_detect, 1000)}}
-    )
+    features = {"n_detect": n_detect, "n_features": min(n_detect, 1000), "fast_threshold_first": 0}
+    cfg = with_values(VoConfig(), {"features": features})
     f = cfg.features
     extractor = OrbExtractor(cfg, helpers_vo.CAMERA, split_levels)
     whole = cv2.ORB_create(
@@ -732,3 +731,47 @@ def test_orb_levels_extracted_in_two_threads_are_opencvs_whole_pyramid_orb(
     assert np.array_equal(got.descriptors, desc)
     if n_detect == 2500:
         assert set(octaves) == set(range(f.n_levels))
+
+
+def _same_keypoints(a, b) -> bool:
+    """The same keypoints (position, size, angle, level, bits), in any order (OpenCV's selection
+    of a level's best reorders them by what else it was given)."""
+    if len(a) != len(b):
+        return False
+    order_a, order_b = (np.lexsort((k.uv_px[:, 1], k.uv_px[:, 0], k.octaves)) for k in (a, b))
+    return all(
+        np.array_equal(getattr(a, name)[order_a], getattr(b, name)[order_b])
+        for name in ("uv_px", "size_px", "angle_deg", "octaves", "descriptors")
+    )
+
+
+@pytest.mark.parametrize("gain", [3.0, 0.6, 0.3])
+def test_a_level_is_detected_at_the_low_fast_threshold_only_when_the_first_finds_too_few(gain):
+    """Detecting each level at FAST 20 first finds what FAST 7 alone finds when the level has
+    plenty of strong corners (ORB keeps the 2n best FAST scores of a level: all of them >= 20), and
+    falls back to FAST 7 where it finds fewer than the level wants: high contrast, every level
+    strong; low contrast, every level falls back; in between, some levels keep fewer, stronger
+    corners than FAST 7 alone would give."""
+    import cv2
+
+    rng = np.random.default_rng(2)
+    noise = cv2.GaussianBlur((rng.random((480, 640)) * 255).astype(np.uint8), (0, 0), 1.2)
+    gray = np.uint8(np.clip(128 + (noise.astype(float) - 128) * gain, 0, 255))
+    cfg = with_values(VoConfig(), {"features": {"fast_threshold": 7, "fast_threshold_first": 20}})
+    extractor = OrbExtractor(cfg, helpers_vo.CAMERA)
+    one_pass = OrbExtractor(with_values(cfg, {"features": {"fast_threshold_first": 0}}), None)
+    levels = level_images(gray, extractor._scales32)
+    strong = [
+        len(extractor._orbs_first[lv].detect(image, None)) >= extractor._wanted[lv]
+        for lv, image in enumerate(levels)
+    ]
+    got, alone = extractor.extract(gray), one_pass.extract(gray)
+    if gain == 3.0:
+        assert all(strong)
+        assert _same_keypoints(got, alone)
+    elif gain == 0.3:
+        assert not any(strong)
+        assert _same_keypoints(got, alone)
+    else:
+        assert any(strong) and not all(strong), strong
+        assert not _same_keypoints(got, alone)

@@ -29,6 +29,9 @@ class FeatureConfig:
     scale_factor: float = 1.2  # pyramid scale between levels
     n_levels: int = 8  # pyramid levels
     fast_threshold: int = 7  # FAST threshold [grey levels]; low, the grid keeps the best per cell
+    # Each level is detected at this threshold first [grey levels], and at fast_threshold only when
+    # that finds fewer keypoints than the level wants (at most fast_threshold: one pass)
+    fast_threshold_first: int = 20
     grid_cell_px: int = 40  # bucketing cell size at level 0 [px]; scaled by scale_factor**octave
     edge_threshold_px: int = 19  # border without features [px] (ORB patch radius)
 
@@ -38,6 +41,10 @@ class FeatureConfig:
         require(self.scale_factor > 1.0, "vo.features.scale_factor must be > 1")
         require(1 <= self.n_levels <= 16, "vo.features.n_levels must be in 1..16")
         require(0 < self.fast_threshold < 256, "vo.features.fast_threshold must be in 1..255")
+        require(
+            0 <= self.fast_threshold_first < 256,
+            "vo.features.fast_threshold_first must be in 0..255",
+        )
         require(self.grid_cell_px >= 8, "vo.features.grid_cell_px must be >= 8")
 
 

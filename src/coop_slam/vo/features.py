@@ -5,10 +5,18 @@ about each, see :mod:`.sensor`).
 OpenCV's ORB keeps the keypoints with the best Harris score, which clusters them on strongly
 textured regions. As ORB-SLAM does with its quadtree, we detect more candidates than needed and keep
 the best of each grid cell of each pyramid level first (round robin over cells: every cell's best,
-then every cell's second best, ...). Detection uses a low FAST threshold so texture-poor cells still
-have candidates; in textured cells the Harris ranking still prefers the strong corners, which gives
-the effect of ORB-SLAM's two-threshold FAST fallback with one detection pass (a second masked ORB
-pass costs a full detection: measured 6 ms). Descriptors are computed for the kept keypoints only.
+then every cell's second best, ...). A low FAST threshold gives texture-poor cells candidates where
+a level has few strong corners; in textured cells the Harris ranking still prefers the strong
+corners, which gives the effect of ORB-SLAM's two-threshold FAST fallback per level (a second
+masked ORB pass costs a full detection: measured 6 ms). Descriptors are computed for the kept
+keypoints only.
+
+FAST at the low threshold costs about twice as much as at ORB-SLAM's first threshold (20: far more
+pixels pass its first test). OpenCV's ORB keeps a level's 2n best FAST scores, then the n best
+Harris responses of those; so when a level has 2n corners of score 20 or more, detecting it at 20
+finds exactly what the low threshold finds. Each level is therefore detected at the first threshold,
+and again at the low one only when that finds fewer keypoints than the level wants (a level with
+between n and 2n strong corners keeps those, not weaker ones that would win on Harris response).
 """
 
 from __future__ import annotations
@@ -188,21 +196,26 @@ class OrbExtractor:
         feats = config.features
         per_level = _orb_level_split(feats.n_detect, feats.scale_factor, feats.n_levels)
         self._scales32 = orb_level_scales32(feats.scale_factor, feats.n_levels)
-        self._orbs = [
-            cv2.ORB_create(
-                nfeatures=max(n, 1),
-                scaleFactor=feats.scale_factor,
-                nlevels=1,
-                edgeThreshold=feats.edge_threshold_px,
-                patchSize=_PATCH_PX,
-                fastThreshold=feats.fast_threshold,
-            )
-            for n in per_level
-        ]
+        self._orbs = [self._orb(n, feats.fast_threshold) for n in per_level]
+        first = feats.fast_threshold_first
+        self._orbs_first = (
+            [self._orb(n, first) for n in per_level] if first > feats.fast_threshold else None
+        )
         self._wanted = per_level
         self._scales = level_scales(config)
         self._groups = _two_groups(self._scales)
         self._split_levels = split_levels
+
+    def _orb(self, n: int, threshold: int):
+        feats = self.config.features
+        return cv2.ORB_create(
+            nfeatures=max(n, 1),
+            scaleFactor=feats.scale_factor,
+            nlevels=1,
+            edgeThreshold=feats.edge_threshold_px,
+            patchSize=_PATCH_PX,
+            fastThreshold=threshold,
+        )
 
     def extract(self, gray: np.ndarray) -> OrbKeypoints:
         return self.extract_with_levels(gray)[0]
@@ -251,9 +264,16 @@ class OrbExtractor:
         return done
 
     def _detect(self, levels, group) -> dict:
-        return {
-            lv: self._orbs[lv].detect(levels[lv], None) if self._wanted[lv] else () for lv in group
-        }
+        return {lv: self._detect_level(levels[lv], lv) if self._wanted[lv] else () for lv in group}
+
+    def _detect_level(self, image: np.ndarray, level: int):
+        """The level's keypoints: at the first threshold when it finds as many as the level wants,
+        else at the low one (module docstring)."""
+        if self._orbs_first is not None:
+            kps = self._orbs_first[level].detect(image, None)
+            if len(kps) >= self._wanted[level]:
+                return kps
+        return self._orbs[level].detect(image, None)
 
     def _describe(self, levels, group, chosen) -> dict:
         out = {}
