@@ -775,3 +775,28 @@ def test_a_level_is_detected_at_the_low_fast_threshold_only_when_the_first_finds
     else:
         assert any(strong) and not all(strong), strong
         assert not _same_keypoints(got, alone)
+
+
+def test_bucketing_takes_every_cells_best_first_then_the_second_best():
+    """The bucketing's order against its definition written with lexicographic sorts, on tables
+    with many equal responses and many keypoints in one cell (ties: by index)."""
+    from coop_slam.vo.features import _round_robin
+
+    rng = np.random.default_rng(3)
+    cell_px = 40.0 * 1.2 ** np.arange(8)
+    for _ in range(40):
+        n = int(rng.integers(2, 3000))
+        u, v = rng.integers(0, 80, n) * 8.0, rng.integers(0, 60, n) * 8.0
+        response = rng.integers(0, 5, n) * 1e-4
+        octave = rng.integers(0, 8, n)
+        n_keep = int(rng.integers(1, n + 1))
+        cell = (octave * 4096 + np.floor(v / cell_px[octave])) * 4096 + np.floor(
+            u / cell_px[octave]
+        )
+        by_cell = np.lexsort((-response, cell))
+        rank = np.empty(n, np.int64)
+        for i, k in enumerate(by_cell):
+            rank[k] = 0 if i == 0 or cell[k] != cell[by_cell[i - 1]] else rank[by_cell[i - 1]] + 1
+        expected = np.sort(np.lexsort((-response, rank))[:n_keep])
+        got = _round_robin(u, v, response, octave, cell_px, n_keep)
+        assert np.array_equal(got, expected)

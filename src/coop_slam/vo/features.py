@@ -296,24 +296,15 @@ class OrbExtractor:
 
     def _bucket(self, attrs: np.ndarray) -> np.ndarray:
         """Indices of up to n_features keypoints: best per (level, cell) first, then
-        second best, ..."""
-        cfg = self.config
-        n = len(attrs)
-        if n <= cfg.features.n_features:
-            return np.arange(n)
-        octave = np.clip(attrs[:, 3].astype(int), 0, cfg.features.n_levels - 1)
-        response = attrs[:, 2]
-        cell_px = cfg.features.grid_cell_px * self._scales[octave]
-        cols = np.floor(attrs[:, 0] / cell_px).astype(np.int64)
-        rows = np.floor(attrs[:, 1] / cell_px).astype(np.int64)
-        key = (octave.astype(np.int64) * 4096 + rows) * 4096 + cols
-        order = np.lexsort((-response, key))
-        key_sorted = key[order]
-        start = np.r_[0, np.flatnonzero(np.diff(key_sorted)) + 1]
-        group_start = np.repeat(start, np.diff(np.r_[start, n]))
-        rank = np.empty(n, np.int64)
-        rank[order] = np.arange(n) - group_start
-        return np.sort(np.lexsort((-response, rank))[: cfg.features.n_features])
+        second best, ... (:func:`_round_robin`)."""
+        feats = self.config.features
+        if len(attrs) <= feats.n_features:
+            return np.arange(len(attrs))
+        octave = np.clip(attrs[:, 3].astype(np.int64), 0, feats.n_levels - 1)
+        cell_px = feats.grid_cell_px * self._scales
+        return _round_robin(
+            attrs[:, 0], attrs[:, 1], attrs[:, 2], octave, cell_px, feats.n_features
+        )
 
     @staticmethod
     def _empty() -> OrbKeypoints:
@@ -324,3 +315,23 @@ class OrbExtractor:
             octaves=np.zeros(0, np.uint8),
             descriptors=np.zeros((0, 32), np.uint8),
         )
+
+
+def _round_robin(u, v, response, octave, cell_px, n_keep):
+    """Sorted indices of the first n_keep keypoints in the order: rank within their (level, cell)
+    by response (0 = the cell's best), then response, then index. Cells are ``cell_px[level]``
+    squares of level-0 pixels."""
+    n = len(u)
+    size = cell_px[octave]
+    cell = (octave * 4096 + np.floor(v / size).astype(np.int64)) * 4096
+    cell += np.floor(u / size).astype(np.int64)
+    # Each keypoint's place in the order by response (ties: by index) makes every key below
+    # unique, so unstable sorts give the lexicographic order.
+    place = np.empty(n, np.int64)
+    place[np.argsort(-response, kind="stable")] = np.arange(n)
+    by_cell = np.argsort(cell * n + place)
+    cell_sorted = cell[by_cell]
+    first = np.r_[0, np.flatnonzero(cell_sorted[1:] != cell_sorted[:-1]) + 1]
+    rank = np.empty(n, np.int64)
+    rank[by_cell] = np.arange(n) - np.repeat(first, np.diff(np.r_[first, n]))
+    return np.sort(np.argpartition(rank * n + place, n_keep - 1)[:n_keep])
