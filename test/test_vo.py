@@ -389,6 +389,25 @@ def test_threaded_mapping_tracks_and_stops(room_sequence):
     assert ate_rmse(stamps[:25], np.array([r.T_map_cam for r in results]), gt[:25]) < 0.01
 
 
+def test_a_prestarted_ba_process_is_the_one_the_next_odometry_uses(room_sequence):
+    """A node starts the local BA's process before its camera's first frame; the odometry made
+    then takes that process (and runs its BA there), the next one starts its own."""
+    from coop_slam.optim import bundle
+
+    stamps, frames, _ = room_sequence
+    bundle.prestart_worker()
+    prestarted = bundle._PRESTARTED[0]
+    with VisualOdometry(VoConfig(threaded=True), helpers_vo.CAMERA) as vo:
+        assert vo._mapper._worker is prestarted and not bundle._PRESTARTED
+        _track_all(vo, stamps[:12], frames[:12])
+        vo.flush()
+        assert vo.mapping_stats["ba_runs"] >= 1 and prestarted._proc.poll() is None
+    assert prestarted._proc.poll() is not None, "closed with its odometry"
+    other = bundle.take_worker()
+    assert other is not prestarted
+    other.close()
+
+
 def test_mapping_backlog_counts_keyframes_a_slow_mapper_has_not_finished(room_sequence):
     """A mapper slower than the camera is visible (mapping_backlog > 1), and flush() -- what a
     lock-step client does after each frame -- waits until it has caught up."""

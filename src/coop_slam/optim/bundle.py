@@ -22,6 +22,7 @@ import os
 import pickle
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 
@@ -344,6 +345,28 @@ class BaWorker:
         except (OSError, subprocess.TimeoutExpired):
             self._proc.kill()
             self._proc.wait()
+
+
+# A worker started ahead of the odometry that will use it (:func:`prestart_worker`).
+_PRESTARTED: list = []
+_PRESTARTED_LOCK = threading.Lock()
+
+
+def prestart_worker() -> None:
+    """Start the BA worker process now (a node before its camera's first frame): the child's
+    imports take most of a core for about a second, which would otherwise fall on the first
+    frames tracked."""
+    with _PRESTARTED_LOCK:
+        if not _PRESTARTED:
+            _PRESTARTED.append(BaWorker())
+
+
+def take_worker() -> BaWorker:
+    """The prestarted worker if there is one, else a new one; raises OSError if none starts."""
+    with _PRESTARTED_LOCK:
+        if _PRESTARTED:
+            return _PRESTARTED.pop()
+    return BaWorker()
 
 
 def serve() -> None:

@@ -14,6 +14,7 @@ its keyframes say so by their camera's sensor type, and only the server can give
 
 from __future__ import annotations
 
+import gc
 import queue
 import threading
 import time
@@ -26,6 +27,7 @@ from ..config import load_yaml_config
 from ..errors import CoopSlamError
 from ..geometry import T_base_cam_of
 from ..markers import MarkerConfig, MarkerDetector
+from ..optim.bundle import prestart_worker
 from ..playback import PLAYABLE_SENSORS
 from ..robot_description import describe
 from ..uplink.config import UplinkConfig
@@ -136,13 +138,23 @@ class ClientNode:
             self._camera_changed,
             self._frame_not_tracked,
         )
-        warm_up()  # the odometry's compiled kernels, before the camera's first frame
+        self._ready_before_frames()
         threading.Thread(target=self._uplink_loop, daemon=True).start()
         threading.Thread(target=self._track_frames, daemon=True).start()
         self.sub_corr = rospy.Subscriber(
             f"/{name}/correction", MapCorrection, self._on_correction, queue_size=5
         )
         rospy.loginfo("client %s (%s): waiting for %s", name, sensor, self.camera.describe())
+
+    def _ready_before_frames(self) -> None:
+        """What the first frames would otherwise wait for or be stopped by."""
+        warm_up()  # the odometry's compiled kernels
+        if self.vo_cfg.threaded and self.vo_cfg.ba.enabled:
+            prestart_worker()  # and the local BA's process
+        # Python's full collection scans every object it tracks; here ~140,000, nearly all the
+        # libraries' (rospy, numpy, numba, GTSAM): ~40 ms with every thread stopped, about once in
+        # a 20 s RedKitchen run, long enough to drop a frame. Frozen now, it scans what came after.
+        gc.freeze()
 
     def _with_odometry(self, fn):
         with self.lock:

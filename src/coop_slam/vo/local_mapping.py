@@ -29,7 +29,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..geometry import transform_error
-from ..optim.bundle import BaProblem, BaResult, BaWorker, run_local_ba
+from ..optim.bundle import BaProblem, BaResult, BaWorker, run_local_ba, take_worker
 from .config import VoConfig
 from .dense_depth import resolved
 from .features import FrameFeatures, level_scales
@@ -101,7 +101,7 @@ class LocalMapper:
         if config.threaded:
             if config.ba.enabled:
                 try:
-                    self._worker = BaWorker()
+                    self._worker = take_worker()
                 except OSError as exc:
                     log.warning(
                         "local BA worker process unavailable (%s); BA runs in the thread", exc
