@@ -397,15 +397,18 @@ def test_a_prestarted_ba_process_is_the_one_the_next_odometry_uses(room_sequence
     stamps, frames, _ = room_sequence
     bundle.prestart_worker()
     prestarted = bundle._PRESTARTED[0]
-    with VisualOdometry(VoConfig(threaded=True), helpers_vo.CAMERA) as vo:
-        assert vo._mapper._worker is prestarted and not bundle._PRESTARTED
-        _track_all(vo, stamps[:12], frames[:12])
-        vo.flush()
-        assert vo.mapping_stats["ba_runs"] >= 1 and prestarted._proc.poll() is None
-    assert prestarted._proc.poll() is not None, "closed with its odometry"
-    other = bundle.take_worker()
-    assert other is not prestarted
-    other.close()
+    try:
+        with VisualOdometry(VoConfig(threaded=True), helpers_vo.CAMERA) as vo:
+            assert vo._mapper._worker is prestarted and not bundle._PRESTARTED
+            _track_all(vo, stamps[:12], frames[:12])
+            vo.flush()
+            assert vo.mapping_stats["ba_runs"] >= 1 and prestarted._proc.poll() is None
+        assert prestarted._proc.poll() is not None, "closed with its odometry"
+        other = bundle.take_worker()
+        assert other is not prestarted
+        other.close()
+    finally:
+        bundle._close_prestarted()  # none left for another test to take
 
 
 def test_mapping_backlog_counts_keyframes_a_slow_mapper_has_not_finished(room_sequence):
@@ -727,8 +730,9 @@ def test_orb_levels_extracted_in_two_threads_are_opencvs_whole_pyramid_orb(
 
     rng = np.random.default_rng(1)
     gray = cv2.GaussianBlur((rng.random(shape) * 255).astype(np.uint8), (0, 0), 1.2)
-    features = {"n_detect": n_detect, "n_features": min(n_detect, 1000), "fast_threshold_first": 0}
-    cfg = with_values(VoConfig(), {"features": features})
+    cfg = with_values(
+        VoConfig(), {"features": {"n_detect": n_detect, "n_features": min(n_detect, 1000)}}
+    )
     f = cfg.features
     extractor = OrbExtractor(cfg, helpers_vo.CAMERA, split_levels)
     whole = cv2.ORB_create(

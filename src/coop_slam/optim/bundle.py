@@ -18,6 +18,7 @@ and a free keyframe (``scale_anchor``).
 
 from __future__ import annotations
 
+import atexit
 import os
 import pickle
 import subprocess
@@ -359,6 +360,14 @@ def prestart_worker() -> None:
     with _PRESTARTED_LOCK:
         if not _PRESTARTED:
             _PRESTARTED.append(BaWorker())
+            atexit.register(_close_prestarted)
+
+
+def _close_prestarted() -> None:
+    """A prestarted worker no odometry took (no frame came) ends with its node."""
+    with _PRESTARTED_LOCK:
+        while _PRESTARTED:
+            _PRESTARTED.pop().close()
 
 
 def take_worker() -> BaWorker:

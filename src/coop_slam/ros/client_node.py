@@ -153,7 +153,9 @@ class ClientNode:
             prestart_worker()  # and the local BA's process
         # Python's full collection scans every object it tracks; here ~140,000, nearly all the
         # libraries' (rospy, numpy, numba, GTSAM): ~40 ms with every thread stopped, about once in
-        # a 20 s RedKitchen run, long enough to drop a frame. Frozen now, it scans what came after.
+        # a 20 s RedKitchen run, long enough to drop a frame. Collected once now (no frame waits)
+        # and frozen, a full collection scans what came after.
+        gc.collect()
         gc.freeze()
 
     def _with_odometry(self, fn):

@@ -8,13 +8,14 @@ the best of each grid cell of each pyramid level first (round robin over cells: 
 then every cell's second best, ...). A low FAST threshold gives texture-poor cells candidates where
 a level has few strong corners; in textured cells the Harris ranking still prefers the strong
 corners, which gives the effect of ORB-SLAM's two-threshold FAST fallback per level (a second
-masked ORB pass costs a full detection: measured 6 ms). Descriptors are computed for the kept
-keypoints only.
+masked ORB pass, for texture-poor cells only, costs a full detection: measured 6 ms). Descriptors
+are computed for the kept keypoints only.
 
 FAST at the low threshold costs about twice as much as at ORB-SLAM's first threshold (20: far more
 pixels pass its first test). OpenCV's ORB keeps a level's 2n best FAST scores, then the n best
 Harris responses of those; so when a level has 2n corners of score 20 or more, detecting it at 20
-finds exactly what the low threshold finds. Each level is therefore detected at the first threshold,
+finds the same keypoints as the low threshold (as a set: in another order; OpenCV >= 3 keeps the
+ties at the cut). Each level can therefore be detected at the first threshold (stereo cameras),
 and again at the low one only when that finds fewer keypoints than the level wants (a level with
 between n and 2n strong corners keeps those, not weaker ones that would win on Harris response).
 """
@@ -186,8 +187,9 @@ def _level_worker() -> ThreadPoolExecutor:
 class OrbExtractor:
     """Grid-bucketed ORB extraction (see module docstring). Each pyramid level is detected and
     described by its own one-level OpenCV ORB, half of the levels in a worker thread: the same
-    keypoints and descriptors as one OpenCV ORB over the whole pyramid, in about 60 % of the time
-    on two cores. ``split_levels=False``: all levels in the caller's thread.
+    keypoints and descriptors as one OpenCV ORB over the whole pyramid (without the first FAST
+    pass), in about 60 % of the time on two cores. ``split_levels=False``: all levels in the
+    caller's thread.
     """
 
     def __init__(self, config: VoConfig, camera: CameraModel, split_levels: bool = True):
@@ -322,6 +324,10 @@ def _round_robin(u, v, response, octave, cell_px, n_keep):
     by response (0 = the cell's best), then response, then index. Cells are ``cell_px[level]``
     squares of level-0 pixels."""
     n = len(u)
+    n_keep = min(n_keep, n)
+    if n_keep <= 0:
+        return np.zeros(0, np.int64)
+    octave = np.asarray(octave, np.int64)
     size = cell_px[octave]
     cell = (octave * 4096 + np.floor(v / size).astype(np.int64)) * 4096
     cell += np.floor(u / size).astype(np.int64)
