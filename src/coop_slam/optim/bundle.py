@@ -360,9 +360,9 @@ def prestart_worker() -> None:
     with _PRESTARTED_LOCK:
         if not _PRESTARTED:
             _PRESTARTED.append(BaWorker())
-            atexit.register(_close_prestarted)
 
 
+@atexit.register
 def _close_prestarted() -> None:
     """A prestarted worker no odometry took (no frame came) ends with its node."""
     with _PRESTARTED_LOCK:
