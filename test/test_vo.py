@@ -88,30 +88,27 @@ def test_pose_optimization_recovers_pose_and_rejects_outliers():
 
 def _search_reference(proj, point_desc, frame, radius_px, scales, max_distance, ratio, exclude,
                       chi2):  # fmt: skip
-    """The projection search's rules, one pair at a time (see search_by_projection)."""
+    """The projection search's rules, one point at a time (see search_by_projection)."""
+    from coop_slam.vo.matching import tree_rank
+
+    rank = tree_rank(frame)
+    bits = np.unpackbits(point_desc[proj.index][:, None, :] ^ frame.descriptors[None], axis=2)
+    bits = bits.sum(axis=2)
+    ko = frame.octaves.astype(int)
+    stereo = np.isfinite(frame.u_right_px)
     choice = {}
     for m in range(len(proj.index)):
         o = proj.pred_octave[m]
-        cands = []
-        for k in range(len(frame)):
-            d2 = float(((frame.uv_px[k] - proj.uv_px[m]) ** 2).sum())
-            ko = int(frame.octaves[k])
-            if d2 > (radius_px * scales[o]) ** 2 or abs(ko - o) > 1 or exclude[k]:
-                continue
-            if chi2 is not None:
-                stereo = np.isfinite(frame.u_right_px[k])
-                if stereo:
-                    d2 += (proj.u_right_px[m] - frame.u_right_px[k]) ** 2
-                if d2 / scales[ko] ** 2 > (chi2 * 7.815 / 5.991 if stereo else chi2):
-                    continue
-            bits = np.unpackbits(point_desc[proj.index[m]] ^ frame.descriptors[k]).sum()
-            pixels = float(((frame.uv_px[k] - proj.uv_px[m]) ** 2).sum())
-            cands.append((int(bits), pixels, k))
-        cands.sort()
+        d2 = ((frame.uv_px - proj.uv_px[m]) ** 2).sum(axis=1)
+        ok = (np.sqrt(d2) <= radius_px * scales[o]) & (np.abs(ko - o) <= 1) & ~exclude
+        if chi2 is not None:
+            err2 = d2 + np.where(stereo, (proj.u_right_px[m] - frame.u_right_px) ** 2, 0.0)
+            ok &= err2 / scales[ko] ** 2 <= np.where(stereo, chi2 * 7.815 / 5.991, chi2)
+        cands = sorted((int(bits[m, k]), int(rank[k]), int(k)) for k in np.flatnonzero(ok))
         if not cands or cands[0][0] > max_distance:
             continue
         (d, _, k), second = cands[0], cands[1] if len(cands) > 1 else None
-        if second and frame.octaves[second[2]] == frame.octaves[k] and d > ratio * second[0]:
+        if second and ko[second[2]] == ko[k] and d > ratio * second[0]:
             continue
         if k not in choice or d < choice[k][0]:
             choice[k] = (d, m)
@@ -119,11 +116,10 @@ def _search_reference(proj, point_desc, frame, radius_px, scales, max_distance, 
 
 
 @pytest.mark.parametrize("chi2", [None, 5.991])
-def test_projection_search_follows_its_rules_pair_by_pair(chi2):
-    """The compiled search against its rules spelled out pair by pair: candidates within the
+def test_projection_search_follows_its_rules_point_by_point(chi2):
+    """The compiled search against its rules spelled out point by point: candidates within the
     octave-scaled radius at a neighbouring octave, the nearest descriptor, the ratio test at one
-    level, one point per keypoint (ties: the lower point); the depth gate when given. (Ties of a
-    point's best keypoints go to the KD tree's order, which this data does not have.)"""
+    level, one point per keypoint (ties: the lower point); the depth gate when given."""
     from coop_slam.vo.features import FrameFeatures
     from coop_slam.vo.matching import Projection, search_by_projection
 
@@ -156,35 +152,36 @@ def test_projection_search_follows_its_rules_pair_by_pair(chi2):
     assert sorted(zip(*(a.tolist() for a in got))) == want
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_projection_candidates_come_in_the_kd_trees_order(seed):
-    """The grid's candidate keypoints of each point are the KD tree's pair search's, in its order
-    (the order the search breaks descriptor ties by): per-point radii from 1 to 60 px, clustered
-    keypoints, duplicates and points off the image."""
-    from scipy.spatial import cKDTree
-
+@pytest.mark.parametrize("seed, ratio", [(0, 1.0), (1, 1.0), (2, 0.9)])
+def test_projection_search_breaks_ties_in_the_kd_trees_order(seed, ratio):
+    """Where descriptors tie (four distinct ones here), a point's best and second best keypoints
+    are the first of them in the KD tree's order (the order a KD-tree pair search gave them; the
+    second's level decides the ratio test): clustered keypoints, duplicates, points off the
+    image, search radii up to ~80 px."""
     from coop_slam.vo.features import FrameFeatures
-    from coop_slam.vo.matching import candidate_pairs
+    from coop_slam.vo.matching import Projection, search_by_projection
 
     rng = np.random.default_rng(seed)
-    n_kp, n_pt = 700, 500
+    n_kp, n_pt = 700, 400
+    scales = 1.2 ** np.arange(8)
     kp_uv = np.vstack([rng.uniform(0, [640, 480], (n_kp - 200, 2)), rng.normal(300, 8, (200, 2))])
     kp_uv[:20] = kp_uv[20:40]  # keypoints at one position
-    uv = np.vstack([rng.uniform(-20, [660, 500], (n_pt - 50, 2)), kp_uv[:50]])
-    radius = rng.uniform(1.0, 60.0, n_pt)
+    kinds = rng.integers(0, 256, (4, 32), dtype=np.uint8)
+    kp_desc = kinds[rng.integers(0, 4, n_kp)]
+    octaves = rng.integers(0, 8, n_kp).astype(np.uint8)
     frame = FrameFeatures(
-        kp_uv, np.ones(n_kp, np.float32), np.full(n_kp, -1, np.float32),
-        np.zeros(n_kp, np.uint8), np.zeros((n_kp, 32), np.uint8), np.ones(n_kp, np.float32),
-        np.zeros((n_kp, 3)), np.full(n_kp, np.nan),
+        kp_uv, np.ones(n_kp, np.float32), np.full(n_kp, -1, np.float32), octaves, kp_desc,
+        np.ones(n_kp, np.float32), np.zeros((n_kp, 3)), np.full(n_kp, np.nan),
     )  # fmt: skip
-    got = candidate_pairs(uv, radius, frame)
-    pairs = cKDTree(uv).sparse_distance_matrix(frame.tree(), radius.max(), output_type="ndarray")
-    pairs = pairs[pairs["v"] <= radius[pairs["i"]]]
-    pairs = pairs[np.argsort(pairs["i"], kind="stable")]  # by point, each in the tree's order
-    assert len(pairs) > 3000
-    np.testing.assert_array_equal(got[0], pairs["i"])
-    np.testing.assert_array_equal(got[1], pairs["j"])
-    np.testing.assert_allclose(got[2], pairs["v"], atol=1e-9)
+    uv = np.vstack([rng.uniform(-20, [660, 500], (n_pt - 50, 2)), kp_uv[:50]])
+    desc = kinds[rng.integers(0, 4, n_pt)]
+    desc[np.arange(n_pt), rng.integers(0, 32, n_pt)] ^= np.uint8(1)  # ties at a nonzero distance
+    proj = Projection(np.arange(n_pt), uv, uv[:, 0], np.ones(n_pt), rng.integers(0, 8, n_pt))
+    exclude = np.zeros(n_kp, bool)
+    got = search_by_projection(proj, desc, frame, 22.0, scales, 256, ratio, exclude)
+    want = _search_reference(proj, desc, frame, 22.0, scales, 256, ratio, exclude, None)
+    assert len(want) > 100
+    assert sorted(zip(*(a.tolist() for a in got))) == want
 
 
 def _ba_scene(rng, n_kf=5, n_pts=300):

@@ -1,10 +1,9 @@
 """Projection matching of map points to keypoints, and the pose-independent helpers it needs.
 
-The search (:func:`search_by_projection`): the candidate (point, keypoint) pairs within each
-point's search radius from a compiled grid of the keypoints (:func:`candidate_pairs`, in the
-frame's KD-tree order); the gates (octave window, Hamming distance, ratio test, depth consistency,
-one point per keypoint) in one compiled loop over those pairs; the rotation histogram in numpy on
-the matches.
+The search (:func:`search_by_projection`): one compiled pass over a grid of the keypoints finds
+each point's candidates within its search radius and applies the gates (octave window, Hamming
+distance, ratio test, depth consistency, one point per keypoint), ties broken in the frame's
+KD-tree order; the rotation histogram in numpy on the matches.
 """
 
 from __future__ import annotations
@@ -105,24 +104,20 @@ def search_by_projection(
     the keypoint's octave, exceeds it (a depth-consistency test used when fusing points).
 
     A point's candidates are the keypoints within ``radius_px`` times its predicted octave's
-    scale (:func:`candidate_pairs`), at that octave or one next to it; the nearest descriptor wins
-    (ties: the first candidate in the tree's order) if within ``max_distance`` and, against the
+    scale, at that octave or one next to it; the nearest descriptor wins (ties: the first
+    candidate in the tree's order, :func:`tree_rank`) if within ``max_distance`` and, against the
     second nearest at the same level, the ratio test; of the points that chose one keypoint, the
-    nearest descriptor (ties: the lower point). The gates are compiled (:func:`_gated_best`),
-    where numpy's sorts and masks cost 1 ms a call (issue #50).
+    nearest descriptor (ties: the lower point). Compiled (:func:`_search`): numpy's sorts and
+    masks cost 1 ms a call (issue #50).
     """
     empty = (np.zeros(0, int), np.zeros(0, int), np.zeros(0, np.int32))
     if len(proj.index) == 0 or len(frame) == 0:
         return empty
     radius = radius_px * scales[proj.pred_octave]
-    pair_i, pair_k, _ = candidate_pairs(proj.uv_px, radius, frame)
-    if len(pair_i) == 0:
-        return empty
     chi2 = -1.0 if chi2_gate is None else float(chi2_gate)
-    pi, kj, dist = _gated_best(
-        pair_i,
-        pair_k,
+    pi, kj, dist = _search(
         np.ascontiguousarray(proj.uv_px, dtype=float),
+        np.ascontiguousarray(radius, dtype=float),
         np.ascontiguousarray(proj.u_right_px, dtype=float),
         np.ascontiguousarray(proj.pred_octave, dtype=np.int64),
         as_descriptors(point_desc[proj.index], "points").view(np.uint64),
@@ -130,6 +125,7 @@ def search_by_projection(
         np.ascontiguousarray(frame.u_right_px, dtype=float),
         np.ascontiguousarray(frame.octaves, dtype=np.int64),
         as_descriptors(frame.descriptors, "keypoints").view(np.uint64),
+        tree_rank(frame),
         np.zeros(len(frame), np.bool_) if exclude_kp is None else np.asarray(exclude_kp, bool),
         np.ascontiguousarray(scales, dtype=float),
         int(max_distance),
@@ -142,33 +138,27 @@ def search_by_projection(
     return pi, kj, dist
 
 
-def candidate_pairs(
-    uv_px: np.ndarray, radius_px: np.ndarray, frame: FrameFeatures
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(point, keypoint, image distance) for every keypoint within each point's own radius: a
-    point's keypoints in the order of the frame's KD tree (``frame.tree().indices``), which is
-    the order a KD-tree pair search (``sparse_distance_matrix`` against that tree) gives them and
-    the order :func:`_gated_best` breaks descriptor ties by. From a grid of the keypoints,
-    compiled: the tree search ran at the largest radius of all (a top-octave point's, ~5x a
-    level-0 point's) and took a sixth of a frame's tracking (issue #50)."""
-    n_kp = len(frame)
-    rank = np.empty(n_kp, np.int64)
-    rank[frame.tree().indices] = np.arange(n_kp)
-    return _grid_pairs(
-        np.ascontiguousarray(uv_px, dtype=float),
-        np.ascontiguousarray(radius_px, dtype=float),
-        np.ascontiguousarray(frame.uv_px, dtype=float),
-        rank,
-    )
+def tree_rank(frame: FrameFeatures) -> np.ndarray:
+    """Each keypoint's place in the frame's KD-tree order (``frame.tree().indices``): the order a
+    KD-tree pair search gave a point's candidates, by which the search breaks descriptor ties."""
+    rank = np.empty(len(frame), np.int64)
+    rank[frame.tree().indices] = np.arange(len(frame))
+    return rank
 
 
 @njit(cache=True, nogil=True)
-def _grid_pairs(uv, radius, kp_uv, kp_rank):  # fmt: skip
-    """:func:`candidate_pairs`' pairs: keypoints bucketed on a square grid (cells of the median
-    radius), each point's cells scanned, its keypoints ordered by ``kp_rank``."""
+def _search(
+    uv, radius, u_right, octave, desc, kp_uv, kp_u_right, kp_octave, kp_desc, kp_rank, exclude,
+    scales, max_distance, ratio, chi2,
+):  # fmt: skip
+    """:func:`search_by_projection`'s matches. Keypoints bucketed on a square grid (cells of the
+    median radius); each point scans its cells for the keypoints within its radius that pass the
+    gates, keeping the two of least (descriptor distance, tree rank): the best and second best of
+    its candidates taken in the tree's order with ties to the first (on rendered worlds many
+    keypoints tie, and which of them a monocular map takes changed its scale by 5 %). One pass, no
+    candidate list: listing and ordering the candidates took a sixth of a frame's tracking (issue
+    #50). chi2 < 0: no reprojection gate."""
     n_pt, n_kp = uv.shape[0], kp_uv.shape[0]
-    if n_pt == 0 or n_kp == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     u0, v0 = kp_uv[:, 0].min(), kp_uv[:, 1].min()
     span_u, span_v = kp_uv[:, 0].max() - u0, kp_uv[:, 1].max() - v0
     # Cells of the median radius, but never more cells than ~4 per keypoint (tiny radii).
@@ -188,102 +178,50 @@ def _grid_pairs(uv, radius, kp_uv, kp_rank):  # fmt: skip
     for k in range(n_kp):
         items[fill[cell_of[k]]] = k
         fill[cell_of[k]] += 1
-    cap = 4 * n_kp + 64
-    out_i = np.empty(cap, np.int64)
-    out_k = np.empty(cap, np.int64)
-    out_d = np.empty(cap)
-    n = 0
-    found_k = np.empty(n_kp, np.int64)
-    found_d = np.empty(n_kp)
+    big = 1 << 30
+    owner = np.full(n_kp, -1, np.int64)  # the point each keypoint went to, and its distance
+    owner_d = np.full(n_kp, big, np.int64)
     for m in range(n_pt):
-        r = radius[m]
+        r, o = radius[m], octave[m]
+        best_d, best_k, second_d, second_k = big, -1, big, -1
         cu0 = max(int(np.floor((uv[m, 0] - r - u0) / cell)), 0)
         cu1 = min(int(np.floor((uv[m, 0] + r - u0) / cell)), nu - 1)
         cv0 = max(int(np.floor((uv[m, 1] - r - v0) / cell)), 0)
         cv1 = min(int(np.floor((uv[m, 1] + r - v0) / cell)), nv - 1)
-        f = 0
         for cv in range(cv0, cv1 + 1):
             for cu in range(cu0, cu1 + 1):
                 c = cv * nu + cu
                 for q in range(start[c], start[c + 1]):
                     k = items[q]
+                    if kp_octave[k] < o - 1 or kp_octave[k] > o + 1 or exclude[k]:
+                        continue
                     du, dv = uv[m, 0] - kp_uv[k, 0], uv[m, 1] - kp_uv[k, 1]
-                    d = np.sqrt(du * du + dv * dv)
-                    if d <= r:
-                        # insertion by rank: a point has a few to a few dozen keypoints
-                        j = f
-                        while j > 0 and kp_rank[found_k[j - 1]] > kp_rank[k]:
-                            found_k[j], found_d[j] = found_k[j - 1], found_d[j - 1]
-                            j -= 1
-                        found_k[j], found_d[j] = k, d
-                        f += 1
-        if n + f > cap:
-            cap = 2 * (n + f)
-            out_i = _grown(out_i, cap)
-            out_k = _grown(out_k, cap)
-            out_d = _grown(out_d, cap)
-        for j in range(f):
-            out_i[n], out_k[n], out_d[n] = m, found_k[j], found_d[j]
-            n += 1
-    return out_i[:n], out_k[:n], out_d[:n]
-
-
-@njit(cache=True, nogil=True)
-def _grown(a, cap):
-    b = np.empty(cap, a.dtype)
-    b[: len(a)] = a
-    return b
-
-
-@njit(cache=True, nogil=True)
-def _gated_best(
-    pair_i, pair_k, uv, u_right, octave, desc, kp_uv, kp_u_right, kp_octave, kp_desc, exclude,
-    scales, max_distance, ratio, chi2,
-):  # fmt: skip
-    """:func:`search_by_projection`'s matches from the candidate pairs (point, keypoint; each
-    within the point's radius), taken in the tree's order: a point's best and second best are
-    the first pairs of least descriptor distance, as numpy's stable sort kept them (on rendered
-    worlds many keypoints tie, and which of them a monocular map takes changed its scale by
-    5 %). chi2 < 0: no reprojection gate."""
-    n_pt, n_kp = uv.shape[0], kp_uv.shape[0]
-    big = 1 << 30
-    best_d = np.full(n_pt, big, np.int64)
-    best_k = np.full(n_pt, -1, np.int64)
-    second_d = np.full(n_pt, big, np.int64)
-    second_k = np.full(n_pt, -1, np.int64)
-    for q in range(len(pair_i)):
-        m, k = pair_i[q], pair_k[q]
-        o = octave[m]
-        if kp_octave[k] < o - 1 or kp_octave[k] > o + 1 or exclude[k]:
-            continue
-        if chi2 >= 0.0:
-            du, dv = uv[m, 0] - kp_uv[k, 0], uv[m, 1] - kp_uv[k, 1]
-            err2, gate = du * du + dv * dv, chi2
-            if np.isfinite(kp_u_right[k]):
-                dr = u_right[m] - kp_u_right[k]
-                err2 += dr * dr
-                gate = chi2 * 7.815 / 5.991
-            if err2 / scales[kp_octave[k]] ** 2 > gate:
-                continue
-        d = hamming(desc[m], kp_desc[k])
-        if d < best_d[m]:
-            second_d[m], second_k[m] = best_d[m], best_k[m]
-            best_d[m], best_k[m] = d, k
-        elif d < second_d[m]:
-            second_d[m], second_k[m] = d, k
-    owner = np.full(n_kp, -1, np.int64)  # the point each keypoint went to, and its distance
-    owner_d = np.full(n_kp, big, np.int64)
-    for m in range(n_pt):
-        k = best_k[m]
-        if k < 0 or best_d[m] > max_distance:
+                    if np.sqrt(du * du + dv * dv) > r:
+                        continue
+                    if chi2 >= 0.0:
+                        err2, gate = du * du + dv * dv, chi2
+                        if np.isfinite(kp_u_right[k]):
+                            dr = u_right[m] - kp_u_right[k]
+                            err2 += dr * dr
+                            gate = chi2 * 7.815 / 5.991
+                        if err2 / scales[kp_octave[k]] ** 2 > gate:
+                            continue
+                    d = hamming(desc[m], kp_desc[k])
+                    if d < best_d or (d == best_d and kp_rank[k] < kp_rank[best_k]):
+                        second_d, second_k = best_d, best_k
+                        best_d, best_k = d, k
+                    elif d < second_d or (d == second_d and kp_rank[k] < kp_rank[second_k]):
+                        second_d, second_k = d, k
+        k = best_k
+        if k < 0 or best_d > max_distance:
             continue
         # Ratio test only against a keypoint of the same level, as ORB-SLAM (other levels are
         # other scales).
-        s = second_k[m]
-        if s >= 0 and kp_octave[s] == kp_octave[k] and best_d[m] > ratio * second_d[m]:
+        s = second_k
+        if s >= 0 and kp_octave[s] == kp_octave[k] and best_d > ratio * second_d:
             continue
-        if best_d[m] < owner_d[k]:  # one point per keypoint: the nearest descriptor
-            owner[k], owner_d[k] = m, best_d[m]
+        if best_d < owner_d[k]:  # one point per keypoint: the nearest descriptor
+            owner[k], owner_d[k] = m, best_d
     kj = np.flatnonzero(owner >= 0)
     return owner[kj], kj, owner_d[kj].astype(np.int32)
 

@@ -6,8 +6,8 @@ first estimate."""
 
 from __future__ import annotations
 
-from collections import Counter
 from dataclasses import dataclass
+from itertools import chain
 
 import numpy as np
 
@@ -68,15 +68,17 @@ class LocalMapTracker:
                 else seed_point_ids
             )
             obs = pts.obs
-            counts = Counter([k for p in seed.tolist() for k in obs[p]])
-            if not counts:
+            sharing = np.fromiter(chain.from_iterable([obs[p] for p in seed.tolist()]), np.int64)
+            if len(sharing) == 0:
                 fallback = (
                     ref_kf_id if ref_kf_id in vmap.keyframes else max(vmap.keyframes, default=0)
                 )
                 if fallback == 0:
                     return None
-                counts[fallback] = 1
-            ranked = [k for k, _ in counts.most_common()]
+                sharing = np.array([fallback], np.int64)
+            # By points shared, ties to the keyframe met first (as Counter.most_common ranks).
+            kf_ids, first, counts = np.unique(sharing, return_index=True, return_counts=True)
+            ranked = kf_ids[np.lexsort((first, -counts))].tolist()
             ref = ranked[0]
             local = ranked[: cfg.tracking.local_keyframes]
             chosen = set(local)
@@ -89,10 +91,12 @@ class LocalMapTracker:
                         local.append(c)
                         if len(local) >= cfg.tracking.local_keyframes:
                             break
-            ids = np.unique(
-                np.concatenate([vmap.keyframes[k].map_point_ids for k in local]).astype(np.int64)
-            )
-            ids = ids[(ids > 0) & pts.is_alive(ids)]
+            # A mask over the point store rather than np.unique's sort of ~10^4 ids.
+            member = np.zeros(pts.next_id, bool)
+            for k in local:
+                member[vmap.keyframes[k].map_point_ids] = True
+            member[0] = False
+            ids = np.flatnonzero(member & pts.alive[: pts.next_id])
             return LocalMap(
                 ref,
                 ids,
