@@ -86,6 +86,43 @@ def test_pose_optimization_recovers_pose_and_rejects_outliers():
     assert not inlier[:40].any() and inlier[40:].mean() > 0.9
 
 
+def test_projection_keeps_points_in_view_at_their_predicted_level():
+    """project_points against ORB-SLAM's isInFrustum written out: in front, on the image, within
+    0.8 x the nearest and 1.2 x the farthest distance the point can be seen at, at most 60 deg
+    off its normal; the level from the distance."""
+    from coop_slam.vo.matching import project_points
+
+    rng = np.random.default_rng(5)
+    n = 4000
+    scales = 1.2 ** np.arange(8)
+    T_cam_map = se3(Rotation.from_euler("xyz", [5, -10, 3], degrees=True).as_matrix(), [0.2, 0, 1])
+    points = rng.uniform([-4, -3, -2], [4, 3, 8], (n, 3))
+    normals = rng.normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    max_dist = rng.uniform(0.5, 12.0, n)
+    got = project_points(T_cam_map, points, K, 40.0, (640, 480), scales, max_dist, normals)
+
+    points_cam = points @ T_cam_map[:3, :3].T + T_cam_map[:3, 3]
+    z = points_cam[:, 2]
+    uv = points_cam[:, :2] / z[:, None] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    ray = points - invert(T_cam_map)[:3, 3]
+    dist = np.linalg.norm(ray, axis=1)
+    cos = (ray * normals).sum(axis=1) / dist
+    in_view = (z > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480)
+    keep = in_view & (dist >= 0.8 * max_dist / scales[-1]) & (dist <= 1.2 * max_dist) & (cos >= 0.5)
+    level = np.clip(np.ceil(np.log(max_dist / dist) / np.log(1.2)), 0, 7).astype(int)
+    assert 200 < keep.sum() < in_view.sum() - 200
+    np.testing.assert_array_equal(got.index, np.flatnonzero(keep))
+    np.testing.assert_allclose(got.uv_px, uv[keep], atol=1e-9)
+    np.testing.assert_allclose(got.depth_m, z[keep], atol=1e-12)
+    np.testing.assert_allclose(got.u_right_px, uv[keep, 0] - 40.0 / z[keep], atol=1e-9)
+    np.testing.assert_array_equal(got.pred_octave, level[keep])
+    assert len(set(level[keep])) == 8
+    plain = project_points(T_cam_map, points, K, 40.0, (640, 480), scales)  # frustum only
+    np.testing.assert_array_equal(plain.index, np.flatnonzero(in_view))
+    assert not plain.pred_octave.any()
+
+
 def _search_reference(proj, point_desc, frame, radius_px, scales, max_distance, ratio, exclude,
                       chi2):  # fmt: skip
     """The projection search's rules, one point at a time (see search_by_projection)."""
