@@ -425,7 +425,8 @@ def test_threaded_mapping_tracks_and_stops(room_sequence):
 
 def test_a_prestarted_ba_process_is_the_one_the_next_odometry_uses(room_sequence):
     """A node starts the local BA's process before its camera's first frame; the odometry made
-    then takes that process (and runs its BA there), the next one starts its own."""
+    then takes that process (and runs its BA there, vo.ba.worker_nice nicer than itself), the next
+    one starts its own."""
     from coop_slam.optim import bundle
 
     stamps, frames, _ = room_sequence
@@ -434,6 +435,8 @@ def test_a_prestarted_ba_process_is_the_one_the_next_odometry_uses(room_sequence
     try:
         with VisualOdometry(VoConfig(threaded=True), helpers_vo.CAMERA) as vo:
             assert vo._mapper._worker is prestarted and not bundle._PRESTARTED
+            nice = os.getpriority(os.PRIO_PROCESS, prestarted._proc.pid)
+            assert nice == min(os.getpriority(os.PRIO_PROCESS, 0) + VoConfig().ba.worker_nice, 19)
             _track_all(vo, stamps[:12], frames[:12])
             vo.flush()
             assert vo.mapping_stats["ba_runs"] >= 1 and prestarted._proc.poll() is None

@@ -287,6 +287,9 @@ class LocalBaConfig:
     iterations: int = 5  # Levenberg-Marquardt iterations per local BA
     huber_mono: float = 2.447  # Huber threshold of (u, v) factors [whitened px], sqrt(5.991)
     huber_stereo: float = 2.796  # Huber threshold of (u, v, u_right) factors, sqrt(7.815)
+    # How much nicer (Linux nice, 0..19) the BA's process runs than the odometry: where both want
+    # a core, tracking gets it; 0 = the same priority (docs/tuning.md).
+    worker_nice: int = 10
 
     def validate(self) -> None:
         require(
@@ -294,6 +297,7 @@ class LocalBaConfig:
             "vo.ba needs a window and iterations (vo.ba.window, vo.ba.iterations >= 1)",
         )
         require(self.max_fixed >= 0, "vo.ba.max_fixed must be >= 0")
+        require(0 <= self.worker_nice <= 19, "vo.ba.worker_nice must be in 0..19")
 
 
 @dataclass

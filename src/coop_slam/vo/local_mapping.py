@@ -102,6 +102,7 @@ class LocalMapper:
             if config.ba.enabled:
                 try:
                     self._worker = take_worker()
+                    self._worker.lower_priority(config.ba.worker_nice)
                 except OSError as exc:
                     log.warning(
                         "local BA worker process unavailable (%s); BA runs in the thread", exc
