@@ -760,7 +760,7 @@ def test_orb_keypoints_sit_where_the_pyramid_found_them():
 def test_orb_levels_extracted_in_two_threads_are_opencvs_whole_pyramid_orb(
     n_detect, split_levels, shape
 ):
-    """Each level detected and described by its own one-level ORB (half of them in a worker
+    """Each level detected and described by its own one-level ORB (levels shared with a worker
     thread) finds exactly the keypoints and descriptors one OpenCV ORB over the pyramid finds,
     then bucketed as before: positions, sizes, angles, levels, bits, in OpenCV's order."""
     import cv2
@@ -791,6 +791,42 @@ def test_orb_levels_extracted_in_two_threads_are_opencvs_whole_pyramid_orb(
     assert np.array_equal(got.descriptors, desc)
     if n_detect == 2500:
         assert set(octaves) == set(range(f.n_levels))
+
+
+def test_a_failed_pyramid_leaves_the_level_worker_free(monkeypatch):
+    """The worker starts on level 0 while the caller builds the pyramid; when building fails,
+    the error reaches the caller and the worker does not wait for levels that never come."""
+    from coop_slam.vo import features
+
+    gray = (np.random.default_rng(2).random((480, 640)) * 255).astype(np.uint8)
+    extractor = OrbExtractor(VoConfig(), helpers_vo.CAMERA, split_levels=True)
+    want = extractor.extract(gray)
+
+    def broken(*args):
+        time.sleep(0.3)  # the worker has taken level 0 by now, and will want level 1
+        raise MemoryError("no room for the pyramid")
+
+    monkeypatch.setattr(features, "level_images", broken)
+    errors = []
+
+    def extract():
+        try:
+            extractor.extract(gray)
+        except MemoryError as exc:
+            errors.append(exc)
+
+    caller = threading.Thread(target=extract, daemon=True)
+    caller.start()
+    caller.join(timeout=10)
+    assert not caller.is_alive(), "the caller hangs waiting for the worker"
+    assert len(errors) == 1 and "pyramid" in str(errors[0])
+    monkeypatch.undo()
+    worker = features._level_worker().submit(lambda: "free")
+    assert worker.result(timeout=10) == "free"
+    got = extractor.extract(gray)
+    assert np.array_equal(got.uv_px, want.uv_px) and np.array_equal(
+        got.descriptors, want.descriptors
+    )
 
 
 def _same_keypoints(a, b) -> bool:

@@ -161,18 +161,24 @@ def _orb_level_split(n_detect: int, scale_factor: float, n_levels: int) -> list[
     return per_level
 
 
-def _two_groups(scales: np.ndarray) -> tuple[list[int], list[int]]:
-    """The pyramid levels in two groups of about equal area (largest first, each to the lighter)."""
-    groups, area = ([], []), [0.0, 0.0]
-    for level in np.argsort(-(1.0 / scales**2), kind="stable"):
-        lighter = int(area[1] < area[0])
-        groups[lighter].append(int(level))
-        area[lighter] += 1.0 / scales[level] ** 2
-    return sorted(groups[0]), sorted(groups[1])
+class _LevelQueue:
+    """Pyramid levels handed out one at a time to whichever thread asks first."""
+
+    def __init__(self, n_levels: int):
+        self._next = 0
+        self._n = n_levels
+        self._lock = threading.Lock()
+
+    def take(self) -> int | None:
+        with self._lock:
+            if self._next == self._n:
+                return None
+            self._next += 1
+            return self._next - 1
 
 
-# One worker per process takes half of every image's levels while the caller does the other half
-# (OpenCV runs without Python's lock); shared by all extractors, made on first use.
+# One worker per process takes levels of every image while the caller takes others (OpenCV runs
+# without Python's lock); shared by all extractors, made on first use.
 _LEVEL_WORKER: list = []
 _LEVEL_WORKER_LOCK = threading.Lock()
 
@@ -186,10 +192,11 @@ def _level_worker() -> ThreadPoolExecutor:
 
 class OrbExtractor:
     """Grid-bucketed ORB extraction (see module docstring). Each pyramid level is detected and
-    described by its own one-level OpenCV ORB, half of the levels in a worker thread: the same
-    keypoints and descriptors as one OpenCV ORB over the whole pyramid (without the first FAST
-    pass), in about 60 % of the time on two cores. ``split_levels=False``: all levels in the
-    caller's thread.
+    described by its own one-level OpenCV ORB, the levels shared between the caller and a worker
+    thread (largest first, each to whichever is free; the worker starts on level 0 while the
+    caller builds the rest of the pyramid): the same keypoints and descriptors as one OpenCV ORB
+    over the whole pyramid (without the first FAST pass). ``split_levels=False``: all levels in
+    the caller's thread.
     """
 
     def __init__(self, config: VoConfig, camera: CameraModel, split_levels: bool = True):
@@ -205,7 +212,6 @@ class OrbExtractor:
         )
         self._wanted = per_level
         self._scales = level_scales(config)
-        self._groups = _two_groups(self._scales)
         self._split_levels = split_levels
 
     def _orb(self, n: int, threshold: int):
@@ -224,8 +230,23 @@ class OrbExtractor:
 
     def extract_with_levels(self, gray: np.ndarray) -> tuple[OrbKeypoints, list[np.ndarray]]:
         """The image's keypoints and its pyramid (level images, as :func:`level_images`)."""
-        levels = level_images(gray, self._scales32)
-        found = self._on_levels(self._detect, levels)
+        levels = [gray]
+        pyramid = threading.Event()
+
+        def build_pyramid() -> None:
+            try:
+                levels.extend(level_images(gray, self._scales32)[1:])
+            finally:
+                pyramid.set()  # also when it failed: a worker waiting for it must not hang
+
+        def detect(lv: int):
+            if lv:
+                pyramid.wait()
+            if lv >= len(levels) or not self._wanted[lv]:
+                return ()
+            return self._detect_level(levels[lv], lv)
+
+        found = self._on_levels(detect, build_pyramid)
         tables = [self._level_table(found[lv], lv, "response") for lv in range(len(levels))]
         table = np.vstack(tables)
         if len(table) == 0:
@@ -238,7 +259,7 @@ class OrbExtractor:
             ]
             for lv in range(len(levels))
         }
-        described = self._on_levels(self._describe, levels, chosen)
+        described = self._on_levels(lambda lv: self._describe(levels[lv], lv, chosen[lv]))
         kept = [(lv, *described[lv]) for lv in range(len(levels)) if described[lv][0]]
         if not kept:
             return self._empty(), levels
@@ -254,19 +275,31 @@ class OrbExtractor:
         )
         return keypoints, levels
 
-    def _on_levels(self, work, levels, *args) -> dict:
-        """work(levels, group, *args) for both groups of levels, one in the worker thread -- unless
-        the worker has not started on it when the caller's group is done (the other core busy,
-        e.g. with local mapping): then the caller does it too, rather than wait."""
-        if not self._split_levels:
-            return work(levels, sorted(self._groups[0] + self._groups[1]), *args)
-        other = _level_worker().submit(work, levels, self._groups[1], *args)
-        done = work(levels, self._groups[0], *args)
-        done.update(work(levels, self._groups[1], *args) if other.cancel() else other.result())
-        return done
+    def _on_levels(self, work, prepare=None) -> dict:
+        """{level: work(level)} for every level, largest first, each taken by the caller or the
+        worker thread, whichever is free first: when the other core is busy (local mapping, the
+        other image of a stereo pair) the caller does them all rather than wait. ``prepare()``
+        runs in the caller first, while the worker may already take level 0."""
+        queue, done = _LevelQueue(len(self._wanted)), {}
 
-    def _detect(self, levels, group) -> dict:
-        return {lv: self._detect_level(levels[lv], lv) if self._wanted[lv] else () for lv in group}
+        def drain() -> None:
+            while (lv := queue.take()) is not None:
+                done[lv] = work(lv)
+
+        if not self._split_levels:
+            if prepare is not None:
+                prepare()
+            drain()
+            return done
+        other = _level_worker().submit(drain)
+        try:
+            if prepare is not None:
+                prepare()
+            drain()
+        finally:
+            if not other.cancel():
+                other.result()
+        return done
 
     def _detect_level(self, image: np.ndarray, level: int):
         """The level's keypoints: at the first threshold when it finds as many as the level wants,
@@ -277,15 +310,12 @@ class OrbExtractor:
                 return kps
         return self._orbs[level].detect(image, None)
 
-    def _describe(self, levels, group, chosen) -> dict:
-        out = {}
-        for lv in group:
-            if not chosen[lv]:
-                out[lv] = ((), None)
-                continue
-            kps, desc = self._orbs[lv].compute(levels[lv], chosen[lv])
-            out[lv] = (kps, desc) if desc is not None and kps else ((), None)
-        return out
+    def _describe(self, image: np.ndarray, level: int, chosen: list):
+        """The chosen keypoints of one level and their descriptors (((), None): none)."""
+        if not chosen:
+            return (), None
+        kps, desc = self._orbs[level].compute(image, chosen)
+        return (kps, desc) if desc is not None and kps else ((), None)
 
     def _level_table(self, kps, level: int, name: str) -> np.ndarray:
         """(N, 4): u, v (level 0, as OpenCV's ORB reports them), the named attribute, level."""
