@@ -829,6 +829,30 @@ def test_a_failed_pyramid_leaves_the_level_worker_free(monkeypatch):
     )
 
 
+def test_a_thread_waiting_for_an_extraction_works_on_its_levels(monkeypatch):
+    """The stereo caller, done with the left image, takes levels of the right image's extraction
+    (running in another thread) rather than wait: the same keypoints as one thread alone."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    gray = (np.random.default_rng(4).random((480, 640)) * 255).astype(np.uint8)
+    extractor = OrbExtractor(VoConfig(), helpers_vo.CAMERA, split_levels=False)
+    want = extractor.extract(gray)
+    detect, threads = extractor._detect_level, []
+
+    def slow_detect(image, level):
+        threads.append(threading.get_ident())
+        time.sleep(0.02)  # every level long enough for the helper to take some
+        return detect(image, level)
+
+    monkeypatch.setattr(extractor, "_detect_level", slow_detect)
+    with ThreadPoolExecutor(1) as pool:
+        got, _ = extractor.help_until(pool.submit(extractor.extract_with_levels, gray))
+        assert extractor.help_until(pool.submit(lambda: "done")) == "done"  # nothing to take
+    assert threading.get_ident() in threads and len(set(threads)) == 2
+    for name in ("uv_px", "angle_deg", "octaves", "descriptors"):
+        assert np.array_equal(getattr(got, name), getattr(want, name))
+
+
 def _same_keypoints(a, b) -> bool:
     """The same keypoints (position, size, angle, level, bits), in any order (OpenCV's selection
     of a level's best reorders them by what else it was given)."""

@@ -23,7 +23,7 @@ between n and 2n strong corners keeps those, not weaker ones that would win on H
 from __future__ import annotations
 
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -161,20 +161,48 @@ def _orb_level_split(n_detect: int, scale_factor: float, n_levels: int) -> list[
     return per_level
 
 
-class _LevelQueue:
-    """Pyramid levels handed out one at a time to whichever thread asks first."""
+class _LevelJob:
+    """One step (detection or description) of one image: its levels handed out one at a time,
+    largest first, to whichever thread asks (:meth:`drain`); the owner's :meth:`join` returns
+    {level: result} once every level is done, raising the first error any thread met."""
 
-    def __init__(self, n_levels: int):
-        self._next = 0
+    def __init__(self, work, n_levels: int):
+        self._work = work
         self._n = n_levels
-        self._lock = threading.Lock()
+        self._next = 0
+        self._busy = 0
+        self._cond = threading.Condition()
+        self._done: dict = {}
+        self._error: BaseException | None = None
 
-    def take(self) -> int | None:
-        with self._lock:
-            if self._next == self._n:
-                return None
-            self._next += 1
-            return self._next - 1
+    @property
+    def exhausted(self) -> bool:
+        return self._next == self._n
+
+    def drain(self) -> None:
+        while True:
+            with self._cond:
+                if self._next == self._n:
+                    return
+                level = self._next
+                self._next += 1
+                self._busy += 1
+            try:
+                self._done[level] = self._work(level)
+            except BaseException as exc:  # noqa: B036  (re-raised in the owner's join)
+                self._error = self._error or exc
+            finally:
+                with self._cond:
+                    self._busy -= 1
+                    self._cond.notify_all()
+
+    def join(self) -> dict:
+        self.drain()
+        with self._cond:
+            self._cond.wait_for(lambda: self._busy == 0)
+        if self._error is not None:
+            raise self._error
+        return self._done
 
 
 # One worker per process takes levels of every image while the caller takes others (OpenCV runs
@@ -213,6 +241,8 @@ class OrbExtractor:
         self._wanted = per_level
         self._scales = level_scales(config)
         self._split_levels = split_levels
+        self._job: _LevelJob | None = None  # the levels being worked on, for helpers
+        self._helpers = threading.Condition()
 
     def _orb(self, n: int, threshold: int):
         feats = self.config.features
@@ -276,30 +306,45 @@ class OrbExtractor:
         return keypoints, levels
 
     def _on_levels(self, work, prepare=None) -> dict:
-        """{level: work(level)} for every level, largest first, each taken by the caller or the
-        worker thread, whichever is free first: when the other core is busy (local mapping, the
-        other image of a stereo pair) the caller does them all rather than wait. ``prepare()``
-        runs in the caller first, while the worker may already take level 0."""
-        queue, done = _LevelQueue(len(self._wanted)), {}
-
-        def drain() -> None:
-            while (lv := queue.take()) is not None:
-                done[lv] = work(lv)
-
-        if not self._split_levels:
-            if prepare is not None:
-                prepare()
-            drain()
-            return done
-        other = _level_worker().submit(drain)
+        """{level: work(level)} for every level, largest first, each taken by the caller or a
+        helper -- the worker thread (``split_levels``), a thread in :meth:`help_until` --
+        whichever is free first: when the other core is busy (local mapping, the other image of
+        a stereo pair) the caller does them all rather than wait. ``prepare()`` runs in the
+        caller first, while a helper may already take level 0."""
+        job = _LevelJob(work, len(self._wanted))
+        with self._helpers:
+            self._job = job
+            self._helpers.notify_all()
         try:
+            if self._split_levels:
+                _level_worker().submit(job.drain)
             if prepare is not None:
                 prepare()
-            drain()
+            return job.join()
         finally:
-            if not other.cancel():
-                other.result()
-        return done
+            with self._helpers:
+                self._job = None
+
+    def help_until(self, extraction: Future):
+        """Work on this extractor's levels from another thread until ``extraction`` (running
+        :meth:`extract_with_levels` elsewhere) is done; its result. A stereo pair's left image
+        is extracted in the caller while the right is in a thread: the caller, done first,
+        takes the right's levels rather than wait."""
+
+        def wake(_) -> None:
+            with self._helpers:
+                self._helpers.notify_all()
+
+        extraction.add_done_callback(wake)
+        while True:
+            with self._helpers:
+                self._helpers.wait_for(
+                    lambda: extraction.done() or (self._job is not None and not self._job.exhausted)
+                )
+                job = None if extraction.done() else self._job
+            if job is None:
+                return extraction.result()
+            job.drain()
 
     def _detect_level(self, image: np.ndarray, level: int):
         """The level's keypoints: at the first threshold when it finds as many as the level wants,

@@ -263,7 +263,7 @@ class StereoSensor(Sensor):
         ``close_depth_m``, nor without a match)."""
         pending, self._right_pending = self._right_pending, None
         if pending is not None and pending[0] is right:
-            right_kps, right_levels = pending[1].result()
+            right_kps, right_levels = self._right_extractor.help_until(pending[1])
         else:  # (not begun: made here)
             right_kps, right_levels = self._right_features(right)
         u_right = match_stereo(
