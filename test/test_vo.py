@@ -36,6 +36,7 @@ from coop_slam.vo import (
 )
 from coop_slam.vo.features import OrbExtractor, level_images, orb_level0_uv
 from coop_slam.vo.pose_opt import optimize_pose
+from coop_slam.vo.shared_work import shared_worker
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 REDKITCHEN = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "redkitchen_0000_0599"))
@@ -821,7 +822,7 @@ def test_a_failed_pyramid_leaves_the_level_worker_free(monkeypatch):
     assert not caller.is_alive(), "the caller hangs waiting for the worker"
     assert len(errors) == 1 and "pyramid" in str(errors[0])
     monkeypatch.undo()
-    worker = features._level_worker().submit(lambda: "free")
+    worker = shared_worker().submit(lambda: "free")
     assert worker.result(timeout=10) == "free"
     got = extractor.extract(gray)
     assert np.array_equal(got.uv_px, want.uv_px) and np.array_equal(

@@ -23,7 +23,7 @@ between n and 2n strong corners keeps those, not weaker ones that would win on H
 from __future__ import annotations
 
 import threading
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import cv2
@@ -31,6 +31,7 @@ import numpy as np
 
 from ..camera import CameraModel
 from .config import VoConfig
+from .shared_work import SharedJob, shared_worker
 
 _PATCH_PX = 31  # ORB's descriptor patch
 
@@ -161,63 +162,6 @@ def _orb_level_split(n_detect: int, scale_factor: float, n_levels: int) -> list[
     return per_level
 
 
-class _LevelJob:
-    """One step (detection or description) of one image: its levels handed out one at a time,
-    largest first, to whichever thread asks (:meth:`drain`); the owner's :meth:`join` returns
-    {level: result} once every level is done, raising the first error any thread met."""
-
-    def __init__(self, work, n_levels: int):
-        self._work = work
-        self._n = n_levels
-        self._next = 0
-        self._busy = 0
-        self._cond = threading.Condition()
-        self._done: dict = {}
-        self._error: BaseException | None = None
-
-    @property
-    def exhausted(self) -> bool:
-        return self._next == self._n
-
-    def drain(self) -> None:
-        while True:
-            with self._cond:
-                if self._next == self._n:
-                    return
-                level = self._next
-                self._next += 1
-                self._busy += 1
-            try:
-                self._done[level] = self._work(level)
-            except BaseException as exc:  # noqa: B036  (re-raised in the owner's join)
-                self._error = self._error or exc
-            finally:
-                with self._cond:
-                    self._busy -= 1
-                    self._cond.notify_all()
-
-    def join(self) -> dict:
-        self.drain()
-        with self._cond:
-            self._cond.wait_for(lambda: self._busy == 0)
-        if self._error is not None:
-            raise self._error
-        return self._done
-
-
-# One worker per process takes levels of every image while the caller takes others (OpenCV runs
-# without Python's lock); shared by all extractors, made on first use.
-_LEVEL_WORKER: list = []
-_LEVEL_WORKER_LOCK = threading.Lock()
-
-
-def _level_worker() -> ThreadPoolExecutor:
-    with _LEVEL_WORKER_LOCK:
-        if not _LEVEL_WORKER:
-            _LEVEL_WORKER.append(ThreadPoolExecutor(1, thread_name_prefix="orb_levels"))
-        return _LEVEL_WORKER[0]
-
-
 class OrbExtractor:
     """Grid-bucketed ORB extraction (see module docstring). Each pyramid level is detected and
     described by its own one-level OpenCV ORB, the levels shared between the caller and a worker
@@ -241,7 +185,7 @@ class OrbExtractor:
         self._wanted = per_level
         self._scales = level_scales(config)
         self._split_levels = split_levels
-        self._job: _LevelJob | None = None  # the levels being worked on, for helpers
+        self._job: SharedJob | None = None  # the levels being worked on, for helpers
         self._helpers = threading.Condition()
 
     def _orb(self, n: int, threshold: int):
@@ -311,13 +255,13 @@ class OrbExtractor:
         whichever is free first: when the other core is busy (local mapping, the other image of
         a stereo pair) the caller does them all rather than wait. ``prepare()`` runs in the
         caller first, while a helper may already take level 0."""
-        job = _LevelJob(work, len(self._wanted))
+        job = SharedJob(work, len(self._wanted))
         with self._helpers:
             self._job = job
             self._helpers.notify_all()
         try:
             if self._split_levels:
-                _level_worker().submit(job.drain)
+                shared_worker().submit(job.drain)
             if prepare is not None:
                 prepare()
             return job.join()
