@@ -18,6 +18,7 @@ from .map import Map
 from .matching import project_points, search_by_projection
 from .pose_opt import optimize_pose
 from .sensor import Sensor
+from .shared_work import shared_worker
 
 
 @dataclass
@@ -118,7 +119,12 @@ class LocalMapTracker:
         """The frame's pose from the local map around the seed points, starting from the
         predicted pose; None when too few points track."""
         cfg = self.config
+        # The search's KD tree is built in the worker thread (without Python's lock) while this
+        # one gathers the local map.
+        tree = shared_worker().submit(feats.tree)
         local = self.local_map(vmap, np.asarray(seed_point_ids, dtype=np.int64), ref_kf_id)
+        if not tree.cancel():
+            tree.result()
         if local is None or len(feats) == 0:
             return None
         ids, xyz = local.ids, local.xyz
