@@ -196,8 +196,10 @@ def test_projection_search_breaks_ties_in_the_kd_trees_order(seed, ratio):
     are the first of them in the KD tree's order (the order a KD-tree pair search gave them; the
     second's level decides the ratio test): clustered keypoints, duplicates, points off the
     image, search radii up to ~80 px."""
+    from scipy.spatial import cKDTree
+
     from coop_slam.vo.features import FrameFeatures
-    from coop_slam.vo.matching import Projection, search_by_projection
+    from coop_slam.vo.matching import Projection, search_by_projection, tree_rank
 
     rng = np.random.default_rng(seed)
     n_kp, n_pt = 700, 400
@@ -220,6 +222,12 @@ def test_projection_search_breaks_ties_in_the_kd_trees_order(seed, ratio):
     want = _search_reference(proj, desc, frame, 22.0, scales, 256, ratio, exclude, None)
     assert len(want) > 100
     assert sorted(zip(*(a.tolist() for a in got))) == want
+    # tree_rank is the order in which a KD-tree pair search lists each point's keypoints.
+    pairs = cKDTree(uv).sparse_distance_matrix(frame.tree(), 80.0, output_type="ndarray")
+    pairs = pairs[np.argsort(pairs["i"], kind="stable")]
+    same_point = pairs["i"][1:] == pairs["i"][:-1]
+    assert same_point.sum() > 3000
+    assert np.all(np.diff(tree_rank(frame)[pairs["j"]])[same_point] > 0)
 
 
 def _ba_scene(rng, n_kf=5, n_pts=300):
@@ -436,8 +444,9 @@ def test_a_prestarted_ba_process_is_the_one_the_next_odometry_uses(room_sequence
     try:
         with VisualOdometry(VoConfig(threaded=True), helpers_vo.CAMERA) as vo:
             assert vo._mapper._worker is prestarted and not bundle._PRESTARTED
-            nice = os.getpriority(os.PRIO_PROCESS, prestarted._proc.pid)
-            assert nice == min(os.getpriority(os.PRIO_PROCESS, 0) + VoConfig().ba.worker_nice, 19)
+            want = min(os.getpriority(os.PRIO_PROCESS, 0) + VoConfig().ba.worker_nice, 19)
+            tasks = os.listdir(f"/proc/{prestarted._proc.pid}/task")  # its libraries' threads too
+            assert [os.getpriority(os.PRIO_PROCESS, int(t)) for t in tasks] == [want] * len(tasks)
             _track_all(vo, stamps[:12], frames[:12])
             vo.flush()
             assert vo.mapping_stats["ba_runs"] >= 1 and prestarted._proc.poll() is None
@@ -842,7 +851,7 @@ def test_a_thread_waiting_for_an_extraction_works_on_its_levels(monkeypatch):
 
     def slow_detect(image, level):
         threads.append(threading.get_ident())
-        time.sleep(0.02)  # every level long enough for the helper to take some
+        time.sleep(0.05)  # every level long enough for the helper to take some
         return detect(image, level)
 
     monkeypatch.setattr(extractor, "_detect_level", slow_detect)

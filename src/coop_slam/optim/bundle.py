@@ -19,6 +19,7 @@ and a free keyframe (``scale_anchor``).
 from __future__ import annotations
 
 import atexit
+import logging
 import os
 import pickle
 import subprocess
@@ -30,6 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import invert, se3
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -336,12 +339,18 @@ class BaWorker:
     def lower_priority(self, niceness: int) -> None:
         """Run the child ``niceness`` steps nicer than this process (Linux nice, capped at 19):
         where both want a core, the scheduler then gives it to tracking, and the BA takes the
-        time tracking leaves (issue #50)."""
+        time tracking leaves (issue #50). Linux keeps a nice value per thread: every thread the
+        child has (a prestarted one has its libraries' already) is set; later ones inherit it."""
+        if niceness <= 0:
+            return
         try:
-            mine = os.getpriority(os.PRIO_PROCESS, 0)
-            os.setpriority(os.PRIO_PROCESS, self._proc.pid, min(mine + int(niceness), 19))
-        except OSError:  # the child already gone: run() will say so
-            pass
+            target = min(os.getpriority(os.PRIO_PROCESS, 0) + int(niceness), 19)
+            pid = self._proc.pid
+            tasks = os.listdir(f"/proc/{pid}/task") if os.path.isdir("/proc") else [pid]
+            for tid in tasks:
+                os.setpriority(os.PRIO_PROCESS, int(tid), target)
+        except (AttributeError, OSError) as exc:  # not Linux, no permission, or the child gone
+            log.warning("local BA process kept its priority (vo.ba.worker_nice): %s", exc)
 
     def run(self, problem: BaProblem) -> BaResult:
         """Solve one problem in the child; raises OSError / EOFError if the child died."""

@@ -93,11 +93,11 @@ class LocalMapTracker:
                         if len(local) >= cfg.tracking.local_keyframes:
                             break
             # A mask over the point store rather than np.unique's sort of ~10^4 ids.
-            member = np.zeros(pts.next_id, bool)
+            member = np.zeros(len(pts.alive), bool)
             for k in local:
                 member[vmap.keyframes[k].map_point_ids] = True
             member[0] = False
-            ids = np.flatnonzero(member & pts.alive[: pts.next_id])
+            ids = np.flatnonzero(member & pts.alive)
             return LocalMap(
                 ref,
                 ids,
