@@ -368,6 +368,43 @@ def _track_all(vo, stamps, frames):
     return [vo.track(s, img, d) for s, (img, d) in zip(stamps, frames)]
 
 
+def test_no_frame_waits_for_the_compiler():
+    """After kernels.warm_up (what setup and every node run first), tracking and local mapping
+    call no compiled kernel with a signature it did not compile (or load from numba's cache): in
+    a fresh interpreter, no kernel gains a signature while 20 frames are tracked."""
+    import subprocess
+    import sys
+
+    code = """
+import coop_slam, importlib, pkgutil, sys
+sys.path.insert(0, "test")
+import helpers_vo
+from numba.core.registry import CPUDispatcher
+from coop_slam import vo as vo_package
+from coop_slam.vo import VisualOdometry, VoConfig
+from coop_slam.vo.kernels import warm_up
+stamps, frames, _ = helpers_vo.sequence(n_frames=20, seed=3, step_m=0.012)
+modules = [importlib.import_module("coop_slam.vo." + m.name)
+           for m in pkgutil.iter_modules(vo_package.__path__)]
+kernels = {m.__name__ + "." + k: f for m in modules for k, f in vars(m).items()
+           if isinstance(f, CPUDispatcher)}
+warm_up()
+before = {k: len(f.signatures) for k, f in kernels.items()}
+with VisualOdometry(VoConfig(threaded=False), helpers_vo.CAMERA) as vo:
+    for s, (img, d) in zip(stamps, frames):
+        vo.track(s, img, d)
+    assert vo.keyframes_made >= 2, vo.keyframes_made
+late = sorted(k for k, f in kernels.items() if len(f.signatures) > before[k])
+print("compiled (or loaded) while tracking:", late)
+sys.exit(1 if late else 0)
+"""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+
+
 def test_tracks_synthetic_room(room_sequence):
     stamps, frames, gt = room_sequence
     with VisualOdometry(sync_config(), helpers_vo.CAMERA) as vo:

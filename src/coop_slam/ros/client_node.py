@@ -34,6 +34,7 @@ from ..uplink.config import UplinkConfig
 from ..vo.config import VoConfig
 from ..vo.kernels import warm_up
 from ..vo.pipeline import VisualOdometry
+from ..vo.shared_work import shared_worker
 from ..vo.types import STATE_INITIALIZING
 from .camera_input import CameraInput
 from .convert import description_to_msg
@@ -149,6 +150,7 @@ class ClientNode:
     def _ready_before_frames(self) -> None:
         """What the first frames would otherwise wait for or be stopped by."""
         warm_up()  # the odometry's compiled kernels
+        shared_worker().submit(lambda: None).result()  # the thread the extraction shares
         if self.vo_cfg.threaded and self.vo_cfg.ba.enabled:
             prestart_worker()  # and the local BA's process
         # Python's full collection scans every object it tracks; here ~140,000, nearly all the

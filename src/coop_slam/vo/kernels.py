@@ -1,5 +1,5 @@
-"""The odometry's compiled kernels (numba: the pose optimization, the projection search, the
-stereo matching and the vocabulary's descent for place signatures), compiled before the first
+"""The odometry's compiled kernels (numba: the pose optimization, the projection and its search,
+the stereo matching and the vocabulary's descent for place signatures), compiled before the first
 frame rather than on it.
 
 numba compiles a kernel on its first call (about 5 s for both here) and keeps the machine code in
@@ -14,7 +14,7 @@ import numpy as np
 from ..bow import vocabulary
 from .config import VoConfig
 from .features import FrameFeatures, OrbKeypoints, level_images, orb_level_scales32
-from .matching import Projection, search_by_projection
+from .matching import Projection, project_points, search_by_projection
 from .pose_opt import optimize_pose
 from .stereo_matching import match_stereo
 
@@ -34,6 +34,7 @@ def warm_up() -> None:
     )  # fmt: skip
     proj = Projection(np.arange(n), uv, uv[:, 0] - 20.0, points[:, 2], np.zeros(n, int))
     scales = 1.2 ** np.arange(8)
+    project_points(np.eye(4), points, K, 40.0, (640, 480), scales, np.full(n, 5.0), -points)
     for chi2 in (None, 5.991):
         search_by_projection(proj, desc, frame, 4.0, scales, 50, 0.9, chi2_gate=chi2)
     image = np.zeros((64, 96), np.uint8)
