@@ -15,6 +15,7 @@ from numba import njit
 
 from ..descriptors import as_descriptors, hamming
 from .features import FrameFeatures
+from .types import VoError
 
 
 @dataclass
@@ -48,6 +49,12 @@ def project_points(
     n = len(points_map)
     with_dist = max_dist_m is not None
     with_normals = with_dist and normals_map is not None
+    # The kernel reads them point by point, unchecked: a shorter array would be read past its end.
+    if (with_dist and len(max_dist_m) != n) or (with_normals and len(normals_map) != n):
+        raise VoError(
+            f"project_points: {n} points but max_dist_m / normals_map of "
+            f"{len(max_dist_m) if with_dist else '-'} / {len(normals_map) if with_normals else '-'}"
+        )
     idx, uv, u_right, depth, pred = _project(
         np.ascontiguousarray(T_cam_map, dtype=float),
         points_map,
