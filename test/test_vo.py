@@ -34,9 +34,16 @@ from coop_slam.vo import (
     VoConfig,
     VoError,
 )
-from coop_slam.vo.features import OrbExtractor, level_images, orb_level0_uv
+from coop_slam.vo.features import (
+    OrbExtractor,
+    _orb_level_split,
+    level_images,
+    level_scales,
+    orb_level0_uv,
+    orb_level_scales32,
+    round_robin,
+)
 from coop_slam.vo.pose_opt import optimize_pose
-from coop_slam.vo.shared_work import shared_worker
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 REDKITCHEN = os.path.normpath(os.path.join(REPO, "..", "shared", "data", "redkitchen_0000_0599"))
@@ -794,22 +801,20 @@ def test_orb_keypoints_sit_where_the_pyramid_found_them():
 
 
 @pytest.mark.parametrize(
-    "n_detect,split_levels,shape",
+    "n_detect,threads,shape",
     [
-        (2500, True, (480, 640)),
-        (9, True, (480, 640)),
-        (2500, False, (480, 640)),
-        (2500, True, (540, 960)),  # 540 / 1.2**3 = 312.5: OpenCV rounds it in float32
-        (2500, True, (342, 630)),
-        (2500, False, (483, 641)),
+        (2500, 2, (480, 640)),
+        (9, 2, (480, 640)),
+        (2500, 1, (480, 640)),
+        (2500, 2, (540, 960)),  # 540 / 1.2**3 = 312.5: OpenCV rounds it in float32
+        (2500, 3, (342, 597)),  # 597 / 1.2: rounds to 498 in float32, 497 in double
+        (2500, 1, (483, 641)),
     ],
 )
-def test_orb_levels_extracted_in_two_threads_are_opencvs_whole_pyramid_orb(
-    n_detect, split_levels, shape
-):
-    """Each level detected and described by its own one-level ORB (levels shared with a worker
-    thread) finds exactly the keypoints and descriptors one OpenCV ORB over the pyramid finds,
-    then bucketed as before: positions, sizes, angles, levels, bits, in OpenCV's order."""
+def test_orb_levels_extracted_on_threads_are_opencvs_whole_pyramid_orb(n_detect, threads, shape):
+    """Each level detected and described by its own one-level ORB (levels shared by threads)
+    finds exactly the keypoints and descriptors one OpenCV ORB over the pyramid finds, then
+    bucketed: positions, sizes, angles, levels, bits, in OpenCV's order."""
     import cv2
 
     rng = np.random.default_rng(1)
@@ -818,15 +823,16 @@ def test_orb_levels_extracted_in_two_threads_are_opencvs_whole_pyramid_orb(
         VoConfig(), {"features": {"n_detect": n_detect, "n_features": min(n_detect, 1000)}}
     )
     f = cfg.features
-    extractor = OrbExtractor(cfg, helpers_vo.CAMERA, split_levels)
+    extractor = OrbExtractor(cfg, helpers_vo.CAMERA, threads)
     whole = cv2.ORB_create(
         nfeatures=n_detect, scaleFactor=f.scale_factor, nlevels=f.n_levels,
         edgeThreshold=f.edge_threshold_px, patchSize=31, fastThreshold=f.fast_threshold,
     )  # fmt: skip
     found = whole.detect(gray, None)
     table = np.array([(*k.pt, k.response, k.octave) for k in found])
-    chosen = [found[i] for i in extractor._bucket(table)]
-    kps, desc = whole.compute(gray, chosen)
+    cell_px = f.grid_cell_px * level_scales(cfg)
+    keep = round_robin(*table[:, :3].T, table[:, 3].astype(int), cell_px, f.n_features)
+    kps, desc = whole.compute(gray, [found[i] for i in keep])
     got = extractor.extract(gray)
     assert len(got) == len(kps) > 0
     pt = np.array([k.pt for k in kps])
@@ -840,64 +846,45 @@ def test_orb_levels_extracted_in_two_threads_are_opencvs_whole_pyramid_orb(
         assert set(octaves) == set(range(f.n_levels))
 
 
-def test_a_failed_pyramid_leaves_the_level_worker_free(monkeypatch):
-    """The worker starts on level 0 while the caller builds the pyramid; when building fails,
-    the error reaches the caller and the worker does not wait for levels that never come."""
-    from coop_slam.vo import features
+def test_a_frames_images_extracted_together_are_each_extracted_alone():
+    """A stereo pair's images share the threads level by level: each image's keypoints and
+    pyramid are what it gets alone, on any number of threads."""
+    import cv2
 
-    gray = (np.random.default_rng(2).random((480, 640)) * 255).astype(np.uint8)
-    extractor = OrbExtractor(VoConfig(), helpers_vo.CAMERA, split_levels=True)
+    rng = np.random.default_rng(4)
+    images = [
+        cv2.GaussianBlur((rng.random(shape) * 255).astype(np.uint8), (0, 0), 1.2)
+        for shape in ((480, 640), (480, 640), (300, 500))
+    ]
+    alone = [OrbExtractor(VoConfig(), helpers_vo.CAMERA, 1).extract_with_levels(g) for g in images]
+    for threads in (1, 2, 5):
+        together = OrbExtractor(VoConfig(), helpers_vo.CAMERA, threads).extract_images(images)
+        assert len(together) == len(images)
+        for (got, got_levels), (want, want_levels) in zip(together, alone):
+            assert _same_keypoints(got, want) and np.array_equal(got.uv_px, want.uv_px)
+            assert len(got_levels) == len(want_levels) == VoConfig().features.n_levels
+            assert all(np.array_equal(a, b) for a, b in zip(got_levels, want_levels))
+        assert together[0][1][0] is images[0]  # level 0 is the caller's image
+
+
+@pytest.mark.parametrize(
+    "bad,what",
+    [
+        (np.zeros((48, 64), np.float32), "uint8"),
+        (np.zeros((48, 64, 3), np.uint8), "2D"),
+        (np.zeros((64, 48), np.uint8).T, "C-contiguous"),
+        (np.zeros((0, 64), np.uint8), "non-empty"),
+    ],
+)
+def test_an_image_the_extraction_cannot_take_is_a_clear_error(bad, what):
+    """The compiled extraction checks its input (rather than read memory it does not own) and
+    names the image; the extractor works afterwards."""
+    gray = (np.random.default_rng(5).random((120, 160)) * 255).astype(np.uint8)
+    extractor = OrbExtractor(VoConfig(), helpers_vo.CAMERA)
     want = extractor.extract(gray)
-
-    def broken(*args):
-        time.sleep(0.3)  # the worker has taken level 0 by now, and will want level 1
-        raise MemoryError("no room for the pyramid")
-
-    monkeypatch.setattr(features, "level_images", broken)
-    errors = []
-
-    def extract():
-        try:
-            extractor.extract(gray)
-        except MemoryError as exc:
-            errors.append(exc)
-
-    caller = threading.Thread(target=extract, daemon=True)
-    caller.start()
-    caller.join(timeout=10)
-    assert not caller.is_alive(), "the caller hangs waiting for the worker"
-    assert len(errors) == 1 and "pyramid" in str(errors[0])
-    monkeypatch.undo()
-    worker = shared_worker().submit(lambda: "free")
-    assert worker.result(timeout=10) == "free"
-    got = extractor.extract(gray)
-    assert np.array_equal(got.uv_px, want.uv_px) and np.array_equal(
-        got.descriptors, want.descriptors
-    )
-
-
-def test_a_thread_waiting_for_an_extraction_works_on_its_levels(monkeypatch):
-    """The stereo caller, done with the left image, takes levels of the right image's extraction
-    (running in another thread) rather than wait: the same keypoints as one thread alone."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    gray = (np.random.default_rng(4).random((480, 640)) * 255).astype(np.uint8)
-    extractor = OrbExtractor(VoConfig(), helpers_vo.CAMERA, split_levels=False)
-    want = extractor.extract(gray)
-    detect, threads = extractor._detect_level, []
-
-    def slow_detect(image, level):
-        threads.append(threading.get_ident())
-        time.sleep(0.05)  # every level long enough for the helper to take some
-        return detect(image, level)
-
-    monkeypatch.setattr(extractor, "_detect_level", slow_detect)
-    with ThreadPoolExecutor(1) as pool:
-        got, _ = extractor.help_until(pool.submit(extractor.extract_with_levels, gray))
-        assert extractor.help_until(pool.submit(lambda: "done")) == "done"  # nothing to take
-    assert threading.get_ident() in threads and len(set(threads)) == 2
-    for name in ("uv_px", "angle_deg", "octaves", "descriptors"):
-        assert np.array_equal(getattr(got, name), getattr(want, name))
+    with pytest.raises(VoError, match=f"image 1.*{what}"):
+        extractor.extract_images([gray, bad])
+    assert np.array_equal(extractor.extract(gray).descriptors, want.descriptors)
 
 
 def _same_keypoints(a, b) -> bool:
@@ -918,21 +905,42 @@ def test_a_level_is_detected_at_the_low_fast_threshold_only_when_the_first_finds
     plenty of strong corners (ORB keeps the 2n best FAST scores of a level: all of them >= 20), and
     falls back to FAST 7 where it finds fewer than the level wants: high contrast, every level
     strong; low contrast, every level falls back; in between, some levels keep fewer, stronger
-    corners than FAST 7 alone would give."""
+    corners than FAST 7 alone would give. Every level's keypoints (all kept: no bucketing) are
+    those of the pass its rule picks."""
     import cv2
 
     rng = np.random.default_rng(2)
     noise = cv2.GaussianBlur((rng.random((480, 640)) * 255).astype(np.uint8), (0, 0), 1.2)
     gray = np.uint8(np.clip(128 + (noise.astype(float) - 128) * gain, 0, 255))
-    cfg = with_values(VoConfig(), {"features": {"fast_threshold": 7, "fast_threshold_first": 20}})
+    cfg = with_values(
+        VoConfig(),
+        {"features": {"fast_threshold": 7, "fast_threshold_first": 20, "n_features": 2500}},
+    )
     extractor = OrbExtractor(cfg, helpers_vo.CAMERA)
     one_pass = OrbExtractor(with_values(cfg, {"features": {"fast_threshold_first": 0}}), None)
-    levels = level_images(gray, extractor._scales32)
+    f = cfg.features
+    levels = level_images(gray, orb_level_scales32(f.scale_factor, f.n_levels))
+    wanted = _orb_level_split(f.n_detect, f.scale_factor, f.n_levels)
+
+    def level_pass(n: int, threshold: int):
+        return cv2.ORB_create(n, f.scale_factor, 1, f.edge_threshold_px, patchSize=31,
+                              fastThreshold=threshold)  # fmt: skip
+
     strong = [
-        len(extractor._orbs_first[lv].detect(image, None)) >= extractor._wanted[lv]
+        len(level_pass(wanted[lv], 20).detect(image, None)) >= wanted[lv]
         for lv, image in enumerate(levels)
     ]
     got, alone = extractor.extract(gray), one_pass.extract(gray)
+    assert len(got) == f.n_detect or not all(strong)
+    scales32 = orb_level_scales32(f.scale_factor, f.n_levels)
+    for lv, image in enumerate(levels):
+        kps = level_pass(wanted[lv], 20 if strong[lv] else 7).detect(image, None)
+        pt = np.float32([k.pt for k in kps]).reshape(-1, 2) * scales32[lv]
+        want = orb_level0_uv(pt, np.full(len(pt), lv), f.scale_factor)
+        have = got.uv_px[got.octaves == lv]
+        assert len(have) == len(want) and np.array_equal(
+            have[np.lexsort(have.T)], want[np.lexsort(want.T)]
+        ), lv
     if gain == 3.0:
         assert all(strong)
         assert _same_keypoints(got, alone)
@@ -947,8 +955,6 @@ def test_a_level_is_detected_at_the_low_fast_threshold_only_when_the_first_finds
 def test_bucketing_takes_every_cells_best_first_then_the_second_best():
     """The bucketing's order against its definition written with lexicographic sorts, on tables
     with many equal responses and many keypoints in one cell (ties: by index)."""
-    from coop_slam.vo.features import _round_robin
-
     rng = np.random.default_rng(3)
     cell_px = 40.0 * 1.2 ** np.arange(8)
     for _ in range(40):
@@ -965,5 +971,5 @@ def test_bucketing_takes_every_cells_best_first_then_the_second_best():
         for i, k in enumerate(by_cell):
             rank[k] = 0 if i == 0 or cell[k] != cell[by_cell[i - 1]] else rank[by_cell[i - 1]] + 1
         expected = np.sort(np.lexsort((-response, rank))[:n_keep])
-        got = _round_robin(u, v, response, octave, cell_px, n_keep)
+        got = round_robin(u, v, response, octave, cell_px, n_keep)
         assert np.array_equal(got, expected)

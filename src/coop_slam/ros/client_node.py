@@ -150,7 +150,7 @@ class ClientNode:
     def _ready_before_frames(self) -> None:
         """What the first frames would otherwise wait for or be stopped by."""
         warm_up()  # the odometry's compiled kernels
-        shared_worker().submit(lambda: None).result()  # the thread the extraction shares
+        shared_worker().submit(lambda: None).result()  # the thread tracking shares
         if self.vo_cfg.threaded and self.vo_cfg.ba.enabled:
             prestart_worker()  # and the local BA's process
         # Python's full collection scans every object it tracks; here ~140,000, nearly all the

@@ -35,9 +35,13 @@ class FeatureConfig:
     fast_threshold_first: int = 0
     grid_cell_px: int = 40  # bucketing cell size at level 0 [px]; scaled by scale_factor**octave
     edge_threshold_px: int = 19  # border without features [px] (ORB patch radius)
+    # Threads extracting a frame (its images' pyramid levels, largest first, to whichever is free;
+    # a stereo pair's two images together). 2: the odometry's own core and one more.
+    threads: int = 2
 
     def validate(self) -> None:
         require(self.n_features > 0, "vo.features.n_features must be positive")
+        require(1 <= self.threads <= 64, "vo.features.threads must be in 1..64")
         require(self.n_detect >= self.n_features, "vo.features.n_detect must be >= n_features")
         require(self.scale_factor > 1.0, "vo.features.scale_factor must be > 1")
         require(1 <= self.n_levels <= 16, "vo.features.n_levels must be in 1..16")

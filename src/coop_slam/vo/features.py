@@ -18,20 +18,21 @@ finds the same keypoints as the low threshold (as a set: in another order; OpenC
 ties at the cut). Each level can therefore be detected at the first threshold (stereo cameras),
 and again at the low one only when that finds fewer keypoints than the level wants (a level with
 between n and 2n strong corners keeps those, not weaker ones that would win on Harris response).
+
+The extraction runs compiled (orb_native.cpp, through OpenCV's C++ API): made in Python, a
+cv2.KeyPoint object per candidate and the tables read back from them cost ~2 ms of a KITTI image's
+~14, and held Python's lock while the other image's extraction wanted it.
 """
 
 from __future__ import annotations
 
-import threading
-from concurrent.futures import Future
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from ..camera import CameraModel
 from .config import VoConfig
-from .shared_work import SharedJob, shared_worker
+from .types import VoError
 
 _PATCH_PX = 31  # ORB's descriptor patch
 
@@ -129,23 +130,7 @@ def level_images(gray: np.ndarray, scales32: np.ndarray) -> list[np.ndarray]:
     """The image at each pyramid level (level 0 = gray), sized (in float32: at .5 the rounding
     differs from double's, e.g. 540 / 1.2**3) and resized as OpenCV's ORB does; ``scales32``:
     :func:`orb_level_scales32`."""
-    h, w = gray.shape
-    levels = [gray]
-    for s in scales32[1:]:
-        f = np.float32(1) / np.float32(s)
-        size = (max(1, int(np.rint(np.float32(w) * f))), max(1, int(np.rint(np.float32(h) * f))))
-        levels.append(cv2.resize(levels[-1], size, interpolation=cv2.INTER_LINEAR_EXACT))
-    return levels
-
-
-def _keypoint_table(kps, *names: str) -> np.ndarray:
-    """(N, 2 + len(names)): each cv2.KeyPoint's u, v, then the named attributes. One attribute
-    per comprehension: reading k.pt builds a tuple per keypoint (3.5x slower)."""
-    table = np.empty((len(kps), 2 + len(names)))
-    table[:, :2] = cv2.KeyPoint_convert(kps)
-    for col, name in enumerate(names, start=2):
-        table[:, col] = [getattr(k, name) for k in kps]
-    return table
+    return _native().pyramid(gray, [float(s) for s in scales32])
 
 
 def _orb_level_split(n_detect: int, scale_factor: float, n_levels: int) -> list[int]:
@@ -162,41 +147,42 @@ def _orb_level_split(n_detect: int, scale_factor: float, n_levels: int) -> list[
     return per_level
 
 
+def _native():
+    """The compiled extraction (orb_native.cpp), built by scripts/setup."""
+    try:
+        from . import _orb_native
+    except ImportError as exc:
+        raise VoError(
+            "coop_slam's compiled ORB extraction (coop_slam/vo/_orb_native) is not built or does "
+            f"not load ({exc}): run scripts/setup, which builds it with catkin_make"
+        ) from exc
+    return _orb_native
+
+
 class OrbExtractor:
-    """Grid-bucketed ORB extraction (see module docstring). Each pyramid level is detected and
-    described by its own one-level OpenCV ORB, the levels shared between the caller and a worker
-    thread (largest first, each to whichever is free; the worker starts on level 0 while the
-    caller builds the rest of the pyramid): the same keypoints and descriptors as one OpenCV ORB
-    over the whole pyramid (without the first FAST pass). ``split_levels=False``: all levels in
-    the caller's thread.
+    """Grid-bucketed ORB extraction (see module docstring), compiled (orb_native.cpp): each
+    pyramid level detected and described by its own one-level OpenCV ORB, the levels of all the
+    images of a frame shared by ``vo.features.threads`` threads (largest first, each to whichever
+    is free; one builds an image's pyramid while another detects its level 0): the same keypoints
+    and descriptors as one OpenCV ORB over the whole pyramid (without the first FAST pass).
     """
 
-    def __init__(self, config: VoConfig, camera: CameraModel, split_levels: bool = True):
+    def __init__(self, config: VoConfig, camera: CameraModel, threads: int | None = None):
         self.config = config
         self.camera = camera
         feats = config.features
-        per_level = _orb_level_split(feats.n_detect, feats.scale_factor, feats.n_levels)
         self._scales32 = orb_level_scales32(feats.scale_factor, feats.n_levels)
-        self._orbs = [self._orb(n, feats.fast_threshold) for n in per_level]
-        first = feats.fast_threshold_first
-        self._orbs_first = (
-            [self._orb(n, first) for n in per_level] if first > feats.fast_threshold else None
-        )
-        self._wanted = per_level
-        self._scales = level_scales(config)
-        self._split_levels = split_levels
-        self._job: SharedJob | None = None  # the levels being worked on, for helpers
-        self._helpers = threading.Condition()
-
-    def _orb(self, n: int, threshold: int):
-        feats = self.config.features
-        return cv2.ORB_create(
-            nfeatures=max(n, 1),
-            scaleFactor=feats.scale_factor,
-            nlevels=1,
-            edgeThreshold=feats.edge_threshold_px,
-            patchSize=_PATCH_PX,
-            fastThreshold=threshold,
+        self._native = _native().OrbFrameExtractor(
+            wanted=_orb_level_split(feats.n_detect, feats.scale_factor, feats.n_levels),
+            scales32=[float(s) for s in self._scales32],
+            cell_px=[float(c) for c in feats.grid_cell_px * level_scales(config)],
+            scale_factor=feats.scale_factor,
+            edge_threshold_px=feats.edge_threshold_px,
+            fast_threshold=feats.fast_threshold,
+            # at most the low threshold: one pass
+            fast_threshold_first=max(feats.fast_threshold_first, 0),
+            n_features=feats.n_features,
+            threads=feats.threads if threads is None else threads,
         )
 
     def extract(self, gray: np.ndarray) -> OrbKeypoints:
@@ -204,159 +190,29 @@ class OrbExtractor:
 
     def extract_with_levels(self, gray: np.ndarray) -> tuple[OrbKeypoints, list[np.ndarray]]:
         """The image's keypoints and its pyramid (level images, as :func:`level_images`)."""
-        levels = [gray]
-        pyramid = threading.Event()
+        return self.extract_images([gray])[0]
 
-        def build_pyramid() -> None:
-            try:
-                levels.extend(level_images(gray, self._scales32)[1:])
-            finally:
-                pyramid.set()  # also when it failed: a worker waiting for it must not hang
-
-        def detect(lv: int):
-            if lv:
-                pyramid.wait()
-            if lv >= len(levels) or not self._wanted[lv]:
-                return ()
-            return self._detect_level(levels[lv], lv)
-
-        found = self._on_levels(detect, build_pyramid)
-        tables = [self._level_table(found[lv], lv, "response") for lv in range(len(levels))]
-        table = np.vstack(tables)
-        if len(table) == 0:
-            return self._empty(), levels
-        keep = self._bucket(table)
-        first = np.cumsum([0] + [len(t) for t in tables])
-        chosen = {
-            lv: [
-                found[lv][i] for i in keep[(keep >= first[lv]) & (keep < first[lv + 1])] - first[lv]
-            ]
-            for lv in range(len(levels))
-        }
-        described = self._on_levels(lambda lv: self._describe(levels[lv], lv, chosen[lv]))
-        kept = [(lv, *described[lv]) for lv in range(len(levels)) if described[lv][0]]
-        if not kept:
-            return self._empty(), levels
-        attrs = np.vstack([self._level_table(kps, lv, "angle") for lv, kps, _ in kept])
-        octaves = attrs[:, 3]
-        attrs[:, :2] = orb_level0_uv(attrs[:, :2], octaves, self.config.features.scale_factor)
-        keypoints = OrbKeypoints(
-            uv_px=attrs[:, :2],
-            size_px=np.float32(_PATCH_PX) * self._scales32[octaves.astype(int)],
-            angle_deg=attrs[:, 2].astype(np.float32),
-            octaves=octaves.astype(np.uint8),
-            descriptors=np.ascontiguousarray(np.vstack([d for _, _, d in kept]), dtype=np.uint8),
-        )
-        return keypoints, levels
-
-    def _on_levels(self, work, prepare=None) -> dict:
-        """{level: work(level)} for every level, largest first, each taken by the caller or a
-        helper -- the worker thread (``split_levels``), a thread in :meth:`help_until` --
-        whichever is free first: when the other core is busy (local mapping, the other image of
-        a stereo pair) the caller does them all rather than wait. ``prepare()`` runs in the
-        caller first, while a helper may already take level 0."""
-        job = SharedJob(work, len(self._wanted))
-        with self._helpers:
-            self._job = job
-            self._helpers.notify_all()
+    def extract_images(self, grays: list) -> list[tuple[OrbKeypoints, list[np.ndarray]]]:
+        """Each image's keypoints and pyramid; the images' levels extracted together (a stereo
+        pair's two images on two threads finish together)."""
         try:
-            if self._split_levels:
-                shared_worker().submit(job.drain)
-            if prepare is not None:
-                prepare()
-            return job.join()
-        finally:
-            with self._helpers:
-                self._job = None
+            extracted = self._native.extract(list(grays))
+        except ValueError as exc:
+            raise VoError(f"ORB extraction: {exc}") from exc
+        return [(self._keypoints(*out[:4]), out[4]) for out in extracted]
 
-    def help_until(self, extraction: Future):
-        """Work on this extractor's levels from another thread until ``extraction`` (running
-        :meth:`extract_with_levels` elsewhere) is done; its result. A stereo pair's left image
-        is extracted in the caller while the right is in a thread: the caller, done first,
-        takes the right's levels rather than wait."""
-
-        def wake(_) -> None:
-            with self._helpers:
-                self._helpers.notify_all()
-
-        extraction.add_done_callback(wake)
-        while True:
-            with self._helpers:
-                self._helpers.wait_for(
-                    lambda: extraction.done() or (self._job is not None and not self._job.exhausted)
-                )
-                job = None if extraction.done() else self._job
-            if job is None:
-                return extraction.result()
-            job.drain()
-
-    def _detect_level(self, image: np.ndarray, level: int):
-        """The level's keypoints: at the first threshold when it finds as many as the level wants,
-        else at the low one (module docstring)."""
-        if self._orbs_first is not None:
-            kps = self._orbs_first[level].detect(image, None)
-            if len(kps) >= self._wanted[level]:
-                return kps
-        return self._orbs[level].detect(image, None)
-
-    def _describe(self, image: np.ndarray, level: int, chosen: list):
-        """The chosen keypoints of one level and their descriptors (((), None): none)."""
-        if not chosen:
-            return (), None
-        kps, desc = self._orbs[level].compute(image, chosen)
-        return (kps, desc) if desc is not None and kps else ((), None)
-
-    def _level_table(self, kps, level: int, name: str) -> np.ndarray:
-        """(N, 4): u, v (level 0, as OpenCV's ORB reports them), the named attribute, level."""
-        table = np.empty((len(kps), 4))
-        if len(kps):
-            table[:, :3] = _keypoint_table(kps, name)
-            table[:, :2] = np.float32(table[:, :2]) * self._scales32[level]
-        table[:, 3] = level
-        return table
-
-    def _bucket(self, attrs: np.ndarray) -> np.ndarray:
-        """Indices of up to n_features keypoints: best per (level, cell) first, then
-        second best, ... (:func:`_round_robin`)."""
-        feats = self.config.features
-        if len(attrs) <= feats.n_features:
-            return np.arange(len(attrs))
-        octave = np.clip(attrs[:, 3].astype(np.int64), 0, feats.n_levels - 1)
-        cell_px = feats.grid_cell_px * self._scales
-        return _round_robin(
-            attrs[:, 0], attrs[:, 1], attrs[:, 2], octave, cell_px, feats.n_features
-        )
-
-    @staticmethod
-    def _empty() -> OrbKeypoints:
+    def _keypoints(self, pt_px, angle_deg, octaves, descriptors) -> OrbKeypoints:
         return OrbKeypoints(
-            uv_px=np.zeros((0, 2)),
-            size_px=np.zeros(0, np.float32),
-            angle_deg=np.zeros(0, np.float32),
-            octaves=np.zeros(0, np.uint8),
-            descriptors=np.zeros((0, 32), np.uint8),
+            uv_px=orb_level0_uv(pt_px, octaves, self.config.features.scale_factor),
+            size_px=np.float32(_PATCH_PX) * self._scales32[octaves],
+            angle_deg=angle_deg,
+            octaves=octaves,
+            descriptors=descriptors,
         )
 
 
-def _round_robin(u, v, response, octave, cell_px, n_keep):
+def round_robin(u, v, response, octave, cell_px, n_keep) -> np.ndarray:
     """Sorted indices of the first n_keep keypoints in the order: rank within their (level, cell)
     by response (0 = the cell's best), then response, then index. Cells are ``cell_px[level]``
-    squares of level-0 pixels."""
-    n = len(u)
-    n_keep = min(n_keep, n)
-    if n_keep <= 0:
-        return np.zeros(0, np.int64)
-    octave = np.asarray(octave, np.int64)
-    size = cell_px[octave]
-    cell = (octave * 4096 + np.floor(v / size).astype(np.int64)) * 4096
-    cell += np.floor(u / size).astype(np.int64)
-    # Each keypoint's place in the order by response (ties: by index) makes every key below
-    # unique, so unstable sorts give the lexicographic order.
-    place = np.empty(n, np.int64)
-    place[np.argsort(-response, kind="stable")] = np.arange(n)
-    by_cell = np.argsort(cell * n + place)
-    cell_sorted = cell[by_cell]
-    first = np.r_[0, np.flatnonzero(cell_sorted[1:] != cell_sorted[:-1]) + 1]
-    rank = np.empty(n, np.int64)
-    rank[by_cell] = np.arange(n) - np.repeat(first, np.diff(np.r_[first, n]))
-    return np.sort(np.argpartition(rank * n + place, n_keep - 1)[:n_keep])
+    squares of level-0 pixels. (The extraction's bucketing, compiled.)"""
+    return _native().round_robin(u, v, response, octave, [float(c) for c in cell_px], n_keep)

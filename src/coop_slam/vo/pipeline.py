@@ -93,10 +93,7 @@ class VisualOdometry:
         self.K = camera.K
         self.scales = level_scales(self.config)
         self._sensor = make_sensor(self.config, camera)
-        # A stereo pair's two images are extracted side by side already (see StereoSensor).
-        self._extractor = OrbExtractor(
-            self.config, camera, split_levels=self._sensor.kind != "stereo"
-        )
+        self._extractor = OrbExtractor(self.config, camera)
         self._frame_images = (None, None)  # the current frame's (grey, depth or right image)
         self._depth_images = KeyframeDepthImages(
             self.config.dense,
@@ -178,9 +175,11 @@ class VisualOdometry:
         self._frame_dt_s = stamp_s - self._last_stamp if self._last_stamp is not None else 0.0
         self._last_stamp = stamp_s
         self.frames_processed += 1
-        self._sensor.begin(second)  # stereo: the right image's features meanwhile
-        kps, levels = self._extractor.extract_with_levels(gray)
-        feats = self._sensor.features(kps, gray, second, levels)
+        # A stereo pair's two images extracted together (their levels over the threads).
+        both = self._sensor.extracts_second
+        extracted = self._extractor.extract_images([gray, second] if both else [gray])
+        kps, levels = extracted[0]
+        feats = self._sensor.features(kps, gray, second, levels, *extracted[1:])
         if self._sensor.warning:
             self._emit(VoEvent(EVENT_WARNING, self.map_segment, message=self._sensor.warning))
             self._sensor.warning = None
@@ -322,9 +321,8 @@ class VisualOdometry:
         self._ignored = []  # given in the dropped map's frame
 
     def close(self) -> None:
-        """Stop the local-mapping thread and worker process (and the sensor's helper thread)."""
+        """Stop the local-mapping thread and worker process."""
         self._mapper.close()
-        self._sensor.close()
         self._depth_images.close()
 
     def __enter__(self) -> Self:

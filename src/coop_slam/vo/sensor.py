@@ -12,21 +12,12 @@ are (u, v), its map points come from triangulation, and its map has no metric sc
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import cv2
 import numpy as np
 
 from ..camera import CameraModel
 from .config import VoConfig
-from .features import (
-    FrameFeatures,
-    OrbExtractor,
-    OrbKeypoints,
-    level_images,
-    level_scales,
-    orb_level_scales32,
-)
+from .features import FrameFeatures, OrbExtractor, OrbKeypoints, level_scales
 from .stereo_matching import match_stereo
 from .types import VoError
 
@@ -93,6 +84,7 @@ class Sensor:
 
     kind = ""
     monocular = False
+    extracts_second = False  # the frame's second image has keypoints too (a stereo pair's right)
 
     def __init__(self, config: VoConfig, camera: CameraModel, baseline_m: float, close_m: float):
         self.config = config
@@ -101,13 +93,6 @@ class Sensor:
         self.bf = camera.fx * baseline_m  # [px * m]
         self.close_depth_m = close_m
         self.warning: str | None = None
-
-    def begin(self, second) -> None:
-        """Start on what a frame's second image needs, before the first is extracted (stereo:
-        the right image, in a thread); nothing for the others."""
-
-    def close(self) -> None:
-        """Stop what :meth:`begin` started."""
 
     def u_right(self, u_px: np.ndarray, depths_m: np.ndarray) -> np.ndarray:
         """Right-image u = u - fx b / z [px] of keypoints at u_px with depths (0 or NaN = none);
@@ -149,10 +134,12 @@ class RgbdSensor(Sensor):
         return np.ascontiguousarray(gray), depth
 
     # --- measurements -----------------------------------------------------------------------------
-    def features(self, kps: OrbKeypoints, gray: np.ndarray, depth_m, levels=None) -> FrameFeatures:
+    def features(
+        self, kps: OrbKeypoints, gray: np.ndarray, depth_m, levels=None, extracted=None
+    ) -> FrameFeatures:
         """The frame's keypoints with their depth (outside [min_depth_m, max_depth_m]: none),
-        3D point and right-image coordinate. ``levels``: the image's pyramid, when the
-        extraction made it (stereo matching uses it)."""
+        3D point and right-image coordinate. ``levels``, ``extracted``: unused here (see
+        :meth:`StereoSensor.features`)."""
         cfg = self.config
         uv = kps.uv_px
         n = len(uv)
@@ -224,6 +211,7 @@ class StereoSensor(Sensor):
     disparity, up to ``stereo_close_baselines`` baselines."""
 
     kind = "stereo"
+    extracts_second = True
 
     def __init__(self, config: VoConfig, camera: CameraModel):
         if camera.baseline_m <= 0:
@@ -231,23 +219,8 @@ class StereoSensor(Sensor):
         close_m = config.stereo.close_baselines * camera.baseline_m
         super().__init__(config, camera, camera.baseline_m, close_m)
         self._scales = level_scales(config)
-        self._scales32 = orb_level_scales32(config.features.scale_factor, config.features.n_levels)
-        self._right_extractor = OrbExtractor(config, camera, split_levels=False)
+        self._extractor = None  # for pairs given without the images' extraction (made on use)
         self._frames_since_check = None  # frames since the last rectification check
-        # The right image's features are made in this thread while the left image's are made
-        # in the caller's (OpenCV's extraction runs without Python's lock): see begin().
-        self._right_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="right_orb")
-        self._right_pending = None
-
-    def begin(self, right: np.ndarray) -> None:
-        """Start on the right image (its keypoints and pyramid) before the left is extracted."""
-        self._right_pending = (right, self._right_worker.submit(self._right_features, right))
-
-    def close(self) -> None:
-        self._right_worker.shutdown(wait=False, cancel_futures=True)
-
-    def _right_features(self, right: np.ndarray):
-        return self._right_extractor.extract_with_levels(right)
 
     def check_input(self, image, right) -> tuple[np.ndarray, np.ndarray]:
         """(left grey, right grey) uint8 of one pair; raises VoError naming what is wrong."""
@@ -257,23 +230,21 @@ class StereoSensor(Sensor):
         return left, np.ascontiguousarray(gray_image(right, self.camera, "right image"))
 
     def features(
-        self, kps: OrbKeypoints, gray: np.ndarray, right: np.ndarray, levels=None
+        self, kps: OrbKeypoints, gray: np.ndarray, right: np.ndarray, levels=None, extracted=None
     ) -> FrameFeatures:
         """The left keypoints with their measured right-image coordinate and depth (none beyond
-        ``close_depth_m``, nor without a match)."""
-        pending, self._right_pending = self._right_pending, None
-        if pending is not None and pending[0] is right:
-            right_kps, right_levels = self._right_extractor.help_until(pending[1])
-        else:  # (not begun: made here)
-            right_kps, right_levels = self._right_features(right)
+        ``close_depth_m``, nor without a match). ``levels``: the left pyramid; ``extracted``:
+        the right image's (keypoints, pyramid), as the frame's extraction made them (else made
+        here)."""
+        if levels is None or extracted is None:
+            if self._extractor is None:
+                self._extractor = OrbExtractor(self.config, self.camera)
+            both = self._extractor.extract_images([gray, right])
+            levels = both[0][1] if levels is None else levels
+            extracted = both[1] if extracted is None else extracted
+        right_kps, right_levels = extracted
         u_right = match_stereo(
-            kps,
-            right_kps,
-            levels if levels is not None else level_images(gray, self._scales32),
-            right_levels,
-            self._scales,
-            self.camera.fx,
-            self.config,
+            kps, right_kps, levels, right_levels, self._scales, self.camera.fx, self.config
         )
         self._check_rectified(kps, right_kps, np.isfinite(u_right).mean() if len(kps) else 1.0)
         u_right = u_right - self.config.stereo.disparity_offset_px
@@ -339,7 +310,7 @@ class MonoSensor(Sensor):
         return np.ascontiguousarray(gray_image(image, self.camera)), None
 
     def features(
-        self, kps: OrbKeypoints, gray: np.ndarray, second=None, levels=None
+        self, kps: OrbKeypoints, gray: np.ndarray, second=None, levels=None, extracted=None
     ) -> FrameFeatures:
         """The frame's keypoints without depth (depth 0, u_right and 3D point NaN)."""
         n = len(kps)
