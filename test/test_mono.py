@@ -16,7 +16,7 @@ import helpers_vo
 from coop_slam.config import load_config, merge_overrides
 from coop_slam.datasets import Frame, Sequence, read_synthetic
 from coop_slam.evaluation.vo_run import run_sequence
-from coop_slam.geometry import invert, path_length, se3, transform_points
+from coop_slam.geometry import invert, path_length, se3, transform_error, transform_points
 from coop_slam.optim.bundle import BaProblem, reprojection_chi2, run_local_ba
 from coop_slam.vo import (
     EVENT_KEYFRAME_NEW,
@@ -132,7 +132,10 @@ def test_initialization_waits_then_builds_a_two_view_map(room):
         assert [e.keyframe_id for e in events] == [1, 2]
         kf1, kf2 = vo.keyframe(1), vo.keyframe(2)
         assert kf1.stamp_s == t0 and np.allclose(kf1.T_map_cam, np.eye(4), atol=1e-9)
-        assert res.new_keyframe_id == 2 and np.allclose(kf2.T_map_cam, res.T_map_cam)
+        # The second keyframe is the frame tracked, then moved a little by local BA (the map's
+        # unit is the first keyframe's median depth).
+        moved_m, moved_deg = transform_error(kf2.T_map_cam, res.T_map_cam)
+        assert res.new_keyframe_id == 2 and moved_m < 0.01 and moved_deg < 0.5
         # Every point is seen by both keyframes, in front of both, and the median depth in the
         # first keyframe is about 1 (the map's unit; local BA moved it a little).
         shared = np.intersect1d(kf1.map_point_ids, kf2.map_point_ids)

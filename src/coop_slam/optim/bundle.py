@@ -185,16 +185,14 @@ def run_local_ba(problem: BaProblem) -> BaResult:
         obs_point_ids=p.point_ids[p.obs_pt],
     )
     try:
-        import gtsam
-
         chi2_before = reprojection_chi2(p, p.T_map_cam, p.points_map)
-        graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        _add_keyframes(graph, values, p)
         # Observations in front of their camera only: GTSAM's stereo camera throws on cheirality.
         usable = np.isfinite(chi2_before)
-        _add_points(graph, values, p, usable)
-        T_new, pts_new = _optimize(graph, values, p)
+        # Compiled (schur_ba), but for relative-pose priors (the server's global BA): GTSAM.
+        if p.between_pairs is None:
+            T_new, pts_new = _optimize_compiled(p, usable)
+        else:
+            T_new, pts_new = _optimize_gtsam(p, usable)
         chi2_after = reprojection_chi2(p, T_new, pts_new)
         stereo = np.isfinite(p.obs_u_right)
         gate = np.where(stereo, p.chi2_stereo, p.chi2_mono)
@@ -219,6 +217,86 @@ def run_local_ba(problem: BaProblem) -> BaResult:
         return fail
 
 
+def _optimize_compiled(p: BaProblem, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The problem's usable observations, priors and anchor solved by :mod:`.schur_ba`."""
+    from . import schur_ba
+
+    idx = np.flatnonzero(usable)
+    obs_pt = p.obs_pt[idx].astype(np.int64)
+    by_pt = np.argsort(obs_pt, kind="stable")
+    pt_start = np.searchsorted(obs_pt[by_pt], np.arange(len(p.point_ids) + 1))
+    fixed = np.asarray(p.fixed, bool)
+    free = np.full(len(p.kf_ids), -1, np.int64)
+    free[~fixed] = np.arange(int((~fixed).sum()))
+    priors = list(_planar_priors(p))
+    anchor = _scale_anchor(p)
+    sigmas = p.scale_factor ** np.arange(p.n_levels)
+    problem = schur_ba.SchurProblem(
+        obs_kf=p.obs_kf[idx].astype(np.int64),
+        obs_pt=obs_pt,
+        obs_uv=np.ascontiguousarray(p.obs_uv[idx], dtype=float),
+        obs_u_right=np.ascontiguousarray(p.obs_u_right[idx], dtype=float),
+        obs_level=np.clip(p.obs_octave[idx].astype(np.int64), 0, p.n_levels - 1),
+        whiten_mono=1.0 / sigmas,
+        whiten_stereo=np.array([_stereo_whitening(p, s) for s in sigmas]),
+        huber=np.array([p.huber_mono, p.huber_stereo], float),
+        K=np.array([[p.fx, 0.0, p.cx], [0.0, p.fy, p.cy], [0.0, 0.0, 1.0]]),
+        bf=p.fx * p.baseline_m,
+        free=free,
+        pt_start=pt_start.astype(np.int64),
+        by_pt=by_pt.astype(np.int64),
+        prior_kf=np.array([k for k, _, _ in priors], np.int64),
+        prior_T_map_cam=np.array([T for _, T, _ in priors], float).reshape(-1, 4, 4),
+        prior_info=np.array([info for _, _, info in priors], float).reshape(-1, 6, 6),
+        anchor=np.array(anchor if anchor is not None else (-1, -1, 0.0, 1.0), float),
+    )
+    rules = schur_ba.LmRules(max_iterations=p.iterations, relative_tol=1e-5, absolute_tol=1e-5)
+    T_new, pts_new, _ = schur_ba.solve(problem, p.T_map_cam, p.points_map, rules)
+    return T_new, pts_new
+
+
+def _stereo_whitening(p: BaProblem, sigma_px: float) -> np.ndarray:
+    """W (3x3, upper triangular) with W^T W = the information of a (u, v, u_right) residual
+    at a level of ``sigma_px``: isotropic, or with the disparity's own sigma (_noise_models)."""
+    if p.disparity_sigma_px is None:
+        return np.eye(3) / sigma_px
+    cov = sigma_px**2 * np.array([[1.0, 0.0, 1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 1.0]])
+    cov[2, 2] += p.disparity_sigma_px**2
+    return np.linalg.cholesky(np.linalg.inv(cov)).T
+
+
+def _optimize_gtsam(p: BaProblem, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    import gtsam
+
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    _add_keyframes(graph, values, p)
+    _add_points(graph, values, p, usable)
+    return _optimize(graph, values, p)
+
+
+def _planar_priors(p: BaProblem):
+    """(keyframe index, prior T_map_cam, 6x6 information) of each free keyframe of a ground
+    robot (:func:`planar_prior`); none without ``planar_up_cam``."""
+    if p.planar_up_cam is None:
+        return
+    up_cam = np.broadcast_to(np.asarray(p.planar_up_cam, float), (len(p.kf_ids), 3))
+    for k in np.flatnonzero(~np.asarray(p.fixed, bool)):
+        plane = None if p.planar_T_map_plane is None else p.planar_T_map_plane[k]
+        T_prior, info = planar_prior(p.T_map_cam[k], up_cam[k], *p.planar_sigmas, plane)
+        yield int(k), T_prior, info
+
+
+def _scale_anchor(p: BaProblem) -> tuple[int, int, float, float] | None:
+    """(fixed keyframe, free keyframe, their distance, its sigma) of a monocular map's scale
+    anchor (the distance held at its current value), or None."""
+    if p.scale_anchor is None:
+        return None
+    f, k = (int(i) for i in p.scale_anchor)
+    dist = float(np.linalg.norm(p.T_map_cam[k][:3, 3] - p.T_map_cam[f][:3, 3]))
+    return f, k, dist, 1e-4 * dist
+
+
 def _add_keyframes(graph, values, p: BaProblem) -> None:
     """Keyframe poses X(k) and their priors: stiff ones on the fixed keyframes, a ground robot's
     planar priors on the others, a monocular map's scale anchor, relative-pose priors."""
@@ -234,17 +312,13 @@ def _add_keyframes(graph, values, p: BaProblem) -> None:
         values.insert(X(k), pose)
         if p.fixed[k]:
             graph.add(gtsam.PriorFactorPose3(X(k), pose, fixed_noise))
-    if p.planar_up_cam is not None:
-        up_cam = np.broadcast_to(np.asarray(p.planar_up_cam, float), (len(p.kf_ids), 3))
-        for k in np.flatnonzero(~np.asarray(p.fixed, bool)):
-            plane = None if p.planar_T_map_plane is None else p.planar_T_map_plane[k]
-            T_prior, info = planar_prior(p.T_map_cam[k], up_cam[k], *p.planar_sigmas, plane)
-            model = gtsam.noiseModel.Gaussian.Information(info)
-            graph.add(gtsam.PriorFactorPose3(X(int(k)), gtsam.Pose3(T_prior), model))
-    if p.scale_anchor is not None:
-        f, k = (int(i) for i in p.scale_anchor)
-        dist = float(np.linalg.norm(p.T_map_cam[k][:3, 3] - p.T_map_cam[f][:3, 3]))
-        noise = gtsam.noiseModel.Isotropic.Sigma(1, 1e-4 * dist)
+    for k, T_prior, info in _planar_priors(p):
+        model = gtsam.noiseModel.Gaussian.Information(info)
+        graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(T_prior), model))
+    anchor = _scale_anchor(p)
+    if anchor is not None:
+        f, k, dist, sigma = anchor
+        noise = gtsam.noiseModel.Isotropic.Sigma(1, sigma)
         graph.add(gtsam.RangeFactorPose3(X(f), X(k), dist, noise))
     if p.between_pairs is not None:
         for (i, j), T_i_j, (rot, trans) in zip(p.between_pairs, p.between_T, p.between_sigmas):
@@ -403,7 +477,9 @@ def serve() -> None:
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     inp = sys.stdin.buffer
-    import gtsam  # noqa: F401  (import before the first problem arrives)
+    from . import schur_ba
+
+    schur_ba.warm_up()  # the compiled kernels, before the first problem arrives
 
     while True:
         try:

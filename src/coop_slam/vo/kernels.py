@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..bow import vocabulary
+from ..optim import schur_ba
 from .config import VoConfig
 from .features import FrameFeatures, OrbKeypoints, level_images, orb_level_scales32
 from .matching import Projection, project_points, search_by_projection
@@ -22,6 +23,7 @@ from .stereo_matching import match_stereo
 def warm_up() -> None:
     """Call each kernel once on a tiny problem (compiles it, or loads it from the cache)."""
     vocabulary.warm_up()
+    schur_ba.warm_up()  # the local BA's (its process warms up on its own; this fills the cache)
     K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
     points = np.array([[0.0, 0.0, 2.0], [0.5, 0.0, 2.0], [0.0, 0.5, 2.5], [0.5, 0.5, 3.0]])
     uv = points[:, :2] / points[:, 2:] * 500.0 + [320.0, 240.0]
