@@ -460,8 +460,8 @@ def _track_all(vo, stamps, frames):
 
 def test_no_frame_waits_for_the_compiler():
     """After kernels.warm_up (what setup and every node run first), tracking and local mapping
-    call no compiled kernel with a signature it did not compile (or load from numba's cache): in
-    a fresh interpreter, no kernel gains a signature while 20 frames are tracked."""
+    (its BA too) call no compiled kernel with a signature it did not compile (or load from numba's
+    cache): in a fresh interpreter, no kernel gains a signature while 20 frames are tracked."""
     import subprocess
     import sys
 
@@ -476,6 +476,7 @@ from coop_slam.vo.kernels import warm_up
 stamps, frames, _ = helpers_vo.sequence(n_frames=20, seed=3, step_m=0.012)
 modules = [importlib.import_module("coop_slam.vo." + m.name)
            for m in pkgutil.iter_modules(vo_package.__path__)]
+modules.append(importlib.import_module("coop_slam.optim.schur_ba"))  # local BA, in-process here
 kernels = {m.__name__ + "." + k: f for m in modules for k, f in vars(m).items()
            if isinstance(f, CPUDispatcher)}
 warm_up()

@@ -1,19 +1,22 @@
-"""Local bundle adjustment with GTSAM, as a pure function of arrays.
+"""Local bundle adjustment, as a pure function of arrays: compiled (:mod:`.schur_ba`), or with
+GTSAM when the problem holds keyframes to relative-pose priors (the server's global BA).
 
 The problem is plain numpy data (picklable) so it can run in a worker process (:class:`BaWorker`):
-GTSAM's Python bindings hold the GIL while optimizing (measured: a 370 ms optimize() stalled another
-Python thread for 330 ms), so a background *thread* would stall tracking for the whole optimization.
+GTSAM's Python bindings hold the GIL while optimizing (measured: a 370 ms optimize() stalled
+another Python thread for 330 ms), so a background *thread* would stall tracking for the whole
+optimization.
 The worker is a plain ``python -m coop_slam.optim.bundle`` child fed pickles over a pipe rather than
 a multiprocessing pool: "spawn" re-imports the caller's ``__main__`` (breaks scripts and ROS nodes
 without a main guard) and "fork" of a multi-threaded process can deadlock.
 
-Factors, as ORB-SLAM2's RGB-D local BA: keypoints with a usable depth get a
-``GenericStereoFactor3D`` on (u, v, u_right) of a virtual stereo pair
-(u_right = u - fx * baseline / depth), the others a ``GenericProjectionFactorCal3_S2``; both with a
-Huber kernel and sigma = scale**octave px. Keyframes outside the window that see window points are
-held fixed (stiff ``PriorFactorPose3``). A monocular camera has projection factors only; its map's
-scale is held by the fixed keyframes, or (fewer than two of them) by a range factor between a fixed
-and a free keyframe (``scale_anchor``).
+Factors, as ORB-SLAM2's RGB-D local BA (named as GTSAM's; the compiled solver has the same
+residuals): keypoints with a usable depth get a ``GenericStereoFactor3D`` on (u, v, u_right) of a
+virtual stereo pair (u_right = u - fx * baseline / depth), the others a
+``GenericProjectionFactorCal3_S2``; both with a Huber kernel and sigma = scale**octave px.
+Keyframes outside the window that see window points are held fixed (stiff ``PriorFactorPose3``;
+the compiled solver does not move them). A monocular camera has projection factors only; its
+map's scale is held by the fixed keyframes, or (fewer than two of them) by a range factor between
+a fixed and a free keyframe (``scale_anchor``).
 """
 
 from __future__ import annotations
