@@ -561,14 +561,20 @@ def test_threaded_mapping_tracks_and_stops(room_sequence):
 
 
 def test_a_prestarted_ba_process_is_the_one_the_next_odometry_uses(room_sequence):
-    """A node starts the local BA's process before its camera's first frame; the odometry made
-    then takes that process (and runs its BA there, vo.ba.worker_nice nicer than itself), the next
-    one starts its own."""
+    """A node starts the local BA's process before its camera's first frame, and waits for its
+    kernels to load; the odometry made then takes that process (and runs its BA there,
+    vo.ba.worker_nice nicer than itself), the next one starts its own."""
     from coop_slam.optim import bundle
 
     stamps, frames, _ = room_sequence
-    bundle.prestart_worker()
+    starting = bundle.BaWorker()
+    try:  # a child says when its kernels are loaded (that takes it a second or more)
+        assert not starting.wait_ready(0.0) and starting.wait_ready(60.0) and starting.wait_ready()
+    finally:
+        starting.close()
+    bundle.prestart_worker()  # returns once the child is ready
     prestarted = bundle._PRESTARTED[0]
+    assert prestarted._ready
     try:
         with VisualOdometry(VoConfig(threaded=True), helpers_vo.CAMERA) as vo:
             assert vo._mapper._worker is prestarted and not bundle._PRESTARTED

@@ -25,6 +25,7 @@ import atexit
 import logging
 import os
 import pickle
+import select
 import subprocess
 import sys
 import threading
@@ -412,6 +413,7 @@ class BaWorker:
             stdout=subprocess.PIPE,
             env=env,
         )
+        self._ready = False  # the child said it has its kernels loaded (serve's first message)
 
     def lower_priority(self, niceness: int) -> None:
         """Run the child ``niceness`` steps nicer than this process (Linux nice, capped at 19):
@@ -429,8 +431,24 @@ class BaWorker:
         except (AttributeError, OSError) as exc:  # not Linux, no permission, or the child gone
             log.warning("local BA process kept its priority (vo.ba.worker_nice): %s", exc)
 
+    def wait_ready(self, timeout_s: float | None = None) -> bool:
+        """Wait until the child has its compiled kernels loaded (its start-up takes most of a
+        core for a second or two); False if that did not happen within ``timeout_s``. Raises
+        OSError / EOFError if the child died."""
+        if not self._ready:
+            if timeout_s is not None:
+                readable, _, _ = select.select([self._proc.stdout], [], [], timeout_s)
+                if not readable:
+                    return False
+            greeting = pickle.load(self._proc.stdout)
+            if greeting != _READY:
+                raise OSError(f"local BA process: unexpected first message {greeting!r}")
+            self._ready = True
+        return True
+
     def run(self, problem: BaProblem) -> BaResult:
         """Solve one problem in the child; raises OSError / EOFError if the child died."""
+        self.wait_ready()
         pickle.dump(problem, self._proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
         self._proc.stdin.flush()
         return pickle.load(self._proc.stdout)
@@ -444,18 +462,26 @@ class BaWorker:
             self._proc.wait()
 
 
+_READY = "ready"  # the worker's first message: its kernels are loaded
+
 # A worker started ahead of the odometry that will use it (:func:`prestart_worker`).
 _PRESTARTED: list = []
 _PRESTARTED_LOCK = threading.Lock()
 
 
-def prestart_worker() -> None:
-    """Start the BA worker process now (a node before its camera's first frame): the child's
-    imports take most of a core for about a second, which would otherwise fall on the first
-    frames tracked."""
+def prestart_worker(wait_s: float = 30.0) -> None:
+    """Start the BA worker process now (a node before its camera's first frame) and wait up to
+    ``wait_s`` for it to be ready: the child's imports and kernels take most of a core for a
+    second or two, which would otherwise fall on the first frames tracked."""
     with _PRESTARTED_LOCK:
         if not _PRESTARTED:
             _PRESTARTED.append(BaWorker())
+        worker = _PRESTARTED[0]
+    try:
+        if not worker.wait_ready(wait_s):
+            log.warning("local BA process not ready after %.0f s: frames may wait for it", wait_s)
+    except (OSError, EOFError) as exc:
+        log.warning("local BA process failed to start (%s): local mapping will try again", exc)
 
 
 @atexit.register
@@ -483,6 +509,8 @@ def serve() -> None:
     from . import schur_ba
 
     schur_ba.warm_up()  # the compiled kernels, before the first problem arrives
+    pickle.dump(_READY, out, protocol=pickle.HIGHEST_PROTOCOL)
+    out.flush()
 
     while True:
         try:

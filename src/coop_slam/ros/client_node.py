@@ -152,7 +152,7 @@ class ClientNode:
         warm_up()  # the odometry's compiled kernels
         shared_worker().submit(lambda: None).result()  # the thread tracking shares
         if self.vo_cfg.threaded and self.vo_cfg.ba.enabled:
-            prestart_worker()  # and the local BA's process
+            prestart_worker()  # and the local BA's process, its kernels loaded
         # Python's full collection scans every object it tracks; here ~140,000, nearly all the
         # libraries' (rospy, numpy, numba, GTSAM): ~40 ms with every thread stopped, about once in
         # a 20 s RedKitchen run, long enough to drop a frame. Collected once now (no frame waits)
