@@ -129,6 +129,9 @@ class ClientNode:
             self.pose.cam_frame,
             detect_beside=not self.wait_for_mapping,  # lock-step: the same sightings every run
         )
+        # Ready before subscribing to the camera: the player waits for that, so no frame comes
+        # while the kernels and the BA process load.
+        self._ready_before_frames()
         self.camera = CameraInput(
             name,
             self.robot_id,
@@ -139,7 +142,6 @@ class ClientNode:
             self._camera_changed,
             self._frame_not_tracked,
         )
-        self._ready_before_frames()
         threading.Thread(target=self._uplink_loop, daemon=True).start()
         threading.Thread(target=self._track_frames, daemon=True).start()
         self.sub_corr = rospy.Subscriber(

@@ -1,6 +1,6 @@
 """The odometry's compiled kernels (numba: the pose optimization, the projection and its search,
-the stereo matching and the vocabulary's descent for place signatures), compiled before the first
-frame rather than on it.
+the stereo matching, the local BA and the vocabulary's descent for place signatures), compiled
+before the first frame rather than on it; and the compiled extraction's first call.
 
 numba compiles a kernel on its first call (about 5 s for both here) and keeps the machine code in
 its cache beside the sources, so later starts load it (a tenth of a second). ``scripts/setup``
@@ -14,7 +14,7 @@ import numpy as np
 from ..bow import vocabulary
 from ..optim import schur_ba
 from .config import VoConfig
-from .features import FrameFeatures, OrbKeypoints, level_images, orb_level_scales32
+from .features import FrameFeatures, OrbExtractor, OrbKeypoints, level_images, orb_level_scales32
 from .matching import Projection, project_points, search_by_projection
 from .pose_opt import optimize_pose
 from .stereo_matching import match_stereo
@@ -43,4 +43,7 @@ def warm_up() -> None:
     kps = OrbKeypoints(uv + [-300.0, -200.0], np.ones(n, np.float32), np.zeros(n, np.float32),
                        np.zeros(n, np.uint8), desc)  # fmt: skip
     levels = level_images(image, orb_level_scales32(1.2, 8))
+    # The compiled extraction's first call sets up OpenCV's ORB, FAST and blur (~4 ms).
+    texture = np.random.default_rng(0).integers(0, 256, (240, 320), dtype=np.uint8)
+    OrbExtractor(VoConfig(), None).extract_images([texture, texture])
     match_stereo(kps, kps, levels, levels, scales, 500.0, VoConfig())
