@@ -568,8 +568,18 @@ def test_a_prestarted_ba_process_is_the_one_the_next_odometry_uses(room_sequence
 
     stamps, frames, _ = room_sequence
     starting = bundle.BaWorker()
-    try:  # a child says when its kernels are loaded (that takes it a second or more)
-        assert not starting.wait_ready(0.0) and starting.wait_ready(60.0) and starting.wait_ready()
+    try:  # a child says when its kernels are loaded (that takes it a second or more) ...
+        assert not starting.wait_ready(0.0)
+        ready = []  # ... to every thread that waits for it (one reads the greeting)
+        waiters = [
+            threading.Thread(target=lambda: ready.append(starting.wait_ready(60.0)))
+            for _ in range(2)
+        ]
+        for w in waiters:
+            w.start()
+        for w in waiters:
+            w.join(timeout=90.0)
+        assert ready == [True, True] and starting.wait_ready()
     finally:
         starting.close()
     bundle.prestart_worker()  # returns once the child is ready

@@ -414,6 +414,7 @@ class BaWorker:
             env=env,
         )
         self._ready = False  # the child said it has its kernels loaded (serve's first message)
+        self._pipe = threading.Lock()  # one reader of the child's stdout at a time
 
     def lower_priority(self, niceness: int) -> None:
         """Run the child ``niceness`` steps nicer than this process (Linux nice, capped at 19):
@@ -435,23 +436,31 @@ class BaWorker:
         """Wait until the child has its compiled kernels loaded (its start-up takes most of a
         core for a second or two); False if that did not happen within ``timeout_s``. Raises
         OSError / EOFError if the child died."""
-        if not self._ready:
-            if timeout_s is not None:
-                readable, _, _ = select.select([self._proc.stdout], [], [], timeout_s)
-                if not readable:
-                    return False
-            greeting = pickle.load(self._proc.stdout)
-            if greeting != _READY:
-                raise OSError(f"local BA process: unexpected first message {greeting!r}")
-            self._ready = True
-        return True
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        if not self._pipe.acquire(timeout=-1 if timeout_s is None else max(timeout_s, 0.0)):
+            return False
+        try:
+            if not self._ready:
+                if deadline is not None:
+                    left = max(deadline - time.monotonic(), 0.0)
+                    readable, _, _ = select.select([self._proc.stdout], [], [], left)
+                    if not readable:
+                        return False
+                greeting = pickle.load(self._proc.stdout)
+                if greeting != _READY:
+                    raise OSError(f"local BA process: unexpected first message {greeting!r}")
+                self._ready = True
+            return True
+        finally:
+            self._pipe.release()
 
     def run(self, problem: BaProblem) -> BaResult:
         """Solve one problem in the child; raises OSError / EOFError if the child died."""
         self.wait_ready()
-        pickle.dump(problem, self._proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
-        self._proc.stdin.flush()
-        return pickle.load(self._proc.stdout)
+        with self._pipe:
+            pickle.dump(problem, self._proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+            self._proc.stdin.flush()
+            return pickle.load(self._proc.stdout)
 
     def close(self) -> None:
         try:
@@ -480,8 +489,12 @@ def prestart_worker(wait_s: float = 30.0) -> None:
     try:
         if not worker.wait_ready(wait_s):
             log.warning("local BA process not ready after %.0f s: frames may wait for it", wait_s)
-    except (OSError, EOFError) as exc:
-        log.warning("local BA process failed to start (%s): local mapping will try again", exc)
+    except (OSError, EOFError, pickle.UnpicklingError) as exc:
+        log.warning("local BA process failed to start (%s): local mapping starts another", exc)
+        with _PRESTARTED_LOCK:
+            if worker in _PRESTARTED:
+                _PRESTARTED.remove(worker)
+        worker.close()
 
 
 @atexit.register

@@ -27,8 +27,6 @@ from numba import njit
 
 from .lm import DAMPING_FLOOR, LmRules, least_squares
 
-BEHIND_ERROR = 1e3  # whitened error an observation behind its camera counts as (Huber cost)
-
 
 @dataclass
 class SchurProblem:
@@ -80,7 +78,7 @@ def _log_se3(R, t):
     elif math.pi - theta < 1e-6:  # near pi: from the symmetric part
         B = 0.5 * (R + R.T) - cos_theta * np.eye(3)
         k = np.argmax(np.array([B[0, 0], B[1, 1], B[2, 2]]))
-        axis = B[:, k] / math.sqrt(max(B[k, k], 1e-300))
+        axis = B[:, k] / max(math.sqrt(B[0, k] ** 2 + B[1, k] ** 2 + B[2, k] ** 2), 1e-300)
         if axis[0] * w[0] + axis[1] * w[1] + axis[2] * w[2] < 0.0:
             axis = -axis
         w = axis * theta
@@ -200,10 +198,11 @@ def _cost(R, t, X, p, pri):
         stereo = math.isfinite(p[3][o])
         k = p[8][1] if stereo else p[8][0]
         d = _observation(R, t, X, p, o, r, Jx, Jp, False)
-        if d == 0:
-            e2 = BEHIND_ERROR * BEHIND_ERROR
-        else:
-            e2 = r[0, 0] ** 2 + r[1, 0] ** 2 + (r[2, 0] ** 2 if d == 3 else 0.0)
+        if d == 0:  # behind its camera: GTSAM's error there, 2 fx px a row (whitened)
+            d = 3 if stereo else 2
+            r[0, 0] = r[1, 0] = r[2, 0] = 2.0 * p[6][0, 0]
+            _whiten(p, o, d, p[4][o], r, 1)
+        e2 = r[0, 0] ** 2 + r[1, 0] ** 2 + (r[2, 0] ** 2 if d == 3 else 0.0)
         total += _huber(e2, k)[0]
     for i in range(pri[0].shape[0]):
         total += _prior_residual(R, t, pri[1], pri[2], i, pri[0][i])[1]
@@ -450,8 +449,9 @@ def solve(problem: SchurProblem, T_map_cam: np.ndarray, points_map: np.ndarray, 
     outcome = least_squares(_LocalBa(problem), state, rules)
     R, t, X = outcome.state
     T_new = np.array(T_map_cam, dtype=float, copy=True)
-    T_new[:, :3, :3] = R.transpose(0, 2, 1)
-    T_new[:, :3, 3] = -np.einsum("kji,kj->ki", R, t)
+    moved = problem.free >= 0  # the fixed keyframes come back exactly as given
+    T_new[moved, :3, :3] = R[moved].transpose(0, 2, 1)
+    T_new[moved, :3, 3] = -np.einsum("kji,kj->ki", R[moved], t[moved])
     return T_new, X, outcome.iterations
 
 

@@ -21,6 +21,7 @@
 #include <mutex>
 #include <numeric>
 #include <stdexcept>
+#include <system_error>
 #include <thread>
 #include <vector>
 
@@ -64,7 +65,11 @@ class Workers {
       }
     };
     std::vector<std::thread> helpers;
-    for (int t = 1; t < std::min(n_threads, n_items); ++t) helpers.emplace_back(drain);
+    try {
+      for (int t = 1; t < std::min(n_threads, n_items); ++t) helpers.emplace_back(drain);
+    } catch (const std::system_error &) {
+      // No more threads (a resource limit): the ones started and this one do every item.
+    }
     drain();
     for (auto &helper : helpers) helper.join();
     if (error) std::rethrow_exception(error);
