@@ -41,9 +41,23 @@ struct Image {
   std::vector<std::vector<cv::KeyPoint>> chosen;  // per level, after bucketing
   std::vector<std::vector<cv::KeyPoint>> described;  // per level, as ORB's compute returns them
   std::vector<cv::Mat> descriptors;  // per level
+  // Progress (under the extraction's lock): each stage waits for the one before it.
   bool pyramid_done = false;
-  bool pyramid_failed = false;
+  int levels_pending = 0;  // detection items not finished
+  bool bucketed = false;
+  bool failed = false;  // an item failed (its error reaches the caller): later ones skip
 };
+
+// Runs a function when it goes out of scope (also when an exception leaves it).
+template <typename Fn>
+struct OnExit {
+  Fn fn;
+  ~OnExit() { fn(); }
+};
+template <typename Fn>
+OnExit<Fn> on_exit(Fn fn) {
+  return OnExit<Fn>{fn};
+}
 
 // Work items handed out in order to whichever thread asks first; an item's errors are kept and
 // rethrown by run() after every thread stopped.
@@ -178,9 +192,7 @@ class OrbFrameExtractor {
     }
     {
       py::gil_scoped_release unlocked;
-      detect_all(images);
-      for (auto &image : images) bucket(image);
-      describe_all(images);
+      extract_all(images);
     }
     py::list out;
     for (size_t i = 0; i < images.size(); ++i) out.append(result(images[i], inputs[i]));
@@ -195,51 +207,81 @@ class OrbFrameExtractor {
                            edge_px_, 0, 2, cv::ORB::HARRIS_SCORE, kPatchPx, threshold);
   }
 
-  // Items: each image's pyramid, then its levels largest first (a thread builds a pyramid while
-  // the other detects level 0, which needs none).
-  void detect_all(std::vector<Image> &images) {
+  // One pass of items, handed out in order to whichever thread is free: each image's pyramid
+  // and its levels largest first (a thread builds a pyramid while another detects level 0,
+  // which needs none), then each image's bucketing once its levels are detected (a stereo
+  // pair's two side by side), then its levels' descriptors once it is bucketed. An item waits
+  // only for items before it, so the threads cannot deadlock.
+  void extract_all(std::vector<Image> &images) {
+    enum Stage { kPyramid, kDetect, kBucket, kDescribe };
     struct Item {
-      int image, level;  // level -1: build the pyramid
+      int image, stage, level;
     };
     std::vector<Item> items;
     const int n = static_cast<int>(images.size());
-    for (int i = 0; i < n; ++i) items.push_back({i, -1}), items.push_back({i, 0});
+    for (int i = 0; i < n; ++i) {
+      items.push_back({i, kPyramid, 0});
+      items.push_back({i, kDetect, 0});
+      images[i].levels_pending = n_levels();
+    }
     for (int l = 1; l < n_levels(); ++l)
-      for (int i = 0; i < n; ++i) items.push_back({i, l});
+      for (int i = 0; i < n; ++i) items.push_back({i, kDetect, l});
+    for (int i = 0; i < n; ++i) items.push_back({i, kBucket, 0});
+    for (int l = 0; l < n_levels(); ++l)
+      for (int i = 0; i < n; ++i) items.push_back({i, kDescribe, l});
     std::mutex lock;
-    std::condition_variable built;
+    std::condition_variable changed;
+    auto wait_for = [&](auto ready) {
+      std::unique_lock<std::mutex> hold(lock);
+      changed.wait(hold, ready);
+    };
+    auto failed = [&](const Image &image) {
+      std::lock_guard<std::mutex> hold(lock);
+      return image.failed;
+    };
     Workers::run(static_cast<int>(items.size()), threads_, [&](int k) {
       Image &image = images[items[k].image];
       const int level = items[k].level;
-      if (level < 0) {
-        bool ok = false;
-        try {
+      bool ok = false;  // set when the item did its work; else later items of the image skip
+      auto finish = [&](auto record) {
+        {
+          std::lock_guard<std::mutex> hold(lock);
+          record();
+          image.failed = image.failed || !ok;
+        }
+        changed.notify_all();
+      };
+      switch (items[k].stage) {
+        case kPyramid: {
+          auto done = on_exit([&] { finish([&] { image.pyramid_done = true; }); });
           build_pyramid(image);
           ok = true;
-        } catch (...) {
-          finish_pyramid(image, lock, built, false);
-          throw;
+          return;
         }
-        finish_pyramid(image, lock, built, ok);
-        return;
+        case kDetect: {
+          auto done = on_exit([&] { finish([&] { --image.levels_pending; }); });
+          if (level > 0) wait_for([&] { return image.pyramid_done; });
+          if (!failed(image) && wanted_[level])
+            image.found[level] = detect_level(image.levels[level], level);
+          ok = true;
+          return;
+        }
+        case kBucket: {
+          auto done = on_exit([&] { finish([&] { image.bucketed = true; }); });
+          wait_for([&] { return image.levels_pending == 0; });
+          if (!failed(image)) bucket(image);
+          ok = true;
+          return;
+        }
+        default: {
+          wait_for([&] { return image.bucketed; });
+          auto &kps = image.chosen[level];
+          if (failed(image) || kps.empty()) return;
+          orb(level, fast_)->compute(image.levels[level], kps, image.descriptors[level]);
+          image.described[level] = kps;
+        }
       }
-      if (level > 0) {
-        std::unique_lock<std::mutex> hold(lock);
-        built.wait(hold, [&] { return image.pyramid_done; });
-        if (image.pyramid_failed) return;  // its error is the pyramid item's
-      }
-      if (wanted_[level]) image.found[level] = detect_level(image.levels[level], level);
     });
-  }
-
-  static void finish_pyramid(Image &image, std::mutex &lock, std::condition_variable &built,
-                             bool ok) {
-    {
-      std::lock_guard<std::mutex> hold(lock);
-      image.pyramid_done = true;  // also when it failed: a thread waiting for it must not hang
-      image.pyramid_failed = !ok;
-    }
-    built.notify_all();
   }
 
   void build_pyramid(Image &image) const { build_levels(image.levels, scales32_); }
@@ -274,18 +316,6 @@ class OrbFrameExtractor {
     const auto keep = round_robin(u.data(), v.data(), response.data(), level.data(),
                                   static_cast<int64_t>(u.size()), cell_px_, n_features_);
     for (int64_t k : keep) image.chosen[level[k]].push_back(image.found[level[k]][index[k]]);
-  }
-
-  void describe_all(std::vector<Image> &images) {
-    const int n = static_cast<int>(images.size());
-    Workers::run(n * n_levels(), threads_, [&](int k) {
-      Image &image = images[k % n];
-      const int level = k / n;
-      auto &kps = image.chosen[level];
-      if (kps.empty()) return;
-      orb(level, fast_)->compute(image.levels[level], kps, image.descriptors[level]);
-      image.described[level] = kps;
-    });
   }
 
  public:
