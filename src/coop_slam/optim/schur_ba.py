@@ -26,6 +26,7 @@ import numpy as np
 from numba import njit
 
 from .lm import DAMPING_FLOOR, LmRules, least_squares
+from .rotation import exp_so3
 
 
 @dataclass
@@ -49,21 +50,6 @@ class SchurProblem:
     prior_T_map_cam: np.ndarray  # (N, 4, 4) the prior's mean
     prior_info: np.ndarray  # (N, 6, 6) information in GTSAM's tangent order
     anchor: np.ndarray  # (4,) fixed kf, free kf, distance [map units], sigma; kf -1: none
-
-
-@njit(cache=True, nogil=True)
-def _exp_so3(w):
-    theta = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
-    R = np.eye(3)
-    if theta < 2.220446049250313e-16:
-        return R
-    c, s = math.cos(theta), math.sin(theta)
-    c1 = 1.0 - c
-    x, y, z = w[0] / theta, w[1] / theta, w[2] / theta
-    R[0, 0], R[0, 1], R[0, 2] = c + c1 * x * x, c1 * x * y - s * z, c1 * x * z + s * y
-    R[1, 0], R[1, 1], R[1, 2] = c1 * x * y + s * z, c + c1 * y * y, c1 * y * z - s * x
-    R[2, 0], R[2, 1], R[2, 2] = c1 * x * z - s * y, c1 * y * z + s * x, c + c1 * z * z
-    return R
 
 
 @njit(cache=True, nogil=True)
@@ -213,9 +199,10 @@ def _cost(R, t, X, p, pri):
 
 @njit(cache=True, nogil=True)
 def _linearize(R, t, X, p, pri, free, n_free):
-    """Normal equations: (Hpp (F, F, 6, 6), gp (F, 6), Hll (P, 3, 3), gl (P, 3), Hpl (O, 6, 3))."""
+    """Normal equations: (Hpp (F, 6, 6), gp (F, 6), Hll (P, 3, 3), gl (P, 3), Hpl (O, 6, 3)); Hpp
+    holds the free poses' diagonal blocks, the only ones an observation or a prior touches."""
     n_obs, n_pts = p[0].shape[0], X.shape[0]
-    Hpp, gp = np.zeros((n_free, n_free, 6, 6)), np.zeros((n_free, 6))
+    Hpp, gp = np.zeros((n_free, 6, 6)), np.zeros((n_free, 6))
     Hll, gl = np.zeros((n_pts, 3, 3)), np.zeros((n_pts, 3))
     Hpl = np.zeros((n_obs, 6, 3))
     r, Jx, Jp = np.empty((3, 1)), np.empty((3, 6)), np.empty((3, 3))
@@ -237,7 +224,7 @@ def _linearize(R, t, X, p, pri, free, n_free):
             for c in range(d):
                 gp[k, a] += w * Jx[c, a] * r[c, 0]
                 for b in range(6):
-                    Hpp[k, k, a, b] += w * Jx[c, a] * Jx[c, b]
+                    Hpp[k, a, b] += w * Jx[c, a] * Jx[c, b]
                 for b in range(3):
                     Hpl[o, a, b] += w * Jx[c, a] * Jp[c, b]
     # Priors: the residual's Jacobian on xi is -P (P: (rho, phi) -> (phi, rho)) to first order.
@@ -250,7 +237,7 @@ def _linearize(R, t, X, p, pri, free, n_free):
         for a in range(6):
             pa = (a + 3) % 6
             for b in range(6):
-                Hpp[k, k, a, b] += info[pa, (b + 3) % 6]
+                Hpp[k, a, b] += info[pa, (b + 3) % 6]
             s = 0.0
             for b in range(6):
                 s += info[pa, b] * res[b]
@@ -263,7 +250,7 @@ def _linearize(R, t, X, p, pri, free, n_free):
         for a in range(3):
             gp[k, a] += J[a] * res
             for b in range(3):
-                Hpp[k, k, a, b] += J[a] * J[b]
+                Hpp[k, a, b] += J[a] * J[b]
     return Hpp, gp, Hll, gl, Hpl
 
 
@@ -294,9 +281,8 @@ def _solve(Hpp, gp, Hll, gl, Hpl, p, free, lam):
     for k in range(n_free):
         for a in range(6):
             rhs[6 * k + a] = -gp[k, a]
-            for m in range(n_free):
-                for b in range(6):
-                    S[6 * k + a, 6 * m + b] = Hpp[k, m, a, b]
+            for b in range(6):
+                S[6 * k + a, 6 * k + b] = Hpp[k, a, b]
     for q in range(6 * n_free):
         S[q, q] += DAMPING_FLOOR + lam * S[q, q]
     Hll_inv = np.empty((n_pts, 3, 3))
@@ -369,9 +355,8 @@ def _model_decrease(Hpp, gp, Hll, gl, Hpl, p, free, dp, dl):
     for k in range(n_free):
         for a in range(6):
             lin += gp[k, a] * dp[k, a]
-            for m in range(n_free):
-                for b in range(6):
-                    q += dp[k, a] * Hpp[k, m, a, b] * dp[m, b]
+            for b in range(6):
+                q += dp[k, a] * Hpp[k, a, b] * dp[k, b]
     for j in range(gl.shape[0]):
         for a in range(3):
             lin += gl[j, a] * dl[j, a]
@@ -395,7 +380,7 @@ def _retract(R, t, X, free, dp, dl):
         m = free[k]
         if m < 0:
             continue
-        E = _exp_so3(dp[m, 3:])
+        E = exp_so3(dp[m, 3:])
         R2[k] = E @ R[k]
         t2[k] = E @ t[k] + dp[m, :3]
     return R2, t2, X2

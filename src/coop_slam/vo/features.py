@@ -178,6 +178,7 @@ class OrbExtractor:
             cell_px=[float(c) for c in feats.grid_cell_px * level_scales(config)],
             scale_factor=feats.scale_factor,
             edge_threshold_px=feats.edge_threshold_px,
+            patch_px=_PATCH_PX,
             fast_threshold=feats.fast_threshold,
             # at most the low threshold: one pass
             fast_threshold_first=max(feats.fast_threshold_first, 0),

@@ -33,8 +33,6 @@ namespace py = pybind11;
 
 namespace {
 
-constexpr int kPatchPx = 31;  // ORB's descriptor patch
-
 struct Image {
   std::vector<cv::Mat> levels;  // level 0 wraps the caller's array
   std::vector<std::vector<cv::KeyPoint>> found;  // per level
@@ -118,12 +116,29 @@ void build_levels(std::vector<cv::Mat> &levels, const std::vector<float> &scales
   }
 }
 
+// A level image as a numpy array sharing its pixels (freed with the array).
+py::array level_array(const cv::Mat &level) {
+  auto *owner = new cv::Mat(level);
+  py::capsule free_owner(owner, [](void *p) { delete static_cast<cv::Mat *>(p); });
+  const std::vector<py::ssize_t> shape{level.rows, level.cols};
+  const std::vector<py::ssize_t> strides{static_cast<py::ssize_t>(level.step[0]), 1};
+  return py::array_t<uint8_t>(shape, strides, level.data, free_owner);
+}
+
+// The pyramid for Python: level 0 is the caller's own array.
+py::list levels_list(const std::vector<cv::Mat> &levels, const py::array &input) {
+  py::list out;
+  out.append(input);
+  for (size_t l = 1; l < levels.size(); ++l) out.append(level_array(levels[l]));
+  return out;
+}
+
 // Indices (ascending) of the first n_keep keypoints in the order: rank within their (level,
 // cell) by response (0 = the cell's best), then response, then index. Cells are cell_px[level]
 // squares of level-0 pixels.
 std::vector<int64_t> round_robin(const double *u, const double *v, const double *response,
-                                 const int64_t *level, int64_t n, const std::vector<double> &cell_px,
-                                 int64_t n_keep) {
+                                 const int64_t *level, int64_t n,
+                                 const std::vector<double> &cell_px, int64_t n_keep) {
   n_keep = std::max<int64_t>(0, std::min(n_keep, n));
   std::vector<int64_t> all(n);
   std::iota(all.begin(), all.end(), 0);
@@ -163,12 +178,14 @@ class OrbFrameExtractor {
   // (features.orb_level_scales32); cell_px: each level's grid cell in level-0 pixels.
   OrbFrameExtractor(std::vector<int> wanted, std::vector<float> scales32,
                     std::vector<double> cell_px, double scale_factor, int edge_threshold_px,
-                    int fast_threshold, int fast_threshold_first, int n_features, int threads)
+                    int patch_px, int fast_threshold, int fast_threshold_first, int n_features,
+                    int threads)
       : wanted_(std::move(wanted)),
         scales32_(std::move(scales32)),
         cell_px_(std::move(cell_px)),
         scale_factor_(scale_factor),
         edge_px_(edge_threshold_px),
+        patch_px_(patch_px),
         fast_(fast_threshold),
         fast_first_(fast_threshold_first),
         n_features_(n_features),
@@ -202,9 +219,14 @@ class OrbFrameExtractor {
  private:
   int n_levels() const { return static_cast<int>(wanted_.size()); }
 
+  // A level's keypoint in level-0 pixels as OpenCV's ORB reports it (a float32 product).
+  double level0(float coord, int level) const {
+    return static_cast<double>(coord * scales32_[level]);
+  }
+
   cv::Ptr<cv::ORB> orb(int level, int threshold) const {
     return cv::ORB::create(std::max(wanted_[level], 1), static_cast<float>(scale_factor_), 1,
-                           edge_px_, 0, 2, cv::ORB::HARRIS_SCORE, kPatchPx, threshold);
+                           edge_px_, 0, 2, cv::ORB::HARRIS_SCORE, patch_px_, threshold);
   }
 
   // One pass of items, handed out in order to whichever thread is free: each image's pyramid
@@ -254,7 +276,7 @@ class OrbFrameExtractor {
       switch (items[k].stage) {
         case kPyramid: {
           auto done = on_exit([&] { finish([&] { image.pyramid_done = true; }); });
-          build_pyramid(image);
+          build_levels(image.levels, scales32_);
           ok = true;
           return;
         }
@@ -284,8 +306,6 @@ class OrbFrameExtractor {
     });
   }
 
-  void build_pyramid(Image &image) const { build_levels(image.levels, scales32_); }
-
   // At the first threshold when it finds as many keypoints as the level wants, else at the low
   // one (features.py's module docstring).
   std::vector<cv::KeyPoint> detect_level(const cv::Mat &image, int level) const {
@@ -306,9 +326,8 @@ class OrbFrameExtractor {
     for (int l = 0; l < n_levels(); ++l)
       for (size_t k = 0; k < image.found[l].size(); ++k) {
         const cv::KeyPoint &kp = image.found[l][k];
-        // Level-0 position as OpenCV's ORB reports it (float32 product, as the Python tables).
-        u.push_back(static_cast<double>(kp.pt.x * scales32_[l]));
-        v.push_back(static_cast<double>(kp.pt.y * scales32_[l]));
+        u.push_back(level0(kp.pt.x, l));
+        v.push_back(level0(kp.pt.y, l));
         response.push_back(static_cast<double>(kp.response));
         level.push_back(l);
         index.push_back(static_cast<int64_t>(k));
@@ -317,24 +336,6 @@ class OrbFrameExtractor {
                                   static_cast<int64_t>(u.size()), cell_px_, n_features_);
     for (int64_t k : keep) image.chosen[level[k]].push_back(image.found[level[k]][index[k]]);
   }
-
- public:
-  static py::array level_array(const cv::Mat &level) {
-    auto *owner = new cv::Mat(level);  // shares the pixels; freed with the array
-    py::capsule free_owner(owner, [](void *p) { delete static_cast<cv::Mat *>(p); });
-    const std::vector<py::ssize_t> shape{level.rows, level.cols};
-    const std::vector<py::ssize_t> strides{static_cast<py::ssize_t>(level.step[0]), 1};
-    return py::array_t<uint8_t>(shape, strides, level.data, free_owner);
-  }
-
-  static py::list levels_list(const std::vector<cv::Mat> &levels, const py::array &input) {
-    py::list out;
-    out.append(input);
-    for (size_t l = 1; l < levels.size(); ++l) out.append(level_array(levels[l]));
-    return out;
-  }
-
- private:
 
   // (pt_px, angle_deg, octaves, descriptors, levels): pt_px as OpenCV's ORB reports a level's
   // keypoints in level-0 pixels (features.orb_level0_uv takes them to pixel centres).
@@ -355,8 +356,8 @@ class OrbFrameExtractor {
       if (d.empty()) continue;
       for (size_t k = 0; k < image.described[l].size(); ++k, ++row) {
         const cv::KeyPoint &kp = image.described[l][k];
-        pt_(row, 0) = static_cast<double>(kp.pt.x * scales32_[l]);
-        pt_(row, 1) = static_cast<double>(kp.pt.y * scales32_[l]);
+        pt_(row, 0) = level0(kp.pt.x, l);
+        pt_(row, 1) = level0(kp.pt.y, l);
         angle_(row) = kp.angle;
         oct_(row) = static_cast<uint8_t>(l);
         const uint8_t *bits = d.ptr<uint8_t>(static_cast<int>(k));
@@ -370,7 +371,7 @@ class OrbFrameExtractor {
   std::vector<float> scales32_;
   std::vector<double> cell_px_;
   double scale_factor_;
-  int edge_px_, fast_, fast_first_, n_features_, threads_;
+  int edge_px_, patch_px_, fast_, fast_first_, n_features_, threads_;
 };
 
 // The image levels of one grey image (as OrbFrameExtractor.extract returns them).
@@ -383,19 +384,22 @@ py::list pyramid(const py::array &gray, const std::vector<float> &scales32) {
     py::gil_scoped_release unlocked;
     build_levels(levels, scales32);
   }
-  return OrbFrameExtractor::levels_list(levels, input);
+  return levels_list(levels, input);
 }
 
-py::array_t<int64_t> round_robin_array(const py::array_t<double, py::array::c_style | py::array::forcecast> &u,
-                                       const py::array_t<double, py::array::c_style | py::array::forcecast> &v,
-                                       const py::array_t<double, py::array::c_style | py::array::forcecast> &response,
-                                       const py::array_t<int64_t, py::array::c_style | py::array::forcecast> &octave,
+template <typename T>
+using Column = py::array_t<T, py::array::c_style | py::array::forcecast>;
+
+py::array_t<int64_t> round_robin_array(const Column<double> &u, const Column<double> &v,
+                                       const Column<double> &response,
+                                       const Column<int64_t> &octave,
                                        const std::vector<double> &cell_px, int64_t n_keep) {
   const py::ssize_t n = u.size();
   if (v.size() != n || response.size() != n || octave.size() != n)
     throw std::invalid_argument("u, v, response and octave need one entry per keypoint");
   if (cell_px.empty()) throw std::invalid_argument("cell_px: at least one level is needed");
-  const auto keep = round_robin(u.data(), v.data(), response.data(), octave.data(), n, cell_px, n_keep);
+  const auto keep =
+      round_robin(u.data(), v.data(), response.data(), octave.data(), n, cell_px, n_keep);
   py::array_t<int64_t> out(static_cast<py::ssize_t>(keep.size()));
   std::copy(keep.begin(), keep.end(), out.mutable_data());
   return out;
@@ -407,9 +411,9 @@ PYBIND11_MODULE(_orb_native, m) {
   m.doc() = "Grid-bucketed ORB extraction of a frame's images (coop_slam.vo.features drives it).";
   py::class_<OrbFrameExtractor>(m, "OrbFrameExtractor")
       .def(py::init<std::vector<int>, std::vector<float>, std::vector<double>, double, int, int,
-                    int, int, int>(),
+                    int, int, int, int>(),
            py::arg("wanted"), py::arg("scales32"), py::arg("cell_px"), py::arg("scale_factor"),
-           py::arg("edge_threshold_px"), py::arg("fast_threshold"),
+           py::arg("edge_threshold_px"), py::arg("patch_px"), py::arg("fast_threshold"),
            py::arg("fast_threshold_first"), py::arg("n_features"), py::arg("threads"))
       .def("extract", &OrbFrameExtractor::extract, py::arg("images"),
            "[(pt_px, angle_deg, octaves, descriptors, levels)] of each image");

@@ -21,6 +21,7 @@ import numpy as np
 from numba import njit
 
 from ..optim.lm import DAMPING_FLOOR, GAUSS_NEWTON
+from ..optim.rotation import exp_so3
 
 
 @njit(cache=True, nogil=True)
@@ -115,22 +116,6 @@ def _solve_spd(H, g, step) -> bool:
 
 
 @njit(cache=True, nogil=True)
-def _exp_so3(w):
-    """The rotation of rotation vector ``w`` (as cv2.Rodrigues)."""
-    theta = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
-    R = np.eye(3)
-    if theta < 2.220446049250313e-16:
-        return R
-    c, s = math.cos(theta), math.sin(theta)
-    c1 = 1.0 - c
-    x, y, z = w[0] / theta, w[1] / theta, w[2] / theta
-    R[0, 0], R[0, 1], R[0, 2] = c + c1 * x * x, c1 * x * y - s * z, c1 * x * z + s * y
-    R[1, 0], R[1, 1], R[1, 2] = c1 * x * y + s * z, c + c1 * y * y, c1 * y * z - s * x
-    R[2, 0], R[2, 1], R[2, 2] = c1 * x * z - s * y, c1 * y * z + s * x, c + c1 * z * z
-    return R
-
-
-@njit(cache=True, nogil=True)
 def _errors(R, t, P, uv, u_right, info, K, bf, e2):
     """Info-weighted squared reprojection error per keypoint (inf behind the camera)."""
     for i in range(P.shape[0]):
@@ -165,7 +150,7 @@ def _optimize(R, t, P, uv, u_right, info, K, bf, chi2, rounds, iterations, lam, 
                 largest = max(largest, abs(step[a]))
             if not finite:
                 break
-            dR = _exp_so3(step[3:])
+            dR = exp_so3(step[3:])
             R[:] = dR @ R
             t[:] = dR @ t + step[:3]
             if largest < min_step:
