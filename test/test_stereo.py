@@ -4,6 +4,7 @@ KITTI straight) when ../shared is present."""
 
 import dataclasses
 import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -79,8 +80,10 @@ def test_the_subpixel_refinement_takes_the_least_zero_mean_patch_difference(r, s
     noise = rng.integers(-2, 3, img_l.shape)
     img_r = np.clip(np.roll(img_l, -3, axis=1).astype(int) + noise, 0, 255).astype(np.uint8)
     ur0 = u - 3 + shift
-    at, cost = stereo_matching._slide_patches(img_l, img_r, u, v, ur0, r, search)
+    # r = 32: the patch sums exceed float32's exact integers, and are summed in int64
+    work = stereo_matching._work_arrays(r, search, stereo_matching._sum_type(r))
     for i in range(12):
+        at, cost = stereo_matching._slide_patch(img_l, img_r, u[i], v[i], ur0[i], r, search, *work)
         costs = [
             _zero_mean_ssd(img_l, img_r, u[i], v[i], ur0[i] - search + k, r)
             for k in range(2 * search + 1)
@@ -89,8 +92,29 @@ def test_the_subpixel_refinement_takes_the_least_zero_mean_patch_difference(r, s
         assert ur0[i] - search + best == u[i] - 3, "the shifted patch is the least different"
         d1, d2, d3 = costs[best - 1 : best + 2]
         expected = ur0[i] - search + best + (d1 - d3) / (2.0 * (d1 + d3 - 2.0 * d2))
-        assert abs(at[i] - expected) < 1e-9, (at[i], expected)
-        assert d2 > 0 and abs(cost[i] ** 2 - d2) < 1e-9 * d2
+        assert abs(at - expected) < 1e-9, (at, expected)
+        assert d2 > 0 and abs(cost**2 - d2) < 1e-9 * d2
+
+
+def test_a_pair_matched_in_two_halves_side_by_side_is_matched_as_on_one_thread():
+    """Given a worker thread, the left keypoints' two halves are matched at once: the same
+    right coordinates as on one thread (and the halves do differ)."""
+    planes = helpers_vo.room(np.random.default_rng(2))
+    left, right, _ = _pair(planes, se3(t=[0.0, 0.1, 0.2]))
+    cfg = VoConfig()
+    sensor = StereoSensor(cfg, STEREO)
+    gray, right_gray = sensor.check_input(left, right)
+    (kps, levels), (right_kps, right_levels) = OrbExtractor(cfg, STEREO).extract_images(
+        [gray, right_gray]
+    )
+    args = (kps, right_kps, levels, right_levels, sensor._scales, STEREO.fx, cfg)
+    assert len(kps) >= 2 * stereo_matching._MIN_SPLIT, "too few keypoints to split"
+    alone = stereo_matching.match_stereo(*args)
+    with ThreadPoolExecutor(1) as worker:
+        halves = stereo_matching.match_stereo(*args, worker=worker)
+    np.testing.assert_array_equal(halves, alone)
+    half = len(kps) // 2
+    assert np.isfinite(alone[:half]).sum() > 50 and np.isfinite(alone[half:]).sum() > 50
 
 
 def test_a_pairs_disparity_offset_is_added_to_every_measured_disparity():

@@ -18,6 +18,7 @@ import numpy as np
 from ..camera import CameraModel
 from .config import VoConfig
 from .features import FrameFeatures, OrbExtractor, OrbKeypoints, level_scales
+from .shared_work import shared_worker
 from .stereo_matching import match_stereo
 from .types import VoError
 
@@ -244,7 +245,15 @@ class StereoSensor(Sensor):
             extracted = both[1] if extracted is None else extracted
         right_kps, right_levels = extracted
         u_right = match_stereo(
-            kps, right_kps, levels, right_levels, self._scales, self.camera.fx, self.config
+            kps,
+            right_kps,
+            levels,
+            right_levels,
+            self._scales,
+            self.camera.fx,
+            self.config,
+            # both halves side by side when the extraction has a second thread too
+            worker=shared_worker() if self.config.features.threads > 1 else None,
         )
         self._check_rectified(kps, right_kps, np.isfinite(u_right).mean() if len(kps) else 1.0)
         u_right = u_right - self.config.stereo.disparity_offset_px
