@@ -12,10 +12,10 @@
    with known disparity that doubled the median error;
 3. matches whose best patch cost exceeds 1.5 x 1.4 x the median cost are outliers.
 
-Steps 1 and 2 are compiled loops (:func:`_best_in_band`: each left keypoint against the right
-keypoints in its row band, sorted by row; :func:`_slide_patches`: each pair's patches) that run
-without Python's lock: given a worker thread, the two halves of the left keypoints are matched side
-by side (the result does not depend on it).
+Steps 1 and 2 are one compiled call for a range of left keypoints (:func:`_match_range`: each
+against the right keypoints in its row band, sorted by row; then each pair's patches on its level)
+that runs without Python's lock: given a worker thread, the two halves of the left keypoints are
+matched side by side (the result does not depend on it).
 """
 
 from __future__ import annotations
