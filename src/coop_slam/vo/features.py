@@ -21,7 +21,9 @@ between n and 2n strong corners keeps those, not weaker ones that would win on H
 
 The extraction runs compiled (orb_native.cpp, through OpenCV's C++ API): made in Python, a
 cv2.KeyPoint object per candidate and the tables read back from them cost ~2 ms of a KITTI image's
-~14, and held Python's lock while the other image's extraction wanted it.
+~14, and held Python's lock while the other image's extraction wanted it. It detects as ORB does,
+but orients only the keypoints the grid keeps (ORB orients every one it finds) with the same
+angles; a KITTI pair's extraction 12.2 -> 11.2 ms.
 """
 
 from __future__ import annotations
@@ -161,7 +163,7 @@ def _native():
 
 class OrbExtractor:
     """Grid-bucketed ORB extraction (see module docstring), compiled (orb_native.cpp): each
-    pyramid level detected and described by its own one-level OpenCV ORB, the levels of all the
+    pyramid level detected and described as by its own one-level OpenCV ORB, the levels of all the
     images of a frame shared by ``vo.features.threads`` threads (largest first, each to whichever
     is free; one builds an image's pyramid while another detects its level 0): the same keypoints
     and descriptors as one OpenCV ORB over the whole pyramid (without the first FAST pass).

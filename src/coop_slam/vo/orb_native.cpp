@@ -1,9 +1,15 @@
 // Grid-bucketed ORB extraction of a frame's images in compiled code: the method of features.py
-// (each pyramid level detected by its own one-level OpenCV ORB, FAST at the first threshold and
-// again at the low one when that finds too few; the best keypoints of each (level, grid cell)
+// (each pyramid level detected as a one-level OpenCV ORB detects it, FAST at the first threshold
+// and again at the low one when that finds too few; the best keypoints of each (level, grid cell)
 // first; descriptors for the kept ones), run on a few threads without Python's lock. The
 // keypoints stay in C++ vectors until the result: making a cv2.KeyPoint object per candidate and
 // reading its fields back in Python cost more than the detection's Harris scores.
+//
+// The detection is ORB's own sequence of public OpenCV steps (FAST, the border filter, the best
+// 2n by FAST score, the Harris score, the best n), with the Harris score and the orientation
+// computed here: the orientation only for the keypoints the grid keeps (ORB orients all n found,
+// 2.5x as many on KITTI), so a pass at the first threshold that finds too few costs only its
+// FAST. Scores and angles are OpenCV's, bit for bit (test_vo compares with its ORB).
 //
 // Built by CMakeLists.txt (scripts/setup) as coop_slam/vo/_orb_native.*.so; features.py drives it.
 
@@ -116,6 +122,72 @@ void build_levels(std::vector<cv::Mat> &levels, const std::vector<float> &scales
   }
 }
 
+// Harris corner score of the 7 x 7 block around pixel (x, y): det - 0.04 trace^2 of the summed
+// products of 3 x 3 Sobel gradients, normalised and evaluated in float32 in the order OpenCV's
+// ORB does (its HARRIS_SCORE, bit for bit: the bucketing's order follows the scores).
+float harris_score(const cv::Mat &image, int x, int y) {
+  constexpr int kBlock = 7;
+  constexpr float kHarrisK = 0.04f;
+  const int step = static_cast<int>(image.step);
+  int sxx = 0, syy = 0, sxy = 0;
+  for (int dy = -kBlock / 2; dy <= kBlock / 2; ++dy) {
+    const uint8_t *row = image.ptr<uint8_t>(y + dy) + x;
+    for (int dx = -kBlock / 2; dx <= kBlock / 2; ++dx) {
+      const uint8_t *p = row + dx;
+      const uint8_t *up = p - step, *down = p + step;
+      const int gx = 2 * (p[1] - p[-1]) + (up[1] - up[-1]) + (down[1] - down[-1]);
+      const int gy = 2 * (down[0] - up[0]) + (down[-1] - up[-1]) + (down[1] - up[1]);
+      sxx += gx * gx;
+      syy += gy * gy;
+      sxy += gx * gy;
+    }
+  }
+  const float norm = 1.0f / (4 * kBlock * 255.0f);  // the gradients' largest value
+  const float norm4 = norm * norm * norm * norm;
+  const float trace = static_cast<float>(sxx) + syy;
+  const float det = static_cast<float>(sxx) * syy - static_cast<float>(sxy) * sxy;
+  return (det - kHarrisK * trace * trace) * norm4;
+}
+
+// Half-width of each row v = 0..radius of ORB's circular patch: the rounded circle on the rows
+// below the diagonal, and on the others the mirror of the columns', so the patch is symmetric
+// about its diagonals.
+std::vector<int> disc_half_widths(int radius) {
+  std::vector<int> width(radius + 2, 0);
+  const float diagonal = radius * std::sqrt(2.f) / 2;
+  const int rounded_up_to = static_cast<int>(std::floor(diagonal + 1));
+  const int mirrored_from = static_cast<int>(std::ceil(diagonal));
+  for (int v = 0; v <= rounded_up_to; ++v)
+    width[v] = static_cast<int>(std::lrint(std::sqrt(double(radius) * radius - v * v)));
+  for (int v = radius, column = 0; v >= mirrored_from; --v, ++column) {
+    while (width[column] == width[column + 1]) ++column;
+    width[v] = column;
+  }
+  width.resize(radius + 1);
+  return width;
+}
+
+// ORB's orientation [deg] of pixel (x, y): the direction of the intensity centroid of the
+// circular patch whose rows have the half-widths `disc` (integer moments, then OpenCV's
+// fastAtan2, as its ORB computes it).
+float centroid_angle(const cv::Mat &image, int x, int y, const std::vector<int> &disc) {
+  const int radius = static_cast<int>(disc.size()) - 1;
+  const int step = static_cast<int>(image.step);
+  const uint8_t *centre = image.ptr<uint8_t>(y) + x;
+  int m10 = 0, m01 = 0;
+  for (int u = -radius; u <= radius; ++u) m10 += u * centre[u];
+  for (int v = 1; v <= radius; ++v) {
+    int below_minus_above = 0;
+    for (int u = -disc[v]; u <= disc[v]; ++u) {
+      const int below = centre[u + v * step], above = centre[u - v * step];
+      below_minus_above += below - above;
+      m10 += u * (below + above);
+    }
+    m01 += v * below_minus_above;
+  }
+  return cv::fastAtan2(static_cast<float>(m01), static_cast<float>(m10));
+}
+
 // A level image as a numpy array sharing its pixels (freed with the array).
 py::array level_array(const cv::Mat &level) {
   auto *owner = new cv::Mat(level);
@@ -189,7 +261,8 @@ class OrbFrameExtractor {
         fast_(fast_threshold),
         fast_first_(fast_threshold_first),
         n_features_(n_features),
-        threads_(std::max(1, threads)) {
+        threads_(std::max(1, threads)),
+        disc_(disc_half_widths(patch_px / 2)) {
     if (wanted_.empty() || scales32_.size() != wanted_.size() || cell_px_.size() != wanted_.size())
       throw std::invalid_argument("wanted, scales32 and cell_px need one entry per level (>= 1)");
   }
@@ -299,6 +372,9 @@ class OrbFrameExtractor {
           wait_for([&] { return image.bucketed; });
           auto &kps = image.chosen[level];
           if (failed(image) || kps.empty()) return;
+          for (auto &kp : kps)
+            kp.angle =
+                centroid_angle(image.levels[level], cvRound(kp.pt.x), cvRound(kp.pt.y), disc_);
           orb(level, fast_)->compute(image.levels[level], kps, image.descriptors[level]);
           image.described[level] = kps;
         }
@@ -307,15 +383,24 @@ class OrbFrameExtractor {
   }
 
   // At the first threshold when it finds as many keypoints as the level wants, else at the low
-  // one (features.py's module docstring).
+  // one (features.py's module docstring); the best by Harris score as ORB keeps them (unoriented).
   std::vector<cv::KeyPoint> detect_level(const cv::Mat &image, int level) const {
+    const int wanted = wanted_[level];
     std::vector<cv::KeyPoint> kps;
-    if (fast_first_ > fast_) {
-      orb(level, fast_first_)->detect(image, kps);
-      if (static_cast<int>(kps.size()) >= wanted_[level]) return kps;
+    auto fast = [&](int threshold) {
       kps.clear();
+      cv::FAST(image, kps, threshold, true);
+      cv::KeyPointsFilter::runByImageBorder(kps, image.size(), edge_px_);
+    };
+    fast(std::max(fast_first_, fast_));
+    if (fast_first_ > fast_ && static_cast<int>(kps.size()) < wanted) fast(fast_);
+    cv::KeyPointsFilter::retainBest(kps, 2 * wanted);  // by FAST score
+    for (auto &kp : kps) {
+      kp.octave = 0;  // of the one-level ORB that describes them
+      kp.size = static_cast<float>(patch_px_);
+      kp.response = harris_score(image, cvRound(kp.pt.x), cvRound(kp.pt.y));
     }
-    orb(level, fast_)->detect(image, kps);
+    cv::KeyPointsFilter::retainBest(kps, wanted);
     return kps;
   }
 
@@ -372,6 +457,7 @@ class OrbFrameExtractor {
   std::vector<double> cell_px_;
   double scale_factor_;
   int edge_px_, patch_px_, fast_, fast_first_, n_features_, threads_;
+  std::vector<int> disc_;  // the orientation patch's row half-widths
 };
 
 // The image levels of one grey image (as OrbFrameExtractor.extract returns them).
