@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import threading
 import time
+import types
 
 import numpy as np
 import pytest
@@ -43,6 +44,7 @@ from coop_slam.vo.features import (
     orb_level_scales32,
     round_robin,
 )
+from coop_slam.vo.map import Map
 from coop_slam.vo.pose_opt import optimize_pose
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -280,6 +282,35 @@ def _ba_problem(T_map_cam, fixed, points_map, obs_kf, obs_pt, uv, ur, octave, **
         iterations=20,
         **kw,
     )
+
+
+def test_covisibility_edges_stay_ordered_by_weight():
+    """An edge set, changed or dropped keeps a keyframe's edges by weight, descending; a changed
+    edge goes after the others of its weight; dropping an absent edge or setting an unchanged one
+    changes nothing."""
+    vmap = Map(0)
+    kf = types.SimpleNamespace(
+        covisible_ids=np.array([4, 7, 9], np.uint32),
+        covisible_weights=np.array([30, 20, 20], np.uint16),
+    )
+    vmap.keyframes[1] = kf
+
+    def edges():
+        return list(zip(kf.covisible_ids.tolist(), kf.covisible_weights.tolist()))
+
+    vmap._set_edge(1, 5, 20)  # new: after the 20s already there
+    assert edges() == [(4, 30), (7, 20), (9, 20), (5, 20)]
+    vmap._set_edge(1, 9, 25)  # raised: moves up
+    assert edges() == [(4, 30), (9, 25), (7, 20), (5, 20)]
+    vmap._set_edge(1, 4, 10)  # lowered: to the end
+    assert edges() == [(9, 25), (7, 20), (5, 20), (4, 10)]
+    vmap._set_edge(1, 7, 20)  # unchanged: stays where it is
+    assert edges() == [(9, 25), (7, 20), (5, 20), (4, 10)]
+    vmap._set_edge(1, 5, 0)  # dropped
+    vmap._set_edge(1, 8, 0)  # absent: nothing
+    vmap._set_edge(2, 8, 5)  # no such keyframe: nothing
+    assert edges() == [(9, 25), (7, 20), (4, 10)]
+    assert kf.covisible_ids.dtype == np.uint32 and kf.covisible_weights.dtype == np.uint16
 
 
 def test_local_ba_reduces_error_of_perturbed_map():
