@@ -20,7 +20,7 @@ from coop_slam.bow.database import (
 )
 from coop_slam.bow.training import ExtractionConfig, image_files, train_from_sequences
 from coop_slam.config import load_config
-from coop_slam.descriptors import DescriptorError, hamming_matrix, hamming_rows
+from coop_slam.descriptors import DescriptorError, hamming_matrix, hamming_rows, most_distinctive
 from coop_slam.errors import ConfigError
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -106,6 +106,32 @@ def test_popcount_kernel_matches_descriptors_module():
     # hamming_rows (SWAR popcount) against hamming_matrix (an independent BLAS bit product).
     assert np.array_equal(hamming_rows(a, b), np.diag(hamming_matrix(a, b)))
     assert hamming_rows(a[:1], b[:1])[0] == 256
+
+
+def test_the_most_distinctive_descriptor_has_the_least_median_distance():
+    """Against the definition written out with hamming_matrix, on rows of 0..8 descriptors (near
+    copies of one another, so ties are common: the first wins); and a case worked by hand."""
+    rng = np.random.default_rng(7)
+    n, m = 300, 8
+    base = rng.integers(0, 256, (n, 1, 32), dtype=np.uint8)
+    noise = rng.integers(0, 256, (n, m, 32), dtype=np.uint8) * (rng.random((n, m, 32)) < 0.05)
+    descs = np.ascontiguousarray(base ^ noise.astype(np.uint8))
+    valid = np.arange(m)[None, :] < rng.integers(0, m + 1, n)[:, None]
+    got = most_distinctive(descs.view(np.uint64), valid)
+    for i in range(n):
+        idx = np.flatnonzero(valid[i])
+        if len(idx) == 0:
+            assert got[i] == 0
+            continue
+        d = np.sort(hamming_matrix(descs[i, idx], descs[i, idx]), axis=1)
+        assert got[i] == idx[np.argmin(d[:, (len(idx) - 1) // 2])]
+    # a, a' (1 bit apart) and b (far): a and a' tie on the median (1 bit), a comes first.
+    a = np.zeros(32, np.uint8)
+    a2, b = a.copy(), np.full(32, 255, np.uint8)
+    a2[0] = 1
+    row = np.stack([b, a, a2, b])[None]
+    valid = np.array([[True, True, True, False]])
+    assert most_distinctive(row.view(np.uint64), valid)[0] == 1
 
 
 def test_tf_idf_weights(world):

@@ -134,6 +134,35 @@ def hamming(a, b) -> int:
     return total
 
 
+@njit(cache=True, nogil=True)
+def most_distinctive(words, valid):
+    """Per row of up to m descriptors (``words``: (n, m, 4) uint64 words; ``valid``: (n, m) which
+    are there), the index of the one with the least median Hamming distance to the row's
+    descriptors (itself included; the lower median of an even count; ties: the first); 0 for a
+    row without any. (ORB-SLAM's distinctive descriptor of a map point.)"""
+    n, m = valid.shape
+    best = np.zeros(n, np.int64)
+    dist = np.empty(m, np.int64)
+    for i in range(n):
+        n_valid = 0
+        for a in range(m):
+            n_valid += valid[i, a]
+        k = (max(n_valid, 1) - 1) // 2
+        least = -1
+        for a in range(m):
+            if not valid[i, a]:
+                continue
+            count = 0
+            for b in range(m):
+                if valid[i, b]:
+                    dist[count] = hamming(words[i, a], words[i, b])
+                    count += 1
+            median = np.sort(dist[:count])[k]
+            if least < 0 or median < least:
+                least, best[i] = median, a
+    return best
+
+
 def hamming_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise Hamming distance between equally long descriptor arrays (N, 32) -> (N,)."""
     x = as_descriptors(a, "a").view(np.uint64) ^ as_descriptors(b, "b").view(np.uint64)

@@ -1,6 +1,7 @@
 """The odometry's compiled kernels (numba: the pose optimization, the projection and its search,
-the stereo matching, the local BA and the vocabulary's descent for place signatures), compiled
-before the first frame rather than on it; and the compiled extraction's first call.
+the stereo matching, the local BA, a map point's distinctive descriptor and the vocabulary's
+descent for place signatures), compiled before the first frame rather than on it; and the
+compiled extraction's first call.
 
 numba compiles a kernel on its first call (about 5 s for both here) and keeps the machine code in
 its cache beside the sources, so later starts load it (a tenth of a second). ``scripts/setup``
@@ -12,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..bow import vocabulary
+from ..descriptors import most_distinctive
 from ..optim import schur_ba
 from .config import VoConfig
 from .features import FrameFeatures, OrbExtractor, OrbKeypoints, level_images, orb_level_scales32
@@ -47,3 +49,4 @@ def warm_up() -> None:
     texture = np.random.default_rng(0).integers(0, 256, (240, 320), dtype=np.uint8)
     OrbExtractor(VoConfig(), None).extract_images([texture, texture])
     match_stereo(kps, kps, levels, levels, scales, 500.0, VoConfig())
+    most_distinctive(np.zeros((1, 8, 4), np.uint64), np.ones((1, 8), bool))  # local mapping's

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..descriptors import hamming_rows
+from ..descriptors import most_distinctive
 from .dense_depth import resolved
 
 
@@ -329,16 +329,7 @@ class Map:
         descs[row, rank] = self.gather(kf_ids, idx, "descriptors")
         angles[row, rank] = self.gather(kf_ids, idx, "angle_deg")
         valid[row, rank] = True
-        a = np.broadcast_to(descs[:, :, None, :], (n, max_obs, max_obs, 32)).reshape(-1, 32)
-        b = np.broadcast_to(descs[:, None, :, :], (n, max_obs, max_obs, 32)).reshape(-1, 32)
-        d = hamming_rows(a, b).reshape(n, max_obs, max_obs).astype(float)
-        d[~(valid[:, None, :] & valid[:, :, None])] = np.inf
-        d_sorted = np.sort(d, axis=2)
-        n_valid = np.maximum(valid.sum(1), 1)
-        med = np.take_along_axis(
-            d_sorted, np.broadcast_to(((n_valid - 1) // 2)[:, None, None], (n, max_obs, 1)), 2
-        )[:, :, 0]
-        best = np.argmin(np.where(valid, med, np.inf), axis=1)
+        best = most_distinctive(descs.view(np.uint64), valid)  # compiled, without Python's lock
         has = valid.any(1)
         pts.normal[pids[has]] = normals[has] / np.maximum(norm[has], 1e-12)
         pts.max_dist[pids] = max_dist
