@@ -4,8 +4,9 @@ keyframes, pose, TF, path and cloud.
 Composed of small parts: :mod:`.camera_input` (camera infos, image pairs, the newest frame to the
 tracking thread), the odometry (:class:`coop_slam.vo.pipeline.VisualOdometry`, tracked here in
 one thread), :mod:`.uplink_bridge` (keyframe messages to the server and its answers),
-:mod:`.pose_output` (pose, TF, path, cloud, the team map's corrections) and :mod:`.team_cues`
-(marker sightings, asking the server when lost).
+:mod:`.pose_output` (pose, TF, path, cloud, the team map's corrections), :mod:`.team_cues`
+(marker sightings, asking the server when lost) and :mod:`.frame_outputs` (a tracked frame's
+outputs and stats, in frame order from a thread of their own).
 
 Robot k's topics live under ``/robot_k`` and its frames are ``robot_k/...``, whatever namespace the
 node is started in: the server finds a robot by its id alone. A monocular map has no metric scale:
@@ -38,6 +39,7 @@ from ..vo.shared_work import shared_worker
 from ..vo.types import STATE_INITIALIZING
 from .camera_input import CameraInput
 from .convert import description_to_msg
+from .frame_outputs import FrameOutputs, TrackedFrame
 from .log_bridge import forward_core_logs
 from .params import client_params
 from .pose_output import PoseOutput
@@ -51,7 +53,6 @@ FRAMES_COMING_S = 0.2  # a frame within this long [s, wall]: the camera is runni
 class ClientNode:
     def __init__(self):
         from coop_slam.msg import FrameStats, MapCorrection
-        from coop_slam.msg import RobotDescription as RobotDescriptionMsg
 
         p = client_params(rospy.get_param("~", {}))
         self.robot_id = p.robot_id
@@ -109,26 +110,7 @@ class ClientNode:
         self.uplink.flush_now = self._flush_uplink
         # Keyframes a budget sent as signatures only get no pose back: they follow their neighbours
         self.pose.shared.server_holds = self.uplink.engine.planner.holds
-        markers = load_yaml_config(
-            MarkerConfig, p.config, "markers", layered(preset, "markers", p.markers)
-        )
-        # Latched: the server places sightings of our marker with our own mounts.
-        self.pub_description = rospy.Publisher(
-            f"/{name}/description", RobotDescriptionMsg, queue_size=1, latch=True
-        )
-        self.pub_description.publish(
-            description_to_msg(describe(self.robot_id, sensor, self.T_base_cam, markers, p.camera))
-        )
-        self.cues = TeamCues(
-            self.robot_id,
-            self.T_base_cam,
-            MarkerDetector(markers),
-            p.marker_every_frames,
-            self._vocabulary,
-            lambda: self.uplink.engine.segment_base,
-            self.pose.cam_frame,
-            detect_beside=not self.wait_for_mapping,  # lock-step: the same sightings every run
-        )
+        self.cues = self._team_cues(p, preset)
         # Ready before subscribing to the camera: the player waits for that, so no frame comes
         # while the kernels and the BA process load.
         self._ready_before_frames()
@@ -142,12 +124,49 @@ class ClientNode:
             self._camera_changed,
             self._frame_not_tracked,
         )
+        self.outputs = FrameOutputs(
+            name,
+            self.lock,
+            self.pose,
+            self.cues,
+            self.pub_stats.publish,
+            self._counters,
+            lambda text: self.rejects.reject(self.camera.topics["image"], text),
+            beside=not self.wait_for_mapping,
+        )
         threading.Thread(target=self._uplink_loop, daemon=True).start()
         threading.Thread(target=self._track_frames, daemon=True).start()
         self.sub_corr = rospy.Subscriber(
             f"/{name}/correction", MapCorrection, self._on_correction, queue_size=5
         )
         rospy.loginfo("client %s (%s): waiting for %s", name, sensor, self.camera.describe())
+
+    def _team_cues(self, p, preset) -> TeamCues:
+        """Our description (latched: the server places sightings of our marker with our own
+        mounts) and the marker sightings and questions to the server."""
+        from coop_slam.msg import RobotDescription as RobotDescriptionMsg
+
+        markers = load_yaml_config(
+            MarkerConfig, p.config, "markers", layered(preset, "markers", p.markers)
+        )
+        self.pub_description = rospy.Publisher(
+            f"/{self.name}/description", RobotDescriptionMsg, queue_size=1, latch=True
+        )
+        self.pub_description.publish(
+            description_to_msg(
+                describe(self.robot_id, self.sensor, self.T_base_cam, markers, p.camera)
+            )
+        )
+        return TeamCues(
+            self.robot_id,
+            self.T_base_cam,
+            MarkerDetector(markers),
+            p.marker_every_frames,
+            self._vocabulary,
+            lambda: self.uplink.engine.segment_base,
+            self.pose.cam_frame,
+            detect_beside=not self.wait_for_mapping,  # lock-step: the same sightings every run
+        )
 
     def _ready_before_frames(self) -> None:
         """What the first frames would otherwise wait for or be stopped by."""
@@ -208,6 +227,7 @@ class ClientNode:
         stats = self._FrameStats(robot_id=self.robot_id, tracking_ok=False)
         stats.header.stamp = stamp
         self.camera.wait_for_camera()
+        frame = None
         try:
             with self.lock:
                 image, second = self.camera.decode(image_msg, second_msg)
@@ -224,17 +244,19 @@ class ClientNode:
                 stats.track_ms, stats.tracking_ok = res.track_ms, bool(res.ok)
                 self.cues.maybe_ask(self.vo)
                 self._hand_to_uplink(stamp.to_sec())
-                self.pose.frame(stamp, res, self.vo, self.uplink.engine.kf_id_base)
-                self.cues.sightings(self.frames, stamp, image, res, self.vo, self.camera.camera.K)
+                frame = TrackedFrame(
+                    stamp,
+                    res,
+                    self.vo,
+                    self.uplink.engine.kf_id_base,
+                    self.frames,
+                    image,
+                    self.camera.camera.K,
+                )
         except CoopSlamError as exc:
             self.rejects.reject(self.camera.topics["image"], str(exc))
         finally:
-            # Counters on every frame's stats, a rejected one's too: the recorder takes a drop in
-            # keyframes_sent for a restarted client. Live, the uplink's thread may still be on
-            # this frame's events: the counters can be a frame behind (they only grow).
-            with self.lock:
-                self._counters(stats)
-            self.pub_stats.publish(stats)
+            self.outputs.put(frame, stats)  # pose, TF, path, cloud, sightings, stats
 
     def _after_mapping(self, stats) -> None:
         stats.mapping_backlog = min(self.vo.mapping_backlog, 65535)
@@ -342,6 +364,7 @@ class ClientNode:
 
     def shutdown(self) -> None:
         self.camera.slot.close()
+        self.outputs.drain(2.0)  # the last frames' outputs, if they go in time
         with self.lock:
             if self.vo is not None:
                 self._uplink_jobs.join()
