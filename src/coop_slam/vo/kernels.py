@@ -10,6 +10,8 @@ waits for the compiler."""
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from ..bow import vocabulary
@@ -21,9 +23,22 @@ from .matching import Projection, project_points, search_by_projection
 from .pose_opt import optimize_pose
 from .stereo_matching import match_stereo
 
+# Once a process: an odometry made when the first frame has come (a client's) then takes ~5 ms,
+# not the ~15-45 ms of calling every kernel again.
+_WARM: list = []
+_WARM_LOCK = threading.Lock()
+
 
 def warm_up() -> None:
-    """Call each kernel once on a tiny problem (compiles it, or loads it from the cache)."""
+    """Call each kernel once on a tiny problem (compiles it, or loads it from the cache); once a
+    process."""
+    with _WARM_LOCK:
+        if not _WARM:
+            _call_each_kernel()
+            _WARM.append(True)
+
+
+def _call_each_kernel() -> None:
     vocabulary.warm_up()
     schur_ba.warm_up()  # the local BA's (its process warms up on its own; this fills the cache)
     K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
