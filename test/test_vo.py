@@ -814,6 +814,10 @@ def test_vo_config_typos_and_bad_ranges_are_rejected():
         load_config(VoConfig, {"n_feature": 10})
     with pytest.raises(ConfigError, match="min_depth_m"):
         load_config(VoConfig, {"min_depth_m": 5.0, "max_depth_m": 1.0})
+    # The extraction orients keypoints on the level image itself: a border narrower than the
+    # orientation patch would read outside it.
+    with pytest.raises(ConfigError, match="edge_threshold_px"):
+        load_config(VoConfig, {"features": {"edge_threshold_px": 10}})
 
 
 # --- real data ------------------------------------------------------------------------------------

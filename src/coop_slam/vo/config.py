@@ -51,6 +51,11 @@ class FeatureConfig:
             "vo.features.fast_threshold_first must be in 0..255",
         )
         require(self.grid_cell_px >= 8, "vo.features.grid_cell_px must be >= 8")
+        require(
+            self.edge_threshold_px >= 16,
+            "vo.features.edge_threshold_px must be >= 16 (a keypoint's orientation patch has a "
+            "15 px radius)",
+        )
 
 
 @dataclass

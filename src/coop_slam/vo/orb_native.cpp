@@ -265,6 +265,9 @@ class OrbFrameExtractor {
         disc_(disc_half_widths(patch_px / 2)) {
     if (wanted_.empty() || scales32_.size() != wanted_.size() || cell_px_.size() != wanted_.size())
       throw std::invalid_argument("wanted, scales32 and cell_px need one entry per level (>= 1)");
+    // The orientation and Harris score read the level image around each keypoint.
+    if (patch_px_ < 8 || edge_px_ < patch_px_ / 2 + 1)
+      throw std::invalid_argument("edge_threshold_px must exceed the patch radius (patch_px / 2)");
   }
 
   py::list extract(const py::list &arrays) {
