@@ -86,9 +86,9 @@ class FrameOutputs:
         try:
             with self.lock:
                 if frame is not None:
-                    f = frame
-                    self.pose.frame(f.stamp, f.result, f.vo, f.kf_id_base)
-                    self.cues.sightings(f.frames, f.stamp, f.image, f.result, f.vo, f.K)
+                    stamp, res, vo = frame.stamp, frame.result, frame.vo
+                    self.pose.frame(stamp, res, vo, frame.kf_id_base)
+                    self.cues.sightings(frame.frames, stamp, frame.image, res, vo, frame.K)
                 # Counters on every frame's stats, a rejected one's too: the recorder takes a
                 # drop in keyframes_sent for a restarted client. Live, the uplink's thread may
                 # still be on this frame's events: the counters can be a frame behind (they only

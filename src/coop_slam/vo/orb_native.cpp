@@ -300,9 +300,11 @@ class OrbFrameExtractor {
     return static_cast<double>(coord * scales32_[level]);
   }
 
-  cv::Ptr<cv::ORB> orb(int level, int threshold) const {
+  // The one-level ORB that describes a level's kept keypoints (it detects none: its FAST
+  // threshold and Harris scoring play no part).
+  cv::Ptr<cv::ORB> describer(int level) const {
     return cv::ORB::create(std::max(wanted_[level], 1), static_cast<float>(scale_factor_), 1,
-                           edge_px_, 0, 2, cv::ORB::HARRIS_SCORE, patch_px_, threshold);
+                           edge_px_, 0, 2, cv::ORB::HARRIS_SCORE, patch_px_, fast_);
   }
 
   // One pass of items, handed out in order to whichever thread is free: each image's pyramid
@@ -378,7 +380,7 @@ class OrbFrameExtractor {
           for (auto &kp : kps)
             kp.angle =
                 centroid_angle(image.levels[level], cvRound(kp.pt.x), cvRound(kp.pt.y), disc_);
-          orb(level, fast_)->compute(image.levels[level], kps, image.descriptors[level]);
+          describer(level)->compute(image.levels[level], kps, image.descriptors[level]);
           image.described[level] = kps;
         }
       }

@@ -79,7 +79,6 @@ class _Pair:
     row), and the matching of a range of left keypoints."""
 
     def __init__(self, left, right, left_levels, right_levels, scales, fx, config: VoConfig):
-        self.left, self.right = left, right
         # tuples of C-ordered images: a compiled loop indexes them by level
         self.left_levels = tuple(np.ascontiguousarray(img) for img in left_levels)
         self.right_levels = tuple(np.ascontiguousarray(img) for img in right_levels)
